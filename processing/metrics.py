@@ -1,0 +1,96 @@
+"""Accuracy metrics: the paper's PI, SI, DSC (eqs. 18-20), ATE, and defect matching."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class SegmentationScores:
+    """Pixel-wise precision (PI), sensitivity (SI) and Dice (DSC)."""
+
+    pi: float
+    si: float
+    dsc: float
+
+
+def segmentation_scores(pred: NDArray[np.bool_], truth: NDArray[np.bool_], *, tolerance_px: int = 0) -> SegmentationScores:
+    """PI = TP/(TP+FP), SI = TP/(TP+FN), DSC = 2TP/(2TP+FP+FN) (paper eqs. 18-20).
+
+    With ``tolerance_px`` > 0 a predicted pixel counts as true within that distance of a
+    true pixel, and a true pixel as found within that distance of a predicted one.
+    """
+    if pred.shape != truth.shape:
+        raise ValueError(f"pred {pred.shape} and truth {truth.shape} differ in shape")
+    p, t = pred.astype(bool), truth.astype(bool)
+    if tolerance_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * tolerance_px + 1,) * 2)
+        t_near = cv2.dilate(t.astype(np.uint8), k) > 0
+        p_near = cv2.dilate(p.astype(np.uint8), k) > 0
+        tp_p, fp = int((p & t_near).sum()), int((p & ~t_near).sum())
+        tp_t, fn = int((t & p_near).sum()), int((t & ~p_near).sum())
+    else:
+        tp_p = tp_t = int((p & t).sum())
+        fp, fn = int((p & ~t).sum()), int((~p & t).sum())
+    pi = tp_p / (tp_p + fp) if tp_p + fp else (1.0 if not t.any() else 0.0)
+    si = tp_t / (tp_t + fn) if tp_t + fn else 1.0
+    dsc = 2 * pi * si / (pi + si) if tolerance_px > 0 and pi + si else (
+        2 * tp_p / (2 * tp_p + fp + fn) if 2 * tp_p + fp + fn else 1.0
+    )
+    return SegmentationScores(round(pi, 6), round(si, 6), round(dsc, 6))
+
+
+def umeyama_alignment(src: NDArray[np.floating], dst: NDArray[np.floating]) -> NDArray[np.float64]:
+    """4x4 rigid transform (no scale) minimising ||T·src - dst|| over (N, 3) point sets."""
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    cov = (dst - mu_d).T @ (src - mu_s) / len(src)
+    U, _, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = mu_d - R @ mu_s
+    return T
+
+
+def absolute_trajectory_error(est: NDArray[np.floating], gt: NDArray[np.floating], *, align: bool = True) -> float:
+    """RMSE in metres of trajectory positions (N, 4, 4) after rigid alignment (TUM ATE)."""
+    if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
+        raise ValueError(f"est {est.shape} and gt {gt.shape} must both be (N, 4, 4)")
+    pe, pg = est[:, :3, 3], gt[:, :3, 3]
+    if align and len(pe) >= 3:
+        T = umeyama_alignment(pe, pg)
+        pe = pe @ T[:3, :3].T + T[:3, 3]
+    return float(np.sqrt(np.mean(np.sum((pe - pg) ** 2, axis=1))))
+
+
+@dataclass(frozen=True)
+class Box:
+    """An axis-aligned box in world metres with a defect class."""
+
+    defect_class: str
+    x: float
+    y: float
+    w: float
+    h: float
+
+
+def match_defects(found: Sequence[Box], truth: Sequence[Box], *, margin_m: float = 0.01) -> int:
+    """Number of true defects overlapped (within ``margin_m``) by a found defect of their class."""
+    matched = 0
+    for t in truth:
+        for f in found:
+            if f.defect_class != t.defect_class:
+                continue
+            if (f.x <= t.x + t.w + margin_m and t.x <= f.x + f.w + margin_m
+                    and f.y <= t.y + t.h + margin_m and t.y <= f.y + f.h + margin_m):
+                matched += 1
+                break
+    return matched

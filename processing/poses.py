@@ -1,0 +1,69 @@
+"""Rigid transforms (2D and 3D) and the TUM trajectory text format."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+
+def se2_matrix(x: float, y: float, yaw: float) -> NDArray[np.float64]:
+    """3x3 homogeneous matrix of a planar pose (x, y, yaw in radians)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+def se2_to_se3(x: float, y: float, yaw: float, z: float = 0.0) -> NDArray[np.float64]:
+    """4x4 matrix of a planar pose rotated about the world z axis."""
+    T = np.eye(4)
+    T[:2, :2] = se2_matrix(x, y, yaw)[:2, :2]
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def compose_se2(a: NDArray[np.floating], b: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Compose planar poses given as (x, y, yaw) rows: a ∘ b."""
+    m = se2_matrix(*a) @ se2_matrix(*b)
+    return np.array([m[0, 2], m[1, 2], np.arctan2(m[1, 0], m[0, 0])])
+
+
+def format_tum(timestamps: NDArray[np.floating], poses: NDArray[np.floating]) -> str:
+    """TUM text (``t tx ty tz qx qy qz qw`` per line) of (N,) times and (N, 4, 4) poses."""
+    if len(timestamps) != len(poses):
+        raise ValueError(f"timestamps ({len(timestamps)}) and poses ({len(poses)}) differ in length")
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for t, T in zip(timestamps, poses):
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
+        tx, ty, tz = T[:3, 3]
+        lines.append(f"{t:.6f} {tx:.6f} {ty:.6f} {tz:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}")
+    return "\n".join(lines) + "\n"
+
+
+def parse_tum(text: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Parse TUM text into (N,) timestamps and (N, 4, 4) poses; raise ValueError on bad lines."""
+    times, poses = [], []
+    for lineno, line in enumerate(text.splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) != 8:
+            raise ValueError(f"TUM line {lineno}: expected 8 numbers, got {len(parts)}")
+        try:
+            t, tx, ty, tz, qx, qy, qz, qw = (float(p) for p in parts)
+        except ValueError:
+            raise ValueError(f"TUM line {lineno}: not a number") from None
+        norm = np.linalg.norm([qx, qy, qz, qw])
+        if not np.isfinite(norm) or norm < 1e-9:
+            raise ValueError(f"TUM line {lineno}: quaternion has zero length")
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
+        T[:3, 3] = (tx, ty, tz)
+        times.append(t)
+        poses.append(T)
+    return np.array(times), np.array(poses).reshape(-1, 4, 4)
+
+
+def yaw_of(T: NDArray[np.floating]) -> float:
+    """Rotation about z of a 4x4 pose, in radians."""
+    return float(np.arctan2(T[1, 0], T[0, 0]))

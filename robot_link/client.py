@@ -1,0 +1,238 @@
+"""The on-board link client: sends messages to the ground station and resends until acknowledged."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+import uuid
+from collections import OrderedDict
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any
+
+import websockets
+from websockets.asyncio.client import ClientConnection, connect
+
+from robot_link.protocol import (
+    Message,
+    MessageType,
+    ProtocolError,
+    decode_message,
+    encode_message,
+)
+
+log = logging.getLogger(__name__)
+
+CommandHandler = Callable[[Message], Awaitable[None] | None]
+
+
+class LinkError(RuntimeError):
+    """The link to the ground station failed in a way resending cannot fix."""
+
+
+@dataclass
+class LinkStats:
+    """Counters the client keeps about its link."""
+
+    sent: int = 0
+    resent: int = 0
+    acked: int = 0
+    duplicates: int = 0
+    reconnects: int = 0
+    errors: int = 0
+    last_ack_latency_s: float = 0.0
+
+
+def robot_ws_url(server_url: str) -> str:
+    """Websocket address of the robot endpoint from the ground station's base URL."""
+    base = server_url.rstrip("/")
+    if base.startswith("https://"):
+        base = "wss://" + base[len("https://") :]
+    elif base.startswith("http://"):
+        base = "ws://" + base[len("http://") :]
+    elif not base.startswith(("ws://", "wss://")):
+        raise ValueError(f"server_url must start with http:// or https://, got {server_url!r}")
+    return base + "/ws/robot"
+
+
+class RobotLink:
+    """Keeps a websocket to the ground station; every message is kept until acknowledged.
+
+    ``send`` returns once the message is queued (at most ``window`` unacknowledged
+    messages at a time); on a dropped connection the client reconnects with exponential
+    backoff and resends everything not yet acknowledged, in sequence order.
+    """
+
+    def __init__(
+        self,
+        server_url: str,
+        token: str,
+        *,
+        session_id: uuid.UUID | None = None,
+        window: int = 64,
+        on_command: CommandHandler | None = None,
+        max_backoff_s: float = 5.0,
+    ) -> None:
+        self.url = robot_ws_url(server_url)
+        self.token = token
+        self.session_id = session_id or uuid.uuid4()
+        self.window = window
+        self.on_command = on_command
+        self.max_backoff_s = max_backoff_s
+        self.stats = LinkStats()
+        self._next_seq = 1
+        self._unacked: OrderedDict[int, tuple[bytes, float]] = OrderedDict()
+        self._space = asyncio.Condition()
+        self._ws: ClientConnection | None = None
+        self._connected = asyncio.Event()
+        self._closing = False
+        self._task: asyncio.Task[None] | None = None
+        self._fatal: LinkError | None = None
+
+    async def start(self) -> None:
+        """Connect in the background (returns at once; sends wait for the connection)."""
+        self._task = asyncio.create_task(self._run(), name="robot-link")
+
+    async def close(self) -> None:
+        """Stop the link (unacknowledged messages are dropped: call ``flush`` first)."""
+        self._closing = True
+        if self._ws is not None:
+            await self._ws.close()
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except (asyncio.CancelledError, Exception):
+                pass
+
+    def next_seq(self) -> int:
+        """Take the next sequence number of this session."""
+        seq = self._next_seq
+        self._next_seq += 1
+        return seq
+
+    async def send(
+        self, mtype: MessageType, meta: dict[str, Any] | None = None, payload: bytes = b""
+    ) -> int:
+        """Queue one message for reliable delivery and return its sequence number."""
+        self._raise_if_failed()
+        message = Message(mtype, self.session_id, self.next_seq(), time.time(), meta or {}, payload)
+        data = encode_message(message)
+        async with self._space:
+            await self._space.wait_for(lambda: len(self._unacked) < self.window or self._fatal is not None)
+        self._raise_if_failed()
+        self._unacked[message.seq] = (data, time.monotonic())
+        await self._transmit(data)
+        return message.seq
+
+    async def notify(self, mtype: MessageType, meta: dict[str, Any], *, seq: int) -> None:
+        """Send a message that needs no acknowledgement (COMMAND_ACK); dropped if offline."""
+        data = encode_message(Message(mtype, self.session_id, seq, time.time(), meta))
+        await self._transmit(data)
+
+    async def flush(self, timeout_s: float = 60.0) -> None:
+        """Wait until every message sent so far is acknowledged."""
+        async with self._space:
+            ok = await asyncio.wait_for(
+                self._space.wait_for(lambda: not self._unacked or self._fatal is not None),
+                timeout_s,
+            )
+        self._raise_if_failed()
+        if not ok:
+            raise LinkError(f"{len(self._unacked)} messages still unacknowledged")
+
+    @property
+    def pending(self) -> int:
+        """Messages sent but not yet acknowledged."""
+        return len(self._unacked)
+
+    def _raise_if_failed(self) -> None:
+        if self._fatal is not None:
+            raise self._fatal
+
+    async def _transmit(self, data: bytes) -> None:
+        ws = self._ws
+        if ws is None:
+            return  # sent on reconnect
+        try:
+            await ws.send(data)
+            self.stats.sent += 1
+        except websockets.ConnectionClosed:
+            pass  # the reader notices and reconnects; the message stays queued
+
+    async def _run(self) -> None:
+        backoff = 0.1
+        while not self._closing:
+            try:
+                headers = {"Authorization": f"Bearer {self.token}"}
+                async with connect(
+                    self.url, additional_headers=headers, max_size=2**20, open_timeout=10
+                ) as ws:
+                    self._ws = ws
+                    backoff = 0.1
+                    await self._resend_all(ws)
+                    self._connected.set()
+                    await self._read(ws)
+            except websockets.InvalidStatus as exc:
+                status = exc.response.status_code
+                if status in (401, 403):
+                    await self._fail(LinkError(f"ground station refused the robot token (HTTP {status})"))
+                    return
+                log.warning("link: ground station answered HTTP %s; retrying", status)
+            except (OSError, websockets.WebSocketException, asyncio.TimeoutError) as exc:
+                if self._closing:
+                    return
+                log.info("link: connection lost (%s); reconnecting in %.1f s", exc, backoff)
+            finally:
+                self._ws = None
+                self._connected.clear()
+            if self._closing:
+                return
+            self.stats.reconnects += 1
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, self.max_backoff_s)
+
+    async def _fail(self, error: LinkError) -> None:
+        self._fatal = error
+        async with self._space:
+            self._space.notify_all()
+
+    async def _resend_all(self, ws: ClientConnection) -> None:
+        for data, _ in list(self._unacked.values()):
+            await ws.send(data)
+            self.stats.resent += 1
+
+    async def _read(self, ws: ClientConnection) -> None:
+        async for raw in ws:
+            if isinstance(raw, str):
+                log.warning("link: ignoring a text message from the ground station")
+                continue
+            try:
+                message = decode_message(raw)
+            except ProtocolError as exc:
+                log.warning("link: bad message from the ground station: %s", exc)
+                continue
+            await self._handle(message)
+
+    async def _handle(self, message: Message) -> None:
+        if message.type is MessageType.ACK:
+            entry = self._unacked.pop(message.seq, None)
+            if entry is not None:
+                self.stats.acked += 1
+                self.stats.last_ack_latency_s = time.monotonic() - entry[1]
+                if message.meta.get("status") == "duplicate":
+                    self.stats.duplicates += 1
+            async with self._space:
+                self._space.notify_all()
+        elif message.type is MessageType.ERROR:
+            self.stats.errors += 1
+            log.error("link: ground station rejected seq %d: %s", message.seq, message.meta.get("error"))
+            # A rejected message will never be accepted: drop it so flush() can finish.
+            self._unacked.pop(message.seq, None)
+            async with self._space:
+                self._space.notify_all()
+        elif message.type is MessageType.COMMAND and self.on_command is not None:
+            result = self.on_command(message)
+            if asyncio.iscoroutine(result):
+                await result

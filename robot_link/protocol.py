@@ -1,0 +1,239 @@
+"""The steelscan wire protocol: one binary websocket message per robot message.
+
+Layout (little-endian), see ``PROTOCOL.md``::
+
+    magic  "STLS"   4 bytes
+    version        u8
+    type           u8   (MessageType)
+    flags          u16  (reserved, must be 0)
+    session_id     16 bytes (UUID)
+    seq            u64  (per session, assigned by the sender)
+    timestamp      f64  (sender clock, seconds since the Unix epoch)
+    meta_len       u32
+    meta           meta_len bytes of UTF-8 JSON object
+    payload        the rest (JPEG, depth PNG, raw float32 ... depending on type)
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import struct
+import uuid
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+PROTOCOL_VERSION = 1
+MAGIC = b"STLS"
+HEADER = struct.Struct("<4sBBH16sQdI")
+HEADER_BYTES = HEADER.size
+MAX_MESSAGE_BYTES = 8 * 1024 * 1024
+MAX_META_BYTES = 64 * 1024
+
+
+class ProtocolError(ValueError):
+    """A message that does not follow the protocol; the text says what was wrong."""
+
+
+class MessageType(enum.IntEnum):
+    """What a message carries."""
+
+    SESSION_START = 1
+    SESSION_END = 2
+    FRAME = 3
+    CLOUD = 4
+    TELEMETRY = 5
+    COMMAND = 6
+    ACK = 7
+    ERROR = 8
+    COMMAND_ACK = 9
+
+
+class _Meta(BaseModel):
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+
+class Pose2D(BaseModel):
+    """Odometry pose of the robot on the surface: T_world_robot as (x, y, yaw)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    x: float
+    y: float
+    yaw: float
+
+
+class SessionStartMeta(_Meta):
+    structure: str = Field(min_length=1, max_length=200)
+    operator: str = Field(default="", max_length=200)
+    robot: str = Field(default="", max_length=200)
+    calibration: dict[str, Any] = Field(default_factory=dict)
+
+
+class SessionEndMeta(_Meta):
+    reason: str = Field(default="completed", max_length=200)
+    frames: int = Field(default=0, ge=0)
+    clouds: int = Field(default=0, ge=0)
+
+
+class FrameMeta(_Meta):
+    encoding: Literal["jpeg"] = "jpeg"
+    width: int = Field(gt=0, le=16384)
+    height: int = Field(gt=0, le=16384)
+    pose: Pose2D | None = None
+
+
+class CloudMeta(_Meta):
+    encoding: Literal["png16_depth_mm", "xyz_f32"]
+    width: int = Field(gt=0, le=8192)
+    height: int = Field(gt=0, le=8192)
+    fx: float | None = Field(default=None, gt=0)
+    fy: float | None = Field(default=None, gt=0)
+    cx: float | None = None
+    cy: float | None = None
+    pose: Pose2D | None = None
+
+
+class TelemetryMeta(_Meta):
+    pose: Pose2D | None = None
+    wheel_speed_mps: list[float] | None = Field(default=None, min_length=4, max_length=4)
+    wheel_distance_m: list[float] | None = Field(default=None, min_length=4, max_length=4)
+    ir_range_m: list[float] | None = Field(default=None, min_length=4, max_length=4)
+    battery_v: dict[str, float] | None = None
+
+
+class CommandMeta(_Meta):
+    cmd: Literal["drive", "stop", "estop", "resume", "capture", "lift", "auto_capture"]
+    args: dict[str, Any] = Field(default_factory=dict)
+
+
+class AckMeta(_Meta):
+    status: Literal["stored", "duplicate"]
+    of: str = ""
+
+
+class ErrorMeta(_Meta):
+    error: str
+
+
+class CommandAckMeta(_Meta):
+    cmd: str = ""
+    accepted: bool = True
+
+
+META_MODELS: dict[MessageType, type[_Meta]] = {
+    MessageType.SESSION_START: SessionStartMeta,
+    MessageType.SESSION_END: SessionEndMeta,
+    MessageType.FRAME: FrameMeta,
+    MessageType.CLOUD: CloudMeta,
+    MessageType.TELEMETRY: TelemetryMeta,
+    MessageType.COMMAND: CommandMeta,
+    MessageType.ACK: AckMeta,
+    MessageType.ERROR: ErrorMeta,
+    MessageType.COMMAND_ACK: CommandAckMeta,
+}
+
+JPEG_SOI = b"\xff\xd8"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@dataclass(frozen=True)
+class Message:
+    """One protocol message; ``meta`` is the validated JSON object."""
+
+    type: MessageType
+    session_id: uuid.UUID
+    seq: int
+    timestamp: float
+    meta: dict[str, Any] = field(default_factory=dict)
+    payload: bytes = b""
+
+
+def encode_message(message: Message) -> bytes:
+    """Serialise a message to its binary form (validating its meta first)."""
+    meta = _validate_meta(message.type, message.meta)
+    meta_bytes = json.dumps(meta, separators=(",", ":")).encode()
+    if len(meta_bytes) > MAX_META_BYTES:
+        raise ProtocolError(f"meta is {len(meta_bytes)} bytes, more than {MAX_META_BYTES}")
+    if not 0 <= message.seq < 2**64:
+        raise ProtocolError(f"seq must fit in u64, got {message.seq}")
+    header = HEADER.pack(
+        MAGIC,
+        PROTOCOL_VERSION,
+        int(message.type),
+        0,
+        message.session_id.bytes,
+        message.seq,
+        float(message.timestamp),
+        len(meta_bytes),
+    )
+    return header + meta_bytes + message.payload
+
+
+def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
+    """Parse and validate one binary message; raise ProtocolError saying what is wrong."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ProtocolError(f"expected a binary message, got {type(data).__name__}")
+    data = bytes(data)
+    if len(data) > max_bytes:
+        raise ProtocolError(f"message is {len(data)} bytes, more than the limit of {max_bytes}")
+    if len(data) < HEADER_BYTES:
+        raise ProtocolError(f"message is {len(data)} bytes, shorter than the {HEADER_BYTES}-byte header")
+    magic, version, type_code, flags, sid, seq, timestamp, meta_len = HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise ProtocolError(f"bad magic {magic!r}, expected {MAGIC!r}")
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(f"protocol version {version} is not supported (expected {PROTOCOL_VERSION})")
+    try:
+        mtype = MessageType(type_code)
+    except ValueError:
+        raise ProtocolError(f"unknown message type {type_code}") from None
+    if flags != 0:
+        raise ProtocolError(f"flags must be 0 in version {PROTOCOL_VERSION}, got {flags}")
+    if meta_len > MAX_META_BYTES or HEADER_BYTES + meta_len > len(data):
+        raise ProtocolError(f"meta length {meta_len} does not fit in a {len(data)}-byte message")
+    if timestamp != timestamp or abs(timestamp) > 1e11:  # NaN or absurd
+        raise ProtocolError(f"timestamp {timestamp} is not a valid time")
+    raw_meta = data[HEADER_BYTES : HEADER_BYTES + meta_len]
+    try:
+        meta_obj = json.loads(raw_meta.decode("utf-8")) if meta_len else {}
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ProtocolError(f"meta is not valid UTF-8 JSON: {exc}") from None
+    if not isinstance(meta_obj, dict):
+        raise ProtocolError(f"meta must be a JSON object, got {type(meta_obj).__name__}")
+    meta = _validate_meta(mtype, meta_obj)
+    payload = data[HEADER_BYTES + meta_len :]
+    _check_payload(mtype, meta, payload)
+    return Message(mtype, uuid.UUID(bytes=sid), seq, timestamp, meta, payload)
+
+
+def _validate_meta(mtype: MessageType, meta: dict[str, Any]) -> dict[str, Any]:
+    try:
+        model = META_MODELS[mtype].model_validate(meta)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"]) or "meta"
+        raise ProtocolError(f"{mtype.name} meta field '{where}': {first['msg']}") from None
+    return model.model_dump(mode="json", exclude_none=True)
+
+
+def _check_payload(mtype: MessageType, meta: dict[str, Any], payload: bytes) -> None:
+    if mtype is MessageType.FRAME:
+        if not payload.startswith(JPEG_SOI):
+            raise ProtocolError("FRAME payload is not a JPEG (missing FF D8 start marker)")
+    elif mtype is MessageType.CLOUD:
+        if meta["encoding"] == "png16_depth_mm":
+            if not payload.startswith(PNG_SIGNATURE):
+                raise ProtocolError("CLOUD payload with encoding png16_depth_mm is not a PNG")
+            if any(meta.get(k) is None for k in ("fx", "fy", "cx", "cy")):
+                raise ProtocolError("CLOUD with a depth image needs fx, fy, cx, cy in meta")
+        else:
+            expected = meta["width"] * meta["height"] * 12
+            if len(payload) != expected:
+                raise ProtocolError(
+                    f"CLOUD xyz_f32 payload is {len(payload)} bytes, expected "
+                    f"width*height*12 = {expected}"
+                )
+    elif payload:
+        raise ProtocolError(f"{mtype.name} messages carry no payload, got {len(payload)} bytes")

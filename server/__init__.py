@@ -1,0 +1,1 @@
+"""The steelscan ground station: ingest, storage, jobs, REST and the dashboard."""

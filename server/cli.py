@@ -1,0 +1,198 @@
+"""The ``steelscan`` command (see shared/spec/cli-contract.md)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import os
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from server.config import Settings
+from server.errors import CommandError
+
+
+def _settings(args: argparse.Namespace) -> Settings:
+    overrides = {}
+    if getattr(args, "data_dir", None):
+        overrides["data_dir"] = Path(args.data_dir)
+    return Settings(**overrides)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    """Run the ground station until interrupted."""
+    import uvicorn
+
+    from server.main import create_app
+
+    settings = _settings(args)
+    host = args.host or settings.host
+    port = args.port if args.port is not None else settings.port
+    uvicorn.run(create_app(settings), host=host, port=port, log_level="info", ws_max_size=settings.max_message_bytes + 1024)
+    return 0
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    """Run the simulated robot against a ground station."""
+    from robot_link.client import LinkError, RobotLink
+    from robot_link.sim.inspection import InspectionSim, SimConfig
+
+    token = args.token or os.environ.get("STEELSCAN_ROBOT_TOKEN")
+    if not token:
+        raise CommandError("a robot token is needed: --token or STEELSCAN_ROBOT_TOKEN (make one with 'steelscan admin create-robot NAME')")
+    config = SimConfig(seed=args.seed, lanes=args.lanes, time_scale=args.time_scale)
+
+    async def main() -> dict:
+        link = RobotLink(args.server, token)
+        await link.start()
+        sim = InspectionSim(link, config, progress=lambda f, m: logging.getLogger("sim").info("%3.0f%% %s", f * 100, m))
+        try:
+            result = await sim.run()
+            if not args.exit_when_done:
+                print(json.dumps(result.summary()), flush=True)
+                await asyncio.Event().wait()  # stay connected for commands until interrupted
+        finally:
+            await link.close()
+        return result.summary()
+
+    try:
+        summary = asyncio.run(main())
+    except (LinkError, ValueError, OSError) as exc:
+        raise CommandError(str(exc)) from None
+    print(json.dumps(summary), flush=True)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Run the ground station, the simulated robot and the jobs; print the summary."""
+    from server.demo import run_demo
+
+    settings = _settings(args)
+    return run_demo(settings, port=args.port, exit_when_done=args.exit_when_done, keep_serving=args.keep_serving,
+                    time_scale=args.time_scale, lanes=args.lanes, seed=args.seed)
+
+
+def cmd_create_robot(args: argparse.Namespace) -> int:
+    """Register a robot and print its token."""
+    from server.db import make_engine, make_sessionmaker, upgrade
+    from server.errors import Conflict
+    from server.robots import create_robot
+
+    settings = _settings(args)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.resolved_database_url()
+    upgrade(url)
+    try:
+        token = create_robot(make_sessionmaker(make_engine(url)), args.name)
+    except (Conflict, ValueError) as exc:
+        raise CommandError(str(exc)) from None
+    print(token)
+    return 0
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    """Segment defects in images."""
+    from server.commands import detect_images
+
+    detect_images([Path(p) for p in args.images], Path(args.out), method=args.method, px_per_mm=args.px_per_mm)
+    return 0
+
+
+def cmd_stitch(args: argparse.Namespace) -> int:
+    """Stitch a folder of frames."""
+    from server.commands import stitch_folder
+
+    stitch_folder(Path(args.frames_dir), Path(args.out), odometry=Path(args.odometry) if args.odometry else None, px_per_m=args.px_per_m)
+    return 0
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    """Register a folder of point clouds into a map."""
+    from server.commands import map_folder
+
+    map_folder(Path(args.clouds_dir), Path(args.out), odometry=Path(args.odometry) if args.odometry else None)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every sub-command."""
+    p = argparse.ArgumentParser(prog="steelscan", description="Ground station for steel-inspection climbing robots.")
+    p.add_argument("-v", "--verbose", action="store_true", help="log more")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("serve", help="run the ground station")
+    s.add_argument("--data-dir")
+    s.add_argument("--host")
+    s.add_argument("--port", type=int)
+    s.set_defaults(func=cmd_serve)
+
+    s = sub.add_parser("demo", help="ground station + simulated robot + processing, end to end")
+    s.add_argument("--data-dir")
+    s.add_argument("--port", type=int, default=0, help="0 = a free port")
+    s.add_argument("--exit-when-done", action="store_true")
+    s.add_argument("--keep-serving", action="store_true", help="with --exit-when-done: keep the server up after the summary")
+    s.add_argument("--time-scale", type=float, default=20.0, help="simulated seconds per wall second (0 = flat out)")
+    s.add_argument("--lanes", type=int, default=5)
+    s.add_argument("--seed", type=int, default=7)
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("sim", help="the simulated robot alone")
+    s.add_argument("--server", required=True, help="ground station base URL, http://host:port")
+    s.add_argument("--token")
+    s.add_argument("--exit-when-done", action="store_true")
+    s.add_argument("--time-scale", type=float, default=20.0)
+    s.add_argument("--lanes", type=int, default=5)
+    s.add_argument("--seed", type=int, default=7)
+    s.set_defaults(func=cmd_sim)
+
+    s = sub.add_parser("detect", help="crack/defect segmentation of images")
+    s.add_argument("images", nargs="+")
+    s.add_argument("--out", required=True)
+    s.add_argument("--method", default="proposed", choices=["proposed", "otsu", "sauvola"])
+    s.add_argument("--px-per-mm", type=float)
+    s.set_defaults(func=cmd_detect)
+
+    s = sub.add_parser("stitch", help="stitch a folder of downward-camera frames")
+    s.add_argument("frames_dir")
+    s.add_argument("--out", required=True)
+    s.add_argument("--odometry")
+    s.add_argument("--px-per-m", type=float)
+    s.set_defaults(func=cmd_stitch)
+
+    s = sub.add_parser("map", help="register a folder of point clouds into a 3D map")
+    s.add_argument("clouds_dir")
+    s.add_argument("--out", required=True)
+    s.add_argument("--odometry")
+    s.set_defaults(func=cmd_map)
+
+    admin = sub.add_parser("admin", help="robots (and, later, accounts)")
+    asub = admin.add_subparsers(dest="admin_command", required=True)
+    s = asub.add_parser("create-robot", help="register a robot and print its token")
+    s.add_argument("name")
+    s.add_argument("--data-dir")
+    s.set_defaults(func=cmd_create_robot)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``steelscan`` console script."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    for noisy in ("alembic", "httpx"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except CommandError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

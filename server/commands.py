@@ -1,0 +1,158 @@
+"""File-based commands (detect, stitch, map): read inputs, call ``processing``, write outputs.
+
+Every output is written atomically, so a failed command leaves no half-written file.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from processing.detection import detect_cracks, measure_defects
+from processing.mapping import register_clouds
+from processing.poses import format_tum, parse_tum, yaw_of
+from processing.stitching import stitch_frames
+from server.errors import CommandError
+from server.storage import write_atomic
+
+IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
+CLOUD_EXTS = {".ply", ".pcd"}
+
+
+def _read_image(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise CommandError(f"{path}: no such file")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CommandError(f"{path}: not an image OpenCV can read")
+    return img
+
+
+def _png(image: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise CommandError("could not encode PNG")
+    return buf.tobytes()
+
+
+def detect_images(images: list[Path], out: Path, *, method: str, px_per_mm: float | None) -> None:
+    """Write ``<stem>.png`` masks and ``defects.json`` for each image."""
+    if px_per_mm is not None and px_per_mm <= 0:
+        raise CommandError(f"--px-per-mm must be positive, got {px_per_mm}")
+    loaded = [(p, _read_image(p)) for p in images]  # read all first: bad input writes nothing
+    out.mkdir(parents=True, exist_ok=True)
+    records = []
+    for path, img in loaded:
+        try:
+            mask = detect_cracks(img, method=method)  # type: ignore[arg-type]
+        except ValueError as exc:
+            raise CommandError(f"{path}: {exc}") from None
+        mm_per_px = 1.0 / px_per_mm if px_per_mm else None
+        for d in measure_defects(mask, "crack", mm_per_px=mm_per_px, first_id=len(records) + 1):
+            rec = {"image": path.name, **{k: v for k, v in asdict(d).items() if v is not None}}
+            rec["bbox"] = list(d.bbox)
+            records.append(rec)
+        write_atomic(out / f"{path.stem}.png", _png(mask.astype(np.uint8) * 255))
+    write_atomic(out / "defects.json", json.dumps(records, indent=1).encode())
+
+
+def _list(folder: Path, exts: set[str], what: str) -> list[Path]:
+    if not folder.is_dir():
+        raise CommandError(f"{folder}: not a directory")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in exts)
+    if not files:
+        raise CommandError(f"{folder}: no {what} files ({', '.join(sorted(exts))})")
+    return files
+
+
+def _odometry(path: Path, n: int, what: str) -> np.ndarray:
+    try:
+        _, poses = parse_tum(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise CommandError(f"{path}: {exc}") from None
+    if len(poses) != n:
+        raise CommandError(f"{path}: {len(poses)} poses for {n} {what}; need one per {what[:-1]}")
+    return poses
+
+
+def stitch_folder(frames_dir: Path, out: Path, *, odometry: Path | None, px_per_m: float | None) -> None:
+    """Write ``mosaic.png`` and ``poses.csv`` for a folder of frames."""
+    files = _list(frames_dir, IMAGE_EXTS, "image")
+    frames = []
+    for p in files:
+        img = _read_image(p)
+        if img.dtype != np.uint8:
+            raise CommandError(f"{p}: expected an 8-bit image, got {img.dtype}")
+        if img.ndim == 2:
+            img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        elif img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+        if frames and img.shape != frames[0].shape:
+            raise CommandError(f"{p}: size {img.shape[1]}x{img.shape[0]} differs from the first frame's {frames[0].shape[1]}x{frames[0].shape[0]}")
+        frames.append(img)
+    poses = None
+    if odometry is not None:
+        if not px_per_m or px_per_m <= 0:
+            raise CommandError("--odometry needs a positive --px-per-m")
+        T = _odometry(odometry, len(frames), "frames")
+        poses = np.array([[t[0, 3], t[1, 3], yaw_of(t)] for t in T])
+    try:
+        mosaic = stitch_frames(frames, poses, px_per_m=px_per_m or 1.0)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    out.mkdir(parents=True, exist_ok=True)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["frame", "x", "y", "theta_deg"])
+    for p, (x, y, th) in zip(files, mosaic.frame_poses_px):
+        w.writerow([p.name, f"{x:.3f}", f"{y:.3f}", f"{th:.4f}"])
+    write_atomic(out / "mosaic.png", _png(mosaic.image))
+    write_atomic(out / "poses.csv", buf.getvalue().encode())
+
+
+def _read_cloud(path: Path, sensor: dict | None) -> np.ndarray:
+    import open3d as o3d
+
+    pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+    pts = np.asarray(pcd.points)
+    if pts.size == 0:
+        raise CommandError(f"{path}: no points (not a readable .ply/.pcd?)")
+    if sensor and len(pts) != sensor["width"] * sensor["height"]:
+        raise CommandError(f"{path}: {len(pts)} points, but sensor.json says {sensor['width']}x{sensor['height']}")
+    return pts
+
+
+def map_folder(clouds_dir: Path, out: Path, *, odometry: Path | None) -> None:
+    """Write ``map.ply`` and ``poses.tum`` for a folder of clouds."""
+    import open3d as o3d
+
+    files = _list(clouds_dir, CLOUD_EXTS, "point cloud")
+    sensor = None
+    if (clouds_dir / "sensor.json").is_file():
+        try:
+            sensor = json.loads((clouds_dir / "sensor.json").read_text())
+            int(sensor["width"]), int(sensor["height"])
+        except (ValueError, KeyError, TypeError) as exc:
+            raise CommandError(f"{clouds_dir / 'sensor.json'}: {exc}") from None
+    clouds = [_read_cloud(p, sensor) for p in files]
+    for p, c in zip(files, clouds):
+        if not np.isfinite(c).all(axis=1).any():
+            raise CommandError(f"{p}: every point is NaN or infinite")
+    init = _odometry(odometry, len(clouds), "clouds") if odometry else None
+    try:
+        result = register_clouds(clouds, init)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    out.mkdir(parents=True, exist_ok=True)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
+    tmp = out / ".map.tmp.ply"
+    if not o3d.io.write_point_cloud(str(tmp), pcd):
+        raise CommandError(f"could not write {out / 'map.ply'}")
+    tmp.replace(out / "map.ply")
+    write_atomic(out / "poses.tum", format_tum(np.arange(len(clouds), dtype=float), result.poses).encode())

@@ -1,0 +1,37 @@
+"""All settings of the ground station, from ``STEELSCAN_*`` environment variables."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+
+
+class Settings(BaseSettings):
+    """Ground-station settings; every field can be set as ``STEELSCAN_<NAME>``."""
+
+    model_config = SettingsConfigDict(env_prefix="STEELSCAN_", extra="ignore")
+
+    data_dir: Path = Field(default=Path("steelscan-data"), description="where sessions live")
+    database_url: str | None = Field(default=None, description="defaults to SQLite in data_dir")
+    host: str = "127.0.0.1"
+    port: int = 8765
+    max_message_bytes: int = 8 * 1024 * 1024
+    fsync: bool = Field(default=False, description="fsync every stored file (power-loss safety)")
+    job_workers: int = Field(default=2, ge=1, description="worker processes for processing jobs")
+    auto_process: bool = Field(default=True, description="run jobs when a session ends")
+    web_dir: Path = PROJECT_ROOT / "web"
+    live_queue: int = Field(default=8, description="frames buffered per watching browser")
+
+    def resolved_database_url(self) -> str:
+        """The database URL, SQLite in the data directory unless set."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'steelscan.db').resolve()}"
+
+    def sessions_dir(self) -> Path:
+        """Folder that holds one subfolder per inspection session."""
+        return self.data_dir / "sessions"

@@ -1,0 +1,171 @@
+"""``steelscan demo``: the ground station, a simulated robot over the network, the jobs, a score."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import socket
+import sys
+import threading
+import time
+from typing import Any
+
+import httpx
+import numpy as np
+import uvicorn
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from processing.metrics import Box, absolute_trajectory_error, match_defects
+from processing.poses import parse_tum
+from robot_link.client import RobotLink
+from robot_link.sim.inspection import InspectionSim, SimConfig, SimResult
+from server.config import Settings
+from server.db import make_engine, make_sessionmaker, upgrade
+from server.main import create_app
+from server.robots import create_robot
+
+log = logging.getLogger(__name__)
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port nobody listens on right now."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+class BackgroundServer:
+    """uvicorn serving the app in a thread, on loopback."""
+
+    def __init__(self, settings: Settings, port: int) -> None:
+        config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning",
+                                ws_max_size=settings.max_message_bytes + 1024, lifespan="on")
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
+        self.url = f"http://127.0.0.1:{port}"
+
+    def start(self, timeout_s: float = 60) -> None:
+        """Start and wait until it accepts requests."""
+        self.thread.start()
+        deadline = time.monotonic() + timeout_s
+        while not self.server.started:
+            if not self.thread.is_alive() or time.monotonic() > deadline:
+                raise RuntimeError("the ground station did not start")
+            time.sleep(0.05)
+
+    def stop(self) -> None:
+        """Ask uvicorn to exit and wait for it."""
+        self.server.should_exit = True
+        self.thread.join(timeout=20)
+
+
+def score(result: SimResult, session: dict[str, Any], defects: list[dict[str, Any]], trajectory_tum: str | None) -> dict[str, Any]:
+    """Compare what the station found with the simulator's ground truth."""
+    assert result.structure is not None
+    truth = [Box(d.defect_class, *d.bbox_m) for d in result.structure.defects]
+    found = [Box(d["defect_class"], d["world_x_m"], d["world_y_m"], d["world_w_m"], d["world_h_m"])
+             for d in defects if d.get("world_x_m") is not None]
+    out: dict[str, Any] = {"defects_found": len(defects), "defects_true": len(truth), "defects_matched": match_defects(found, truth)}
+    out["map_ate_m"] = None
+    if trajectory_tum:
+        _, est = parse_tum(trajectory_tum)
+        gt = np.array(result.cloud_poses_true)
+        if len(est) == len(gt):
+            out["map_ate_m"] = round(absolute_trajectory_error(est, gt), 4)
+    return out
+
+
+def run_demo(settings: Settings, *, port: int = 0, exit_when_done: bool = False, keep_serving: bool = False,
+             time_scale: float = 20.0, lanes: int = 5, seed: int = 7) -> int:
+    """Run everything; the last stdout line is the JSON summary when ``exit_when_done``."""
+    console = Console(stderr=True)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url_db = settings.resolved_database_url()
+    upgrade(url_db)
+    engine = make_engine(url_db)
+    token = create_robot(make_sessionmaker(engine), f"sim-{int(time.time() * 1000)}")
+    engine.dispose()
+    server = BackgroundServer(settings, port or free_port())
+    server.start()
+    print(f"Dashboard: {server.url}/   (API docs: {server.url}/docs)", flush=True)
+    console.print(f"[bold]steelscan demo[/]: data in {settings.data_dir.resolve()}")
+    try:
+        with Progress(TextColumn("{task.description:<28}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%  {task.fields[note]}"),
+                      TimeElapsedColumn(), console=console, transient=False) as progress:
+            sim_task = progress.add_task("robot inspection (live)", total=1.0, note="")
+            result = asyncio.run(_run_sim(server.url, token, SimConfig(seed=seed, lanes=lanes, time_scale=time_scale),
+                                          lambda f, m: progress.update(sim_task, completed=f, note=m)))
+            progress.update(sim_task, completed=1.0, note=f"{result.frames_sent} frames, {result.clouds_sent} clouds sent")
+            session = _wait_for_jobs(server.url, result.session_id, progress)
+        summary = _summary(server.url, settings, result, session)
+    except BaseException:
+        server.stop()
+        raise
+    print(json.dumps(summary), flush=True)
+    if exit_when_done and not keep_serving:
+        server.stop()
+        return 0
+    console.print(f"Serving {server.url}/ — press Ctrl-C to stop.")
+    try:
+        while server.thread.is_alive():
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    server.stop()
+    return 0
+
+
+async def _run_sim(url: str, token: str, config: SimConfig, progress: Any) -> SimResult:
+    link = RobotLink(url, token)
+    await link.start()
+    try:
+        return await InspectionSim(link, config, progress=progress).run()
+    finally:
+        await link.close()
+
+
+def _wait_for_jobs(url: str, session_id: str, progress: Progress, timeout_s: float = 600) -> dict[str, Any]:
+    tasks: dict[int, Any] = {}
+    deadline = time.monotonic() + timeout_s
+    with httpx.Client(base_url=url, timeout=30) as client:
+        while True:
+            session = client.get(f"/api/sessions/{session_id}").raise_for_status().json()
+            for job in session["jobs"]:
+                if job["id"] not in tasks:
+                    tasks[job["id"]] = progress.add_task(f"job: {job['kind']}", total=1.0, note="queued")
+                note = job["error"] or job["message"] or job["state"]
+                progress.update(tasks[job["id"]], completed=job["progress"] if job["state"] != "done" else 1.0, note=note[:60])
+            if session["jobs"] and all(j["state"] in ("done", "failed") for j in session["jobs"]):
+                return session
+            if time.monotonic() > deadline:
+                raise TimeoutError("processing jobs did not finish in time")
+            time.sleep(0.5)
+
+
+def _summary(url: str, settings: Settings, result: SimResult, session: dict[str, Any]) -> dict[str, Any]:
+    sid = result.session_id
+    with httpx.Client(base_url=url, timeout=30) as client:
+        defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000}).raise_for_status().json()["data"]
+        traj = client.get(f"/api/sessions/{sid}/results/trajectory.tum")
+    jobs = {j["kind"]: j for j in session["jobs"]}
+    mosaic = jobs.get("stitch", {}).get("result", {}).get("mosaic_path")
+    map_path = jobs.get("map", {}).get("result", {}).get("map_path")
+    summary: dict[str, Any] = {
+        "session_id": sid,
+        "frames": session["frames"],
+        "clouds": session["clouds"],
+        "frames_sent": result.frames_sent,
+        "clouds_sent": result.clouds_sent,
+        "mosaic_path": mosaic,
+        "map_path": map_path,
+        **score(result, session, defects, traj.text if traj.status_code == 200 else None),
+        "jobs": {k: j["state"] for k, j in jobs.items()},
+        "job_errors": {k: j["error"] for k, j in jobs.items() if j["error"]},
+        "dashboard_url": f"{url}/",
+        "report_json_url": f"{url}/api/sessions/{sid}/report.json",
+    }
+    if any(j["state"] == "failed" for j in jobs.values()):
+        print(f"warning: some jobs failed: {summary['job_errors']}", file=sys.stderr)
+    return summary

@@ -1,0 +1,21 @@
+"""The ground station's own exceptions; one handler maps them to HTTP."""
+
+
+class SteelscanError(Exception):
+    """Base of the ground station's errors."""
+
+
+class NotFound(SteelscanError):
+    """The thing asked for does not exist."""
+
+
+class Conflict(SteelscanError):
+    """The request clashes with what is stored."""
+
+
+class IngestError(SteelscanError):
+    """A robot message that is well-formed but cannot be stored (unknown session, ...)."""
+
+
+class CommandError(SteelscanError):
+    """Bad input to a command: printed as ``error: ...`` with exit status 2."""

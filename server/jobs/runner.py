@@ -1,0 +1,134 @@
+"""In-process job runner: a dispatcher thread feeding a pool of worker processes."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import threading
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.jobs.tasks import JOB_KINDS, PIPELINE, run_job
+from server.models import Job, JobState, utcnow
+
+log = logging.getLogger(__name__)
+
+
+class JobRunner:
+    """Runs queued jobs in worker processes once the jobs they depend on are done.
+
+    A job's failure (an exception, or its worker process dying) marks that job failed with
+    the reason and leaves the runner and the server running.
+    """
+
+    def __init__(self, factory: sessionmaker[Session], database_url: str, data_dir: str, workers: int) -> None:
+        self.factory = factory
+        self.database_url = database_url
+        self.data_dir = data_dir
+        self.workers = workers
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._running: dict[int, Future[None]] = {}
+        self._pool: ProcessPoolExecutor | None = None
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Fail jobs a crash interrupted, then start dispatching."""
+        with self.factory() as db:
+            for job in db.scalars(select(Job).where(Job.state == JobState.running)):
+                job.state = JobState.failed
+                job.error = "interrupted: the ground station stopped while the job ran"
+                job.finished_at = utcnow()
+            db.commit()
+        self._pool = self._new_pool()
+        self._thread = threading.Thread(target=self._loop, name="job-dispatcher", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop dispatching and shut the workers down."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+
+    def enqueue(self, session_id: str, kind: str, *, after: list[int] | None = None, params: dict[str, Any] | None = None) -> int:
+        """Queue one job; it runs when every job in ``after`` is done."""
+        if kind not in JOB_KINDS:
+            raise ValueError(f"kind must be one of {sorted(JOB_KINDS)}, got {kind!r}")
+        with self.factory() as db:
+            job = Job(session_id=session_id, kind=kind, params={**(params or {}), "after": after or []})
+            db.add(job)
+            db.commit()
+            job_id = job.id
+        self._wake.set()
+        return job_id
+
+    def enqueue_pipeline(self, session_id: str) -> list[int]:
+        """Queue every processing stage of a session in dependency order."""
+        ids: dict[str, int] = {}
+        for kind, deps in PIPELINE:
+            ids[kind] = self.enqueue(session_id, kind, after=[ids[d] for d in deps])
+        return list(ids.values())
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        ctx = multiprocessing.get_context("spawn")
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx)
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(timeout=1.0)
+            self._wake.clear()
+            try:
+                self._dispatch()
+            except Exception:  # the dispatcher must outlive any one bad row
+                log.exception("job dispatcher error")
+
+    def _dispatch(self) -> None:
+        with self.factory() as db:
+            queued = list(db.scalars(select(Job).where(Job.state == JobState.queued).order_by(Job.id)))
+            for job in queued:
+                if job.id in self._running or len(self._running) >= self.workers:
+                    continue
+                deps = [db.get(Job, d) for d in job.params.get("after", [])]
+                if any(d is not None and d.state == JobState.failed for d in deps):
+                    job.state = JobState.failed
+                    job.error = "a job it depends on failed"
+                    job.finished_at = utcnow()
+                    db.commit()
+                    continue
+                if any(d is not None and d.state != JobState.done for d in deps):
+                    continue
+                self._submit(job.id)
+
+    def _submit(self, job_id: int) -> None:
+        assert self._pool is not None
+        try:
+            future = self._pool.submit(run_job, job_id, self.database_url, self.data_dir)
+        except BrokenProcessPool:
+            self._pool = self._new_pool()
+            future = self._pool.submit(run_job, job_id, self.database_url, self.data_dir)
+        self._running[job_id] = future
+        future.add_done_callback(lambda f, jid=job_id: self._finished(jid, f))
+
+    def _finished(self, job_id: int, future: Future[None]) -> None:
+        self._running.pop(job_id, None)
+        exc = future.exception()
+        if exc is not None:
+            # run_job records its own failures; reaching here means the worker itself died.
+            log.error("job %d: worker failed: %r", job_id, exc)
+            with self.factory() as db:
+                job = db.get(Job, job_id)
+                if job is not None and job.state not in (JobState.done, JobState.failed):
+                    job.state = JobState.failed
+                    job.error = f"worker process failed: {exc!r}"
+                    job.finished_at = utcnow()
+                    db.commit()
+            if isinstance(exc, BrokenProcessPool):
+                self._pool = self._new_pool()
+        self._wake.set()

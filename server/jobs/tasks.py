@@ -1,0 +1,233 @@
+"""Job bodies, run in worker processes: load rows and files, call ``processing``, store results.
+
+This is the edge where files and rows become arrays and back; the algorithms themselves
+live in ``processing``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from sqlalchemy import delete, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from processing.detection import detect_corrosion, detect_cracks, measure_defects
+from processing.mapping import register_clouds
+from processing.poses import compose_se2, format_tum, se2_to_se3
+from processing.stitching import stitch_frames
+from robot_link.clouds import decode_cloud
+from server.models import Cloud, Defect, Frame, InspectionSession, Job, JobState, utcnow
+from server.storage import SessionFiles, write_atomic
+
+log = logging.getLogger(__name__)
+
+PIPELINE: list[tuple[str, list[str]]] = [("stitch", []), ("map", []), ("detect", ["stitch"])]
+OVERVIEW_MAX_PX = 2048
+
+
+@dataclass
+class JobContext:
+    """What a job body gets: its row's ids, the database and the data directory."""
+
+    job_id: int
+    session_id: str
+    factory: sessionmaker[Session]
+    files: SessionFiles
+
+    def progress(self, fraction: float, message: str = "") -> None:
+        """Record progress (0-1) and a short message."""
+        with self.factory() as db:
+            job = db.get(Job, self.job_id)
+            if job is not None:
+                job.progress = float(min(max(fraction, 0.0), 1.0))
+                job.message = message
+                db.commit()
+
+    def session(self) -> InspectionSession:
+        """The job's session row."""
+        with self.factory() as db:
+            s = db.get(InspectionSession, self.session_id)
+            if s is None:
+                raise ValueError(f"session {self.session_id} no longer exists")
+            return s
+
+    def results_dir(self) -> Path:
+        """Folder for this session's result files."""
+        d = self.files.results_dir(self.session_id)
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+
+@lru_cache(maxsize=4)
+def _factory(database_url: str) -> sessionmaker[Session]:
+    from server.db import make_engine, make_sessionmaker
+
+    return make_sessionmaker(make_engine(database_url))
+
+
+def run_job(job_id: int, database_url: str, data_dir: str) -> None:
+    """Run one job to completion, recording success or the reason it failed."""
+    factory = _factory(database_url)
+    with factory() as db:
+        job = db.get(Job, job_id)
+        if job is None:
+            return
+        job.state, job.started_at, job.progress, job.error = JobState.running, utcnow(), 0.0, None
+        db.commit()
+        kind, session_id = job.kind, job.session_id
+    ctx = JobContext(job_id, session_id, factory, SessionFiles(Path(data_dir)))
+    try:
+        result = JOB_KINDS[kind](ctx)
+    except Exception as exc:  # a job's failure is recorded, never raised into the runner
+        log.error("job %d (%s) failed:\n%s", job_id, kind, traceback.format_exc())
+        _finish(factory, job_id, JobState.failed, error=f"{type(exc).__name__}: {exc}")
+        return
+    _finish(factory, job_id, JobState.done, result=result)
+
+
+def _finish(factory: sessionmaker[Session], job_id: int, state: JobState, *, error: str | None = None, result: dict[str, Any] | None = None) -> None:
+    with factory() as db:
+        job = db.get(Job, job_id)
+        if job is None:
+            return
+        job.state, job.finished_at, job.error = state, utcnow(), error
+        if result is not None:
+            job.result, job.progress = result, 1.0
+        db.commit()
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError(f"could not encode {path.name}")
+    write_atomic(path, buf.tobytes())
+
+
+def run_stitch(ctx: JobContext) -> dict[str, Any]:
+    """Mosaic of the session's frames placed by odometry and refined by template matching."""
+    calib = ctx.session().calibration.get("camera", {})
+    px_per_m = float(calib.get("px_per_m", 0)) or None
+    T_rc = calib.get("T_robot_camera", [0.0, 0.0, 0.0])
+    with ctx.factory() as db:
+        frames = list(db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)))
+    if not frames:
+        raise ValueError("the session has no camera frames")
+    images, poses, seqs, skipped = [], [], [], []
+    for i, f in enumerate(frames):
+        img = cv2.imread(str(ctx.files.resolve(f.path)), cv2.IMREAD_COLOR)
+        if img is None or (images and img.shape != images[0].shape):
+            skipped.append(f.seq)
+            continue
+        images.append(img)
+        seqs.append(f.seq)
+        if f.pose_x is not None and px_per_m:
+            poses.append(compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw]), np.array(T_rc)))
+        if i % 10 == 0:
+            ctx.progress(0.4 * i / len(frames), f"loaded {i}/{len(frames)} frames")
+    use_odometry = len(poses) == len(images) and px_per_m is not None
+    ctx.progress(0.4, "stitching")
+    mosaic = stitch_frames(images, np.array(poses) if use_odometry else None, px_per_m=px_per_m if use_odometry else 1.0)
+    out = ctx.results_dir()
+    _write_png(out / "mosaic.png", mosaic.image)
+    scale = min(1.0, OVERVIEW_MAX_PX / max(mosaic.image.shape[:2]))
+    _write_png(out / "mosaic_overview.png", cv2.resize(mosaic.image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
+    world = {"px_per_m": mosaic.px_per_m, "origin_m": list(mosaic.origin_m), "world_referenced": use_odometry}
+    write_atomic(out / "mosaic.json", json.dumps({**world, "frames": [
+        {"seq": s, "x": float(p[0]), "y": float(p[1]), "theta_deg": float(p[2]), "confident": bool(c)}
+        for s, p, c in zip(seqs, mosaic.frame_poses_px, mosaic.confident)]}).encode())
+    h, w = mosaic.image.shape[:2]
+    return {"mosaic_path": str(out / "mosaic.png"), "overview_path": str(out / "mosaic_overview.png"), "width_px": w, "height_px": h,
+            **world, "frames": len(images), "skipped_frames": skipped, "low_confidence_frames": int((~mosaic.confident).sum()),
+            "overview_scale": scale}
+
+
+def run_map(ctx: JobContext) -> dict[str, Any]:
+    """3D map from the session's ToF clouds: odometry-seeded point-to-plane ICP."""
+    import open3d as o3d
+
+    calib = ctx.session().calibration.get("tof", {})
+    T_rt = np.array(calib.get("T_robot_tof", np.eye(4).tolist()), dtype=np.float64)
+    with ctx.factory() as db:
+        rows = list(db.scalars(select(Cloud).where(Cloud.session_id == ctx.session_id).order_by(Cloud.seq)))
+    if not rows:
+        raise ValueError("the session has no ToF clouds")
+    clouds, guesses, stamps, seqs, skipped = [], [], [], [], []
+    for i, c in enumerate(rows):
+        meta = {"encoding": c.encoding, "width": c.width, "height": c.height, **c.intrinsics}
+        try:
+            pts = decode_cloud(ctx.files.resolve(c.path).read_bytes(), meta)
+        except (OSError, ValueError):
+            skipped.append(c.seq)
+            continue
+        if not np.isfinite(pts).all(axis=1).any():
+            skipped.append(c.seq)
+            continue
+        clouds.append(pts)
+        stamps.append(c.timestamp)
+        seqs.append(c.seq)
+        if c.pose_x is not None:
+            guesses.append(se2_to_se3(c.pose_x, c.pose_y, c.pose_yaw) @ T_rt)
+        if i % 10 == 0:
+            ctx.progress(0.3 * i / len(rows), f"decoded {i}/{len(rows)} clouds")
+    if not clouds:
+        raise ValueError("no readable ToF cloud in the session")
+    ctx.progress(0.3, "registering")
+    result = register_clouds(clouds, np.array(guesses) if len(guesses) == len(clouds) else None)
+    out = ctx.results_dir()
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
+    tmp = out / ".map.tmp.ply"
+    if not o3d.io.write_point_cloud(str(tmp), pcd):
+        raise OSError("could not write map.ply")
+    tmp.replace(out / "map.ply")
+    write_atomic(out / "trajectory.tum", format_tum(np.array(stamps), result.poses).encode())
+    return {"map_path": str(out / "map.ply"), "trajectory_path": str(out / "trajectory.tum"), "points": int(len(result.points)),
+            "clouds": len(clouds), "skipped_clouds": skipped, "cloud_seqs": seqs, "odometry_fallbacks": int(result.used_odometry.sum()),
+            "mean_fitness": float(result.fitness.mean())}
+
+
+def run_detect(ctx: JobContext) -> dict[str, Any]:
+    """Cracks and corrosion on the mosaic, measured and placed on the structure."""
+    out = ctx.results_dir()
+    mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
+    if mosaic is None:
+        raise ValueError("no mosaic to run detection on: run the stitch job first")
+    world = json.loads((out / "mosaic.json").read_text())
+    px_per_m, (ox, oy) = world["px_per_m"], world["origin_m"]
+    mm_per_px = 1000.0 / px_per_m if world.get("world_referenced") else None
+    ctx.progress(0.2, "cracks")
+    cracks = detect_cracks(mosaic)
+    ctx.progress(0.6, "corrosion")
+    rust = detect_corrosion(mosaic)
+    cracks &= ~rust
+    found = measure_defects(cracks, "crack", mm_per_px=mm_per_px)
+    found += measure_defects(rust, "corrosion", mm_per_px=mm_per_px, first_id=len(found) + 1)
+    _write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
+    _write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
+    with ctx.factory() as db:
+        db.execute(delete(Defect).where(Defect.session_id == ctx.session_id, Defect.source == "mosaic"))
+        for d in found:
+            x, y, w, h = d.bbox
+            referenced = world.get("world_referenced")
+            db.add(Defect(
+                session_id=ctx.session_id, job_id=ctx.job_id, source="mosaic", defect_class=d.defect_class,
+                bbox_x=x, bbox_y=y, bbox_w=w, bbox_h=h, area_px=d.area_px, length_px=d.length_px,
+                max_width_px=d.max_width_px, mean_width_px=d.mean_width_px, orientation_deg=d.orientation_deg,
+                length_mm=d.length_mm, max_width_mm=d.max_width_mm, area_mm2=d.area_mm2,
+                world_x_m=ox + x / px_per_m if referenced else None, world_y_m=oy + y / px_per_m if referenced else None,
+                world_w_m=w / px_per_m if referenced else None, world_h_m=h / px_per_m if referenced else None,
+            ))
+        db.commit()
+    by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
+    return {"defects": len(found), "by_class": by_class, "method": "proposed", "crack_mask": str(out / "crack_mask.png")}
+
+
+JOB_KINDS: dict[str, Callable[[JobContext], dict[str, Any]]] = {"stitch": run_stitch, "map": run_map, "detect": run_detect}

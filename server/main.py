@@ -1,0 +1,79 @@
+"""Build the FastAPI app: lifespan (database, migrations, jobs), routers, static dashboard."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+from server import db
+from server.config import Settings
+from server.errors import Conflict, NotFound
+from server.ingest import Ingest
+from server.jobs.runner import JobRunner
+from server.live import LiveHub
+from server.routes import jobs, sessions, ws
+from server.state import AppState
+from server.storage import SessionFiles
+
+log = logging.getLogger(__name__)
+
+
+def build_state(settings: Settings) -> AppState:
+    """Open the database (migrated to head) and build the shared objects."""
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.resolved_database_url()
+    db.upgrade(url)
+    engine = db.make_engine(url)
+    factory = db.make_sessionmaker(engine)
+    files = SessionFiles(settings.data_dir, fsync=settings.fsync)
+    runner = JobRunner(factory, url, str(settings.data_dir.resolve()), settings.job_workers)
+    return AppState(settings, engine, factory, files, Ingest(factory, files), LiveHub(settings.live_queue), runner)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The ground-station ASGI app."""
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        state = build_state(settings)
+        app.state.steelscan = state
+        state.jobs.start()
+        try:
+            yield
+        finally:
+            state.jobs.stop()
+            state.engine.dispose()
+
+    app = FastAPI(title="steelscan ground station", version="0.1.0", lifespan=lifespan,
+                  description="Live link, storage, processing and review for steel-inspection climbing robots.")
+
+    @app.exception_handler(NotFound)
+    async def not_found(_: Request, exc: NotFound) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=404)
+
+    @app.exception_handler(Conflict)
+    async def conflict(_: Request, exc: Conflict) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=409)
+
+    @app.get("/api/health", tags=["health"])
+    def read_health() -> dict[str, str]:
+        """Liveness check."""
+        return {"status": "ok"}
+
+    app.include_router(sessions.router)
+    app.include_router(jobs.router)
+    app.include_router(ws.router)
+    web_dir = settings.web_dir
+
+    @app.get("/", include_in_schema=False)
+    def read_index() -> FileResponse:
+        return FileResponse(web_dir / "index.html")
+
+    app.mount("/static", StaticFiles(directory=web_dir), name="static")
+    return app

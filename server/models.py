@@ -1,0 +1,177 @@
+"""SQLAlchemy models: robots, inspection sessions, what they sent, jobs and defects."""
+
+from __future__ import annotations
+
+import enum
+from datetime import datetime, timezone
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    DateTime,
+    Enum,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+
+def utcnow() -> datetime:
+    """Timezone-aware now in UTC."""
+    return datetime.now(timezone.utc)
+
+
+class Base(DeclarativeBase):
+    type_annotation_map = {dict[str, Any]: JSON, datetime: DateTime(timezone=True)}
+
+
+class SessionStatus(str, enum.Enum):
+    live = "live"
+    ended = "ended"
+
+
+class JobState(str, enum.Enum):
+    queued = "queued"
+    running = "running"
+    done = "done"
+    failed = "failed"
+
+
+class Robot(Base):
+    __tablename__ = "robots"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), unique=True)
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class InspectionSession(Base):
+    __tablename__ = "inspection_sessions"
+    id: Mapped[str] = mapped_column(String(36), primary_key=True)
+    robot_id: Mapped[int | None] = mapped_column(ForeignKey("robots.id"))
+    structure: Mapped[str] = mapped_column(String(200))
+    operator: Mapped[str] = mapped_column(String(200), default="")
+    status: Mapped[SessionStatus] = mapped_column(
+        Enum(SessionStatus, native_enum=False, length=16), default=SessionStatus.live
+    )
+    started_at: Mapped[datetime] = mapped_column(default=utcnow)
+    ended_at: Mapped[datetime | None]
+    end_reason: Mapped[str | None] = mapped_column(String(200))
+    calibration: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    robot: Mapped[Robot | None] = relationship()
+
+
+class ReceivedMessage(Base):
+    """One row per (session, seq) stored: the guard that makes resends idempotent."""
+
+    __tablename__ = "received_messages"
+    session_id: Mapped[str] = mapped_column(
+        ForeignKey("inspection_sessions.id", ondelete="CASCADE"), primary_key=True
+    )
+    seq: Mapped[int] = mapped_column(Integer, primary_key=True)
+    type: Mapped[str] = mapped_column(String(20))
+    received_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class _PoseColumns:
+    pose_x: Mapped[float | None] = mapped_column(Float)
+    pose_y: Mapped[float | None] = mapped_column(Float)
+    pose_yaw: Mapped[float | None] = mapped_column(Float)
+
+
+class Frame(_PoseColumns, Base):
+    __tablename__ = "frames"
+    __table_args__ = (UniqueConstraint("session_id", "seq"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    session_id: Mapped[str] = mapped_column(
+        ForeignKey("inspection_sessions.id", ondelete="CASCADE"), index=True
+    )
+    seq: Mapped[int]
+    timestamp: Mapped[float]
+    width: Mapped[int]
+    height: Mapped[int]
+    path: Mapped[str] = mapped_column(String(500))
+    size_bytes: Mapped[int]
+
+
+class Cloud(_PoseColumns, Base):
+    __tablename__ = "clouds"
+    __table_args__ = (UniqueConstraint("session_id", "seq"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    session_id: Mapped[str] = mapped_column(
+        ForeignKey("inspection_sessions.id", ondelete="CASCADE"), index=True
+    )
+    seq: Mapped[int]
+    timestamp: Mapped[float]
+    encoding: Mapped[str] = mapped_column(String(32))
+    width: Mapped[int]
+    height: Mapped[int]
+    intrinsics: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    path: Mapped[str] = mapped_column(String(500))
+    size_bytes: Mapped[int]
+
+
+class TelemetrySample(Base):
+    __tablename__ = "telemetry"
+    __table_args__ = (UniqueConstraint("session_id", "seq"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    session_id: Mapped[str] = mapped_column(
+        ForeignKey("inspection_sessions.id", ondelete="CASCADE"), index=True
+    )
+    seq: Mapped[int]
+    timestamp: Mapped[float]
+    data: Mapped[dict[str, Any]] = mapped_column(default=dict)
+
+
+class Job(Base):
+    __tablename__ = "jobs"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    session_id: Mapped[str] = mapped_column(
+        ForeignKey("inspection_sessions.id", ondelete="CASCADE"), index=True
+    )
+    kind: Mapped[str] = mapped_column(String(32))
+    state: Mapped[JobState] = mapped_column(
+        Enum(JobState, native_enum=False, length=16), default=JobState.queued
+    )
+    progress: Mapped[float] = mapped_column(default=0.0)
+    message: Mapped[str] = mapped_column(Text, default="")
+    error: Mapped[str | None] = mapped_column(Text)
+    params: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    result: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+
+
+class Defect(Base):
+    __tablename__ = "defects"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    session_id: Mapped[str] = mapped_column(
+        ForeignKey("inspection_sessions.id", ondelete="CASCADE"), index=True
+    )
+    job_id: Mapped[int | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
+    source: Mapped[str] = mapped_column(String(16), default="mosaic")
+    defect_class: Mapped[str] = mapped_column(String(16))
+    bbox_x: Mapped[int]
+    bbox_y: Mapped[int]
+    bbox_w: Mapped[int]
+    bbox_h: Mapped[int]
+    area_px: Mapped[int]
+    length_px: Mapped[float]
+    max_width_px: Mapped[float]
+    mean_width_px: Mapped[float]
+    orientation_deg: Mapped[float]
+    length_mm: Mapped[float | None]
+    max_width_mm: Mapped[float | None]
+    area_mm2: Mapped[float | None]
+    world_x_m: Mapped[float | None]
+    world_y_m: Mapped[float | None]
+    world_w_m: Mapped[float | None]
+    world_h_m: Mapped[float | None]
+    review_status: Mapped[str] = mapped_column(String(16), default="unreviewed")
+    condition_state: Mapped[str | None] = mapped_column(String(8))
+    comment: Mapped[str] = mapped_column(Text, default="")

@@ -1,0 +1,198 @@
+"""Websockets: ``/ws/robot`` for robots (ingest + commands), ``/ws/live`` for browsers."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import struct
+import time
+import uuid
+from typing import Any
+
+import anyio
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from sqlalchemy.exc import SQLAlchemyError
+
+from robot_link.protocol import (
+    HEADER,
+    Message,
+    MessageType,
+    ProtocolError,
+    decode_message,
+    encode_message,
+)
+from server.errors import IngestError
+from server.robots import authenticate_robot
+
+log = logging.getLogger(__name__)
+router = APIRouter()
+
+
+def _bearer(websocket: WebSocket) -> str | None:
+    auth = websocket.headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip()
+    return websocket.query_params.get("token")
+
+
+def _seq_of(data: bytes) -> int:
+    """Best-effort seq of an unreadable message, so the robot can drop it; 0 if unknown."""
+    try:
+        return int(HEADER.unpack_from(data)[5])
+    except struct.error:
+        return 0
+
+
+class RobotConnection:
+    """One robot's websocket: decodes, stores, acknowledges, relays, forwards commands."""
+
+    def __init__(self, websocket: WebSocket, robot_id: int, robot_name: str) -> None:
+        self.ws = websocket
+        self.robot_id = robot_id
+        self.robot_name = robot_name
+        self.state = websocket.app.state.steelscan
+        self.send_lock = asyncio.Lock()
+        self.session_ids: set[str] = set()
+
+    async def send(self, message: Message) -> None:
+        """Send one protocol message to the robot."""
+        data = encode_message(message)
+        async with self.send_lock:
+            await self.ws.send_bytes(data)
+
+    async def send_error(self, sid: uuid.UUID, seq: int, error: str) -> None:
+        """Tell the robot a message was rejected."""
+        await self.send(Message(MessageType.ERROR, sid, seq, time.time(), {"error": error[:500]}))
+
+    def command_sender(self, sid: uuid.UUID):  # type: ignore[no-untyped-def]
+        """A coroutine function the hub calls to forward an operator's command."""
+        hub = self.state.hub
+
+        async def send_command(cmd: str, args: dict[str, Any]) -> int:
+            seq = hub.next_command_seq(str(sid))
+            await self.send(Message(MessageType.COMMAND, sid, seq, time.time(), {"cmd": cmd, "args": args}))
+            return seq
+
+        return send_command
+
+    async def run(self) -> None:
+        """Serve the robot until it disconnects."""
+        senders: dict[str, Any] = {}
+        try:
+            while True:
+                event = await self.ws.receive()
+                if event["type"] == "websocket.disconnect":
+                    break
+                data = event.get("bytes")
+                if data is None:
+                    await self.send_error(uuid.UUID(int=0), 0, "text messages are not part of the protocol; send binary")
+                    continue
+                await self.handle(data, senders)
+        except WebSocketDisconnect:
+            pass
+        finally:
+            for sid, sender in senders.items():
+                self.state.hub.detach_robot(sid, sender)
+
+    async def handle(self, data: bytes, senders: dict[str, Any]) -> None:
+        """Decode, store, acknowledge and relay one message."""
+        try:
+            message = decode_message(data, max_bytes=self.state.settings.max_message_bytes)
+        except ProtocolError as exc:
+            await self.send_error(uuid.UUID(int=0), _seq_of(data), f"malformed message: {exc}")
+            return
+        if message.type in (MessageType.ACK, MessageType.ERROR, MessageType.COMMAND):
+            await self.send_error(message.session_id, message.seq, f"{message.type.name} is not sent by robots")
+            return
+        if message.type is MessageType.COMMAND_ACK:
+            self.state.hub.publish_json({"type": "command_ack", "session_id": str(message.session_id), "seq": message.seq, **message.meta})
+            return
+        try:
+            result = await anyio.to_thread.run_sync(self.state.ingest.store, message, self.robot_id)
+        except IngestError as exc:
+            await self.send_error(message.session_id, message.seq, str(exc))
+            return
+        except (OSError, SQLAlchemyError) as exc:
+            log.exception("ingest: could not store seq %d", message.seq)
+            await self.send_error(message.session_id, message.seq, f"ground station could not store it: {type(exc).__name__}")
+            return
+        await self.send(Message(MessageType.ACK, message.session_id, message.seq, time.time(), {"status": result.status, "of": message.type.name}))
+        sid = str(message.session_id)
+        if sid not in senders:
+            senders[sid] = self.command_sender(message.session_id)
+            self.state.hub.attach_robot(sid, senders[sid])
+        self.relay(message)
+        if result.session_ended and self.state.settings.auto_process:
+            await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, sid)
+
+    def relay(self, message: Message) -> None:
+        """Show the message to watching browsers."""
+        hub = self.state.hub
+        sid = str(message.session_id)
+        if message.type is MessageType.FRAME:
+            hub.publish_frame({"session_id": sid, "seq": message.seq, "t": message.timestamp, "pose": message.meta.get("pose")}, message.payload)
+        elif message.type is MessageType.TELEMETRY:
+            hub.publish_json({"type": "telemetry", "session_id": sid, "data": {**message.meta, "t": message.timestamp}})
+        elif message.type in (MessageType.SESSION_START, MessageType.SESSION_END):
+            hub.publish_json({"type": "session", "session_id": sid, "event": message.type.name.lower(), "robot": self.robot_name})
+
+
+@router.websocket("/ws/robot")
+async def robot_socket(websocket: WebSocket) -> None:
+    """Robot link: binary protocol messages in, ACK/ERROR/COMMAND out (see PROTOCOL.md)."""
+    state = websocket.app.state.steelscan
+    robot = await anyio.to_thread.run_sync(authenticate_robot, state.factory, _bearer(websocket))
+    if robot is None:
+        await websocket.close(code=1008, reason="invalid robot token")
+        return
+    await websocket.accept()
+    await RobotConnection(websocket, robot.id, robot.name).run()
+
+
+@router.websocket("/ws/live")
+async def live_socket(websocket: WebSocket) -> None:
+    """Browser link: live frames (binary) and events (JSON) out, operator commands in."""
+    hub = websocket.app.state.steelscan.hub
+    await websocket.accept()
+    watcher = hub.watch()
+
+    async def pump() -> None:
+        while True:
+            item = await watcher.queue.get()
+            if isinstance(item, bytes):
+                await websocket.send_bytes(item)
+            else:
+                await websocket.send_text(item)
+
+    pump_task = asyncio.create_task(pump())
+    try:
+        while True:
+            text = await websocket.receive_text()
+            await _handle_browser_command(websocket, hub, text)
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        pump_task.cancel()
+        hub.unwatch(watcher)
+
+
+async def _handle_browser_command(websocket: WebSocket, hub: Any, text: str) -> None:
+    try:
+        request = json.loads(text)
+        sid = str(request["session_id"])
+        cmd = str(request["cmd"])
+        args = request.get("args") or {}
+        if not isinstance(args, dict):
+            raise TypeError("args must be an object")
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "error": f"bad command: {exc}"}))
+        return
+    try:
+        seq = await hub.command(sid, cmd, args)
+    except KeyError:
+        await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "cmd": cmd, "error": "no robot is connected for that session"}))
+    except ProtocolError as exc:
+        await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "cmd": cmd, "error": str(exc)}))
+    else:
+        await websocket.send_text(json.dumps({"type": "command_result", "ok": True, "cmd": cmd, "seq": seq}))

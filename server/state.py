@@ -1,0 +1,27 @@
+"""What the running app holds (engine, ingest, hub, jobs); built in the lifespan."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.config import Settings
+from server.ingest import Ingest
+from server.jobs.runner import JobRunner
+from server.live import LiveHub
+from server.storage import SessionFiles
+
+
+@dataclass
+class AppState:
+    """Everything the routes share, kept on ``app.state.steelscan``."""
+
+    settings: Settings
+    engine: Engine
+    factory: sessionmaker[Session]
+    files: SessionFiles
+    ingest: Ingest
+    hub: LiveHub
+    jobs: JobRunner

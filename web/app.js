@@ -1,0 +1,119 @@
+// Minimal live page: camera frames and telemetry over /ws/live, sessions over REST.
+"use strict";
+
+const canvas = document.getElementById("camera");
+const ctx2d = canvas.getContext("2d");
+const linkState = document.getElementById("link-state");
+let liveSession = null;
+let socket = null;
+
+function text(el, value) { el.textContent = value; }
+
+function connect() {
+  const proto = location.protocol === "https:" ? "wss" : "ws";
+  socket = new WebSocket(`${proto}://${location.host}/ws/live`);
+  socket.binaryType = "arraybuffer";
+  socket.onopen = () => { text(linkState, "live link up"); linkState.classList.add("ok"); };
+  socket.onclose = () => {
+    text(linkState, "reconnecting…"); linkState.classList.remove("ok");
+    setTimeout(connect, 1000);
+  };
+  socket.onmessage = (ev) => {
+    if (typeof ev.data === "string") { onEvent(JSON.parse(ev.data)); } else { onFrame(ev.data); }
+  };
+}
+
+function onFrame(buffer) {
+  const view = new DataView(buffer);
+  const headLen = view.getUint32(0, true);
+  const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headLen)));
+  liveSession = header.session_id;
+  const blob = new Blob([new Uint8Array(buffer, 4 + headLen)], { type: "image/jpeg" });
+  createImageBitmap(blob).then((bmp) => {
+    ctx2d.drawImage(bmp, 0, 0, canvas.width, canvas.height);
+    bmp.close();
+    canvas.dataset.frames = String(Number(canvas.dataset.frames || 0) + 1);
+    text(document.getElementById("frame-info"), `session ${header.session_id.slice(0, 8)} · frame #${header.seq}`);
+  });
+}
+
+function fmt(v, digits = 3) { return typeof v === "number" ? v.toFixed(digits) : String(v); }
+
+function onEvent(ev) {
+  if (ev.type === "telemetry") {
+    liveSession = ev.session_id;
+    const d = ev.data;
+    const rows = [
+      ["pose x, y (m)", d.pose ? `${fmt(d.pose.x)}, ${fmt(d.pose.y)}` : "–"],
+      ["heading (°)", d.pose ? fmt(d.pose.yaw * 180 / Math.PI, 1) : "–"],
+      ["distance (m)", fmt(d.distance_m, 2)],
+      ["wheel speeds (m/s)", (d.wheel_speed_mps || []).map((v) => fmt(v, 2)).join(" ")],
+      ["IR ranges (m)", (d.ir_range_m || []).map((v) => fmt(v, 3)).join(" ")],
+      ["no surface under", (d.ir_no_surface || []).join(", ") || "none"],
+      ["battery 12 V / 7.4 V", d.battery_v ? `${fmt(d.battery_v.main, 2)} / ${fmt(d.battery_v.logic, 2)}` : "–"],
+      ["adhesion margin (eq. 1)", fmt(d.adhesion_margin, 2)],
+      ["link pending / resent", d.link ? `${d.link.pending} / ${d.link.resent}` : "–"],
+    ];
+    const dl = document.getElementById("telemetry");
+    dl.replaceChildren(...rows.flatMap(([k, v]) => {
+      const dt = document.createElement("dt"); dt.textContent = k;
+      const dd = document.createElement("dd"); dd.textContent = v;
+      if (k === "no surface under" && v !== "none") dd.className = "warn";
+      return [dt, dd];
+    }));
+  } else if (ev.type === "session") {
+    loadSessions();
+  } else if (ev.type === "command_result") {
+    text(document.getElementById("command-result"), ev.ok ? `${ev.cmd} sent` : `error: ${ev.error}`);
+  }
+}
+
+function send(cmd, args = {}) {
+  if (!socket || socket.readyState !== WebSocket.OPEN || !liveSession) {
+    text(document.getElementById("command-result"), "no live robot");
+    return;
+  }
+  socket.send(JSON.stringify({ session_id: liveSession, cmd, args }));
+}
+
+document.getElementById("estop").addEventListener("click", () => send("estop"));
+document.querySelectorAll("button[data-cmd]").forEach((b) => b.addEventListener("click", () => send(b.dataset.cmd)));
+document.addEventListener("keydown", (e) => { if (e.code === "Space") { e.preventDefault(); send("estop"); } });
+
+async function loadSessions() {
+  const res = await fetch("/api/sessions");
+  if (!res.ok) return;
+  const body = await res.json();
+  const tbody = document.querySelector("#sessions tbody");
+  tbody.replaceChildren(...body.data.map((s) => {
+    const tr = document.createElement("tr");
+    const jobs = s.jobs.map((j) => `${j.kind}: ${j.state}${j.state === "running" ? ` ${Math.round(j.progress * 100)}%` : ""}`).join(", ");
+    for (const v of [s.structure, new Date(s.started_at).toLocaleString(), s.status, s.frames, s.clouds, s.defects, jobs || "–"]) {
+      const td = document.createElement("td"); td.textContent = v; tr.appendChild(td);
+    }
+    tr.addEventListener("click", () => showSession(s));
+    return tr;
+  }));
+}
+
+function showSession(s) {
+  const div = document.getElementById("session-detail");
+  div.replaceChildren();
+  const h = document.createElement("h3");
+  h.textContent = `${s.structure} — ${s.id}`;
+  div.appendChild(h);
+  const stitch = s.jobs.find((j) => j.kind === "stitch" && j.state === "done");
+  if (stitch) {
+    const img = document.createElement("img");
+    img.src = `/api/sessions/${s.id}/results/mosaic_overview.png`;
+    img.alt = "mosaic";
+    div.appendChild(img);
+  }
+  const a = document.createElement("a");
+  a.href = `/api/sessions/${s.id}/report.json`; a.textContent = "report.json";
+  div.appendChild(a);
+}
+
+connect();
+loadSessions();
+setInterval(loadSessions, 3000);
