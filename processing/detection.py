@@ -137,8 +137,8 @@ def measure_defects(
 ) -> list[Defect]:
     """Measure each connected component of ``mask`` as one defect.
 
-    Length is the skeleton length (diagonal steps count √2); widths are twice the
-    distance transform sampled on the skeleton; orientation is the principal axis angle
+    Length is the skeleton length (diagonal steps count √2); widths are ``2 d - 1``
+    pixels for the distance transform ``d`` sampled on the skeleton (exact for straight lines); orientation is the principal axis angle
     in degrees from the image x axis.
     """
     m = mask.astype(np.uint8)
@@ -150,7 +150,7 @@ def measure_defects(
         comp = labels[y : y + h, x : x + w] == i
         skel = skeletonize(comp)
         length = _skeleton_length(skel)
-        widths = 2.0 * dist[y : y + h, x : x + w][skel] if skel.any() else np.array([1.0])
+        widths = np.maximum(2.0 * dist[y : y + h, x : x + w][skel] - 1.0, 1.0) if skel.any() else np.array([1.0])
         ys, xs = np.nonzero(comp)
         orientation = _orientation_deg(xs, ys)
         d = Defect(

@@ -116,11 +116,29 @@ def match_offset(
 
 
 def estimate_motion_phase(a: NDArray[np.uint8], b: NDArray[np.uint8]) -> tuple[float, float]:
-    """Image-only translation of frame ``b`` relative to ``a`` by phase correlation (px)."""
+    """Image-only translation of frame ``b`` relative to ``a`` by phase correlation (px).
+
+    Phase correlation is ambiguous modulo the image size (a 190 px shift of a 320 px
+    frame reads as -130 px); each wrap-around candidate is scored by the normalised
+    correlation of the overlap it implies, and the best one is returned.
+    """
     ga, gb = (_gray(x).astype(np.float32) for x in (a, b))
-    win = cv2.createHanningWindow(ga.shape[::-1], cv2.CV_32F)
-    (dx, dy), _ = cv2.phaseCorrelate(ga, gb, win)
-    return -dx, -dy
+    h, w = ga.shape
+    win = cv2.createHanningWindow((w, h), cv2.CV_32F)
+    (px, py), _ = cv2.phaseCorrelate(ga, gb, win)
+    best, best_score = (-px, -py), -np.inf
+    for dx in (-px, -px - w, -px + w):
+        for dy in (-py, -py - h, -py + h):
+            ix, iy = int(round(dx)), int(round(dy))
+            ow, oh = w - abs(ix), h - abs(iy)
+            if ow < 8 or oh < 8 or ow * oh < 0.05 * w * h:
+                continue
+            pa = ga[max(iy, 0) : max(iy, 0) + oh, max(ix, 0) : max(ix, 0) + ow]
+            pb = gb[max(-iy, 0) : max(-iy, 0) + oh, max(-ix, 0) : max(-ix, 0) + ow]
+            score = float(cv2.matchTemplate(pa, pb, cv2.TM_CCOEFF_NORMED)[0, 0])
+            if score > best_score:
+                best, best_score = (dx, dy), score
+    return best
 
 
 def stitch_frames(

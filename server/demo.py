@@ -69,9 +69,10 @@ def score(result: SimResult, session: dict[str, Any], defects: list[dict[str, An
              for d in defects if d.get("world_x_m") is not None]
     out: dict[str, Any] = {"defects_found": len(defects), "defects_true": len(truth), "defects_matched": match_defects(found, truth)}
     out["map_ate_m"] = None
-    if trajectory_tum:
+    map_job = next((j for j in session["jobs"] if j["kind"] == "map" and j["state"] == "done"), None)
+    if trajectory_tum and map_job:
         _, est = parse_tum(trajectory_tum)
-        gt = np.array(result.cloud_poses_true)
+        gt = np.array([result.cloud_poses_true[s] for s in map_job["result"]["cloud_seqs"]])
         if len(est) == len(gt):
             out["map_ate_m"] = round(absolute_trajectory_error(est, gt), 4)
     return out

@@ -56,7 +56,7 @@ class SimResult:
     telemetry_sent: int = 0
     edge_events: int = 0
     frame_poses_true: list[list[float]] = field(default_factory=list)  # camera x, y, yaw
-    cloud_poses_true: list[NDArray[np.float64]] = field(default_factory=list)  # T_world_tof
+    cloud_poses_true: dict[int, NDArray[np.float64]] = field(default_factory=dict)  # seq -> T_world_tof
     structure: SteelStructure | None = None
 
     def summary(self) -> dict[str, Any]:
@@ -248,7 +248,7 @@ class InspectionSim:
         self.result.frame_poses_true.append([float(v) for v in cam_true])
         T_true = self.tof.T_world_tof(r.pose)
         depth = self.tof.render(T_true, self.rng)
-        await self.link.send(MessageType.CLOUD, {"encoding": "png16_depth_mm", **self.tof.intrinsics(), "pose": odom_pose},
-                             encode_depth_png(depth))
+        seq = await self.link.send(MessageType.CLOUD, {"encoding": "png16_depth_mm", **self.tof.intrinsics(), "pose": odom_pose},
+                                   encode_depth_png(depth))
         self.result.clouds_sent += 1
-        self.result.cloud_poses_true.append(T_true)
+        self.result.cloud_poses_true[seq] = T_true

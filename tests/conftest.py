@@ -1,0 +1,48 @@
+"""Shared fixtures: a real ground station on a free loopback port with its own data dir."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from server.config import Settings
+from server.db import make_engine, make_sessionmaker, upgrade
+from server.demo import BackgroundServer, free_port
+from server.robots import create_robot
+
+
+@dataclass
+class LiveServer:
+    url: str
+    settings: Settings
+    token: str
+
+
+def make_token(settings: Settings, name: str = "test-robot") -> str:
+    """Register a robot in the settings' database and return its token."""
+    url = settings.resolved_database_url()
+    upgrade(url)
+    engine = make_engine(url)
+    try:
+        return create_robot(make_sessionmaker(engine), name)
+    finally:
+        engine.dispose()
+
+
+@pytest.fixture
+def settings(tmp_path: Path) -> Settings:
+    return Settings(data_dir=tmp_path / "data", job_workers=1)
+
+
+@pytest.fixture
+def live_server(settings: Settings) -> Iterator[LiveServer]:
+    token = make_token(settings)
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    try:
+        yield LiveServer(server.url, settings, token)
+    finally:
+        server.stop()

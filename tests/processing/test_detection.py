@@ -1,0 +1,66 @@
+import cv2
+import numpy as np
+import pytest
+
+from processing.detection import detect_corrosion, detect_cracks, measure_defects
+
+
+def plate_with_crack(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    img = np.clip(rng.normal(140, 6, (240, 320)), 0, 255).astype(np.uint8)
+    truth = np.zeros_like(img)
+    cv2.line(truth, (40, 60), (280, 170), 255, 3)
+    img[truth > 0] = 50
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), truth > 0
+
+
+def test_dark_line_on_noisy_plate_is_found() -> None:
+    img, truth = plate_with_crack()
+    mask = detect_cracks(img)
+    tp = (mask & truth).sum()
+    assert tp / truth.sum() > 0.8
+    assert tp / max(mask.sum(), 1) > 0.6
+
+
+@pytest.mark.parametrize("method", ["proposed", "otsu", "sauvola"])
+def test_blank_and_constant_images_give_no_cracks_with_proposed(method: str) -> None:
+    blank = np.full((100, 120), 128, np.uint8)
+    mask = detect_cracks(blank, method=method)
+    assert mask.shape == blank.shape
+    assert not mask.any()
+
+
+def test_sixteen_bit_and_tiny_images_are_handled() -> None:
+    img, _ = plate_with_crack()
+    gray16 = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.uint16) * 257
+    assert detect_cracks(gray16).any()
+    assert not detect_cracks(np.zeros((2, 2), np.uint8)).any()
+
+
+def test_bad_shapes_and_types_raise_value_error() -> None:
+    with pytest.raises(ValueError, match="image must be"):
+        detect_cracks(np.zeros((4, 4, 2), np.uint8))
+    with pytest.raises(ValueError, match="uint8 or uint16"):
+        detect_cracks(np.zeros((4, 4), np.float64))
+    with pytest.raises(ValueError, match="method"):
+        detect_cracks(np.zeros((4, 4), np.uint8), method="magic")  # type: ignore[arg-type]
+
+
+def test_measurements_of_a_drawn_line() -> None:
+    mask = np.zeros((100, 200), np.uint8)
+    cv2.line(mask, (20, 50), (170, 50), 1, 5)
+    width = int(mask[:, 100].sum())  # cv2 draws thickness 5 as 7 pixels across
+    (d,) = measure_defects(mask > 0, "crack", mm_per_px=0.5)
+    assert d.length_px == pytest.approx(150, abs=8)
+    assert d.max_width_px == pytest.approx(width, abs=0.5)
+    assert d.orientation_deg == pytest.approx(0, abs=1) or d.orientation_deg == pytest.approx(180, abs=1)
+    assert d.length_mm == pytest.approx(d.length_px * 0.5, abs=0.01)
+    assert d.bbox[0] <= 20 and d.bbox[0] + d.bbox[2] >= 170
+
+
+def test_rust_patch_is_corrosion_and_grey_paint_is_not() -> None:
+    img = np.full((200, 200, 3), (118, 112, 104), np.uint8)
+    cv2.circle(img, (100, 100), 30, (28, 62, 140), -1)
+    mask = detect_corrosion(img)
+    assert mask[100, 100] and not mask[10, 10]
+    assert abs(int(mask.sum()) - int(np.pi * 30**2)) < 0.2 * np.pi * 30**2
