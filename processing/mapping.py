@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 
 @dataclass(frozen=True)
@@ -28,6 +30,9 @@ class IcpParams:
     local_map_clouds: int = 8
     map_voxel_m: float = 0.01
     max_range_m: float = 4.0
+    degenerate_ratio: float = 0.25
+    max_correction_m: float = 0.10
+    max_correction_deg: float = 10.0
 
 
 @dataclass
@@ -39,6 +44,7 @@ class MapResult:
     fitness: NDArray[np.float64]
     rmse: NDArray[np.float64]
     used_odometry: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    degenerate_dims: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, int))
 
 
 def clean_cloud(points: NDArray[np.floating], max_range_m: float) -> NDArray[np.float64]:
@@ -87,6 +93,7 @@ def register_clouds(
     poses = np.zeros((n, 4, 4))
     fitness, rmse = np.zeros(n), np.zeros(n)
     used_odo = np.zeros(n, bool)
+    degenerate = np.zeros(n, int)
     pcds = [preprocess(c, params) for c in clouds]
     poses[0] = guess[0]
     fitness[0] = 1.0
@@ -113,10 +120,64 @@ def register_clouds(
         fitness[i], rmse[i] = reg.fitness, reg.inlier_rmse
         if reg.fitness < params.min_fitness or not np.isfinite(reg.transformation).all():
             poses[i], used_odo[i] = init, True
-        else:
-            poses[i] = reg.transformation
+            continue
+        poses[i], degenerate[i] = constrain_to_observable(init, reg.transformation, pcds[i], target, params)
+        if not _within_bounds(init, poses[i], params):  # paper's stop rule 3: out of bounds
+            poses[i], used_odo[i] = init, True
     points = fuse_map(pcds, poses, params.map_voxel_m)
-    return MapResult(poses, points, fitness, rmse, used_odo)
+    return MapResult(poses, points, fitness, rmse, used_odo, degenerate)
+
+
+def _within_bounds(init: NDArray[np.float64], T: NDArray[np.float64], params: IcpParams) -> bool:
+    d = np.linalg.inv(init) @ T
+    angle = np.degrees(np.linalg.norm(Rotation.from_matrix(d[:3, :3]).as_rotvec()))
+    return bool(np.linalg.norm(d[:3, 3]) <= params.max_correction_m and angle <= params.max_correction_deg)
+
+
+def constrain_to_observable(
+    init: NDArray[np.float64],
+    T_icp: NDArray[np.float64],
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    params: IcpParams,
+) -> tuple[NDArray[np.float64], int]:
+    """Keep ICP's correction only along directions the geometry constrains.
+
+    The point-to-plane Hessian's translational block (mean of n nᵀ) and rotational block
+    (mean of (q-c)×n outer products, scaled by the cloud's spread) are decomposed; along
+    eigen-directions weaker than ``degenerate_ratio`` (a flat plate gives no constraint in
+    its own plane, nor in rotation about its normal) the odometry's value is kept.
+    Returns the pose and the number of degenerate directions (0-6).
+    """
+    q = np.asarray(source.points) @ T_icp[:3, :3].T + T_icp[:3, 3]
+    tgt = np.asarray(target.points)
+    dist, idx = cKDTree(tgt).query(q, distance_upper_bound=params.max_correspondence_m)
+    ok = np.isfinite(dist)
+    if ok.sum() < 10:
+        return init, 6
+    q, normals = q[ok], np.asarray(target.normals)[idx[ok]]
+    c = q.mean(axis=0)
+    spread = float(np.mean(np.sum((q - c) ** 2, axis=1))) or 1.0
+    cross = np.cross(q - c, normals)
+    P_t, dt = _projector(normals.T @ normals / len(q), params.degenerate_ratio)
+    P_r, dr = _projector(cross.T @ cross / (len(q) * spread), params.degenerate_ratio)
+    dT = T_icp @ np.linalg.inv(init)
+    R = dT[:3, :3]
+    omega = Rotation.from_matrix(R).as_rotvec()
+    tau = dT[:3, 3] + R @ c - c
+    R2 = Rotation.from_rotvec(P_r @ omega).as_matrix()
+    out = np.eye(4)
+    out[:3, :3] = R2
+    out[:3, 3] = c - R2 @ c + P_t @ tau
+    return out @ init, dt + dr
+
+
+def _projector(A: NDArray[np.float64], ratio: float) -> tuple[NDArray[np.float64], int]:
+    """Projector onto eigen-directions of A whose eigenvalue is at least ``ratio``·trace."""
+    evals, evecs = np.linalg.eigh(A)
+    good = evals >= ratio * max(float(np.trace(A)), 1e-12)
+    V = evecs[:, good]
+    return V @ V.T, int((~good).sum())
 
 
 def _local_map(

@@ -72,9 +72,12 @@ def score(result: SimResult, session: dict[str, Any], defects: list[dict[str, An
     map_job = next((j for j in session["jobs"] if j["kind"] == "map" and j["state"] == "done"), None)
     if trajectory_tum and map_job:
         _, est = parse_tum(trajectory_tum)
-        gt = np.array([result.cloud_poses_true[s] for s in map_job["result"]["cloud_seqs"]])
+        seqs = map_job["result"]["cloud_seqs"]
+        gt = np.array([result.cloud_poses_true[s] for s in seqs])
         if len(est) == len(gt):
             out["map_ate_m"] = round(absolute_trajectory_error(est, gt), 4)
+            odom = np.array([result.cloud_poses_odom[s] for s in seqs])
+            out["odometry_ate_m"] = round(absolute_trajectory_error(odom, gt), 4)
     return out
 
 

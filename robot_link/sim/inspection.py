@@ -57,6 +57,7 @@ class SimResult:
     edge_events: int = 0
     frame_poses_true: list[list[float]] = field(default_factory=list)  # camera x, y, yaw
     cloud_poses_true: dict[int, NDArray[np.float64]] = field(default_factory=dict)  # seq -> T_world_tof
+    cloud_poses_odom: dict[int, NDArray[np.float64]] = field(default_factory=dict)  # what odometry said
     structure: SteelStructure | None = None
 
     def summary(self) -> dict[str, Any]:
@@ -252,3 +253,4 @@ class InspectionSim:
                                    encode_depth_png(depth))
         self.result.clouds_sent += 1
         self.result.cloud_poses_true[seq] = T_true
+        self.result.cloud_poses_odom[seq] = self.tof.T_world_tof(r.odom)

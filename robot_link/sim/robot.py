@@ -28,8 +28,8 @@ class RobotSpec:
     friction: float = 0.6
     com_height_m: float = 0.06
     wheelbase_m: float = 0.26
-    slip_sigma: float = 0.01
-    turn_slip_sigma: float = 0.015
+    slip_sigma: float = 0.02
+    turn_slip_sigma: float = 0.03
 
     @property
     def metres_per_tick(self) -> float:

@@ -133,6 +133,8 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
             poses.append(compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw]), np.array(T_rc)))
         if i % 10 == 0:
             ctx.progress(0.4 * i / len(frames), f"loaded {i}/{len(frames)} frames")
+    if not images:
+        raise ValueError(f"none of the session's {len(frames)} frames could be read as an image")
     use_odometry = len(poses) == len(images) and px_per_m is not None
     ctx.progress(0.4, "stitching")
     mosaic = stitch_frames(images, np.array(poses) if use_odometry else None, px_per_m=px_per_m if use_odometry else 1.0)

@@ -1,0 +1,124 @@
+"""The robot websocket against the real uvicorn server, SQLite file and data directory."""
+
+import asyncio
+import time
+import uuid
+
+import httpx
+import numpy as np
+import pytest
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import connect
+
+from robot_link.client import RobotLink
+from robot_link.clouds import encode_depth_png
+from robot_link.protocol import Message, MessageType, decode_message, encode_message
+from tests.conftest import LiveServer
+
+JPEG = b"\xff\xd8\xff\xe0" + bytes(range(256)) * 4
+
+
+def ws_url(server: LiveServer) -> str:
+    return server.url.replace("http://", "ws://") + "/ws/robot"
+
+
+def msg(sid: uuid.UUID, seq: int, mtype: MessageType, meta: dict, payload: bytes = b"") -> bytes:
+    return encode_message(Message(mtype, sid, seq, time.time(), meta, payload))
+
+
+def start(sid: uuid.UUID) -> bytes:
+    return msg(sid, 1, MessageType.SESSION_START, {"structure": "test girder", "operator": "t"})
+
+
+def frame(sid: uuid.UUID, seq: int) -> bytes:
+    return msg(sid, seq, MessageType.FRAME, {"width": 640, "height": 480, "pose": {"x": 0.1 * seq, "y": 0, "yaw": 0}}, JPEG + bytes([seq % 256]))
+
+
+def session_json(server: LiveServer, sid: uuid.UUID) -> dict:
+    return httpx.get(f"{server.url}/api/sessions/{sid}").raise_for_status().json()
+
+
+def test_robot_link_stores_everything_once_and_acks(live_server: LiveServer) -> None:
+    async def run() -> uuid.UUID:
+        link = RobotLink(live_server.url, live_server.token)
+        await link.start()
+        await link.send(MessageType.SESSION_START, {"structure": "test girder"})
+        for i in range(5):
+            await link.send(MessageType.FRAME, {"width": 640, "height": 480}, JPEG + bytes([i]))
+        depth = np.full((4, 6), 1.5, np.float32)
+        await link.send(MessageType.CLOUD, {"encoding": "png16_depth_mm", "width": 6, "height": 4, "fx": 5.0, "fy": 5.0, "cx": 2.5, "cy": 1.5}, encode_depth_png(depth))
+        await link.send(MessageType.TELEMETRY, {"battery_v": {"main": 12.2}})
+        await link.flush(timeout_s=20)
+        assert link.stats.acked == 8 and link.pending == 0
+        await link.close()
+        return link.session_id
+
+    sid = asyncio.run(run())
+    s = session_json(live_server, sid)
+    assert (s["frames"], s["clouds"], s["telemetry"], s["status"]) == (5, 1, 1, "live")
+    img = httpx.get(f"{live_server.url}/api/sessions/{sid}/frames/3/image")
+    assert img.status_code == 200 and img.content == JPEG + bytes([1])
+
+
+def test_resent_messages_are_acknowledged_but_stored_once(live_server: LiveServer) -> None:
+    sid = uuid.uuid4()
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+        statuses = []
+        for data in [start(sid), frame(sid, 2), frame(sid, 3), start(sid), frame(sid, 2), frame(sid, 3)]:
+            ws.send(data)
+            reply = decode_message(ws.recv(timeout=10))
+            assert reply.type is MessageType.ACK
+            statuses.append(reply.meta["status"])
+    assert statuses == ["stored"] * 3 + ["duplicate"] * 3
+    assert session_json(live_server, sid)["frames"] == 2
+
+
+def test_malformed_messages_get_errors_and_lose_nothing(live_server: LiveServer) -> None:
+    sid = uuid.uuid4()
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}, max_size=None) as ws:
+        ws.send(start(sid))
+        ws.send(frame(sid, 2))
+        assert [decode_message(ws.recv(timeout=10)).meta["status"] for _ in range(2)] == ["stored", "stored"]
+        bad = [b"garbage", frame(sid, 3)[:-300].replace(b"\xff\xd8", b"\x00\x00", 1), b"STLS" + b"\x09" * 60]
+        for data in bad:
+            ws.send(data)
+            reply = decode_message(ws.recv(timeout=10))
+            assert reply.type is MessageType.ERROR and "malformed" in reply.meta["error"]
+        ws.send("a text message")
+        assert decode_message(ws.recv(timeout=10)).type is MessageType.ERROR
+        ws.send(frame(uuid.uuid4(), 5))  # a session nobody started
+        reply = decode_message(ws.recv(timeout=10))
+        assert reply.type is MessageType.ERROR and "unknown" in reply.meta["error"]
+        ws.send(frame(sid, 4))  # the connection still works
+        assert decode_message(ws.recv(timeout=10)).meta["status"] == "stored"
+    assert session_json(live_server, sid)["frames"] == 2
+
+
+def test_huge_message_is_refused_and_the_server_keeps_running(live_server: LiveServer) -> None:
+    sid = uuid.uuid4()
+    limit = live_server.settings.max_message_bytes
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}, max_size=None) as ws:
+        ws.send(start(sid))
+        decode_message(ws.recv(timeout=10))
+        ws.send(frame(sid, 2)[:60] + b"\x00" * (limit + 4096))
+        with pytest.raises(ConnectionClosed):
+            ws.recv(timeout=10)
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+        ws.send(frame(sid, 3))
+        assert decode_message(ws.recv(timeout=10)).meta["status"] == "stored"
+    assert session_json(live_server, sid)["frames"] == 1
+
+
+@pytest.mark.parametrize("token", ["wrong-token", ""])
+def test_wrong_token_is_refused(live_server: LiveServer, token: str) -> None:
+    with pytest.raises(InvalidStatus) as info:
+        with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {token}"}):
+            pass
+    assert info.value.response.status_code == 403
+
+
+def test_rest_errors_are_json_with_the_right_status(live_server: LiveServer) -> None:
+    r = httpx.get(f"{live_server.url}/api/sessions/nope")
+    assert r.status_code == 404 and "not found" in r.json()["detail"]
+    assert httpx.get(f"{live_server.url}/api/jobs/999").status_code == 404
+    assert httpx.get(f"{live_server.url}/openapi.json").json()["info"]["title"] == "steelscan ground station"
