@@ -83,6 +83,7 @@ class RobotLink:
         self.stats = LinkStats()
         self._next_seq = 1
         self._unacked: OrderedDict[int, tuple[bytes, float]] = OrderedDict()
+        self._transmitted: set[int] = set()  # seqs that went out at least once
         self._space = asyncio.Condition()
         self._ws: ClientConnection | None = None
         self._connected = asyncio.Event()
@@ -123,7 +124,8 @@ class RobotLink:
             await self._space.wait_for(lambda: len(self._unacked) < self.window or self._fatal is not None)
         self._raise_if_failed()
         self._unacked[message.seq] = (data, time.monotonic())
-        await self._transmit(data)
+        if await self._transmit(data):
+            self._transmitted.add(message.seq)
         return message.seq
 
     async def notify(self, mtype: MessageType, meta: dict[str, Any], *, seq: int) -> None:
@@ -151,15 +153,17 @@ class RobotLink:
         if self._fatal is not None:
             raise self._fatal
 
-    async def _transmit(self, data: bytes) -> None:
+    async def _transmit(self, data: bytes) -> bool:
+        """Send now if connected; False if it waits for the (re)connection."""
         ws = self._ws
         if ws is None:
-            return  # sent on reconnect
+            return False
         try:
             await ws.send(data)
             self.stats.sent += 1
+            return True
         except websockets.ConnectionClosed:
-            pass  # the reader notices and reconnects; the message stays queued
+            return False  # the reader notices and reconnects; the message stays queued
 
     async def _run(self) -> None:
         backoff = 0.1
@@ -199,9 +203,12 @@ class RobotLink:
             self._space.notify_all()
 
     async def _resend_all(self, ws: ClientConnection) -> None:
-        for data, _ in list(self._unacked.values()):
+        for seq, (data, _) in list(self._unacked.items()):
             await ws.send(data)
-            self.stats.resent += 1
+            self.stats.sent += 1
+            if seq in self._transmitted:
+                self.stats.resent += 1
+            self._transmitted.add(seq)
 
     async def _read(self, ws: ClientConnection) -> None:
         async for raw in ws:
@@ -218,6 +225,7 @@ class RobotLink:
     async def _handle(self, message: Message) -> None:
         if message.type is MessageType.ACK:
             entry = self._unacked.pop(message.seq, None)
+            self._transmitted.discard(message.seq)
             if entry is not None:
                 self.stats.acked += 1
                 self.stats.last_ack_latency_s = time.monotonic() - entry[1]
@@ -230,6 +238,7 @@ class RobotLink:
             log.error("link: ground station rejected seq %d: %s", message.seq, message.meta.get("error"))
             # A rejected message will never be accepted: drop it so flush() can finish.
             self._unacked.pop(message.seq, None)
+            self._transmitted.discard(message.seq)
             async with self._space:
                 self._space.notify_all()
         elif message.type is MessageType.COMMAND and self.on_command is not None:

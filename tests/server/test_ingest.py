@@ -122,3 +122,21 @@ def test_rest_errors_are_json_with_the_right_status(live_server: LiveServer) -> 
     assert r.status_code == 404 and "not found" in r.json()["detail"]
     assert httpx.get(f"{live_server.url}/api/jobs/999").status_code == 404
     assert httpx.get(f"{live_server.url}/openapi.json").json()["info"]["title"] == "steelscan ground station"
+
+
+def test_link_reconnects_and_resends_without_duplicates(live_server: LiveServer) -> None:
+    async def run() -> tuple[uuid.UUID, RobotLink]:
+        link = RobotLink(live_server.url, live_server.token, window=8)
+        await link.start()
+        await link.send(MessageType.SESSION_START, {"structure": "flaky link"})
+        for i in range(30):
+            if i in (10, 20) and link._ws is not None:
+                link._ws.transport.abort()  # the network drops, no close handshake
+            await link.send(MessageType.FRAME, {"width": 640, "height": 480}, JPEG + bytes([i]))
+        await link.flush(timeout_s=30)
+        await link.close()
+        return link.session_id, link
+
+    sid, link = asyncio.run(run())
+    assert link.stats.reconnects >= 1
+    assert session_json(live_server, sid)["frames"] == 30

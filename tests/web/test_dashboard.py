@@ -1,0 +1,44 @@
+"""The page at / in Debian's headless chromium, against the real server and simulator."""
+
+import shutil
+import subprocess
+import sys
+from urllib.parse import urlparse
+
+import pytest
+
+from tests.conftest import LiveServer
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+pytestmark = [pytest.mark.browser, pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")]
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync"]
+
+
+def test_live_page_shows_camera_and_telemetry_with_no_errors(live_server: LiveServer, tmp_path) -> None:
+    from playwright.sync_api import sync_playwright
+
+    errors: list[str] = []
+    foreign: list[str] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("request", lambda r: foreign.append(r.url) if urlparse(r.url).hostname not in ("127.0.0.1", None) and not r.url.startswith("data:") else None)
+        page.goto(live_server.url + "/")
+        page.wait_for_selector("#link-state.ok", timeout=15000)
+        sim = subprocess.Popen([sys.executable, "-m", "server.cli", "sim", "--server", live_server.url, "--token", live_server.token,
+                                "--exit-when-done", "--lanes", "1", "--time-scale", "4"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 2", timeout=60000)
+            page.wait_for_selector("#telemetry dt", timeout=20000)
+            assert "battery" in page.inner_text("#telemetry")
+            page.wait_for_function("document.querySelectorAll('#sessions tbody tr').length >= 1", timeout=20000)
+            page.screenshot(path=str(tmp_path / "dashboard.png"))
+        finally:
+            out, err = sim.communicate(timeout=120)
+        assert sim.returncode == 0, err[-2000:]
+        browser.close()
+    assert errors == []
+    assert foreign == []
