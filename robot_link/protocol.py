@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import enum
 import json
+import math
 import struct
 import uuid
 from dataclasses import dataclass, field
@@ -193,7 +194,7 @@ def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Messag
         raise ProtocolError(f"flags must be 0 in version {PROTOCOL_VERSION}, got {flags}")
     if meta_len > MAX_META_BYTES or HEADER_BYTES + meta_len > len(data):
         raise ProtocolError(f"meta length {meta_len} does not fit in a {len(data)}-byte message")
-    if timestamp != timestamp or abs(timestamp) > 1e11:  # NaN or absurd
+    if not math.isfinite(timestamp) or abs(timestamp) > 1e11:
         raise ProtocolError(f"timestamp {timestamp} is not a valid time")
     raw_meta = data[HEADER_BYTES : HEADER_BYTES + meta_len]
     try:

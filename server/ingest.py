@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -142,8 +141,3 @@ class Ingest:
             return True
         return False
 
-
-def session_exists(factory: sessionmaker[Session], session_id: str) -> bool:
-    """Whether a session is stored."""
-    with factory() as db:
-        return db.scalar(select(InspectionSession.id).where(InspectionSession.id == session_id)) is not None

@@ -19,7 +19,14 @@ from numpy.typing import NDArray
 from robot_link.client import RobotLink
 from robot_link.clouds import encode_depth_png
 from robot_link.protocol import Message, MessageType
-from robot_link.sim.robot import IR_NAMES, EdgeAction, RobotSpec, SimRobot, adhesion_margin, edge_avoidance
+from robot_link.sim.robot import (
+    IR_NAMES,
+    EdgeAction,
+    RobotSpec,
+    SimRobot,
+    adhesion_margin,
+    edge_avoidance,
+)
 from robot_link.sim.sensors import DownwardCamera, TofCamera
 from robot_link.sim.structure import SteelStructure, make_structure
 

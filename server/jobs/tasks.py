@@ -191,7 +191,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         raise OSError("could not write map.ply")
     tmp.replace(out / "map.ply")
     write_atomic(out / "trajectory.tum", format_tum(np.array(stamps), result.poses).encode())
-    return {"map_path": str(out / "map.ply"), "trajectory_path": str(out / "trajectory.tum"), "points": int(len(result.points)),
+    return {"map_path": str(out / "map.ply"), "trajectory_path": str(out / "trajectory.tum"), "points": len(result.points),
             "clouds": len(clouds), "skipped_clouds": skipped, "cloud_seqs": seqs, "odometry_fallbacks": int(result.used_odometry.sum()),
             "mean_fitness": float(result.fitness.mean())}
 

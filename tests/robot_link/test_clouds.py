@@ -1,7 +1,13 @@
 import numpy as np
 import pytest
 
-from robot_link.clouds import decode_cloud, decode_depth_png, depth_to_points, encode_depth_png, encode_xyz
+from robot_link.clouds import (
+    decode_cloud,
+    decode_depth_png,
+    depth_to_points,
+    encode_depth_png,
+    encode_xyz,
+)
 from robot_link.protocol import ProtocolError
 
 

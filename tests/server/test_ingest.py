@@ -140,3 +140,38 @@ def test_link_reconnects_and_resends_without_duplicates(live_server: LiveServer)
     sid, link = asyncio.run(run())
     assert link.stats.reconnects >= 1
     assert session_json(live_server, sid)["frames"] == 30
+
+
+def test_browser_command_reaches_the_robot_and_frames_reach_the_browser(live_server: LiveServer) -> None:
+    import json as _json
+
+    sid = uuid.uuid4()
+    live_url = live_server.url.replace("http://", "ws://") + "/ws/live"
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as robot, connect(live_url) as browser:
+        robot.send(start(sid))
+        decode_message(robot.recv(timeout=10))
+        robot.send(frame(sid, 2))
+        decode_message(robot.recv(timeout=10))
+        got_frame = False
+        for _ in range(10):  # events and the frame, in whatever order
+            item = browser.recv(timeout=10)
+            if isinstance(item, bytes):
+                head_len = int.from_bytes(item[:4], "little")
+                header = _json.loads(item[4 : 4 + head_len])
+                assert header["session_id"] == str(sid) and item[4 + head_len :].startswith(b"\xff\xd8")
+                got_frame = True
+                break
+        assert got_frame
+        browser.send(_json.dumps({"session_id": str(sid), "cmd": "estop"}))
+        command = decode_message(robot.recv(timeout=10))
+        assert command.type is MessageType.COMMAND and command.meta["cmd"] == "estop"
+        browser.send(_json.dumps({"session_id": str(uuid.uuid4()), "cmd": "stop"}))
+        browser.send("not json")
+        replies = []
+        while len([r for r in replies if r.get("type") == "command_result"]) < 3:
+            item = browser.recv(timeout=10)
+            if isinstance(item, str):
+                replies.append(_json.loads(item))
+        results = [r for r in replies if r.get("type") == "command_result"]
+        assert results[0]["ok"] is True and results[0]["seq"] == command.seq
+        assert "no robot" in results[1]["error"] and "bad command" in results[2]["error"]
