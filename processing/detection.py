@@ -1,8 +1,9 @@
 """Crack and corrosion detection and the measurement of each defect (paper §3.3).
 
-First version of the pipeline: cracks by morphological black-hat + Otsu + cleaning
-(the ``proposed`` method until the paper's full pipeline lands), the paper's Otsu and
-Sauvola baselines, rust areas by colour, and defects measured as objects.
+Methods: ``paper`` (the published pipeline: automatic peak detection, Hessian line
+emphasis, region growing), ``proposed`` (illumination-normalised, scale-normalised line
+emphasis with hysteresis region growing), and the paper's baselines ``otsu`` and
+``sauvola``; rust areas by colour; each defect measured as an object.
 """
 
 from __future__ import annotations
@@ -13,22 +14,46 @@ from typing import Literal
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from skimage.filters import threshold_sauvola
+from skimage.filters import apply_hysteresis_threshold, threshold_sauvola
 from skimage.morphology import skeletonize
 
-Method = Literal["proposed", "otsu", "sauvola"]
-METHODS: tuple[str, ...] = ("proposed", "otsu", "sauvola")
+from processing.peaks import dominant_peaks, smooth_histogram, valley_emphasis_threshold
+from processing.region_growing import grow_regions
+from processing.ridges import line_emphasis
+
+Method = Literal["proposed", "paper", "otsu", "sauvola"]
+METHODS: tuple[str, ...] = ("proposed", "paper", "otsu", "sauvola")
+
+
+@dataclass(frozen=True)
+class PaperParams:
+    """Parameters of the published pipeline (paper §3.3)."""
+
+    sigma1: float = 1.0
+    scale_factor: float = 2**0.5
+    n_scales: int = 3
+    mu: float = 0.5
+    min_area_px: int = 30
+    grow_iterations: int = 50
 
 
 @dataclass(frozen=True)
 class CrackParams:
-    """Options of the crack detector (sizes in pixels)."""
+    """Options of the ``proposed`` crack detector (sizes in pixels).
 
-    blackhat_px: int = 15
-    min_area_px: int = 40
-    min_length_px: float = 25.0
-    min_elongation: float = 3.0
-    min_contrast: float = 12.0
+    Tuned on the DeepCrack development split (pooled 2-px-tolerant DSC ≈ 0.81).
+    """
+
+    background_px: int = 31
+    sigma1: float = 1.0
+    scale_factor: float = 2**0.5
+    n_scales: int = 4
+    mu: float = 0.5
+    high: float = 0.12
+    low: float = 0.06
+    min_area_px: int = 300
+    grow_steps: int = 1
+    grow_min_contrast: float = 0.25
     sauvola_window: int = 25
     sauvola_k: float = 0.2
 
@@ -85,36 +110,85 @@ def detect_cracks(image: NDArray[np.generic], *, method: Method = "proposed", pa
     if method == "sauvola":
         t = threshold_sauvola(gray, window_size=params.sauvola_window, k=params.sauvola_k)
         return gray < t
+    if method == "paper":
+        return paper_cracks(gray)
     if method != "proposed":
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    return _blackhat_cracks(gray, params)
+    return proposed_cracks(gray, params)
 
 
-def _blackhat_cracks(gray: NDArray[np.uint8], params: CrackParams) -> NDArray[np.bool_]:
-    k = params.blackhat_px | 1
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
-    smooth = cv2.GaussianBlur(gray, (3, 3), 0)
-    blackhat = cv2.morphologyEx(smooth, cv2.MORPH_BLACKHAT, kernel)
-    if int(blackhat.max()) < params.min_contrast:
+def global_threshold(hist: NDArray[np.floating]) -> tuple[int, int | None]:
+    """Threshold from the dominant peaks: the valley between the background (highest)
+    peak and the nearest darker dominant peak; valley-emphasis Otsu when there is none.
+
+    Returns the threshold and the darker (defect) peak, or None for a unimodal histogram.
+    """
+    h = smooth_histogram(hist)
+    peaks = dominant_peaks(hist).dominant
+    background = int(peaks[np.argmax(h[peaks])])
+    darker = peaks[peaks < background]
+    if len(darker) == 0:
+        return valley_emphasis_threshold(hist), None
+    d = int(darker.max())
+    return d + int(np.argmin(h[d : background + 1])), d
+
+
+def paper_cracks(gray: NDArray[np.uint8], params: PaperParams = PaperParams()) -> NDArray[np.bool_]:
+    """The published pipeline: peak-based global threshold ∧ Hessian line emphasis, then
+    region growing with the valley-emphasis threshold, then small components removed."""
+    hist = np.bincount(gray.ravel(), minlength=256).astype(np.float64)
+    t_global, defect_peak = global_threshold(hist)
+    dark = gray <= t_global
+    R = line_emphasis(gray, sigma1=params.sigma1, scale_factor=params.scale_factor, n_scales=params.n_scales, mu=params.mu)
+    if float(R.max()) <= 0 or not dark.any():
         return np.zeros(gray.shape, bool)
-    t, _ = cv2.threshold(blackhat, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    mask = blackhat > max(t, params.min_contrast)
-    mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
-    return _keep_line_like(mask, params)
+    r8 = np.round(255 * R / R.max()).astype(np.uint8)
+    t_r, _ = cv2.threshold(r8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    candidates = dark & (r8 > t_r)
+    if not candidates.any():
+        return candidates
+    t_star = valley_emphasis_threshold(hist)
+    g_defect = defect_peak if defect_peak is not None else float(gray[candidates].mean())
+    grown = grow_regions(gray, candidates, max(abs(t_star - g_defect), 1.0), max_iter=params.grow_iterations)
+    return remove_small(grown, params.min_area_px)
 
 
-def _keep_line_like(mask: NDArray[np.bool_], params: CrackParams) -> NDArray[np.bool_]:
+def remove_small(mask: NDArray[np.bool_], min_area_px: int) -> NDArray[np.bool_]:
+    """Drop connected components smaller than ``min_area_px`` pixels."""
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    keep = np.zeros(n, bool)
-    for i in range(1, n):
-        x, y, w, h, area = stats[i]
-        if area < params.min_area_px:
-            continue
-        extent = float(np.hypot(w, h))
-        # a line's bounding-box diagonal is long compared with its mean width (area / extent)
-        if extent >= params.min_length_px and extent * extent / area >= params.min_elongation:
-            keep[i] = True
+    keep = stats[:, cv2.CC_STAT_AREA] >= min_area_px
+    keep[0] = False
     return keep[labels]
+
+
+def normalise_illumination(gray: NDArray[np.uint8], background_px: int) -> NDArray[np.float32]:
+    """Image divided by its background (grey closing, which erases dark thin structures).
+
+    1.0 is the local surface brightness, whatever the lighting; a crack reads as < 1.
+    """
+    k = max(3, background_px | 1)
+    smooth = cv2.GaussianBlur(gray, (3, 3), 0)
+    background = cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    return smooth.astype(np.float32) / np.maximum(background.astype(np.float32), 1.0)
+
+
+def proposed_cracks(gray: NDArray[np.uint8], params: CrackParams = CrackParams()) -> NDArray[np.bool_]:
+    """The improved pipeline: illumination normalisation, scale-normalised Hessian line
+    emphasis (eq. 14 with σ_i²), region growing from strong seeds by hysteresis (the
+    paper's enhanced segmentation, on the line response), small components removed and
+    one step of growth into clearly darker neighbours."""
+    norm = normalise_illumination(gray, params.background_px)
+    R = line_emphasis(norm, sigma1=params.sigma1, scale_factor=params.scale_factor,
+                      n_scales=params.n_scales, mu=params.mu, normalise=True)
+    if float(R.max()) < params.high:
+        return np.zeros(gray.shape, bool)
+    mask = apply_hysteresis_threshold(R, params.low, params.high)
+    mask = remove_small(mask, params.min_area_px)
+    allowed = (1.0 - norm) > params.grow_min_contrast
+    kernel = np.ones((3, 3), np.uint8)
+    for _ in range(params.grow_steps):
+        mask |= (cv2.dilate(mask.astype(np.uint8), kernel) > 0) & allowed
+    return mask
 
 
 def detect_corrosion(image: NDArray[np.generic], *, params: CorrosionParams = CorrosionParams()) -> NDArray[np.bool_]:

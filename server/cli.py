@@ -151,7 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("detect", help="crack/defect segmentation of images")
     s.add_argument("images", nargs="+")
     s.add_argument("--out", required=True)
-    s.add_argument("--method", default="proposed", choices=["proposed", "otsu", "sauvola"])
+    s.add_argument("--method", default="proposed", choices=["proposed", "paper", "otsu", "sauvola"])
     s.add_argument("--px-per-mm", type=float)
     s.set_defaults(func=cmd_detect)
 

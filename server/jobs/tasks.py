@@ -140,6 +140,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     mosaic = stitch_frames(images, np.array(poses) if use_odometry else None, px_per_m=px_per_m if use_odometry else 1.0)
     out = ctx.results_dir()
     _write_png(out / "mosaic.png", mosaic.image)
+    _write_png(out / "mosaic_coverage.png", mosaic.coverage.astype(np.uint8) * 255)
     scale = min(1.0, OVERVIEW_MAX_PX / max(mosaic.image.shape[:2]))
     _write_png(out / "mosaic_overview.png", cv2.resize(mosaic.image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
     world = {"px_per_m": mosaic.px_per_m, "origin_m": list(mosaic.origin_m), "world_referenced": use_odometry}
@@ -205,10 +206,15 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     world = json.loads((out / "mosaic.json").read_text())
     px_per_m, (ox, oy) = world["px_per_m"], world["origin_m"]
     mm_per_px = 1000.0 / px_per_m if world.get("world_referenced") else None
+    coverage = cv2.imread(str(out / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
+    if coverage is None or coverage.shape != mosaic.shape[:2]:
+        coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
+    # the edge of the covered area is a dark step, not a crack: look only well inside it
+    inside = cv2.erode(coverage, np.ones((31, 31), np.uint8)) > 0
     ctx.progress(0.2, "cracks")
-    cracks = detect_cracks(mosaic)
+    cracks = detect_cracks(mosaic) & inside
     ctx.progress(0.6, "corrosion")
-    rust = detect_corrosion(mosaic)
+    rust = detect_corrosion(mosaic) & inside
     cracks &= ~rust
     found = measure_defects(cracks, "crack", mm_per_px=mm_per_px)
     found += measure_defects(rust, "corrosion", mm_per_px=mm_per_px, first_id=len(found) + 1)

@@ -64,3 +64,19 @@ def test_rust_patch_is_corrosion_and_grey_paint_is_not() -> None:
     mask = detect_corrosion(img)
     assert mask[100, 100] and not mask[10, 10]
     assert abs(int(mask.sum()) - int(np.pi * 30**2)) < 0.2 * np.pi * 30**2
+
+
+def test_paper_pipeline_finds_a_crack_on_a_plate() -> None:
+    img, truth = plate_with_crack(3)
+    mask = detect_cracks(img, method="paper")
+    assert (mask & truth).sum() / truth.sum() > 0.7
+
+
+def test_proposed_is_insensitive_to_uneven_low_light() -> None:
+    img, truth = plate_with_crack(4)
+    gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    ramp = np.linspace(1.0, 0.2, gray.shape[1])[None, :]  # light falls off to 20 %
+    dim = np.clip(gray * ramp, 0, 255).astype(np.uint8)
+    bright_mask, dim_mask = detect_cracks(img), detect_cracks(dim)
+    assert (dim_mask & truth).sum() > 0.7 * (bright_mask & truth).sum()
+    assert (dim_mask & ~truth).sum() < 0.05 * truth.size
