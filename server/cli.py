@@ -117,6 +117,14 @@ def cmd_map(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Run benchmarks; one JSON line per result."""
+    from server.bench import run_benchmarks
+
+    run_benchmarks(args.names, dataset=Path(args.dataset) if args.dataset else None, limit=args.limit)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every sub-command."""
     p = argparse.ArgumentParser(prog="steelscan", description="Ground station for steel-inspection climbing robots.")
@@ -167,6 +175,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True)
     s.add_argument("--odometry")
     s.set_defaults(func=cmd_map)
+
+    s = sub.add_parser("bench", help="benchmarks against baselines measured in the same run")
+    s.add_argument("names", nargs="*", help="benchmarks to run (default: all)")
+    s.add_argument("--dataset", help="crack dataset folder with images/ and masks/ (detect)")
+    s.add_argument("--limit", type=int, help="use at most this many images")
+    s.set_defaults(func=cmd_bench)
 
     admin = sub.add_parser("admin", help="robots (and, later, accounts)")
     asub = admin.add_subparsers(dest="admin_command", required=True)

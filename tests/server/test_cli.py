@@ -102,3 +102,20 @@ def test_stitch_folder_with_odometry_writes_mosaic_and_poses(tmp_path: Path) -> 
     (tmp_path / "short.tum").write_text("0 0 0 0 0 0 0 1\n")
     bad = steelscan("stitch", str(frames), "--out", str(tmp_path / "o5"), "--odometry", str(tmp_path / "short.tum"), "--px-per-m", "100")
     assert_clean_error(bad, "1 poses for 4 frames")
+
+
+@pytest.mark.skipif(not DATASET.is_dir(), reason="shared dataset not present")
+def test_bench_detect_prints_json_lines_with_baselines() -> None:
+    proc = steelscan("bench", "detect", "--limit", "2")
+    assert proc.returncode == 0, proc.stderr
+    results = [json.loads(line) for line in proc.stdout.splitlines()]
+    names = {r["name"] for r in results}
+    assert {"detect.proposed.dsc_tol2", "detect.sauvola.time_per_image", "detect.peak_detection_per_histogram"} <= names
+    for r in results:
+        assert {"name", "value", "unit"} <= r.keys()
+        if "baseline" in r:
+            assert "ratio" in r
+
+
+def test_bench_with_an_unknown_name_fails_cleanly() -> None:
+    assert_clean_error(steelscan("bench", "warp-drive"), "unknown benchmark")

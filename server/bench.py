@@ -1,0 +1,138 @@
+"""``steelscan bench``: accuracy and speed of each processing stage against baselines run
+in the same process. Each result is one JSON line with ``name``, ``value``, ``unit`` and,
+where there is a baseline, ``baseline`` and ``ratio``."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from processing.detection import detect_cracks
+from processing.peaks import dominant_peaks
+from server.config import PROJECT_ROOT
+from server.errors import CommandError
+
+DEFAULT_CRACK_DATASET = PROJECT_ROOT.parent / "shared" / "datasets" / "deepcrack-train"
+Result = dict[str, Any]
+
+
+@dataclass
+class Pooled:
+    """Pixel counts pooled over a set of images, strict and with a tolerance."""
+
+    tp_p: int = 0
+    fp: int = 0
+    tp_t: int = 0
+    fn: int = 0
+
+    def add(self, pred: NDArray[np.bool_], truth: NDArray[np.bool_], tolerance_px: int) -> None:
+        """Accumulate one image's counts."""
+        if tolerance_px:
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * tolerance_px + 1,) * 2)
+            t_near = cv2.dilate(truth.astype(np.uint8), k) > 0
+            p_near = cv2.dilate(pred.astype(np.uint8), k) > 0
+        else:
+            t_near, p_near = truth, pred
+        self.tp_p += int((pred & t_near).sum())
+        self.fp += int((pred & ~t_near).sum())
+        self.tp_t += int((truth & p_near).sum())
+        self.fn += int((truth & ~p_near).sum())
+
+    def scores(self) -> tuple[float, float, float]:
+        """PI, SI, DSC (paper eqs. 18-20) of the pooled counts."""
+        pi = self.tp_p / max(self.tp_p + self.fp, 1)
+        si = self.tp_t / max(self.tp_t + self.fn, 1)
+        dsc = 2 * pi * si / (pi + si) if pi + si else 0.0
+        return round(pi, 4), round(si, 4), round(dsc, 4)
+
+
+def low_light(image: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np.uint8]:
+    """Uneven low light: illumination falling to ~20 % across the frame, gamma, sensor noise."""
+    gray = image.astype(np.float32) / 255.0
+    h, w = gray.shape[:2]
+    angle = rng.uniform(0, 2 * np.pi)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    t = (np.cos(angle) * xx / w + np.sin(angle) * yy / h)
+    t = (t - t.min()) / max(float(t.max() - t.min()), 1e-6)
+    light = 1.0 - 0.8 * t
+    out = (gray * (light if gray.ndim == 2 else light[..., None])) ** 1.4
+    out = out * 255 + rng.normal(0, 4, out.shape)
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def load_crack_dataset(root: Path, limit: int | None) -> list[tuple[str, NDArray[np.uint8], NDArray[np.bool_]]]:
+    """(name, image, truth) pairs of a folder with ``images/`` and ``masks/``."""
+    images = sorted((root / "images").glob("*.jpg")) + sorted((root / "images").glob("*.png"))
+    if not images:
+        raise CommandError(f"{root}: no images/ with .jpg or .png files (use --dataset)")
+    out = []
+    for p in images[:limit]:
+        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        mask = cv2.imread(str(root / "masks" / f"{p.stem}.png"), cv2.IMREAD_GRAYSCALE)
+        if img is None or mask is None:
+            continue
+        out.append((p.name, img, mask > 127))
+    return out
+
+
+def _timed(fn: Callable[[], NDArray[np.bool_]]) -> tuple[NDArray[np.bool_], float]:
+    t0 = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0
+
+
+def bench_detect(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
+    """Pooled PI/SI/DSC (strict and 2-px tolerant) and time per image for every method,
+    on the dataset and on a low-light variant of it; peak detection time per histogram."""
+    data = load_crack_dataset(dataset or DEFAULT_CRACK_DATASET, limit)
+    rng = np.random.default_rng(0)
+    variants = {"": data, "lowlight_": [(n, low_light(i, rng), t) for n, i, t in data]}
+    baseline_dsc: dict[str, float] = {}
+    baseline_ms = 0.0
+    for prefix, items in variants.items():
+        for method in ("sauvola", "otsu", "paper", "proposed"):
+            strict, tol, seconds = Pooled(), Pooled(), 0.0
+            for _, img, truth in items:
+                pred, dt = _timed(lambda img=img, method=method: detect_cracks(img, method=method))  # type: ignore[misc]
+                seconds += dt
+                strict.add(pred, truth, 0)
+                tol.add(pred, truth, 2)
+            pi, si, dsc = tol.scores()
+            spi, ssi, sdsc = strict.scores()
+            ms = 1000 * seconds / len(items)
+            if method == "sauvola":
+                baseline_dsc[prefix] = dsc
+                baseline_ms = baseline_ms or ms
+            name = f"detect.{prefix}{method}"
+            yield {"name": f"{name}.dsc_tol2", "value": dsc, "unit": "dsc", "baseline": baseline_dsc[prefix],
+                   "ratio": round(dsc / max(baseline_dsc[prefix], 1e-9), 3), "pi": pi, "si": si,
+                   "strict": {"pi": spi, "si": ssi, "dsc": sdsc}, "images": len(items)}
+            if not prefix:
+                yield {"name": f"{name}.time_per_image", "value": round(ms, 2), "unit": "ms", "baseline": round(baseline_ms, 2),
+                       "ratio": round(ms / max(baseline_ms, 1e-9), 3), "image_size": list(items[0][1].shape[:2])}
+    hists = [np.bincount(cv2.cvtColor(i, cv2.COLOR_BGR2GRAY).ravel(), minlength=256) for _, i, _ in data[:50]]
+    t0 = time.perf_counter()
+    for h in hists:
+        dominant_peaks(h)
+    yield {"name": "detect.peak_detection_per_histogram", "value": round(1000 * (time.perf_counter() - t0) / len(hists), 3), "unit": "ms"}
+
+
+BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {"detect": bench_detect}
+
+
+def run_benchmarks(names: list[str], *, dataset: Path | None = None, limit: int | None = None) -> None:
+    """Run the named benchmarks (all when empty), printing one JSON object per line."""
+    unknown = [n for n in names if n not in BENCHMARKS]
+    if unknown:
+        raise CommandError(f"unknown benchmark(s) {unknown}; known: {sorted(BENCHMARKS)}")
+    for name in names or list(BENCHMARKS):
+        for result in BENCHMARKS[name](dataset=dataset, limit=limit):
+            print(json.dumps(result), flush=True)
