@@ -14,7 +14,7 @@ from typing import Literal
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from skimage.filters import apply_hysteresis_threshold, threshold_sauvola
+from skimage.filters import threshold_sauvola
 from skimage.morphology import skeletonize
 
 from processing.peaks import dominant_peaks, smooth_histogram, valley_emphasis_threshold
@@ -153,6 +153,17 @@ def paper_cracks(gray: NDArray[np.uint8], params: PaperParams = PaperParams()) -
     return remove_small(grown, params.min_area_px)
 
 
+def hysteresis(response: NDArray[np.floating], low: float, high: float, *, min_area_px: int = 0) -> NDArray[np.bool_]:
+    """Region growing by hysteresis: the 8-connected regions above ``low`` that hold a
+    pixel above ``high`` (and at least ``min_area_px`` pixels)."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((response > low).astype(np.uint8), connectivity=8)
+    keep = np.zeros(n, bool)
+    keep[np.unique(labels[response > high])] = True
+    keep &= stats[:, cv2.CC_STAT_AREA] >= min_area_px
+    keep[0] = False
+    return keep[labels]
+
+
 def remove_small(mask: NDArray[np.bool_], min_area_px: int) -> NDArray[np.bool_]:
     """Drop connected components smaller than ``min_area_px`` pixels."""
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
@@ -182,8 +193,7 @@ def proposed_cracks(gray: NDArray[np.uint8], params: CrackParams = CrackParams()
                       n_scales=params.n_scales, mu=params.mu, normalise=True)
     if float(R.max()) < params.high:
         return np.zeros(gray.shape, bool)
-    mask = apply_hysteresis_threshold(R, params.low, params.high)
-    mask = remove_small(mask, params.min_area_px)
+    mask = hysteresis(R, params.low, params.high, min_area_px=params.min_area_px)
     allowed = (1.0 - norm) > params.grow_min_contrast
     kernel = np.ones((3, 3), np.uint8)
     for _ in range(params.grow_steps):

@@ -80,3 +80,14 @@ def test_proposed_is_insensitive_to_uneven_low_light() -> None:
     bright_mask, dim_mask = detect_cracks(img), detect_cracks(dim)
     assert (dim_mask & truth).sum() > 0.7 * (bright_mask & truth).sum()
     assert (dim_mask & ~truth).sum() < 0.05 * truth.size
+
+
+def test_hysteresis_keeps_regions_with_a_strong_seed_only() -> None:
+    from skimage.filters import apply_hysteresis_threshold
+
+    from processing.detection import hysteresis
+
+    rng = np.random.default_rng(0)
+    r = cv2.GaussianBlur(rng.random((60, 80)).astype(np.float32), (0, 0), 2)
+    ours = hysteresis(r, 0.5, 0.55)
+    assert np.array_equal(ours, apply_hysteresis_threshold(r, 0.5, 0.55) & (r > 0.5))
