@@ -8,6 +8,7 @@ emphasis with hysteresis region growing), and the paper's baselines ``otsu`` and
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -115,6 +116,41 @@ def detect_cracks(image: NDArray[np.generic], *, method: Method = "proposed", pa
     if method != "proposed":
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     return proposed_cracks(gray, params)
+
+
+def detect_cracks_tiled(
+    image: NDArray[np.generic],
+    *,
+    method: Method = "proposed",
+    tile_px: int = 1024,
+    overlap_px: int = 64,
+    workers: int = 2,
+) -> NDArray[np.bool_]:
+    """Crack mask of a large image (a mosaic) computed tile by tile on ``workers`` threads.
+
+    Tiles overlap by ``overlap_px`` so filters see context across borders; each tile
+    contributes only its core, so a crack crossing a border comes out as one region.
+    """
+    if tile_px <= 2 * overlap_px:
+        raise ValueError(f"tile_px ({tile_px}) must exceed twice overlap_px ({overlap_px})")
+    h, w = image.shape[:2]
+    if h <= tile_px and w <= tile_px:
+        return detect_cracks(image, method=method)
+    out = np.zeros((h, w), bool)
+    step = tile_px - 2 * overlap_px
+    cores = [(y, x) for y in range(0, h, step) for x in range(0, w, step)]
+
+    def run(core: tuple[int, int]) -> None:
+        y, x = core
+        y0, x0 = max(0, y - overlap_px), max(0, x - overlap_px)
+        y1, x1 = min(h, y + step + overlap_px), min(w, x + step + overlap_px)
+        mask = detect_cracks(image[y0:y1, x0:x1], method=method)
+        cy1, cx1 = min(h, y + step), min(w, x + step)
+        out[y:cy1, x:cx1] = mask[y - y0 : cy1 - y0, x - x0 : cx1 - x0]
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        list(pool.map(run, cores))
+    return out
 
 
 def global_threshold(hist: NDArray[np.floating]) -> tuple[int, int | None]:

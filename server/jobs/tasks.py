@@ -20,7 +20,7 @@ import numpy as np
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from processing.detection import detect_corrosion, detect_cracks, measure_defects
+from processing.detection import detect_corrosion, detect_cracks_tiled, measure_defects
 from processing.mapping import register_clouds
 from processing.poses import compose_se2, format_tum, se2_to_se3
 from processing.stitching import stitch_frames
@@ -212,7 +212,7 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     # the edge of the covered area is a dark step, not a crack: look only well inside it
     inside = cv2.erode(coverage, np.ones((31, 31), np.uint8)) > 0
     ctx.progress(0.2, "cracks")
-    cracks = detect_cracks(mosaic) & inside
+    cracks = detect_cracks_tiled(mosaic) & inside
     ctx.progress(0.6, "corrosion")
     rust = detect_corrosion(mosaic) & inside
     cracks &= ~rust

@@ -91,3 +91,18 @@ def test_hysteresis_keeps_regions_with_a_strong_seed_only() -> None:
     r = cv2.GaussianBlur(rng.random((60, 80)).astype(np.float32), (0, 0), 2)
     ours = hysteresis(r, 0.5, 0.55)
     assert np.array_equal(ours, apply_hysteresis_threshold(r, 0.5, 0.55) & (r > 0.5))
+
+
+def test_tiled_detection_matches_whole_image_detection_away_from_tile_seams() -> None:
+    from processing.detection import detect_cracks_tiled
+
+    rng = np.random.default_rng(5)
+    img = np.clip(rng.normal(150, 6, (700, 900)), 0, 255).astype(np.uint8)
+    cv2.line(img, (20, 30), (880, 650), 45, 3)  # crosses several tile borders
+    cv2.line(img, (100, 600), (400, 500), 55, 2)
+    whole = detect_cracks(img)
+    tiled = detect_cracks_tiled(img, tile_px=300, overlap_px=60)
+    assert whole.sum() > 1000
+    assert (whole ^ tiled).sum() < 0.02 * whole.sum()
+    n, _ = cv2.connectedComponents(tiled.astype(np.uint8))
+    assert n - 1 == 2  # each crack stays one object across tiles
