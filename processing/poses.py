@@ -67,3 +67,17 @@ def parse_tum(text: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
 def yaw_of(T: NDArray[np.floating]) -> float:
     """Rotation about z of a 4x4 pose, in radians."""
     return float(np.arctan2(T[1, 0], T[0, 0]))
+
+
+def image_to_world(
+    uv: NDArray[np.floating], camera_pose: NDArray[np.floating], px_per_m: float, size: tuple[int, int]
+) -> NDArray[np.float64]:
+    """World (x, y) of downward-camera pixels: the chain image → camera → world (paper §3.1).
+
+    ``uv`` is (N, 2) pixel coordinates, ``camera_pose`` the camera centre (x, y, yaw) on
+    the surface, ``size`` the image (width, height); image x lies along the camera's yaw.
+    """
+    w, h = size
+    c, s = np.cos(camera_pose[2]), np.sin(camera_pose[2])
+    offset = (np.asarray(uv, dtype=np.float64) - ((w - 1) / 2, (h - 1) / 2)) / px_per_m
+    return offset @ np.array([[c, s], [-s, c]]) + camera_pose[:2]

@@ -61,13 +61,20 @@ class BackgroundServer:
         self.thread.join(timeout=20)
 
 
-def score(result: SimResult, session: dict[str, Any], defects: list[dict[str, Any]], trajectory_tum: str | None) -> dict[str, Any]:
-    """Compare what the station found with the simulator's ground truth."""
+def _boxes(defects: list[dict[str, Any]]) -> list[Box]:
+    return [Box(d["defect_class"], d["world_x_m"], d["world_y_m"], d["world_w_m"], d["world_h_m"])
+            for d in defects if d.get("world_x_m") is not None]
+
+
+def score(result: SimResult, session: dict[str, Any], defects: list[dict[str, Any]], trajectory_tum: str | None,
+          frame_defects: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Compare what the station found (on the mosaic, and frame by frame) with the simulator's ground truth."""
     assert result.structure is not None
     truth = [Box(d.defect_class, *d.bbox_m) for d in result.structure.defects]
-    found = [Box(d["defect_class"], d["world_x_m"], d["world_y_m"], d["world_w_m"], d["world_h_m"])
-             for d in defects if d.get("world_x_m") is not None]
-    out: dict[str, Any] = {"defects_found": len(defects), "defects_true": len(truth), "defects_matched": match_defects(found, truth)}
+    out: dict[str, Any] = {"defects_found": len(defects), "defects_true": len(truth), "defects_matched": match_defects(_boxes(defects), truth)}
+    if frame_defects is not None:
+        out["frame_defects_found"] = len(frame_defects)
+        out["frame_defects_matched"] = match_defects(_boxes(frame_defects), truth)
     out["map_ate_m"] = None
     map_job = next((j for j in session["jobs"] if j["kind"] == "map" and j["state"] == "done"), None)
     if trajectory_tum and map_job:
@@ -151,7 +158,8 @@ def _wait_for_jobs(url: str, session_id: str, progress: Progress, timeout_s: flo
 def _summary(url: str, settings: Settings, result: SimResult, session: dict[str, Any]) -> dict[str, Any]:
     sid = result.session_id
     with httpx.Client(base_url=url, timeout=30) as client:
-        defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000}).raise_for_status().json()["data"]
+        defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "mosaic"}).raise_for_status().json()["data"]
+        frame_defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "frame"}).raise_for_status().json()["data"]
         traj = client.get(f"/api/sessions/{sid}/results/trajectory.tum")
     jobs = {j["kind"]: j for j in session["jobs"]}
     mosaic = jobs.get("stitch", {}).get("result", {}).get("mosaic_path")
@@ -164,7 +172,7 @@ def _summary(url: str, settings: Settings, result: SimResult, session: dict[str,
         "clouds_sent": result.clouds_sent,
         "mosaic_path": mosaic,
         "map_path": map_path,
-        **score(result, session, defects, traj.text if traj.status_code == 200 else None),
+        **score(result, session, defects, traj.text if traj.status_code == 200 else None, frame_defects),
         "jobs": {k: j["state"] for k, j in jobs.items()},
         "job_errors": {k: j["error"] for k, j in jobs.items() if j["error"]},
         "dashboard_url": f"{url}/",

@@ -155,6 +155,7 @@ class Defect(Base):
     )
     job_id: Mapped[int | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
     source: Mapped[str] = mapped_column(String(16), default="mosaic")
+    frame_seq: Mapped[int | None] = mapped_column(Integer)
     defect_class: Mapped[str] = mapped_column(String(16))
     bbox_x: Mapped[int]
     bbox_y: Mapped[int]

@@ -42,6 +42,7 @@ class SessionPublic(ORM):
     clouds: int = 0
     telemetry: int = 0
     defects: int = 0
+    frame_defects: int = 0
     robot_name: str | None = None
     calibration: dict[str, Any] = Field(default_factory=dict)
     jobs: list[JobPublic] = Field(default_factory=list)
@@ -83,6 +84,7 @@ class DefectPublic(ORM):
     id: int
     defect_class: str
     source: str
+    frame_seq: int | None = None
     bbox_x: int
     bbox_y: int
     bbox_w: int

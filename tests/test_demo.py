@@ -21,6 +21,7 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
     assert Path(summary["mosaic_path"]).is_file() and Path(summary["map_path"]).is_file()
     assert 0 <= summary["defects_matched"] <= summary["defects_true"] == 9
     assert summary["defects_found"] >= summary["defects_matched"]
+    assert summary["frame_defects_found"] >= summary["frame_defects_matched"] >= 1  # frames placed on the structure
     assert isinstance(summary["map_ate_m"], float) and summary["map_ate_m"] < 0.05
     for key in ("session_id", "report_json_url"):
         assert summary[key]

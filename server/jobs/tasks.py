@@ -20,9 +20,10 @@ import numpy as np
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from processing.detection import Defect as Defect_
 from processing.detection import detect_corrosion, detect_cracks_tiled, measure_defects
 from processing.mapping import register_clouds
-from processing.poses import compose_se2, format_tum, se2_to_se3
+from processing.poses import compose_se2, format_tum, image_to_world, se2_to_se3
 from processing.stitching import stitch_frames
 from robot_link.clouds import decode_cloud
 from server.models import Cloud, Defect, Frame, InspectionSession, Job, JobState, utcnow
@@ -197,45 +198,90 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
             "mean_fitness": float(result.fitness.mean())}
 
 
+def _defect_row(ctx: JobContext, d: Defect_, source: str, mm: bool, world: tuple[float, float, float, float] | None,
+                frame_seq: int | None = None) -> Defect:
+    x, y, w, h = d.bbox
+    wx, wy, ww, wh = world if world is not None else (None, None, None, None)
+    return Defect(
+        session_id=ctx.session_id, job_id=ctx.job_id, source=source, frame_seq=frame_seq, defect_class=d.defect_class,
+        bbox_x=x, bbox_y=y, bbox_w=w, bbox_h=h, area_px=d.area_px, length_px=d.length_px,
+        max_width_px=d.max_width_px, mean_width_px=d.mean_width_px, orientation_deg=d.orientation_deg,
+        length_mm=d.length_mm if mm else None, max_width_mm=d.max_width_mm if mm else None,
+        area_mm2=d.area_mm2 if mm else None, world_x_m=wx, world_y_m=wy, world_w_m=ww, world_h_m=wh,
+    )
+
+
+def _detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
+    """Crack and rust masks of one image and its measured defects."""
+    cracks = detect_cracks_tiled(image)
+    rust = detect_corrosion(image)
+    if valid is not None:
+        cracks &= valid
+        rust &= valid
+    cracks &= ~rust
+    found = measure_defects(cracks, "crack", mm_per_px=mm_per_px)
+    found += measure_defects(rust, "corrosion", mm_per_px=mm_per_px, first_id=len(found) + 1)
+    return cracks, rust, found
+
+
+def _detect_frames(ctx: JobContext) -> list[Defect]:
+    """Defects of every camera frame, placed on the structure through the frame's pose."""
+    calib = ctx.session().calibration.get("camera", {})
+    px_per_m = float(calib.get("px_per_m", 0)) or None
+    T_rc = np.array(calib.get("T_robot_camera", [0.0, 0.0, 0.0]))
+    with ctx.factory() as db:
+        frames = list(db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)))
+    rows: list[Defect] = []
+    for i, f in enumerate(frames):
+        img = cv2.imread(str(ctx.files.resolve(f.path)), cv2.IMREAD_COLOR)
+        if img is None:
+            continue
+        _, _, found = _detect_in(img, 1000.0 / px_per_m if px_per_m else None)
+        cam = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw]), T_rc) if px_per_m and f.pose_x is not None else None
+        for d in found:
+            world = None
+            if cam is not None:
+                x, y, w, h = d.bbox
+                corners = image_to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]]), cam, px_per_m, (img.shape[1], img.shape[0]))
+                lo, hi = corners.min(axis=0), corners.max(axis=0)
+                world = (float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1]))
+            rows.append(_defect_row(ctx, d, "frame", px_per_m is not None, world, frame_seq=f.seq))
+        if i % 10 == 0:
+            ctx.progress(0.5 * i / max(len(frames), 1), f"frames {i}/{len(frames)}")
+    return rows
+
+
 def run_detect(ctx: JobContext) -> dict[str, Any]:
-    """Cracks and corrosion on the mosaic, measured and placed on the structure."""
+    """Cracks and corrosion in every frame and on the mosaic, measured and placed on the structure."""
+    frame_rows = _detect_frames(ctx)
     out = ctx.results_dir()
     mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
     if mosaic is None:
         raise ValueError("no mosaic to run detection on: run the stitch job first")
     world = json.loads((out / "mosaic.json").read_text())
     px_per_m, (ox, oy) = world["px_per_m"], world["origin_m"]
-    mm_per_px = 1000.0 / px_per_m if world.get("world_referenced") else None
+    referenced = bool(world.get("world_referenced"))
     coverage = cv2.imread(str(out / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     if coverage is None or coverage.shape != mosaic.shape[:2]:
         coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
     # the edge of the covered area is a dark step, not a crack: look only well inside it
     inside = cv2.erode(coverage, np.ones((31, 31), np.uint8)) > 0
-    ctx.progress(0.2, "cracks")
-    cracks = detect_cracks_tiled(mosaic) & inside
-    ctx.progress(0.6, "corrosion")
-    rust = detect_corrosion(mosaic) & inside
-    cracks &= ~rust
-    found = measure_defects(cracks, "crack", mm_per_px=mm_per_px)
-    found += measure_defects(rust, "corrosion", mm_per_px=mm_per_px, first_id=len(found) + 1)
+    ctx.progress(0.6, "mosaic")
+    cracks, rust, found = _detect_in(mosaic, 1000.0 / px_per_m if referenced else None, inside)
     _write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
     _write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
+    mosaic_rows = []
+    for d in found:
+        x, y, w, h = d.bbox
+        placed = (ox + x / px_per_m, oy + y / px_per_m, w / px_per_m, h / px_per_m) if referenced else None
+        mosaic_rows.append(_defect_row(ctx, d, "mosaic", referenced, placed))
     with ctx.factory() as db:
-        db.execute(delete(Defect).where(Defect.session_id == ctx.session_id, Defect.source == "mosaic"))
-        for d in found:
-            x, y, w, h = d.bbox
-            referenced = world.get("world_referenced")
-            db.add(Defect(
-                session_id=ctx.session_id, job_id=ctx.job_id, source="mosaic", defect_class=d.defect_class,
-                bbox_x=x, bbox_y=y, bbox_w=w, bbox_h=h, area_px=d.area_px, length_px=d.length_px,
-                max_width_px=d.max_width_px, mean_width_px=d.mean_width_px, orientation_deg=d.orientation_deg,
-                length_mm=d.length_mm, max_width_mm=d.max_width_mm, area_mm2=d.area_mm2,
-                world_x_m=ox + x / px_per_m if referenced else None, world_y_m=oy + y / px_per_m if referenced else None,
-                world_w_m=w / px_per_m if referenced else None, world_h_m=h / px_per_m if referenced else None,
-            ))
+        db.execute(delete(Defect).where(Defect.session_id == ctx.session_id))
+        db.add_all(frame_rows + mosaic_rows)
         db.commit()
     by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
-    return {"defects": len(found), "by_class": by_class, "method": "proposed", "crack_mask": str(out / "crack_mask.png")}
+    return {"defects": len(found), "by_class": by_class, "frame_defects": len(frame_rows), "method": "proposed",
+            "crack_mask": str(out / "crack_mask.png")}
 
 
 JOB_KINDS: dict[str, Callable[[JobContext], dict[str, Any]]] = {"stitch": run_stitch, "map": run_map, "detect": run_detect}

@@ -41,7 +41,8 @@ def _public(db: SessionDep, s: InspectionSession, *, with_jobs: bool = True) -> 
     out.frames = _count(db, Frame, s.id)
     out.clouds = _count(db, Cloud, s.id)
     out.telemetry = _count(db, TelemetrySample, s.id)
-    out.defects = _count(db, Defect, s.id)
+    out.defects = db.scalar(select(func.count()).select_from(Defect).where(Defect.session_id == s.id, Defect.source == "mosaic")) or 0
+    out.frame_defects = db.scalar(select(func.count()).select_from(Defect).where(Defect.session_id == s.id, Defect.source == "frame")) or 0
     out.robot_name = s.robot.name if s.robot else None
     if with_jobs:
         jobs = db.scalars(select(Job).where(Job.session_id == s.id).order_by(Job.id))
@@ -97,12 +98,15 @@ def read_telemetry(db: SessionDep, session_id: str, skip: Annotated[int, Query(g
 
 
 @router.get("/{session_id}/defects", response_model=DefectsPublic)
-def read_defects(db: SessionDep, session_id: str, defect_class: str | None = None, skip: Annotated[int, Query(ge=0)] = 0, limit: Annotated[int, Query(ge=1, le=5000)] = 1000) -> DefectsPublic:
-    """Defects found in a session, optionally of one class."""
+def read_defects(db: SessionDep, session_id: str, defect_class: str | None = None,
+                 source: Annotated[str | None, Query(pattern="^(mosaic|frame)$")] = None, skip: Annotated[int, Query(ge=0)] = 0, limit: Annotated[int, Query(ge=1, le=5000)] = 1000) -> DefectsPublic:
+    """Defects found in a session, optionally of one class or one source (mosaic or frame)."""
     get_session_or_404(db, session_id)
     q = select(Defect).where(Defect.session_id == session_id)
     if defect_class:
         q = q.where(Defect.defect_class == defect_class)
+    if source:
+        q = q.where(Defect.source == source)
     count = db.scalar(select(func.count()).select_from(q.subquery())) or 0
     rows = db.scalars(q.order_by(Defect.id).offset(skip).limit(limit))
     return DefectsPublic(data=list(rows), count=count)  # type: ignore[arg-type]
@@ -124,7 +128,7 @@ def read_result_file(db: SessionDep, state: StateDep, session_id: str, name: str
 def read_report_json(db: SessionDep, session_id: str) -> dict[str, Any]:
     """Session summary with jobs, processing results and every defect."""
     s = _public(db, get_session_or_404(db, session_id))
-    defects = read_defects(db, session_id, limit=5000)
+    defects = read_defects(db, session_id, source=None, limit=5000)
     results = {j.kind: j.result for j in s.jobs if j.state == "done"}
     return {
         "session": s.model_dump(mode="json", exclude={"jobs"}),
