@@ -42,19 +42,21 @@ class PaperParams:
 class CrackParams:
     """Options of the ``proposed`` crack detector (sizes in pixels).
 
-    Tuned on the DeepCrack development split (pooled 2-px-tolerant DSC ≈ 0.81).
+    Tuned on the DeepCrack development split, checked by two-fold cross-validation
+    (pooled 2-px-tolerant DSC 0.860 / 0.850 on its two halves).
     """
 
-    background_px: int = 31
+    background_px: int = 45
     sigma1: float = 1.0
     scale_factor: float = 2**0.5
-    n_scales: int = 4
+    n_scales: int = 6
     mu: float = 0.5
     high: float = 0.12
-    low: float = 0.06
+    low: float = 0.07
     min_area_px: int = 300
     grow_steps: int = 1
     grow_min_contrast: float = 0.25
+    min_darkness: float = 0.1
     sauvola_window: int = 25
     sauvola_k: float = 0.2
 
@@ -230,6 +232,8 @@ def proposed_cracks(gray: NDArray[np.uint8], params: CrackParams = CrackParams()
     if float(R.max()) < params.high:
         return np.zeros(gray.shape, bool)
     mask = hysteresis(R, params.low, params.high, min_area_px=params.min_area_px)
+    if params.min_darkness > 0:  # keep the crack's own dark pixels, not its blurred halo
+        mask &= (1.0 - norm) > params.min_darkness
     allowed = (1.0 - norm) > params.grow_min_contrast
     kernel = np.ones((3, 3), np.uint8)
     for _ in range(params.grow_steps):

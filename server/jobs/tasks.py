@@ -218,7 +218,8 @@ def _detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | N
     if valid is not None:
         cracks &= valid
         rust &= valid
-    cracks &= ~rust
+    # a rust patch's rim reads as a dark line: cracks there are counted as corrosion
+    cracks &= cv2.dilate(rust.astype(np.uint8), np.ones((15, 15), np.uint8)) == 0
     found = measure_defects(cracks, "crack", mm_per_px=mm_per_px)
     found += measure_defects(rust, "corrosion", mm_per_px=mm_per_px, first_id=len(found) + 1)
     return cracks, rust, found
