@@ -43,7 +43,8 @@ class CrackParams:
     """Options of the ``proposed`` crack detector (sizes in pixels).
 
     Tuned on the DeepCrack development split, checked by two-fold cross-validation
-    (pooled 2-px-tolerant DSC 0.860 / 0.850 on its two halves).
+    (pooled 2-px-tolerant DSC 0.871 / 0.867 on its two halves, where the best Sauvola
+    setting with small-object removal scores 0.858 / 0.858).
     """
 
     background_px: int = 45
@@ -52,9 +53,13 @@ class CrackParams:
     n_scales: int = 6
     mu: float = 0.5
     high: float = 0.12
-    low: float = 0.07
+    low: float = 0.1
+    min_contrast_levels: float = 6.0
+    max_half_width_px: float = 35.0
+    local_window_px: int = 61
+    local_k: float = 0.4
     min_area_px: int = 300
-    grow_steps: int = 1
+    grow_steps: int = 0
     grow_min_contrast: float = 0.25
     min_darkness: float = 0.1
     sauvola_window: int = 25
@@ -191,13 +196,55 @@ def paper_cracks(gray: NDArray[np.uint8], params: PaperParams = PaperParams()) -
     return remove_small(grown, params.min_area_px)
 
 
-def hysteresis(response: NDArray[np.floating], low: float, high: float, *, min_area_px: int = 0) -> NDArray[np.bool_]:
-    """Region growing by hysteresis: the 8-connected regions above ``low`` that hold a
-    pixel above ``high`` (and at least ``min_area_px`` pixels)."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats((response > low).astype(np.uint8), connectivity=8)
+def seeded_regions(candidates: NDArray[np.bool_], seeds: NDArray[np.bool_], *, min_area_px: int = 0) -> NDArray[np.bool_]:
+    """Region growing from seeds: the 8-connected regions of ``candidates`` that hold a
+    seed pixel (and at least ``min_area_px`` pixels)."""
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((candidates | seeds).astype(np.uint8), connectivity=8)
     keep = np.zeros(n, bool)
-    keep[np.unique(labels[response > high])] = True
+    keep[np.unique(labels[seeds])] = True
     keep &= stats[:, cv2.CC_STAT_AREA] >= min_area_px
+    keep[0] = False
+    return keep[labels]
+
+
+def hysteresis(response: NDArray[np.floating], low: float, high: float, *, min_area_px: int = 0) -> NDArray[np.bool_]:
+    """Hysteresis thresholding: regions above ``low`` that hold a pixel above ``high``."""
+    return seeded_regions(response > low, response > high, min_area_px=min_area_px)
+
+
+def sauvola_threshold(gray: NDArray[np.uint8], window: int, k: float, r: float = 127.5) -> NDArray[np.float32]:
+    """Sauvola's local threshold m·(1 + k·(s/r − 1)) from box-filtered moments (as scikit-image)."""
+    g = gray.astype(np.float32)
+    size = (window | 1, window | 1)
+    mean = cv2.boxFilter(g, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    sq = cv2.boxFilter(g * g, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    std = np.sqrt(np.maximum(sq - mean * mean, 0))
+    return mean * (1 + k * (std / r - 1))
+
+
+def drop_thick(mask: NDArray[np.bool_], max_half_width_px: float) -> NDArray[np.bool_]:
+    """Drop connected components wider than a crack: inscribed radius > ``max_half_width_px``."""
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return mask
+    dist = cv2.distanceTransform(np.pad(mask.astype(np.uint8), 1), cv2.DIST_L2, 3)[1:-1, 1:-1]
+    radius = np.zeros(n, np.float32)
+    np.maximum.at(radius, labels.ravel(), dist.ravel())
+    keep = radius <= max_half_width_px
+    keep[0] = False
+    return keep[labels]
+
+
+def drop_along(mask: NDArray[np.bool_], lines: NDArray[np.bool_], *, band_px: int = 4, max_fraction: float = 0.5) -> NDArray[np.bool_]:
+    """Drop components lying mostly within ``band_px`` of ``lines`` (e.g. mosaic seams)."""
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    if n <= 1 or not lines.any():
+        return mask
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1,) * 2)
+    near = cv2.dilate(lines.astype(np.uint8), k) > 0
+    total = np.bincount(labels.ravel(), minlength=n)
+    on = np.bincount(labels[near], minlength=n)
+    keep = on <= max_fraction * np.maximum(total, 1)
     keep[0] = False
     return keep[labels]
 
@@ -210,30 +257,43 @@ def remove_small(mask: NDArray[np.bool_], min_area_px: int) -> NDArray[np.bool_]
     return keep[labels]
 
 
-def normalise_illumination(gray: NDArray[np.uint8], background_px: int) -> NDArray[np.float32]:
-    """Image divided by its background (grey closing, which erases dark thin structures).
-
-    1.0 is the local surface brightness, whatever the lighting; a crack reads as < 1.
-    """
+def estimate_background(gray: NDArray[np.uint8], background_px: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Lightly smoothed image and its background (a grey closing, which erases dark thin
+    structures), both float32."""
     k = max(3, background_px | 1)
     smooth = cv2.GaussianBlur(gray, (3, 3), 0)
     background = cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-    return smooth.astype(np.float32) / np.maximum(background.astype(np.float32), 1.0)
+    return smooth.astype(np.float32), background.astype(np.float32)
+
+
+def normalise_illumination(gray: NDArray[np.uint8], background_px: int) -> NDArray[np.float32]:
+    """Image divided by its background: 1.0 is the local surface brightness whatever the
+    lighting, and a crack reads as < 1."""
+    smooth, background = estimate_background(gray, background_px)
+    return smooth / np.maximum(background, 1.0)
 
 
 def proposed_cracks(gray: NDArray[np.uint8], params: CrackParams = CrackParams()) -> NDArray[np.bool_]:
     """The improved pipeline: illumination normalisation, scale-normalised Hessian line
-    emphasis (eq. 14 with σ_i²), region growing from strong seeds by hysteresis (the
-    paper's enhanced segmentation, on the line response), small components removed and
-    one step of growth into clearly darker neighbours."""
-    norm = normalise_illumination(gray, params.background_px)
+    emphasis (eq. 14 with σ_i²), then region growing from strong line seeds (the paper's
+    enhanced segmentation) over pixels that are line-like or locally dark (Sauvola), small
+    components removed, the crack's own dark pixels kept, and one step of growth into
+    clearly darker neighbours."""
+    smooth, background = estimate_background(gray, params.background_px)
+    norm = smooth / np.maximum(background, 1.0)
     R = line_emphasis(norm, sigma1=params.sigma1, scale_factor=params.scale_factor,
                       n_scales=params.n_scales, mu=params.mu, normalise=True)
     if float(R.max()) < params.high:
         return np.zeros(gray.shape, bool)
-    mask = hysteresis(R, params.low, params.high, min_area_px=params.min_area_px)
+    dark = gray < sauvola_threshold(gray, params.local_window_px, params.local_k)
+    # a seed must be darker than its surroundings by a few grey levels, not only in ratio:
+    # in near-black areas sensor noise alone makes large ratios
+    seeds = (R > params.high) & (background - smooth > params.min_contrast_levels)
+    mask = seeded_regions(dark | (R > params.low), seeds, min_area_px=params.min_area_px)
+    mask = drop_thick(mask, params.max_half_width_px)  # shadows and plate edges are not cracks
     if params.min_darkness > 0:  # keep the crack's own dark pixels, not its blurred halo
         mask &= (1.0 - norm) > params.min_darkness
+        mask = remove_small(mask, params.min_area_px // 4)
     allowed = (1.0 - norm) > params.grow_min_contrast
     kernel = np.ones((3, 3), np.uint8)
     for _ in range(params.grow_steps):

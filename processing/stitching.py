@@ -23,6 +23,7 @@ class StitchParams:
     search_px: int = 24
     min_score: float = 0.5
     min_overlap: float = 0.15
+    flat_field_min_frames: int = 8
 
 
 @dataclass
@@ -39,6 +40,7 @@ class Mosaic:
     origin_m: tuple[float, float]
     frame_poses_px: NDArray[np.float64]
     confident: NDArray[np.bool_]
+    seams: NDArray[np.bool_] | None = None  # where a later frame's border cuts an earlier one
 
     def to_world(self, u: float, v: float) -> tuple[float, float]:
         """World (x, y) in metres of a mosaic pixel."""
@@ -115,6 +117,25 @@ def match_offset(
     return sx0 + fx - tx0, sy0 + fy - ty0, float(score)
 
 
+def estimate_flat_field(frames: Sequence[NDArray[np.uint8]]) -> NDArray[np.float32]:
+    """Relative brightness of each pixel position over many frames (vignetting), (H, W).
+
+    The per-pixel median of the frames, each divided by its own mean, smoothed; dividing
+    a frame by it evens out its corners so seams between frames do not show.
+    """
+    stack = np.stack([_gray(f).astype(np.float32) / max(float(_gray(f).mean()), 1.0) for f in frames])
+    field = np.median(stack, axis=0)
+    h, w = field.shape
+    field = cv2.GaussianBlur(field, (0, 0), max(h, w) / 20)
+    return (field / max(float(field.mean()), 1e-6)).astype(np.float32)
+
+
+def apply_flat_field(frame: NDArray[np.uint8], field: NDArray[np.float32]) -> NDArray[np.uint8]:
+    """Divide a frame by its flat field."""
+    f = field if frame.ndim == 2 else field[..., None]
+    return np.clip(frame.astype(np.float32) / np.maximum(f, 0.2) + 0.5, 0, 255).astype(np.uint8)
+
+
 def estimate_motion_phase(a: NDArray[np.uint8], b: NDArray[np.uint8]) -> tuple[float, float]:
     """Image-only translation of frame ``b`` relative to ``a`` by phase correlation (px).
 
@@ -169,6 +190,9 @@ def stitch_frames(
             raise ValueError(f"frame {i} is {f.dtype} {f.shape}; all frames must be uint8 {shape}")
     if px_per_m <= 0:
         raise ValueError(f"px_per_m must be positive, got {px_per_m}")
+    if len(frames) >= params.flat_field_min_frames:
+        field = estimate_flat_field(frames)
+        frames = [apply_flat_field(f, field) for f in frames]
     if poses is None:
         guess = np.zeros((len(frames), 3))
         for i in range(1, len(frames)):
@@ -212,11 +236,24 @@ def _compose(
     y1 = max(p.y0 + p.mask.shape[0] for p in patches)
     canvas = np.zeros((y1 - y0, x1 - x0) + tuple(shape[2:]), np.uint8)
     coverage = np.zeros((y1 - y0, x1 - x0), bool)
-    for p in patches:
+    owner = np.zeros((y1 - y0, x1 - x0), np.float32)
+    for i, p in enumerate(patches, 1):
         ys, xs = slice(p.y0 - y0, p.y0 - y0 + p.mask.shape[0]), slice(p.x0 - x0, p.x0 - x0 + p.mask.shape[1])
         m = p.mask > 0
-        canvas[ys, xs][m] = p.image[m]
+        image = p.image
+        seen = coverage[ys, xs] & m
+        if seen.sum() > 1000:  # exposure compensation: match the new frame's gain to the mosaic
+            gain = float(np.median(canvas[ys, xs][seen])) / max(float(np.median(image[seen])), 1.0)
+            image = np.clip(image.astype(np.float32) * np.clip(gain, 0.6, 1.6) + 0.5, 0, 255).astype(np.uint8)
+        # the newest frame wins where frames overlap: no blending, so no ghosting of thin
+        # cracks where two frames disagree by a pixel or two
+        canvas[ys, xs][m] = image[m]
         coverage[ys, xs] |= m
+        owner[ys, xs][m] = i
+    # seams: where the frame that supplies the pixels changes
+    k = np.ones((3, 3), np.uint8)
+    seams = ((cv2.dilate(owner, k) != owner) | (cv2.erode(owner, k) != owner)) & coverage
+    seams &= cv2.erode(coverage.astype(np.uint8), k) > 0
     poses_px = np.column_stack([placed[:, 0] - x0, placed[:, 1] - y0, np.degrees(placed[:, 2])])
     origin = (x0 / px_per_m, y0 / px_per_m)
-    return Mosaic(canvas, coverage, px_per_m, origin, poses_px, confident)
+    return Mosaic(canvas, coverage, px_per_m, origin, poses_px, confident, seams)

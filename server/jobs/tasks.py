@@ -21,7 +21,7 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from processing.detection import Defect as Defect_
-from processing.detection import detect_corrosion, detect_cracks_tiled, measure_defects
+from processing.detection import detect_corrosion, detect_cracks_tiled, drop_along, measure_defects
 from processing.mapping import register_clouds
 from processing.poses import compose_se2, format_tum, image_to_world, se2_to_se3
 from processing.stitching import stitch_frames
@@ -142,6 +142,8 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     out = ctx.results_dir()
     _write_png(out / "mosaic.png", mosaic.image)
     _write_png(out / "mosaic_coverage.png", mosaic.coverage.astype(np.uint8) * 255)
+    if mosaic.seams is not None:
+        _write_png(out / "mosaic_seams.png", mosaic.seams.astype(np.uint8) * 255)
     scale = min(1.0, OVERVIEW_MAX_PX / max(mosaic.image.shape[:2]))
     _write_png(out / "mosaic_overview.png", cv2.resize(mosaic.image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
     world = {"px_per_m": mosaic.px_per_m, "origin_m": list(mosaic.origin_m), "world_referenced": use_odometry}
@@ -211,18 +213,33 @@ def _defect_row(ctx: JobContext, d: Defect_, source: str, mm: bool, world: tuple
     )
 
 
-def _detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
+def _detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | None = None,
+               seams: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
     """Crack and rust masks of one image and its measured defects."""
     cracks = detect_cracks_tiled(image)
     rust = detect_corrosion(image)
     if valid is not None:
         cracks &= valid
         rust &= valid
+    if seams is not None:  # an exposure step where frames meet is a straight dark edge, not a crack
+        cracks = drop_along(cracks, seams)
     # a rust patch's rim reads as a dark line: cracks there are counted as corrosion
     cracks &= cv2.dilate(rust.astype(np.uint8), np.ones((15, 15), np.uint8)) == 0
     found = measure_defects(cracks, "crack", mm_per_px=mm_per_px)
     found += measure_defects(rust, "corrosion", mm_per_px=mm_per_px, first_id=len(found) + 1)
     return cracks, rust, found
+
+
+def _on_surface(image: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """Where the mosaic shows the steel surface: not far darker than the surface typically
+    is (beyond a plate's edge the camera sees the dark void below), and well inside the
+    covered area (its edge is a dark step, not a crack)."""
+    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    background = cv2.morphologyEx(gray, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (45, 45)))
+    covered = coverage > 0
+    level = float(np.median(background[covered])) if covered.any() else 0.0
+    surface = (background > 0.4 * level) & covered
+    return cv2.erode(surface.astype(np.uint8), np.ones((31, 31), np.uint8)) > 0
 
 
 def _detect_frames(ctx: JobContext) -> list[Defect]:
@@ -265,10 +282,11 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     coverage = cv2.imread(str(out / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     if coverage is None or coverage.shape != mosaic.shape[:2]:
         coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
-    # the edge of the covered area is a dark step, not a crack: look only well inside it
-    inside = cv2.erode(coverage, np.ones((31, 31), np.uint8)) > 0
+    inside = _on_surface(mosaic, coverage)
     ctx.progress(0.6, "mosaic")
-    cracks, rust, found = _detect_in(mosaic, 1000.0 / px_per_m if referenced else None, inside)
+    seams = cv2.imread(str(out / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE)
+    seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
+    cracks, rust, found = _detect_in(mosaic, 1000.0 / px_per_m if referenced else None, inside, seams)
     _write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
     _write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
     mosaic_rows = []
