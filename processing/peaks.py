@@ -25,15 +25,26 @@ def smooth_histogram(hist: NDArray[np.floating]) -> NDArray[np.float64]:
 def initial_peaks(h: NDArray[np.floating]) -> NDArray[np.intp]:
     """Indices δ with h(δ) > h(δ-1) and h(δ) > h(δ+1) (eq. 4); plateaus count once (left edge)."""
     h = np.asarray(h, dtype=np.float64)
+    n = len(h)
+    # for each bin, the next bin whose value differs (so a flat-topped peak is still found)
+    change = np.nonzero(np.diff(h) != 0)[0] + 1  # first index of each new run
+    run_start = np.zeros(n, np.intp)
+    run_start[change] = change
+    run_start = np.maximum.accumulate(run_start)
+    nxt_idx = np.searchsorted(change, run_start, side="right")
+    right = np.full(n, -np.inf)
+    has_next = nxt_idx < len(change)
+    right[has_next] = h[change[nxt_idx[has_next]]]
     left = np.concatenate([[-np.inf], h[:-1]])
-    # compare with the next *different* value so a flat-topped peak is still found
-    right = h.copy()
-    nxt = -np.inf
-    for i in range(len(h) - 1, -1, -1):
-        right[i] = nxt
-        if i > 0 and h[i] != h[i - 1]:
-            nxt = h[i]
     return np.nonzero((h > left) & (h > right))[0]
+
+
+def _neighbours(n: int) -> NDArray[np.intp]:
+    """Index of the peak each one is compared with: the next, the previous for the last."""
+    j = np.arange(1, n + 1)
+    if n:
+        j[-1] = max(n - 2, 0)
+    return j
 
 
 def offset_distances(h: NDArray[np.floating], delta: NDArray[np.intp]) -> NDArray[np.float64]:
@@ -44,33 +55,25 @@ def offset_distances(h: NDArray[np.floating], delta: NDArray[np.intp]) -> NDArra
     """
     h = np.asarray(h, dtype=np.float64)
     n = len(delta)
-    out = np.zeros(n)
-    for k in range(n):
-        j = k + 1 if k + 1 < n else k - 1
-        if j < 0:
-            out[k] = float(delta[k]) or 1.0
-            continue
-        gap = abs(float(delta[j] - delta[k]))
-        hk, hj = h[delta[k]], h[delta[j]]
-        if hj != hk:
-            den = abs(hj - hk)
-        else:
-            kk = k + 1  # the paper counts peaks from 1
-            den = abs((kk + 1) / kk * hj - hk)
-        out[k] = hk * gap / den if den > 0 else np.inf
-    return out
+    if n == 1:
+        return np.array([float(delta[0]) or 1.0])
+    j = _neighbours(n)
+    hk, hj = h[delta], h[delta[j]]
+    gap = np.abs(delta[j] - delta).astype(np.float64)
+    k1 = np.arange(1, n + 1, dtype=np.float64)  # the paper counts peaks from 1
+    den = np.where(hj != hk, np.abs(hj - hk), np.abs((k1 + 1) / k1 * hj - hk))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 0, hk * gap / den, np.inf)
 
 
 def crossover_indices(h: NDArray[np.floating], delta: NDArray[np.intp], L: NDArray[np.float64]) -> NDArray[np.float64]:
     """Crossover index θ(δk) = d(δk) / L(δk), d = h(δk) - min(h(δk), h(δk+1)) / 2 (eq. 8)."""
     h = np.asarray(h, dtype=np.float64)
     n = len(delta)
-    theta = np.zeros(n)
-    for k in range(n):
-        j = k + 1 if k + 1 < n else max(k - 1, 0)
-        d = h[delta[k]] - min(h[delta[k]], h[delta[j]]) / 2.0
-        theta[k] = d / L[k] if np.isfinite(L[k]) and L[k] > 0 else 0.0
-    return theta
+    j = _neighbours(n) if n > 1 else np.zeros(1, np.intp)
+    d = h[delta] - np.minimum(h[delta], h[delta[j]]) / 2.0
+    ok = np.isfinite(L) & (L > 0)
+    return np.where(ok, d / np.where(ok, L, 1.0), 0.0)
 
 
 @dataclass(frozen=True)

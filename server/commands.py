@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from processing.detection import detect_cracks, measure_defects
+from processing.detection import detect_cracks, detect_cracks_tiled, measure_defects
 from processing.mapping import register_clouds
 from processing.poses import format_tum, parse_tum, yaw_of
 from processing.stitching import stitch_frames
@@ -23,6 +23,7 @@ from server.storage import write_atomic
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CLOUD_EXTS = {".ply", ".pcd"}
+TILED_ABOVE_PX = 4_000_000
 
 
 def _read_image(path: Path) -> np.ndarray:
@@ -50,7 +51,9 @@ def detect_images(images: list[Path], out: Path, *, method: str, px_per_mm: floa
     records = []
     for path, img in loaded:
         try:
-            mask = detect_cracks(img, method=method)  # type: ignore[arg-type]
+            # large images (mosaics) go tile by tile on both cores with bounded working memory
+            big = img.shape[0] * img.shape[1] > TILED_ABOVE_PX
+            mask = detect_cracks_tiled(img, method=method) if big else detect_cracks(img, method=method)  # type: ignore[arg-type]
         except ValueError as exc:
             raise CommandError(f"{path}: {exc}") from None
         mm_per_px = 1.0 / px_per_mm if px_per_mm else None

@@ -110,7 +110,7 @@ def test_bench_detect_prints_json_lines_with_baselines() -> None:
     assert proc.returncode == 0, proc.stderr
     results = [json.loads(line) for line in proc.stdout.splitlines()]
     names = {r["name"] for r in results}
-    assert {"detect.proposed.dsc_tol2", "detect.sauvola.time_per_image", "detect.peak_detection_per_histogram"} <= names
+    assert {"detect.proposed.dsc_tol2", "detect.sauvola_tuned.dsc_tol2", "detect.proposed.time_per_480x320", "detect.peak_detection_per_histogram"} <= names
     for r in results:
         assert {"name", "value", "unit"} <= r.keys()
         if "baseline" in r:
