@@ -54,6 +54,7 @@ class CrackParams:
     mu: float = 0.5
     high: float = 0.12
     low: float = 0.1
+    half_resolution_from: float | None = 2.0
     min_contrast_levels: float = 6.0
     max_half_width_px: float = 35.0
     local_window_px: int = 61
@@ -262,7 +263,8 @@ def estimate_background(gray: NDArray[np.uint8], background_px: int) -> tuple[ND
     structures), both float32."""
     k = max(3, background_px | 1)
     smooth = cv2.GaussianBlur(gray, (3, 3), 0)
-    background = cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    # a square element: OpenCV separates it into two 1-D passes (an ellipse costs ~10x more)
+    background = cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
     return smooth.astype(np.float32), background.astype(np.float32)
 
 
@@ -281,8 +283,8 @@ def proposed_cracks(gray: NDArray[np.uint8], params: CrackParams = CrackParams()
     clearly darker neighbours."""
     smooth, background = estimate_background(gray, params.background_px)
     norm = smooth / np.maximum(background, 1.0)
-    R = line_emphasis(norm, sigma1=params.sigma1, scale_factor=params.scale_factor,
-                      n_scales=params.n_scales, mu=params.mu, normalise=True)
+    R = line_emphasis(norm, sigma1=params.sigma1, scale_factor=params.scale_factor, n_scales=params.n_scales,
+                      mu=params.mu, normalise=True, half_resolution_from=params.half_resolution_from)
     if float(R.max()) < params.high:
         return np.zeros(gray.shape, bool)
     dark = gray < sauvola_threshold(gray, params.local_window_px, params.local_k)

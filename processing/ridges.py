@@ -46,6 +46,7 @@ def line_emphasis(
     mu: float = 0.5,
     dark_lines: bool = True,
     normalise: bool = False,
+    half_resolution_from: float | None = None,
 ) -> NDArray[np.float32]:
     """Multi-scale line filter R(x) = max_i σ_1² λ12(x; σ_i), σ_i = s^(i-1) σ_1 (eq. 14).
 
@@ -55,6 +56,8 @@ def line_emphasis(
     dark_lines : emphasise dark lines (cracks) by filtering the negated image.
     normalise : use σ_i² instead of the published σ_1² factor (scale-normalised response,
         so wide cracks are not suppressed; the ``proposed`` method's choice).
+    half_resolution_from : compute scales σ ≥ this on the image halved (σ/2 there, the
+        eigenvalues rescaled), then upsample: about 4x less work for the coarse scales.
     """
     if n_scales < 1 or sigma1 <= 0 or scale_factor <= 0:
         raise ValueError("n_scales must be >= 1 and sigma1, scale_factor positive")
@@ -62,9 +65,18 @@ def line_emphasis(
     if dark_lines:
         img = -img
 
+    half = None
+    if half_resolution_from is not None and min(img.shape) >= 32:
+        half = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+
     def at_scale(sigma: float) -> NDArray[np.float32]:
+        weight = sigma**2 if normalise else sigma1**2
+        if half is not None and half_resolution_from is not None and sigma >= half_resolution_from:
+            l1, l2 = hessian_eigenvalues(half, sigma / 2)  # derivatives per half-res pixel: 4x
+            r = weight * line_measure(l1 / 4, l2 / 4, mu)
+            return cv2.resize(r, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_LINEAR)
         l1, l2 = hessian_eigenvalues(img, sigma)
-        return (sigma**2 if normalise else sigma1**2) * line_measure(l1, l2, mu)
+        return weight * line_measure(l1, l2, mu)
 
     scales = sigmas(sigma1, scale_factor, n_scales)
     # OpenCV and NumPy release the GIL: the scales run on both cores
