@@ -14,7 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from processing.detection import detect_cracks, detect_cracks_tiled, measure_defects
+from processing.defects import measure_defects
+from processing.detection import detect_cracks, detect_cracks_tiled
 from processing.mapping import register_clouds
 from processing.poses import format_tum, parse_tum, yaw_of
 from processing.stitching import stitch_frames

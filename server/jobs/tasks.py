@@ -20,8 +20,9 @@ import numpy as np
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from processing.detection import Defect as Defect_
-from processing.detection import detect_corrosion, detect_cracks_tiled, drop_along, measure_defects
+from processing.defects import Defect as Defect_
+from processing.defects import measure_defects
+from processing.detection import detect_corrosion, detect_cracks_tiled, drop_along
 from processing.mapping import register_clouds
 from processing.poses import compose_se2, format_tum, image_to_world, se2_to_se3
 from processing.stitching import stitch_frames

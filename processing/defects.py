@@ -1,0 +1,102 @@
+"""Defects as objects: each connected region of a defect mask measured (paper §4, DSC aside).
+
+Bounding box, area, skeleton length, maximum and mean width from the distance transform,
+orientation, and the same in millimetres when the image scale is known.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from skimage.morphology import skeletonize
+
+
+@dataclass(frozen=True)
+class Defect:
+    """One connected defect measured in pixels (and mm when the scale is known)."""
+
+    id: int
+    defect_class: str
+    bbox: tuple[int, int, int, int]
+    area_px: int
+    length_px: float
+    max_width_px: float
+    mean_width_px: float
+    orientation_deg: float
+    centroid_px: tuple[float, float]
+    length_mm: float | None = None
+    max_width_mm: float | None = None
+    area_mm2: float | None = None
+
+
+def measure_defects(
+    mask: NDArray[np.bool_], defect_class: str, *, mm_per_px: float | None = None, first_id: int = 1
+) -> list[Defect]:
+    """Measure each connected component of ``mask`` as one defect.
+
+    Length is the skeleton length (diagonal steps count √2); widths are ``2 d - 1``
+    pixels for the distance transform ``d`` sampled on the skeleton (exact for straight lines); orientation is the principal axis angle
+    in degrees from the image x axis.
+    """
+    m = mask.astype(np.uint8)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(m, connectivity=8)
+    dist = cv2.distanceTransform(np.pad(m, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    defects = []
+    for i in range(1, n):
+        x, y, w, h, area = (int(v) for v in stats[i])
+        comp = labels[y : y + h, x : x + w] == i
+        skel = skeletonize(comp)
+        length = _skeleton_length(skel)
+        widths = np.maximum(2.0 * dist[y : y + h, x : x + w][skel] - 1.0, 1.0) if skel.any() else np.array([1.0])
+        ys, xs = np.nonzero(comp)
+        orientation = _orientation_deg(xs, ys)
+        d = Defect(
+            id=first_id + len(defects),
+            defect_class=defect_class,
+            bbox=(x, y, w, h),
+            area_px=area,
+            length_px=round(length, 2),
+            max_width_px=round(float(widths.max()), 2),
+            mean_width_px=round(float(widths.mean()), 2),
+            orientation_deg=round(orientation, 1),
+            centroid_px=(float(centroids[i][0]), float(centroids[i][1])),
+        )
+        if mm_per_px is not None:
+            d = _with_mm(d, mm_per_px)
+        defects.append(d)
+    return defects
+
+
+def _with_mm(d: Defect, mm_per_px: float) -> Defect:
+    return replace(
+        d,
+        length_mm=round(d.length_px * mm_per_px, 2),
+        max_width_mm=round(d.max_width_px * mm_per_px, 3),
+        area_mm2=round(d.area_px * mm_per_px**2, 2),
+    )
+
+
+def _skeleton_length(skel: NDArray[np.bool_]) -> float:
+    """Skeleton length as a pixel path: orthogonal steps count 1, diagonal steps √2.
+
+    A diagonal pair already joined through an orthogonal neighbour is not counted twice.
+    """
+    s = skel.astype(bool)
+    if s.sum() <= 1:
+        return float(s.sum())
+    ortho = (s[:, 1:] & s[:, :-1]).sum() + (s[1:, :] & s[:-1, :]).sum()
+    d1 = s[1:, 1:] & s[:-1, :-1] & ~s[:-1, 1:] & ~s[1:, :-1]
+    d2 = s[1:, :-1] & s[:-1, 1:] & ~s[:-1, :-1] & ~s[1:, 1:]
+    return float(ortho + np.sqrt(2) * (d1.sum() + d2.sum()))
+
+
+def _orientation_deg(xs: NDArray[np.intp], ys: NDArray[np.intp]) -> float:
+    if len(xs) < 2:
+        return 0.0
+    cov = np.cov(np.vstack([xs, ys]).astype(np.float64))
+    evals, evecs = np.linalg.eigh(cov)
+    vx, vy = evecs[:, np.argmax(evals)]
+    return float(np.degrees(np.arctan2(vy, vx)) % 180.0)

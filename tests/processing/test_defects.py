@@ -1,0 +1,28 @@
+import cv2
+import numpy as np
+import pytest
+
+from processing.defects import measure_defects
+
+
+def test_measurements_of_a_drawn_line() -> None:
+    mask = np.zeros((100, 200), np.uint8)
+    cv2.line(mask, (20, 50), (170, 50), 1, 5)
+    width = int(mask[:, 100].sum())  # cv2 draws thickness 5 as 7 pixels across
+    (d,) = measure_defects(mask > 0, "crack", mm_per_px=0.5)
+    assert d.length_px == pytest.approx(150, abs=8)
+    assert d.max_width_px == pytest.approx(width, abs=0.5)
+    assert d.orientation_deg == pytest.approx(0, abs=1) or d.orientation_deg == pytest.approx(180, abs=1)
+    assert d.length_mm == pytest.approx(d.length_px * 0.5, abs=0.01)
+    assert d.bbox[0] <= 20 and d.bbox[0] + d.bbox[2] >= 170
+
+
+def test_each_component_is_one_defect_with_increasing_ids() -> None:
+    mask = np.zeros((50, 50), bool)
+    mask[5:8, 5:30] = True
+    mask[30:45, 30:45] = True
+    defects = measure_defects(mask, "corrosion", first_id=7)
+    assert [d.id for d in defects] == [7, 8]
+    assert {d.defect_class for d in defects} == {"corrosion"}
+    assert defects[0].length_mm is None
+    assert sorted(d.area_px for d in defects) == [75, 225]
