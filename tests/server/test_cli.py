@@ -119,3 +119,19 @@ def test_bench_detect_prints_json_lines_with_baselines() -> None:
 
 def test_bench_with_an_unknown_name_fails_cleanly() -> None:
     assert_clean_error(steelscan("bench", "warp-drive"), "unknown benchmark")
+
+
+def test_detect_handles_sixteen_bit_tiny_and_constant_images(tmp_path: Path) -> None:
+    img16 = np.full((90, 120), 40000, np.uint16)
+    cv2.line(img16, (5, 45), (115, 50), 9000, 2)
+    cv2.imwrite(str(tmp_path / "deep.png"), img16)
+    cv2.imwrite(str(tmp_path / "tiny.png"), np.full((2, 3), 99, np.uint8))
+    cv2.imwrite(str(tmp_path / "flat.png"), np.full((50, 60, 3), 128, np.uint8))
+    (tmp_path / "empty.png").write_bytes(b"")
+    proc = steelscan("detect", *(str(tmp_path / n) for n in ("deep.png", "tiny.png", "flat.png")), "--out", str(tmp_path / "out"))
+    assert proc.returncode == 0, proc.stderr
+    for name, shape in (("deep", (90, 120)), ("tiny", (2, 3)), ("flat", (50, 60))):
+        assert cv2.imread(str(tmp_path / "out" / f"{name}.png"), cv2.IMREAD_UNCHANGED).shape == shape
+    defects = json.loads((tmp_path / "out" / "defects.json").read_text())
+    assert {d["image"] for d in defects} <= {"deep.png"}
+    assert_clean_error(steelscan("detect", str(tmp_path / "empty.png"), "--out", str(tmp_path / "o")), "not an image")
