@@ -93,6 +93,38 @@ def cmd_create_robot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_password() -> str:
+    if sys.stdin.isatty():
+        import getpass
+
+        first = getpass.getpass("Password: ")
+        if getpass.getpass("Again: ") != first:
+            raise CommandError("the two passwords differ")
+        return first
+    line = sys.stdin.readline()
+    return line.rstrip("\r\n")
+
+
+def cmd_create_user(args: argparse.Namespace) -> int:
+    """Create an operator account; the password comes from stdin."""
+    from server.accounts import create_user
+    from server.db import make_engine, make_sessionmaker, upgrade
+    from server.errors import Conflict
+    from server.models import Role
+
+    settings = _settings(args)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.resolved_database_url()
+    upgrade(url)
+    password = _read_password()
+    try:
+        create_user(make_sessionmaker(make_engine(url)), args.name, password, Role(args.role))
+    except (Conflict, ValueError) as exc:
+        raise CommandError(str(exc)) from None
+    print(f"created {args.role} {args.name}", file=sys.stderr)
+    return 0
+
+
 def cmd_detect(args: argparse.Namespace) -> int:
     """Segment defects in images."""
     from server.commands import detect_images
@@ -184,6 +216,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     admin = sub.add_parser("admin", help="robots (and, later, accounts)")
     asub = admin.add_subparsers(dest="admin_command", required=True)
+    s = asub.add_parser("create-user", help="create an account; the password is read from stdin")
+    s.add_argument("name")
+    s.add_argument("--role", required=True, choices=["admin", "operator", "viewer"])
+    s.add_argument("--data-dir")
+    s.set_defaults(func=cmd_create_user)
     s = asub.add_parser("create-robot", help="register a robot and print its token")
     s.add_argument("name")
     s.add_argument("--data-dir")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import secrets
 import socket
 import sys
 import threading
@@ -24,6 +25,8 @@ from robot_link.sim.inspection import InspectionSim, SimConfig, SimResult
 from server.config import Settings
 from server.db import make_engine, make_sessionmaker, upgrade
 from server.main import create_app
+from server.accounts import create_user
+from server.models import Role
 from server.robots import create_robot
 
 log = logging.getLogger(__name__)
@@ -96,11 +99,16 @@ def run_demo(settings: Settings, *, port: int = 0, exit_when_done: bool = False,
     url_db = settings.resolved_database_url()
     upgrade(url_db)
     engine = make_engine(url_db)
-    token = create_robot(make_sessionmaker(engine), f"sim-{int(time.time() * 1000)}")
+    factory = make_sessionmaker(engine)
+    token = create_robot(factory, f"sim-{int(time.time() * 1000)}")
+    operator, password = f"operator-{secrets.token_hex(2)}", secrets.token_urlsafe(12)
+    create_user(factory, operator, password, Role.operator)
     engine.dispose()
     server = BackgroundServer(settings, port or free_port())
     server.start()
     print(f"Dashboard: {server.url}/   (API docs: {server.url}/docs)", flush=True)
+    print(f"Operator login: {operator} / {password}", flush=True)
+    auth = _login(server.url, operator, password)
     console.print(f"[bold]steelscan demo[/]: data in {settings.data_dir.resolve()}")
     try:
         with Progress(TextColumn("{task.description:<28}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%  {task.fields[note]}"),
@@ -109,8 +117,8 @@ def run_demo(settings: Settings, *, port: int = 0, exit_when_done: bool = False,
             result = asyncio.run(_run_sim(server.url, token, SimConfig(seed=seed, lanes=lanes, time_scale=time_scale),
                                           lambda f, m: progress.update(sim_task, completed=f, note=m)))
             progress.update(sim_task, completed=1.0, note=f"{result.frames_sent} frames, {result.clouds_sent} clouds sent")
-            session = _wait_for_jobs(server.url, result.session_id, progress)
-        summary = _summary(server.url, settings, result, session)
+            session = _wait_for_jobs(server.url, auth, result.session_id, progress)
+        summary = _summary(server.url, auth, result, session)
     except BaseException:
         server.stop()
         raise
@@ -137,10 +145,16 @@ async def _run_sim(url: str, token: str, config: SimConfig, progress: Any) -> Si
         await link.close()
 
 
-def _wait_for_jobs(url: str, session_id: str, progress: Progress, timeout_s: float = 600) -> dict[str, Any]:
+def _login(url: str, name: str, password: str) -> dict[str, str]:
+    """Authorization header of a fresh bearer token."""
+    r = httpx.post(f"{url}/api/auth/token", data={"username": name, "password": password}, timeout=30)
+    return {"Authorization": f"Bearer {r.raise_for_status().json()['access_token']}"}
+
+
+def _wait_for_jobs(url: str, auth: dict[str, str], session_id: str, progress: Progress, timeout_s: float = 600) -> dict[str, Any]:
     tasks: dict[int, Any] = {}
     deadline = time.monotonic() + timeout_s
-    with httpx.Client(base_url=url, timeout=30) as client:
+    with httpx.Client(base_url=url, timeout=30, headers=auth) as client:
         while True:
             session = client.get(f"/api/sessions/{session_id}").raise_for_status().json()
             for job in session["jobs"]:
@@ -155,9 +169,9 @@ def _wait_for_jobs(url: str, session_id: str, progress: Progress, timeout_s: flo
             time.sleep(0.5)
 
 
-def _summary(url: str, settings: Settings, result: SimResult, session: dict[str, Any]) -> dict[str, Any]:
+def _summary(url: str, auth: dict[str, str], result: SimResult, session: dict[str, Any]) -> dict[str, Any]:
     sid = result.session_id
-    with httpx.Client(base_url=url, timeout=30) as client:
+    with httpx.Client(base_url=url, timeout=30, headers=auth) as client:
         defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "mosaic"}).raise_for_status().json()["data"]
         frame_defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "frame"}).raise_for_status().json()["data"]
         traj = client.get(f"/api/sessions/{sid}/results/trajectory.tum")

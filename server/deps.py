@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Annotated
 
-from fastapi import Depends, Request
+from fastapi import Depends, HTTPException, Request, status
+from fastapi.security import OAuth2PasswordBearer
 from sqlalchemy.orm import Session
 
+from server.accounts import accounts_exist, has_role, user_for_token
+from server.models import Role, User
 from server.state import AppState
+
+oauth2 = OAuth2PasswordBearer(tokenUrl="/api/auth/token", auto_error=False)
+ANONYMOUS = User(id=0, name="anonymous", password_hash="", role=Role.admin)
 
 
 def get_state(request: Request) -> AppState:
@@ -24,3 +30,30 @@ def get_db(request: Request) -> Iterator[Session]:
 
 StateDep = Annotated[AppState, Depends(get_state)]
 SessionDep = Annotated[Session, Depends(get_db)]
+
+
+def get_current_user(db: SessionDep, token: Annotated[str | None, Depends(oauth2)]) -> User:
+    """The caller; 401 without a valid token once accounts exist (open until the first one)."""
+    if not accounts_exist(db):
+        return ANONYMOUS
+    user = user_for_token(db, token)
+    if user is None:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "a valid bearer token is required", headers={"WWW-Authenticate": "Bearer"})
+    return user
+
+
+CurrentUser = Annotated[User, Depends(get_current_user)]
+
+
+def require(role: Role) -> Callable[[User], User]:
+    """Dependency: the caller must have at least ``role`` (403 otherwise)."""
+
+    def check(user: CurrentUser) -> User:
+        if not has_role(user, role):
+            raise HTTPException(status.HTTP_403_FORBIDDEN, f"this needs the {role.value} role; you are {user.role.value}")
+        return user
+
+    return check
+
+
+OperatorUser = Annotated[User, Depends(require(Role.operator))]

@@ -6,7 +6,7 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
@@ -16,7 +16,8 @@ from server.errors import Conflict, NotFound
 from server.ingest import Ingest
 from server.jobs.runner import JobRunner
 from server.live import LiveHub
-from server.routes import jobs, sessions, ws
+from server.deps import get_current_user
+from server.routes import auth, jobs, sessions, ws
 from server.state import AppState
 from server.storage import SessionFiles
 
@@ -61,11 +62,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def conflict(_: Request, exc: Conflict) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=409)
 
-    @app.get("/api/health", tags=["health"])
+    @app.get("/api/health", tags=["health"], dependencies=[Depends(get_current_user)])
     def read_health() -> dict[str, str]:
         """Liveness check."""
         return {"status": "ok"}
 
+    app.include_router(auth.router)
     app.include_router(sessions.router)
     app.include_router(jobs.router)
     app.include_router(ws.router)

@@ -49,6 +49,30 @@ class Robot(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
+class Role(str, enum.Enum):
+    viewer = "viewer"
+    operator = "operator"
+    admin = "admin"
+
+
+class User(Base):
+    __tablename__ = "users"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), unique=True)
+    password_hash: Mapped[str] = mapped_column(String(200))
+    role: Mapped[Role] = mapped_column(Enum(Role, native_enum=False, length=16))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class AuthToken(Base):
+    """A bearer token handed out by POST /api/auth/token (stored only as a SHA-256 hash)."""
+
+    __tablename__ = "auth_tokens"
+    token_hash: Mapped[str] = mapped_column(String(64), primary_key=True)
+    user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
+    expires_at: Mapped[datetime]
+
+
 class InspectionSession(Base):
     __tablename__ = "inspection_sessions"
     id: Mapped[str] = mapped_column(String(36), primary_key=True)

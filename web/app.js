@@ -6,12 +6,39 @@ const ctx2d = canvas.getContext("2d");
 const linkState = document.getElementById("link-state");
 let liveSession = null;
 let socket = null;
+let token = sessionStorage.getItem("steelscan-token");
+
+function authHeaders() { return token ? { Authorization: `Bearer ${token}` } : {}; }
+
+async function api(path) {
+  const res = await fetch(path, { headers: authHeaders() });
+  if (res.status === 401) { showLogin(); throw new Error("signed out"); }
+  return res;
+}
+
+function showLogin() {
+  document.getElementById("login").hidden = false;
+  document.querySelector("main").hidden = true;
+}
+
+document.getElementById("login").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  const form = new FormData(e.target);
+  const res = await fetch("/api/auth/token", { method: "POST", body: new URLSearchParams(form) });
+  if (!res.ok) { text(document.getElementById("login-error"), "wrong user name or password"); return; }
+  token = (await res.json()).access_token;
+  sessionStorage.setItem("steelscan-token", token);
+  document.getElementById("login").hidden = true;
+  document.querySelector("main").hidden = false;
+  start();
+});
 
 function text(el, value) { el.textContent = value; }
 
 function connect() {
   const proto = location.protocol === "https:" ? "wss" : "ws";
-  socket = new WebSocket(`${proto}://${location.host}/ws/live`);
+  const query = token ? `?token=${encodeURIComponent(token)}` : "";
+  socket = new WebSocket(`${proto}://${location.host}/ws/live${query}`);
   socket.binaryType = "arraybuffer";
   socket.onopen = () => { text(linkState, "live link up"); linkState.classList.add("ok"); };
   socket.onclose = () => {
@@ -81,7 +108,7 @@ document.querySelectorAll("button[data-cmd]").forEach((b) => b.addEventListener(
 document.addEventListener("keydown", (e) => { if (e.code === "Space") { e.preventDefault(); send("estop"); } });
 
 async function loadSessions() {
-  const res = await fetch("/api/sessions");
+  const res = await api("/api/sessions");
   if (!res.ok) return;
   const body = await res.json();
   const tbody = document.querySelector("#sessions tbody");
@@ -105,15 +132,31 @@ function showSession(s) {
   const stitch = s.jobs.find((j) => j.kind === "stitch" && j.state === "done");
   if (stitch) {
     const img = document.createElement("img");
-    img.src = `/api/sessions/${s.id}/results/mosaic_overview.png`;
     img.alt = "mosaic";
     div.appendChild(img);
+    api(`/api/sessions/${s.id}/results/mosaic_overview.png`).then((r) => r.blob()).then((b) => { img.src = URL.createObjectURL(b); });
   }
   const a = document.createElement("a");
-  a.href = `/api/sessions/${s.id}/report.json`; a.textContent = "report.json";
+  a.href = "#"; a.textContent = "report.json";
+  a.addEventListener("click", async (e) => {
+    e.preventDefault();
+    const blob = await (await api(`/api/sessions/${s.id}/report.json`)).blob();
+    window.open(URL.createObjectURL(blob));
+  });
   div.appendChild(a);
 }
 
-connect();
-loadSessions();
-setInterval(loadSessions, 3000);
+let started = false;
+
+async function start() {
+  const me = await api("/api/auth/me").then((r) => r.json()).catch(() => null);
+  if (!me) return;
+  text(document.getElementById("who"), `${me.name} (${me.role})`);
+  if (started) return;
+  started = true;
+  connect();
+  loadSessions();
+  setInterval(() => loadSessions().catch(() => {}), 3000);
+}
+
+start();

@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, status
+from fastapi import APIRouter, Depends, status
 from sqlalchemy import select
 
-from server.deps import SessionDep, StateDep
+from server.deps import OperatorUser, SessionDep, StateDep, get_current_user
 from server.errors import NotFound
 from server.models import Job
 from server.routes.sessions import get_session_or_404
 from server.schemas import JobCreate, JobPublic
 
-router = APIRouter(prefix="/api", tags=["jobs"])
+router = APIRouter(prefix="/api", tags=["jobs"], dependencies=[Depends(get_current_user)])
 
 
 @router.get("/sessions/{session_id}/jobs", response_model=list[JobPublic])
@@ -22,8 +22,8 @@ def read_session_jobs(db: SessionDep, session_id: str) -> list[Job]:
 
 
 @router.post("/sessions/{session_id}/jobs", response_model=JobPublic, status_code=status.HTTP_202_ACCEPTED)
-def create_job(db: SessionDep, state: StateDep, session_id: str, body: JobCreate) -> Job:
-    """Queue a processing job (stitch, map or detect) for a session."""
+def create_job(db: SessionDep, state: StateDep, session_id: str, body: JobCreate, _: OperatorUser) -> Job:
+    """Queue a processing job (stitch, map or detect) for a session (operator role)."""
     get_session_or_404(db, session_id)
     after: list[int] = []
     if body.kind == "detect":

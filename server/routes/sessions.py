@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Depends, Query
 from fastapi.responses import FileResponse
 from sqlalchemy import func, select
 
-from server.deps import SessionDep, StateDep
+from server.deps import SessionDep, StateDep, get_current_user
 from server.errors import NotFound
 from server.models import Cloud, Defect, Frame, InspectionSession, Job, TelemetrySample
 from server.schemas import (
@@ -20,7 +20,7 @@ from server.schemas import (
     TelemetryListPublic,
 )
 
-router = APIRouter(prefix="/api/sessions", tags=["sessions"])
+router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[Depends(get_current_user)])
 
 RESULT_FILES = {
     "mosaic.png": "image/png",

@@ -22,7 +22,9 @@ from robot_link.protocol import (
     decode_message,
     encode_message,
 )
+from server.accounts import accounts_exist, has_role, user_for_token
 from server.errors import IngestError
+from server.models import Role, User
 from server.robots import authenticate_robot
 
 log = logging.getLogger(__name__)
@@ -152,8 +154,16 @@ async def robot_socket(websocket: WebSocket) -> None:
 
 @router.websocket("/ws/live")
 async def live_socket(websocket: WebSocket) -> None:
-    """Browser link: live frames (binary) and events (JSON) out, operator commands in."""
-    hub = websocket.app.state.steelscan.hub
+    """Browser link: live frames (binary) and events (JSON) out, operator commands in.
+
+    Once accounts exist it needs ``?token=`` (a bearer token); viewers watch, operators command.
+    """
+    state = websocket.app.state.steelscan
+    hub = state.hub
+    user = await anyio.to_thread.run_sync(_browser_user, state.factory, websocket.query_params.get("token"))
+    if user is None:
+        await websocket.close(code=1008, reason="a valid token is required")
+        return
     await websocket.accept()
     watcher = hub.watch()
 
@@ -169,12 +179,23 @@ async def live_socket(websocket: WebSocket) -> None:
     try:
         while True:
             text = await websocket.receive_text()
+            if not has_role(user, Role.operator):
+                await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "error": f"commands need the operator role; you are {user.role.value}"}))
+                continue
             await _handle_browser_command(websocket, hub, text)
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:
         pump_task.cancel()
         hub.unwatch(watcher)
+
+
+def _browser_user(factory: Any, token: str | None) -> User | None:
+    """The watching user; an anonymous admin while no account exists."""
+    with factory() as db:
+        if not accounts_exist(db):
+            return User(id=0, name="anonymous", password_hash="", role=Role.admin)
+        return user_for_token(db, token)
 
 
 async def _handle_browser_command(websocket: WebSocket, hub: Any, text: str) -> None:

@@ -42,3 +42,29 @@ def test_live_page_shows_camera_and_telemetry_with_no_errors(live_server: LiveSe
         browser.close()
     assert errors == []
     assert foreign == []
+
+
+def test_sign_in_when_accounts_exist(live_server: LiveServer) -> None:
+    from playwright.sync_api import sync_playwright
+
+    from server.models import Role
+    from tests.server.test_auth import add_user
+
+    add_user(live_server, "otto", Role.operator)
+    errors: list[str] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        page = browser.new_page()
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(live_server.url + "/")
+        page.wait_for_selector("#login:not([hidden])", timeout=15000)
+        page.fill("input[name=username]", "otto")
+        page.fill("input[name=password]", "wrong password")
+        page.click("#login button")
+        page.wait_for_function("document.querySelector('#login-error').textContent.length > 0", timeout=10000)
+        page.fill("input[name=password]", "correct horse")
+        page.click("#login button")
+        page.wait_for_function("document.querySelector('#who').textContent.includes('otto (operator)')", timeout=10000)
+        page.wait_for_selector("#link-state.ok", timeout=15000)
+        browser.close()
+    assert errors == []

@@ -1,0 +1,76 @@
+"""Operator accounts: argon2-hashed passwords, roles, and bearer tokens (hashed at rest)."""
+
+from __future__ import annotations
+
+import secrets
+from datetime import timedelta
+
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError
+from sqlalchemy import delete, func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.errors import Conflict
+from server.models import AuthToken, Role, User, utcnow
+from server.robots import hash_token
+
+ROLE_RANK = {Role.viewer: 0, Role.operator: 1, Role.admin: 2}
+TOKEN_LIFETIME = timedelta(hours=12)
+_hasher = PasswordHasher()
+
+
+def create_user(factory: sessionmaker[Session], name: str, password: str, role: Role) -> None:
+    """Add an account; raise ValueError for an empty name or a short password."""
+    if not name.strip():
+        raise ValueError("user name must not be empty")
+    if len(password) < 8:
+        raise ValueError("password must have at least 8 characters")
+    with factory() as db:
+        db.add(User(name=name.strip(), password_hash=_hasher.hash(password), role=role))
+        try:
+            db.commit()
+        except IntegrityError:
+            raise Conflict(f"a user named {name!r} already exists") from None
+
+
+def accounts_exist(db: Session) -> bool:
+    """Whether any operator account exists (without one the station is open, as on a bench)."""
+    return (db.scalar(select(func.count()).select_from(User)) or 0) > 0
+
+
+def issue_token(factory: sessionmaker[Session], name: str, password: str) -> tuple[str, User] | None:
+    """A new bearer token for a correct name and password, else None."""
+    with factory() as db:
+        user = db.scalar(select(User).where(User.name == name))
+        if user is None:
+            _hasher.hash(password)  # spend the same time as a real check
+            return None
+        try:
+            _hasher.verify(user.password_hash, password)
+        except (VerificationError, InvalidHashError):
+            return None
+        token = secrets.token_urlsafe(32)
+        now = utcnow()
+        db.execute(delete(AuthToken).where(AuthToken.expires_at < now))
+        db.add(AuthToken(token_hash=hash_token(token), user_id=user.id, expires_at=now + TOKEN_LIFETIME))
+        db.commit()
+        return token, user
+
+
+def user_for_token(db: Session, token: str | None) -> User | None:
+    """The account a bearer token belongs to, if the token is valid and unexpired."""
+    if not token:
+        return None
+    row = db.get(AuthToken, hash_token(token))
+    if row is None:
+        return None
+    expires = row.expires_at if row.expires_at.tzinfo else row.expires_at.replace(tzinfo=utcnow().tzinfo)
+    if expires < utcnow():
+        return None
+    return db.get(User, row.user_id)
+
+
+def has_role(user: User, role: Role) -> bool:
+    """Whether the user's role is at least ``role``."""
+    return ROLE_RANK[user.role] >= ROLE_RANK[role]

@@ -1,0 +1,84 @@
+"""Accounts, roles and tokens on the real server (contract: "Accounts and tokens")."""
+
+import subprocess
+import sys
+import uuid
+
+import httpx
+import pytest
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+
+from server.accounts import create_user
+from server.db import make_engine, make_sessionmaker
+from server.models import Role
+from tests.conftest import LiveServer
+from tests.server.test_ingest import start, ws_url
+
+
+def add_user(server: LiveServer, name: str, role: Role, password: str = "correct horse") -> None:
+    engine = make_engine(server.settings.resolved_database_url())
+    try:
+        create_user(make_sessionmaker(engine), name, password, role)
+    finally:
+        engine.dispose()
+
+
+def login(server: LiveServer, name: str, password: str = "correct horse") -> dict[str, str]:
+    r = httpx.post(f"{server.url}/api/auth/token", data={"username": name, "password": password})
+    assert r.status_code == 200, r.text
+    return {"Authorization": f"Bearer {r.json()['access_token']}"}
+
+
+def test_open_until_the_first_account_then_401_and_403(live_server: LiveServer) -> None:
+    url = live_server.url
+    sid = uuid.uuid4()
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+        ws.send(start(sid))
+        ws.recv(timeout=10)
+    assert httpx.get(f"{url}/api/sessions").status_code == 200  # no accounts yet: open
+    add_user(live_server, "vera", Role.viewer)
+    add_user(live_server, "otto", Role.operator)
+    for path in ("/api/sessions", f"/api/sessions/{sid}", "/api/health", "/api/auth/me", "/api/jobs/1"):
+        r = httpx.get(url + path)
+        assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer", path
+    assert httpx.get(f"{url}/api/sessions", headers={"Authorization": "Bearer forged"}).status_code == 401
+    assert httpx.post(f"{url}/api/auth/token", data={"username": "vera", "password": "wrong"}).status_code == 401
+    assert httpx.post(f"{url}/api/auth/token", data={"username": "nobody", "password": "x"}).status_code == 401
+    viewer, operator = login(live_server, "vera"), login(live_server, "otto")
+    assert httpx.get(f"{url}/api/sessions/{sid}", headers=viewer).json()["frames"] == 0
+    assert httpx.get(f"{url}/api/auth/me", headers=viewer).json() == {"name": "vera", "role": "viewer"}
+    job = {"kind": "stitch"}
+    assert httpx.post(f"{url}/api/sessions/{sid}/jobs", json=job, headers=viewer).status_code == 403
+    assert httpx.post(f"{url}/api/sessions/{sid}/jobs", json=job, headers=operator).status_code == 202
+    # static pages and the OpenAPI document stay reachable
+    assert httpx.get(f"{url}/").status_code == 200
+    assert httpx.get(f"{url}/static/app.js").status_code == 200
+
+
+def test_live_socket_needs_a_token_and_viewers_cannot_command(live_server: LiveServer) -> None:
+    import json
+
+    add_user(live_server, "vera", Role.viewer)
+    live = live_server.url.replace("http://", "ws://") + "/ws/live"
+    with pytest.raises(InvalidStatus):
+        with connect(live):
+            pass
+    token = login(live_server, "vera")["Authorization"].split()[1]
+    with connect(f"{live}?token={token}") as ws:
+        ws.send(json.dumps({"session_id": str(uuid.uuid4()), "cmd": "estop"}))
+        while True:
+            item = ws.recv(timeout=10)
+            if isinstance(item, str) and json.loads(item).get("type") == "command_result":
+                assert "operator role" in json.loads(item)["error"]
+                break
+
+
+def test_create_user_reads_the_password_from_stdin(tmp_path) -> None:
+    cmd = [sys.executable, "-m", "server.cli", "admin", "create-user", "ana", "--role", "operator", "--data-dir", str(tmp_path)]
+    proc = subprocess.run(cmd, input="s3cret-pass\n", capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    again = subprocess.run(cmd, input="s3cret-pass\n", capture_output=True, text=True, timeout=120)
+    assert again.returncode != 0 and "already exists" in again.stderr and "Traceback" not in again.stderr
+    short = subprocess.run(cmd[:5] + ["bo"] + cmd[6:], input="short\n", capture_output=True, text=True, timeout=120)
+    assert short.returncode != 0 and "at least 8" in short.stderr
