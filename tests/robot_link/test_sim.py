@@ -15,7 +15,8 @@ def test_capture_spacing_is_derived_from_footprint_and_overlap() -> None:
     cam = DownwardCamera()
     spacing = cam.capture_spacing_m(0.30)
     assert spacing == pytest.approx(0.12)  # the paper's 12 cm for 18 cm x 14 cm
-    assert 1 - spacing / cam.footprint_m[0] >= 0.30
+    overlap = 1 - spacing / cam.footprint_m[0]
+    assert overlap >= 0.30
     assert cam.capture_spacing_m(0.5) == pytest.approx(0.09)
 
 
