@@ -160,7 +160,115 @@ def _mosaic_throughput() -> Iterator[Result]:
            "ratio": round(ours / base, 3), "megapixels": round(mp, 1)}
 
 
-BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {"detect": bench_detect}
+def _decode(jpegs: list[bytes]) -> list[NDArray[np.uint8]]:
+    return [cv2.imdecode(np.frombuffer(j, np.uint8), cv2.IMREAD_COLOR) for j in jpegs]
+
+
+def bench_stitch(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
+    """Frame-centre error against the simulator's true camera poses (odometry as the initial
+    guess, as on the robot) and frames per second against OpenCV's SCANS stitcher."""
+    from processing.poses import compose_se2
+    from processing.stitching import stitch_frames
+    from robot_link.sim.inspection import SimConfig
+    from robot_link.sim.recording import record_inspection
+
+    rec = record_inspection(SimConfig(lanes=3, seed=21))
+    frames = _decode(rec.frames[:limit])
+    cam = rec.calibration["camera"]
+    px_per_m = float(cam["px_per_m"])
+    T_rc = np.array(cam["T_robot_camera"])
+    odo = np.array([compose_se2(np.array([p["x"], p["y"], p["yaw"]]), T_rc) for p in rec.frame_odometry[: len(frames)]])
+    truth = rec.frame_truth[: len(frames), :2] * px_per_m
+    t0 = time.perf_counter()
+    mosaic = stitch_frames(frames, odo, px_per_m=px_per_m)
+    ours_fps = len(frames) / (time.perf_counter() - t0)
+
+    def errors(est: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.linalg.norm((est - est[0]) - (truth - truth[0]), axis=1)
+
+    err = errors(mosaic.frame_poses_px[:, :2])
+    err_odo = errors(odo[:, :2] * px_per_m)
+    yield {"name": "stitch.sim.mean_centre_error", "value": round(float(err.mean()), 3), "unit": "px",
+           "baseline": round(float(err_odo.mean()), 3), "ratio": round(float(err.mean() / max(err_odo.mean(), 1e-9)), 3),
+           "baseline_is": "odometry alone", "frames": len(frames)}
+    yield {"name": "stitch.sim.max_centre_error", "value": round(float(err.max()), 3), "unit": "px",
+           "baseline": round(float(err_odo.max()), 3), "ratio": round(float(err.max() / max(err_odo.max(), 1e-9)), 3)}
+    lane = frames[:12]
+    stitcher = cv2.Stitcher_create(cv2.Stitcher_SCANS)
+    t0 = time.perf_counter()
+    try:
+        code, _ = stitcher.stitch(lane)
+        status = "ok" if code == cv2.Stitcher_OK else f"failed with status {code}"
+    except cv2.error as exc:
+        status = f"raised: {str(exc).strip().splitlines()[-1][:120]}"
+    cv_fps = len(lane) / (time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    stitch_frames(lane, odo[:12], px_per_m=px_per_m)
+    lane_fps = len(lane) / (time.perf_counter() - t0)
+    yield {"name": "stitch.sim.frames_per_second", "value": round(lane_fps, 2), "unit": "frames/s", "baseline": round(cv_fps, 2),
+           "ratio": round(lane_fps / cv_fps, 2), "baseline_is": "cv2.Stitcher SCANS (time to its result or failure)",
+           "baseline_status": status, "all_frames_fps": round(ours_fps, 2)}
+
+
+def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
+    """Trajectory error (ATE) of the map against the simulator's true ToF poses, and time,
+    against Open3D's tutorial pipeline (FPFH + RANSAC global registration, then
+    point-to-plane ICP, cloud to cloud) on the same clouds."""
+    from processing.mapping import IcpParams, preprocess, register_clouds
+    from processing.metrics import absolute_trajectory_error
+    from processing.poses import se2_to_se3
+    from robot_link.clouds import decode_cloud
+    from robot_link.sim.inspection import SimConfig
+    from robot_link.sim.recording import record_inspection
+
+    rec = record_inspection(SimConfig(lanes=2, seed=23))
+    assert rec.result is not None
+    T_rt = np.array(rec.calibration["tof"]["T_robot_tof"])
+    clouds, guess, truth = [], [], []
+    for m in rec.cloud_messages[:limit]:
+        pts = decode_cloud(m.payload, m.meta)
+        if not np.isfinite(pts).all(axis=1).any():
+            continue
+        p = m.meta["pose"]
+        clouds.append(pts)
+        guess.append(se2_to_se3(p["x"], p["y"], p["yaw"]) @ T_rt)
+        truth.append(rec.result.cloud_poses_true[m.seq])
+    guess_a, truth_a = np.array(guess), np.array(truth)
+    t0 = time.perf_counter()
+    ours = register_clouds(clouds, guess_a)
+    ours_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    tutorial = _open3d_tutorial_poses([preprocess(c, IcpParams()) for c in clouds], guess_a[0])
+    base_s = time.perf_counter() - t0
+    ate, ate_base = absolute_trajectory_error(ours.poses, truth_a), absolute_trajectory_error(tutorial, truth_a)
+    yield {"name": "map.sim.ate", "value": round(ate, 4), "unit": "m", "baseline": round(ate_base, 4),
+           "ratio": round(ate / max(ate_base, 1e-9), 3), "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
+           "odometry_ate": round(absolute_trajectory_error(guess_a, truth_a), 4), "clouds": len(clouds)}
+    yield {"name": "map.sim.seconds_per_cloud", "value": round(ours_s / len(clouds), 4), "unit": "s",
+           "baseline": round(base_s / len(clouds), 4), "ratio": round(ours_s / base_s, 3)}
+
+
+def _open3d_tutorial_poses(pcds: list[Any], T0: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Open3D's global-registration tutorial, applied cloud to cloud and chained."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    voxel = 0.02
+    feats = [reg.compute_fpfh_feature(p, o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * 5, max_nn=100)) for p in pcds]
+    poses = [T0]
+    for i in range(1, len(pcds)):
+        ransac = reg.registration_ransac_based_on_feature_matching(
+            pcds[i], pcds[i - 1], feats[i], feats[i - 1], True, voxel * 1.5,
+            reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(voxel * 1.5)],
+            reg.RANSACConvergenceCriteria(100000, 0.999))
+        icp = reg.registration_icp(pcds[i], pcds[i - 1], voxel * 0.4 * 3, ransac.transformation,
+                                   reg.TransformationEstimationPointToPlane())
+        poses.append(poses[-1] @ icp.transformation)
+    return np.array(poses)
+
+
+BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {"detect": bench_detect, "stitch": bench_stitch, "map": bench_map}
 
 
 def run_benchmarks(names: list[str], *, dataset: Path | None = None, limit: int | None = None) -> None:

@@ -135,3 +135,12 @@ def test_detect_handles_sixteen_bit_tiny_and_constant_images(tmp_path: Path) -> 
     defects = json.loads((tmp_path / "out" / "defects.json").read_text())
     assert {d["image"] for d in defects} <= {"deep.png"}
     assert_clean_error(steelscan("detect", str(tmp_path / "empty.png"), "--out", str(tmp_path / "o")), "not an image")
+
+
+def test_bench_stitch_and_map_measure_against_baselines() -> None:
+    proc = steelscan("bench", "stitch", "map", "--limit", "8")
+    assert proc.returncode == 0, proc.stderr
+    results = {r["name"]: r for r in map(json.loads, proc.stdout.splitlines())}
+    assert {"stitch.sim.mean_centre_error", "stitch.sim.frames_per_second", "map.sim.ate", "map.sim.seconds_per_cloud"} <= results.keys()
+    assert results["stitch.sim.mean_centre_error"]["value"] <= results["stitch.sim.mean_centre_error"]["baseline"]
+    assert results["map.sim.ate"]["value"] < 0.05
