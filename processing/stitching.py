@@ -15,6 +15,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.alignment import align_frames
+
 
 @dataclass(frozen=True)
 class StitchParams:
@@ -24,6 +26,7 @@ class StitchParams:
     min_score: float = 0.5
     min_overlap: float = 0.15
     flat_field_min_frames: int = 8
+    global_alignment: bool = True
 
 
 @dataclass
@@ -220,6 +223,10 @@ def stitch_frames(
         else:
             placed[i, :2] = guess[i, :2] + (placed[i - 1, :2] - guess[i - 1, :2])
         patches.append(patch)
+    if params.global_alignment and len(frames) > 1:
+        placed, _, linked = align_frames(frames, placed)
+        confident = linked
+        patches = [_warp_to_world(f, *p) for f, p in zip(frames, placed)]
     return _compose(patches, placed, confident, px_per_m, shape)
 
 
