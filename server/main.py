@@ -9,6 +9,7 @@ from contextlib import asynccontextmanager
 from fastapi import Depends, FastAPI, Request
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 
 from server import db
 from server.config import Settings
@@ -51,7 +52,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.jobs.stop()
             state.engine.dispose()
 
-    app = FastAPI(title="steelscan ground station", version="0.1.0", lifespan=lifespan,
+    # the API docs serve Swagger/ReDoc from the station itself: no CDN on a bridge
+    app = FastAPIOffline(title="steelscan ground station", version="0.1.0", lifespan=lifespan,
                   description="Live link, storage, processing and review for steel-inspection climbing robots.")
 
     @app.exception_handler(NotFound)

@@ -175,3 +175,13 @@ def test_browser_command_reaches_the_robot_and_frames_reach_the_browser(live_ser
         results = [r for r in replies if r.get("type") == "command_result"]
         assert results[0]["ok"] is True and results[0]["seq"] == command.seq
         assert "no robot" in results[1]["error"] and "bad command" in results[2]["error"]
+
+
+def test_api_docs_need_no_internet(live_server: LiveServer) -> None:
+    import re
+
+    page = httpx.get(f"{live_server.url}/docs").text
+    assets = re.findall(r'(?:src|href)="([^"]+)"', page) + re.findall(r"url: ?'([^']+)'", page)
+    assert assets and all(a.startswith("/") for a in assets), assets
+    for a in assets:
+        assert httpx.get(live_server.url + a).status_code == 200, a
