@@ -130,12 +130,38 @@ function showSession(s) {
   h.textContent = `${s.structure} — ${s.id}`;
   div.appendChild(h);
   const stitch = s.jobs.find((j) => j.kind === "stitch" && j.state === "done");
+  const canvasEl = document.createElement("canvas");
+  canvasEl.id = "mosaic";
+  div.appendChild(canvasEl);
+  const table = document.createElement("table");
+  table.id = "defects";
+  div.appendChild(table);
+  const defectsReq = api(`/api/sessions/${s.id}/defects?source=mosaic`).then((r) => r.json());
   if (stitch) {
-    const img = document.createElement("img");
-    img.alt = "mosaic";
-    div.appendChild(img);
-    api(`/api/sessions/${s.id}/results/mosaic_overview.png`).then((r) => r.blob()).then((b) => { img.src = URL.createObjectURL(b); });
+    api(`/api/sessions/${s.id}/results/mosaic_overview.png`).then((r) => r.blob()).then(createImageBitmap).then(async (bmp) => {
+      canvasEl.width = bmp.width; canvasEl.height = bmp.height;
+      const ctx = canvasEl.getContext("2d");
+      ctx.drawImage(bmp, 0, 0);
+      const scale = stitch.result.overview_scale || 1;
+      const defects = (await defectsReq).data;
+      ctx.lineWidth = 2; ctx.font = "bold 14px system-ui";
+      for (const d of defects) {
+        ctx.strokeStyle = ctx.fillStyle = d.defect_class === "crack" ? "#ff3b30" : "#ffcc00";
+        ctx.strokeRect(d.bbox_x * scale - 3, d.bbox_y * scale - 3, d.bbox_w * scale + 6, d.bbox_h * scale + 6);
+        ctx.fillText(String(d.id), d.bbox_x * scale, d.bbox_y * scale - 6);
+      }
+    });
   }
+  defectsReq.then((body) => {
+    const head = ["#", "class", "length (mm)", "max width (mm)", "area (mm²)", "x (m)", "y (m)"];
+    const rows = body.data.map((d) => [d.id, d.defect_class, d.length_mm, d.max_width_mm, d.area_mm2, d.world_x_m, d.world_y_m]
+      .map((v) => (typeof v === "number" && !Number.isInteger(v) ? v.toFixed(2) : v ?? "–")));
+    table.replaceChildren(...[head, ...rows].map((cells, i) => {
+      const tr = document.createElement("tr");
+      for (const c of cells) { const td = document.createElement(i ? "td" : "th"); td.textContent = c; tr.appendChild(td); }
+      return tr;
+    }));
+  });
   const a = document.createElement("a");
   a.href = "#"; a.textContent = "report.json";
   a.addEventListener("click", async (e) => {
