@@ -31,7 +31,7 @@ def test_live_page_shows_camera_and_telemetry_with_no_errors(live_server: LiveSe
         sim = subprocess.Popen([sys.executable, "-m", "server.cli", "sim", "--server", live_server.url, "--token", live_server.token,
                                 "--exit-when-done", "--lanes", "1", "--time-scale", "4"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
-            page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 2", timeout=60000)
+            page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 2", timeout=120000)
             page.wait_for_selector("#telemetry dt", timeout=20000)
             assert "battery" in page.inner_text("#telemetry")
             page.wait_for_function("document.querySelectorAll('#sessions tbody tr').length >= 1", timeout=20000)
@@ -39,6 +39,11 @@ def test_live_page_shows_camera_and_telemetry_with_no_errors(live_server: LiveSe
         finally:
             out, err = sim.communicate(timeout=120)
         assert sim.returncode == 0, err[-2000:]
+        # once processed, a session shows its mosaic and defect table
+        page.wait_for_function("document.querySelector('#sessions tbody').textContent.includes('detect: done')", timeout=120000)
+        page.click("#sessions tbody tr:first-child")
+        page.wait_for_function("document.querySelectorAll('#defects tr').length >= 2", timeout=20000)
+        assert "crack" in page.inner_text("#defects") or "corrosion" in page.inner_text("#defects")
         browser.close()
     assert errors == []
     assert foreign == []
