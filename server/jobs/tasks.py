@@ -22,7 +22,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from processing.defects import Defect as Defect_
 from processing.defects import measure_defects
-from processing.detection import detect_corrosion, detect_cracks_tiled, drop_along
+from processing.detection import CrackParams, detect_corrosion, detect_cracks_tiled, drop_along, estimate_background
 from processing.mapping import register_clouds
 from processing.poses import compose_se2, format_tum, image_to_world, se2_to_se3
 from processing.stitching import stitch_frames
@@ -226,7 +226,8 @@ def _detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | N
         cracks = drop_along(cracks, seams)
     # a rust patch's rim reads as a dark line: cracks there are counted as corrosion
     cracks &= cv2.dilate(rust.astype(np.uint8), np.ones((15, 15), np.uint8)) == 0
-    found = measure_defects(cracks, "crack", mm_per_px=mm_per_px)
+    smooth, background = estimate_background(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), CrackParams().background_px)
+    found = measure_defects(cracks, "crack", mm_per_px=mm_per_px, contrast=background - smooth)
     found += measure_defects(rust, "corrosion", mm_per_px=mm_per_px, first_id=len(found) + 1)
     return cracks, rust, found
 

@@ -26,3 +26,16 @@ def test_each_component_is_one_defect_with_increasing_ids() -> None:
     assert {d.defect_class for d in defects} == {"corrosion"}
     assert defects[0].length_mm is None
     assert sorted(d.area_px for d in defects) == [75, 225]
+
+
+def test_width_at_half_contrast_ignores_a_blurred_rim() -> None:
+    img = np.full((60, 120), 200.0, np.float32)
+    img[28:33, 10:110] = 60.0  # a 5-px dark crack
+    blurred = cv2.GaussianBlur(img, (0, 0), 2.0)
+    contrast = 200.0 - blurred
+    mask = contrast > 10  # a generous detector that includes the rim
+    (loose,) = measure_defects(mask, "crack")
+    (fwhm,) = measure_defects(mask, "crack", contrast=contrast)
+    assert loose.max_width_px > 8
+    assert fwhm.max_width_px == pytest.approx(5, abs=2.0) and fwhm.max_width_px < loose.max_width_px - 2
+    assert fwhm.length_px == pytest.approx(loose.length_px, rel=0.1)
