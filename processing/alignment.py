@@ -1,175 +1,621 @@
-"""Global alignment of mosaic frames: every overlapping pair registered (rotation and
-translation, ECC), then all frame poses solved together by least squares, so error does
-not accumulate along the robot's path."""
+"""Frame-to-frame registration and global pose estimation for mosaics.
+
+Every pair of frames that overlaps is registered (coarse normalised cross-correlation,
+then sub-pixel Lucas–Kanade with rotation), and all frame poses are solved together as a 2D pose
+graph (robust Gauss-Newton), so error does not accumulate along the robot's path.
+
+A pose is (x, y, θ): the frame centre in mosaic pixels and the angle from the mosaic's
+x axis to the frame's x axis (radians, positive from x towards y).
+"""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse.linalg import spsolve
+
+Gray = NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Options of pairwise registration and the pose graph."""
+
+    search_px: int = 48  # coarse translation search radius (full-resolution pixels)
+    margin_px: int = 8
+    min_overlap: float = 0.15  # of the frame area (diagonal lane neighbours add little)
+    min_texture: float = 1.5  # grey-level standard deviation of the overlap
+    min_score: float = 0.75  # correlation coefficient of the matched pixels
+    max_refine_px: float = 6.0  # the refinement may move the overlap this far from the coarse match
+    max_refine_rad: float = 0.05  # ... and turn it this far
+    points: int = 3000  # pixels used by the sub-pixel refinement
+    iterations: int = 30
+    lever_px: float = 200.0  # weight of a heading residual: radians times this, as pixels
+    prior_weight: float = 0.01  # odometry steps, relative to image measurements
+    huber_px: float = 1.0
+    max_residual_px: float = 3.0  # pairs off by more after the first solve are dropped
+    workers: int = 2
 
 
 @dataclass(frozen=True)
 class PairMeasurement:
-    """Where three points of frame i's overlap with frame j fall in frame j (pixels)."""
+    """Relative pose of frame j in frame i's centred coordinates, measured from the images."""
 
     i: int
     j: int
-    points_i: NDArray[np.float64]  # (3, 2) in frame i
-    points_j: NDArray[np.float64]  # (3, 2) in frame j
+    delta: NDArray[np.float64]  # (dx, dy, dθ)
     score: float
+    mean_i: float  # mean grey of the overlap in frame i
+    mean_j: float  # ... and of the same surface in frame j
+
+
+@dataclass
+class PoseEstimate:
+    """Solved poses, which frames are held by image measurements, and the pairs used."""
+
+    poses: NDArray[np.float64]
+    confident: NDArray[np.bool_]
+    measurements: list[PairMeasurement]
+    rejected: int
+
+
+def _rot(theta: float) -> NDArray[np.float64]:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def wrap_angle(a: NDArray[np.floating] | float) -> NDArray[np.float64]:
+    """Angle(s) wrapped to (-π, π]."""
+    return np.asarray((np.asarray(a) + np.pi) % (2 * np.pi) - np.pi, dtype=np.float64)
+
+
+def relative_pose(pose_i: NDArray[np.floating], pose_j: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Pose of j in i's frame: (R_iᵀ (t_j - t_i), θ_j - θ_i)."""
+    d = _rot(float(pose_i[2])).T @ (np.asarray(pose_j[:2], float) - np.asarray(pose_i[:2], float))
+    return np.array([d[0], d[1], float(wrap_angle(pose_j[2] - pose_i[2]))])
+
+
+def compose_pose(pose_i: NDArray[np.floating], delta: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Pose of j from pose i and j's pose in i's frame (inverse of :func:`relative_pose`)."""
+    t = np.asarray(pose_i[:2], float) + _rot(float(pose_i[2])) @ np.asarray(delta[:2], float)
+    return np.array([t[0], t[1], float(wrap_angle(pose_i[2] + delta[2]))])
 
 
 def frame_to_mosaic(pose: NDArray[np.floating], size: tuple[int, int]) -> NDArray[np.float64]:
-    """3x3 matrix A mapping frame pixels to mosaic pixels for a pose (x, y, θ) of its centre."""
+    """3x3 matrix mapping frame pixels to mosaic pixels for a frame of ``size`` (w, h)."""
     w, h = size
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    cx, cy = (w - 1) / 2, (h - 1) / 2
-    return np.array([[c, -s, pose[0] - c * cx + s * cy], [s, c, pose[1] - s * cx - c * cy], [0, 0, 1.0]])
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    R = _rot(float(pose[2]))
+    return np.vstack([np.hstack([R, (np.asarray(pose[:2], float) - R @ c)[:, None]]), [0, 0, 1.0]])
 
 
-def _gray32(img: NDArray[np.uint8]) -> NDArray[np.float32]:
-    g = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
-    return g.astype(np.float32)
+def _i_to_j(delta: NDArray[np.floating], size: tuple[int, int]) -> NDArray[np.float64]:
+    """3x3 map from frame-i pixels to frame-j pixels for j's relative pose ``delta``."""
+    w, h = size
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    Rt = _rot(float(delta[2])).T
+    return np.vstack([np.hstack([Rt, (c - Rt @ (c + np.asarray(delta[:2], float)))[:, None]]), [0, 0, 1.0]])
 
 
-def overlap_rect(A_i: NDArray[np.float64], A_j: NDArray[np.float64], size: tuple[int, int], margin: int) -> tuple[int, int, int, int] | None:
-    """Axis-aligned rectangle of frame i covered by frame j, shrunk by ``margin``."""
+def _delta_of(M: NDArray[np.float64], size: tuple[int, int]) -> NDArray[np.float64]:
+    """Inverse of :func:`_i_to_j`: the relative pose of a frame-i → frame-j map."""
+    w, h = size
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    phi = -np.arctan2(M[1, 0], M[0, 0])
+    d = _rot(phi) @ (c - M[:2, 2]) - c
+    return np.array([d[0], d[1], phi])
+
+
+_ROTATIONS = (None, cv2.ROTATE_90_CLOCKWISE, cv2.ROTATE_180, cv2.ROTATE_90_COUNTERCLOCKWISE)
+
+
+def _quarter_turn(k: int, size: tuple[int, int]) -> NDArray[np.float64]:
+    """3x3 pixel map of ``cv2.rotate`` by k quarter turns clockwise on screen, for (w, h)."""
+    w, h = size
+    return [np.eye(3), np.array([[0, -1, h - 1], [1, 0, 0], [0, 0, 1.0]]),
+            np.array([[-1, 0, w - 1], [0, -1, h - 1], [0, 0, 1.0]]), np.array([[0, 1, 0], [-1, 0, w - 1], [0, 0, 1.0]])][k]
+
+
+def overlap_rect(M: NDArray[np.float64], size: tuple[int, int], margin: int, min_overlap: float) -> tuple[int, int, int, int] | None:
+    """Axis-aligned rectangle of frame i that frame j covers (via the i→j map ``M``), shrunk
+    by ``margin``; None when smaller than ``min_overlap`` of the frame."""
     w, h = size
     corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-    in_i = (np.linalg.inv(A_i) @ A_j @ corners)[:2]
-    x0, y0 = max(0, int(np.ceil(in_i[0].min())) + margin), max(0, int(np.ceil(in_i[1].min())) + margin)
-    x1, y1 = min(w, int(np.floor(in_i[0].max()))) - margin, min(h, int(np.floor(in_i[1].max()))) - margin
-    if x1 - x0 < 48 or y1 - y0 < 48 or (x1 - x0) * (y1 - y0) < 0.08 * w * h:
+    in_i = (np.linalg.inv(M) @ corners)[:2]
+    # the largest axis-aligned box inside the (slightly rotated) footprint: inner corners
+    xs, ys = np.sort(in_i[0]), np.sort(in_i[1])
+    x0, x1 = max(0, int(np.ceil(xs[1])) + margin), min(w, int(np.floor(xs[2]))) - margin
+    y0, y1 = max(0, int(np.ceil(ys[1])) + margin), min(h, int(np.floor(ys[2]))) - margin
+    if x1 - x0 < 32 or y1 - y0 < 32 or (x1 - x0) * (y1 - y0) < min_overlap * w * h:
         return None
     return x0, y0, x1, y1
 
 
-def register_pair(
-    gray_i: NDArray[np.float32], gray_j: NDArray[np.float32], A_i: NDArray[np.float64], A_j: NDArray[np.float64],
-    *, margin: int = 16, min_score: float = 0.8, max_shift_px: float = 12.0, search_px: int = 48,
-) -> PairMeasurement | None:
-    """Refine the relative pose of two overlapping frames by ECC (Euclidean motion).
-
-    A coarse translation search (±``search_px``) comes first, so odometry errors of tens
-    of pixels are fine. Rejected when the correlation stays under ``min_score`` or ECC moved
-    the overlap more than ``max_shift_px`` from the coarse result (it ran away).
-    """
-    h, w = gray_i.shape
-    rect = overlap_rect(A_i, A_j, (w, h), margin)
-    if rect is None:
-        return None
-    x0, y0, x1, y1 = rect
-    template = gray_i[y0:y1, x0:x1]
-    if float(template.std()) < 2.0:
-        return None  # no texture to register on
-    # coarse: the best translation within ±search_px by normalised cross-correlation of the
-    # overlap, frame j seen through the initial poses; fine: ECC from there
-    i_to_j = np.linalg.inv(A_j) @ A_i
-    seen_j = cv2.warpAffine(gray_j, i_to_j[:2], (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-    s = min(search_px, (x1 - x0 - 16) // 2, (y1 - y0 - 16) // 2)
-    shift = np.zeros(2)
-    if s >= 4:
-        res = cv2.matchTemplate(seen_j[y0:y1, x0:x1], template[s:-s, s:-s], cv2.TM_CCOEFF_NORMED)
-        _, _, _, (bx, by) = cv2.minMaxLoc(res)
-        shift = np.array([bx - s, by - s], float)
-    # ECC between the overlap and frame j already turned into frame i's orientation (its
-    # Euclidean model only converges from near-identity warps, not from a 180° turn)
-    W = np.array([[1, 0, x0 + shift[0]], [0, 1, y0 + shift[1]]], np.float32)
-    W0 = W.astype(np.float64).copy()
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5)
-    try:
-        score, W = cv2.findTransformECC(template, seen_j, W, cv2.MOTION_EUCLIDEAN, criteria, None, 5)
-    except cv2.error:
-        return None
-    if score < min_score:
-        return None
-    pts = np.array([[x0 + 0.2 * (x1 - x0), y0 + 0.2 * (y1 - y0)], [x1 - 0.2 * (x1 - x0), y0 + 0.2 * (y1 - y0)],
-                    [x0 + 0.5 * (x1 - x0), y1 - 0.2 * (y1 - y0)]])
-    local = pts - (x0, y0)
-    in_seen = local @ W[:, :2].T.astype(np.float64) + W[:, 2]
-    if np.abs(in_seen - (local @ W0[:, :2].T + W0[:, 2])).max() > max_shift_px:
-        return None
-    in_j = (i_to_j @ np.column_stack([in_seen, np.ones(3)]).T)[:2].T
-    return PairMeasurement(0, 0, pts, in_j, float(score))
+def _strong_points(mag: NDArray[np.float32], n: int, cells: int = 6) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """About ``n`` pixels (x, y) of strong gradient, spread over a ``cells`` x ``cells`` grid:
+    in each cell, those above the cell's quantile (estimated on every 3rd pixel)."""
+    h, w = mag.shape
+    ch, cw = h // cells, w // cells
+    keep = min(1.0, n / max(ch * cw * cells * cells, 1))
+    blocks = mag[: ch * cells, : cw * cells].reshape(cells, ch, cells, cw)
+    sample = blocks[:, ::3, :, ::3].transpose(0, 2, 1, 3).reshape(cells, cells, -1)
+    thr = np.quantile(sample, 1.0 - keep, axis=2, method="lower") if keep < 1.0 else np.full((cells, cells), -1.0)
+    full_thr = np.repeat(np.repeat(thr, ch, axis=0), cw, axis=1)
+    ys, xs = np.nonzero(mag[: ch * cells, : cw * cells] > full_thr)
+    return xs, ys
 
 
-def candidate_pairs(poses: NDArray[np.float64], size: tuple[int, int]) -> list[tuple[int, int]]:
-    """Pairs of frames whose centres are close enough for their footprints to overlap
-    (the overlap itself is checked when the pair is registered)."""
-    reach = 0.95 * max(size)
-    out = []
-    for i in range(len(poses)):
-        d = np.linalg.norm(poses[i + 1 :, :2] - poses[i, :2], axis=1)
-        out += [(i, i + 1 + k) for k in np.nonzero(d < reach)[0]]
+@dataclass(frozen=True)
+class Smoothed:
+    """A grey image smoothed for registration (one pyramid level); gradients on demand."""
+
+    image: Gray
+
+    @classmethod
+    def of(cls, gray: Gray, sigma: float) -> Smoothed:
+        """Smooth by a Gaussian of ``sigma``."""
+        return cls(cv2.GaussianBlur(gray, (0, 0), sigma))
+
+    def crop(self, x0: int, y0: int, x1: int, y1: int) -> Smoothed:
+        """A rectangle of it."""
+        return Smoothed(self.image[y0:y1, x0:x1])
+
+
+def refine_euclidean(
+    template: Smoothed, image: Gray, W0: NDArray[np.float64], *, points: int = 4000, iterations: int = 30,
+) -> tuple[NDArray[np.float64], float, float, float]:
+    """Sub-pixel Euclidean warp (2x3, template pixel → image pixel) by inverse-compositional
+    Lucas–Kanade (Baker & Matthews 2004) on the template's strongest-gradient pixels, with a
+    gain and offset between the two images estimated at every step (exposure changes).
+    Both images are smoothed alike beforehand (:class:`Smoothed`). Returns the warp, the
+    correlation coefficient of the matched pixels and their mean grey level in the template
+    and in the image."""
+    gx = cv2.Sobel(template.image, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(template.image, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    mag = cv2.magnitude(gx, gy)
+    mag[:2], mag[-2:], mag[:, :2], mag[:, -2:] = 0, 0, 0, 0
+    xs, ys = _strong_points(mag, points)
+    h, w = mag.shape
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    X, Y = xs - c[0], ys - c[1]
+    Gx, Gy = gx[ys, xs].astype(np.float64), gy[ys, xs].astype(np.float64)
+    SD = np.column_stack([Gx * -Y + Gy * X, Gx, Gy])  # steepest-descent images (θ about the centre, tx, ty)
+    H_inv = np.linalg.inv(SD.T @ SD)
+    Tv = template.image[ys, xs].astype(np.float64)
+    Tc = Tv - Tv.mean()
+    t_var = float(Tc @ Tc)
+    P = np.vstack([xs, ys, np.ones_like(xs)]).astype(np.float64)
+    W = np.vstack([W0, [0, 0, 1]]).astype(np.float64)
+    Iw = Tv
+    for _ in range(iterations):
+        q = (W[:2] @ P).astype(np.float32)
+        Iw = cv2.remap(image, q[0][:, None], q[1][:, None], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[:, 0].astype(np.float64)
+        Ic = Iw - Iw.mean()
+        alpha = float(Ic @ Tc) / t_var
+        if abs(alpha) < 1e-6:
+            break
+        dp = H_inv @ (SD.T @ (Ic / alpha - Tc))
+        ct, st = np.cos(dp[0]), np.sin(dp[0])
+        # W <- W o D^-1, D = rotation dp[0] about the centre then translation dp[1:]
+        D_inv_R = np.array([[ct, st], [-st, ct]])
+        D_inv = np.eye(3)
+        D_inv[:2, :2], D_inv[:2, 2] = D_inv_R, c - D_inv_R @ (c + dp[1:])
+        W = W @ D_inv
+        if abs(dp[0]) * max(w, h) + abs(dp[1]) + abs(dp[2]) < 2e-3:
+            break
+    Ic = Iw - Iw.mean()
+    score = float(Ic @ Tc) / max(float(np.sqrt((Ic @ Ic) * t_var)), 1e-12)
+    return W[:2], score, float(Tv.mean()), float(Iw.mean())
+
+
+SIGMA = 1.0  # smoothing of both images before Lucas-Kanade (its convergence basin)
+
+
+@dataclass(frozen=True)
+class Level:
+    """A frame prepared for registration: smoothed grey image at full and half resolution."""
+
+    full: Smoothed
+    half: Smoothed
+
+    @classmethod
+    def of(cls, gray: Gray) -> Level:
+        """Prepare a full-resolution grey image."""
+        gray = np.ascontiguousarray(gray, dtype=np.float32)
+        return cls(Smoothed.of(gray, SIGMA), Smoothed.of(cv2.pyrDown(gray), SIGMA))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(h, w) at full resolution."""
+        return self.full.image.shape  # type: ignore[return-value]
+
+    @property
+    def nbytes(self) -> int:
+        """Memory it holds."""
+        return self.full.image.nbytes + self.half.image.nbytes
+
+
+def _crop_for(image: Gray, W: NDArray[np.float64], tw: int, th: int, pad: int) -> tuple[Gray, NDArray[np.float64]]:
+    """The part of ``image`` that a (tw x th) template reaches through warp ``W`` (plus
+    ``pad``), and the warp into that part."""
+    corners = W[:2] @ np.array([[0, 0, 1], [tw, 0, 1], [0, th, 1], [tw, th, 1]], float).T
+    x0, y0 = (max(0, int(np.floor(v)) - pad) for v in corners.min(axis=1))
+    x1, y1 = (int(np.ceil(v)) + pad for v in corners.max(axis=1))
+    out = W[:2].copy()
+    out[:, 2] -= (x0, y0)
+    return image[y0 : min(y1, image.shape[0]), x0 : min(x1, image.shape[1])], out
+
+
+def _uncrop(W: NDArray[np.float64], crop_W: NDArray[np.float64], crop_W0: NDArray[np.float64]) -> NDArray[np.float64]:
+    out = W.copy()
+    out[:, 2] += crop_W0[:, 2] - crop_W[:, 2]
     return out
 
 
-def optimise_poses(
-    initial: NDArray[np.float64], measurements: Sequence[PairMeasurement], size: tuple[int, int], *, prior_weight: float = 0.001,
+def register_pair(
+    frame_i: Level | Gray, frame_j: Level | Gray, guess: NDArray[np.floating], params: RegistrationParams = RegistrationParams(),
+    *, angles: Sequence[float] = (0.0,),
+) -> tuple[NDArray[np.float64], float, float, float] | None:
+    """Relative pose of frame j in frame i's frame, refined from ``guess``.
+
+    Frame j is first turned by whole quarter turns (exactly, no interpolation) so that the
+    refinement starts near identity rotation; a coarse correlation search of
+    ±``search_px`` at half resolution (at each of ``angles``, radians, added to the guessed
+    rotation, when the rotation is uncertain) absorbs odometry errors; Lucas–Kanade on the half-
+    and then the full-resolution image gives sub-pixel translation and rotation. Returns
+    (delta, score, mean_i, mean_j), or None when the frames do not overlap enough, the
+    overlap has no texture, or the match is weak or ran away.
+    """
+    li = frame_i if isinstance(frame_i, Level) else Level.of(frame_i)
+    lj = frame_j if isinstance(frame_j, Level) else Level.of(frame_j)
+    h, w = li.shape
+    size = (w, h)
+    M = _i_to_j(guess, size)
+    k = int(np.round(float(wrap_angle(guess[2])) / (np.pi / 2))) % 4
+    j_full = lj.full.image if k == 0 else cv2.rotate(lj.full.image, _ROTATIONS[k])
+    j_half = lj.half.image if k == 0 else cv2.rotate(lj.half.image, _ROTATIONS[k])
+    Q = _quarter_turn(k, size)
+    # coarse: the overlap shrunk by the search radius, so it stays inside frame j for any
+    # guess error up to that radius; half resolution
+    s = params.search_px // 4 * 2
+    rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
+    if rect is None:
+        s = params.search_px // 8 * 2
+        rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
+    if rect is not None:
+        hx0, hy0, hx1, hy1 = (v // 2 for v in rect)
+        template = li.half.image[hy0:hy1, hx0:hx1]
+        if float(template.std()) >= params.min_texture and hx1 - hx0 > 8 and hy1 - hy0 > 8:
+            hs = s // 2
+            best = -np.inf
+            centre = np.array([(rect[0] + rect[2]) / 2, (rect[1] + rect[3]) / 2])
+            for angle in angles:
+                # turn the guess by ``angle`` about the overlap's centre
+                R = _rot(angle)
+                turn = np.vstack([np.hstack([R, (centre - R @ centre)[:, None]]), [0, 0, 1]])
+                Ma = M @ turn
+                around = _scale_warp((Q @ Ma @ np.array([[1, 0, 2 * (hx0 - hs)], [0, 1, 2 * (hy0 - hs)], [0, 0, 1.0]]))[:2], 0.5)
+                seen = cv2.warpAffine(j_half, around, (hx1 - hx0 + 2 * hs, hy1 - hy0 + 2 * hs), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+                res = cv2.matchTemplate(seen, template, cv2.TM_CCOEFF_NORMED)
+                peak = float(res.max())
+                if peak > best:
+                    best = peak
+                    shift = 2 * (_parabola_peak(res) - hs)
+                    M_best = Ma @ np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]])
+            M = M_best
+    # fine: the overlap as the coarse match places it
+    rect = overlap_rect(M, size, params.margin_px, params.min_overlap)
+    if rect is None:
+        return None
+    x0, y0, x1, y1 = rect
+    template = li.full.crop(x0, y0, x1, y1)
+    if float(template.image[::2, ::2].std()) < params.min_texture:
+        return None
+    W0 = (Q @ M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2]  # template pixel -> turned-j pixel
+    # Lucas-Kanade on the half- and then the full-resolution image: wide basin, then precision
+    pad = 6 + int(params.max_refine_px + params.max_refine_rad * max(tw, th) / 2)
+    tw, th = x1 - x0, y1 - y0
+    half0 = _scale_warp(W0, 0.5)
+    crop, cW = _crop_for(j_half, half0, tw // 2, th // 2, pad)
+    hW, _, _, _ = refine_euclidean(li.half.crop(x0 // 2, y0 // 2, x1 // 2, y1 // 2), crop, _shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),
+                                   points=params.points // 4, iterations=params.iterations)
+    hW = _uncrop(_shift_origin(hW, -(x0 % 2) / 2, -(y0 % 2) / 2), cW, half0)
+    full0 = _scale_warp(hW, 2.0)
+    crop, cW = _crop_for(j_full, full0, tw, th, pad)
+    W, score, mean_i, mean_j = refine_euclidean(template, crop, cW, points=params.points, iterations=params.iterations)
+    W = _uncrop(W, cW, full0)
+    if not np.isfinite(W).all() or score < params.min_score:
+        return None
+    centre = np.array([tw / 2, th / 2, 1.0])
+    turned_by = abs(np.arctan2(W[1, 0], W[0, 0]) - np.arctan2(W0[1, 0], W0[0, 0]))
+    if np.abs(W @ centre - W0 @ centre).max() > params.max_refine_px or turned_by > params.max_refine_rad:
+        return None  # the refinement ran away from the coarse match
+    M_ij = np.linalg.inv(Q) @ np.vstack([W, [0, 0, 1]]) @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
+    return _delta_of(M_ij, size), score, mean_i, mean_j
+
+
+def _shift_origin(W: NDArray[np.float64], dx: float, dy: float) -> NDArray[np.float64]:
+    """A warp for a template whose pixel (0, 0) sits at (dx, dy) of the original's."""
+    return W[:2] @ np.array([[1, 0, dx], [0, 1, dy], [0, 0, 1.0]])
+
+
+def _parabola_peak(res: NDArray[np.float32]) -> NDArray[np.float64]:
+    """Sub-pixel (x, y) of a correlation surface's maximum (a parabola through the peak)."""
+    _, _, _, (px, py) = cv2.minMaxLoc(res)
+    fx, fy = float(px), float(py)
+    if 0 < px < res.shape[1] - 1:
+        a, b, c = res[py, px - 1], res[py, px], res[py, px + 1]
+        fx += 0.5 * (a - c) / (a - 2 * b + c) if a - 2 * b + c != 0 else 0.0
+    if 0 < py < res.shape[0] - 1:
+        a, b, c = res[py - 1, px], res[py, px], res[py + 1, px]
+        fy += 0.5 * (a - c) / (a - 2 * b + c) if a - 2 * b + c != 0 else 0.0
+    return np.array([fx, fy])
+
+
+def _scale_warp(W: NDArray[np.float64], f: float) -> NDArray[np.float64]:
+    """The same Euclidean warp between images scaled by ``f`` (pyramid levels, pixel centres
+    at integer coordinates as in ``cv2.pyrDown``)."""
+    out = W.copy()
+    out[:, 2] = W[:, 2] * f
+    return out
+
+
+def candidate_pairs(poses: NDArray[np.float64], size: tuple[int, int], *, skip_consecutive: bool = False) -> list[tuple[int, int]]:
+    """Pairs (i < j) of frames whose centres are close enough for their footprints to overlap
+    (the overlap itself is checked when the pair is registered)."""
+    reach = 0.9 * max(size)
+    out = []
+    centres = poses[:, :2]
+    order = np.argsort(centres[:, 0])
+    xs = centres[order, 0]
+    for a, i in enumerate(order):
+        hi = np.searchsorted(xs, xs[a] + reach, side="right")
+        for j in order[a + 1 : hi]:
+            if np.linalg.norm(centres[j] - centres[i]) < reach:
+                p = (int(min(i, j)), int(max(i, j)))
+                if not (skip_consecutive and p[1] == p[0] + 1):
+                    out.append(p)
+    return sorted(out, key=lambda p: (p[1], p[0]))
+
+
+def solve_pose_graph(
+    initial: NDArray[np.float64], measurements: Sequence[PairMeasurement], priors: NDArray[np.float64] | None, params: RegistrationParams = RegistrationParams(),
+    *, iterations: int = 10,
 ) -> NDArray[np.float64]:
-    """Least-squares poses (N, 3): pair measurements, plus a weak pull towards the initial
-    relative motion of consecutive frames (keeps frames without matches in place).
-    Frame 0 stays fixed."""
+    """Poses (N, 3) minimising the robust pose-graph error (Gauss-Newton with Huber weights).
+
+    Each measurement says where frame j is in frame i's frame; ``priors`` (N-1, 3), the
+    odometry's relative steps, weakly hold frames that no image measurement reaches.
+    Frame 0 stays where ``initial`` puts it (the gauge).
+    """
     n = len(initial)
-    if n < 2:
+    edges = [(m.i, m.j, m.delta, 1.0) for m in measurements]
+    if priors is not None:
+        edges += [(k, k + 1, priors[k], params.prior_weight) for k in range(n - 1)]
+    if n < 2 or not edges:
         return initial.copy()
+    I = np.array([e[0] for e in edges])
+    J = np.array([e[1] for e in edges])
+    Z = np.array([e[2] for e in edges], float)
+    base_w = np.array([e[3] for e in edges], float)
+    x = initial.astype(np.float64).copy()
+    L = params.lever_px
+    for _ in range(iterations):
+        ti, tj, th = x[I, :2], x[J, :2], x[I, 2]
+        c, s = np.cos(th), np.sin(th)
+        d = tj - ti
+        pred = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+        r = np.column_stack([pred - Z[:, :2], L * wrap_angle(x[J, 2] - th - Z[:, 2])])
+        norm = np.linalg.norm(r, axis=1)
+        w = base_w * np.where(norm <= params.huber_px, 1.0, params.huber_px / np.maximum(norm, 1e-12))
+        # Jacobian blocks (3x3) with respect to pose i and pose j
+        rows, cols, vals = [], [], []
+        e = np.arange(len(edges))
 
-    def unpack(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        return np.vstack([initial[:1], x.reshape(n - 1, 3)])
+        def put(r_idx: int, node: NDArray[np.int64], k: int, v: NDArray[np.float64]) -> None:
+            rows.append(3 * e + r_idx)
+            cols.append(3 * node + k)
+            vals.append(v)
 
-    rel0 = [np.linalg.inv(frame_to_mosaic(initial[k], size)) @ frame_to_mosaic(initial[k + 1], size) for k in range(n - 1)]
-    probe = np.array([[0, 0, 1], [size[0] - 1, size[1] - 1, 1.0]]).T
+        put(0, I, 0, -c), put(0, I, 1, -s), put(0, I, 2, -s * d[:, 0] + c * d[:, 1])
+        put(1, I, 0, s), put(1, I, 1, -c), put(1, I, 2, -c * d[:, 0] - s * d[:, 1])
+        put(2, I, 2, np.full(len(edges), -L))
+        put(0, J, 0, c), put(0, J, 1, s)
+        put(1, J, 0, -s), put(1, J, 1, c)
+        put(2, J, 2, np.full(len(edges), L))
+        Jm = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * len(edges), 3 * n))
+        Wd = sp.diags(np.repeat(w, 3))
+        H = (Jm.T @ Wd @ Jm).tocsc()[3:, 3:]  # frame 0 fixed
+        g = (Jm.T @ (np.repeat(w, 3) * r.ravel()))[3:]
+        H = H + sp.identity(H.shape[0], format="csc") * 1e-9
+        step = spsolve(H, -g)
+        x[1:] += step.reshape(n - 1, 3)
+        x[:, 2] = wrap_angle(x[:, 2])
+        if np.abs(step).max() < 1e-4:
+            break
+    return x
 
-    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        poses = unpack(x)
-        A = [frame_to_mosaic(p, size) for p in poses]
-        res = []
-        for m in measurements:
-            pts_i = np.column_stack([m.points_i, np.ones(3)]).T
-            pred = (np.linalg.inv(A[m.j]) @ A[m.i] @ pts_i)[:2].T
-            res.append((pred - m.points_j).ravel())
-        for k in range(n - 1):
-            pred = np.linalg.inv(A[k]) @ A[k + 1] @ probe
-            res.append(prior_weight * (pred - rel0[k] @ probe)[:2].ravel())
-        return np.concatenate(res)
 
-    sparsity = lil_matrix((6 * len(measurements) + 4 * (n - 1), 3 * (n - 1)), dtype=int)
-    row = 0
+def measurement_residuals(poses: NDArray[np.float64], measurements: Sequence[PairMeasurement], params: RegistrationParams) -> NDArray[np.float64]:
+    """Size (px) of each measurement's disagreement with the poses."""
+    out = []
     for m in measurements:
-        for k in (m.i, m.j):
-            if k > 0:
-                sparsity[row : row + 6, 3 * (k - 1) : 3 * k] = 1
-        row += 6
-    for k in range(n - 1):
-        for kk in (k, k + 1):
-            if kk > 0:
-                sparsity[row : row + 4, 3 * (kk - 1) : 3 * kk] = 1
-        row += 4
-    # a robust loss: one wrong pair cannot pull the whole mosaic apart
-    sol = least_squares(residuals, initial[1:].ravel(), jac_sparsity=sparsity, method="trf", x_scale="jac",
-                        loss="soft_l1", f_scale=2.0)
-    return unpack(sol.x)
+        r = relative_pose(poses[m.i], poses[m.j]) - m.delta
+        out.append(float(np.hypot(r[0], r[1]) + params.lever_px * abs(float(wrap_angle(r[2])))))
+    return np.array(out)
 
 
-def align_frames(frames: Sequence[NDArray[np.uint8]], initial: NDArray[np.float64]) -> tuple[NDArray[np.float64], int, NDArray[np.bool_]]:
-    """Globally aligned poses (N, 3) in mosaic pixels / radians from an initial placement;
-    also the number of registered pairs and which frames took part in at least one."""
-    h, w = frames[0].shape[:2]
-    grays = [_gray32(f) for f in frames]
-    measurements = []
-    for i, j in candidate_pairs(initial, (w, h)):
-        m = register_pair(grays[i], grays[j], frame_to_mosaic(initial[i], (w, h)), frame_to_mosaic(initial[j], (w, h)))
-        if m is not None:
-            measurements.append(PairMeasurement(i, j, m.points_i, m.points_j, m.score))
-    linked = np.zeros(len(frames), bool)
+def solve_gains(n: int, measurements: Sequence[PairMeasurement], *, sigma_n: float = 10.0, sigma_g: float = 0.1) -> NDArray[np.float64]:
+    """Per-frame exposure gains that make overlapping frames equally bright (Brown & Lowe's
+    gain compensation: min Σ (g_i m_i − g_j m_j)² / σ_n² + Σ (g_k − 1)² / σ_g²)."""
+    A = sp.lil_matrix((n, n))
+    b = np.full(n, 1.0 / sigma_g**2)
+    for k in range(n):
+        A[k, k] = 1.0 / sigma_g**2
     for m in measurements:
-        linked[[m.i, m.j]] = True
-    if not measurements:
-        return initial.copy(), 0, linked
-    return optimise_poses(initial, measurements, (w, h)), len(measurements), linked
+        a, c = m.mean_i, m.mean_j
+        A[m.i, m.i] += a * a / sigma_n**2
+        A[m.j, m.j] += c * c / sigma_n**2
+        A[m.i, m.j] -= a * c / sigma_n**2
+        A[m.j, m.i] -= a * c / sigma_n**2
+    return np.asarray(spsolve(A.tocsc(), b), dtype=np.float64)
+
+
+def _tukey(n: int, taper: float) -> NDArray[np.float32]:
+    """A window flat in the middle, with cosine tapers over ``taper`` of each end."""
+    x = np.arange(n, dtype=np.float64)
+    m = max(taper * n, 1.0)
+    w = np.ones(n)
+    w[x < m] = 0.5 - 0.5 * np.cos(np.pi * x[x < m] / m)
+    w[x >= n - m] = 0.5 - 0.5 * np.cos(np.pi * (n - 1 - x[x >= n - m]) / m)
+    return w.astype(np.float32)
+
+
+def _correlation_peaks(a: Gray, b: Gray, count: int) -> list[tuple[float, float]]:
+    """The ``count`` strongest peaks (shift of b's content relative to a's, modulo the image
+    size) of the phase correlation surface, by non-maximum suppression."""
+    h, w = a.shape
+    win = np.outer(_tukey(h, 0.1), _tukey(w, 0.1))
+    Fa = np.fft.rfft2((a - a.mean()) * win)
+    Fb = np.fft.rfft2((b - b.mean()) * win)
+    cross = Fa * np.conj(Fb)
+    surface = np.fft.irfft2(cross / np.maximum(np.abs(cross), 1e-9), s=(h, w)).astype(np.float32)
+    surface = cv2.GaussianBlur(surface, (0, 0), 1.0)  # rotation and noise spread the peak
+    local = surface == cv2.dilate(surface, np.ones((9, 9), np.uint8))
+    ys, xs = np.nonzero(local)
+    order = np.argsort(-surface[ys, xs])[:count]
+    return [(float(xs[i]), float(ys[i])) for i in order]
+
+
+def phase_candidates(gray_a: Gray, gray_b: Gray, *, turns: Sequence[int] = (0, 2), keep: int = 4) -> list[tuple[NDArray[np.float64], float]]:
+    """Image-only guesses of the relative pose (dx, dy, θ) of frame b in frame a, best
+    first, with their overlap correlation.
+
+    Frame b is tried as it is and turned by each of ``turns`` quarter turns (a robot
+    driving lanes turns around at their ends; quarter turns of a non-square frame are
+    skipped). The strongest peaks of the phase correlation surface (tapered window, so an
+    overlap at the frame's edge still counts) are taken, each wrap-around reading of a peak
+    (a 400 px shift of a 640 px frame reads as -240 px) is scored by the normalised
+    correlation of the overlap it implies, on smoothed images so that a small rotation does
+    not decorrelate fine texture. Works at half resolution.
+    """
+    a = cv2.pyrDown(np.asarray(gray_a, np.float32))
+    h, w = a.shape
+    a_s = cv2.GaussianBlur(a, (0, 0), 2.0)
+    found: list[tuple[NDArray[np.float64], float]] = []
+    for k in turns:
+        if k % 2 == 1 and w != h:
+            continue
+        b = cv2.pyrDown(np.asarray(gray_b, np.float32))
+        b = b if k == 0 else cv2.rotate(b, _ROTATIONS[k])
+        b_s = cv2.GaussianBlur(b, (0, 0), 2.0)
+        for px, py in _correlation_peaks(a, b, 4):
+            for dx in (px, px - w):
+                for dy in (py, py - h):
+                    ix, iy = int(round(dx)), int(round(dy))
+                    ow, oh = w - abs(ix), h - abs(iy)
+                    if ow < 8 or oh < 8 or ow * oh < 0.08 * w * h:
+                        continue
+                    pa = a_s[max(iy, 0) : max(iy, 0) + oh, max(ix, 0) : max(ix, 0) + ow]
+                    pb = b_s[max(-iy, 0) : max(-iy, 0) + oh, max(-ix, 0) : max(-ix, 0) + ow]
+                    score = float(cv2.matchTemplate(pa, pb, cv2.TM_CCOEFF_NORMED)[0, 0])
+                    # b turned by k quarter turns (clockwise on screen) sits at (dx, dy)
+                    found.append((np.array([2 * dx, 2 * dy, float(wrap_angle(-k * np.pi / 2))]), score))
+    found.sort(key=lambda c: -c[1])
+    return found[:keep]
+
+
+def phase_motion(gray_a: Gray, gray_b: Gray) -> NDArray[np.float64]:
+    """The best image-only guess of frame b's pose in frame a (see :func:`phase_candidates`)."""
+    found = phase_candidates(gray_a, gray_b, keep=1)
+    return found[0][0] if found else np.zeros(3)
+
+
+def chain(first: NDArray[np.float64], deltas: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
+    """Poses from a first pose and the relative step to each next frame."""
+    out = [np.asarray(first, float)]
+    for d in deltas:
+        out.append(compose_pose(out[-1], d))
+    return np.array(out)
+
+
+BLIND_ANGLES = tuple(np.radians([-4.0, -2.0, 0.0, 2.0, 4.0]))  # rotations tried when there is no odometry
+
+
+def estimate_poses(
+    load: Callable[[int], Level], n: int, guess: NDArray[np.float64] | None, params: RegistrationParams = RegistrationParams(),
+    progress: Callable[[float, str], None] | None = None,
+) -> PoseEstimate:
+    """Globally consistent frame poses from images (and an odometry guess when given).
+
+    1. initial steps: odometry, or phase correlation between consecutive frames;
+    2. every consecutive pair registered (sub-pixel), the steps chained;
+    3. every other overlapping pair (lane neighbours, revisits) registered from the chain;
+    4. the pose graph solved robustly; pairs that still disagree by more than
+       ``max_residual_px`` are dropped and the graph solved again.
+    Frames that no accepted pair reaches keep their odometry placement and are flagged.
+    ``load(k)`` gives frame k's grey levels; it is called from ``params.workers`` threads.
+    """
+    report = progress or (lambda f, m: None)
+    if n == 0:
+        raise ValueError("no frames")
+    h, w = load(0).shape
+    size = (w, h)
+    with ThreadPoolExecutor(max(1, params.workers)) as pool:
+
+        def measure(pair: tuple[int, int], start: NDArray[np.float64], angles: Sequence[float] = (0.0,)) -> PairMeasurement | None:
+            found = register_pair(load(pair[0]), load(pair[1]), start, params, angles=angles)
+            if found is None:
+                return None
+            delta, score, mi, mj = found
+            return PairMeasurement(pair[0], pair[1], delta, score, mi, mj)
+
+        def measure_blind(k: int) -> tuple[PairMeasurement | None, NDArray[np.float64]]:
+            # without odometry: every phase-correlation guess verified by registration
+            guesses = phase_candidates(load(k).full.image, load(k + 1).full.image)
+            tried = []
+            for g, _ in guesses:
+                m = measure((k, k + 1), g, BLIND_ANGLES)
+                if m is not None:
+                    tried.append(m)
+                    if m.score > 0.9:
+                        break
+            if tried:
+                best = max(tried, key=lambda m: m.score)
+                return best, best.delta
+            return None, guesses[0][0] if guesses else np.zeros(3)
+
+        report(0.05, "registering consecutive frames")
+        if guess is None:
+            blind = list(pool.map(measure_blind, range(n - 1)))
+            consecutive = [m for m, _ in blind]
+            priors = np.array([step for _, step in blind]).reshape(-1, 3)
+            guess = chain(np.zeros(3), list(priors))
+        else:
+            guess = np.asarray(guess, dtype=np.float64)
+            priors = np.array([relative_pose(guess[k], guess[k + 1]) for k in range(n - 1)]).reshape(-1, 3)
+            consecutive = list(pool.map(lambda k: measure((k, k + 1), priors[k]), range(n - 1)))
+        steps_now = [m.delta if m is not None else priors[k] for k, m in enumerate(consecutive)]
+        chained = chain(guess[0], steps_now)
+        report(0.4, "registering overlapping frames")
+        others = candidate_pairs(chained, size, skip_consecutive=True)
+        found = list(pool.map(lambda p: measure(p, relative_pose(chained[p[0]], chained[p[1]])), others))
+    measurements = [m for m in consecutive + found if m is not None]
+    report(0.8, "solving the pose graph")
+    poses = solve_pose_graph(chained, measurements, priors, params)
+    res = measurement_residuals(poses, measurements, params)
+    keep = [m for m, r in zip(measurements, res) if r <= params.max_residual_px]
+    rejected = len(measurements) - len(keep)
+    if rejected:
+        poses = solve_pose_graph(poses, keep, priors, params)
+    confident = np.zeros(n, bool)
+    confident[0] = n == 1
+    for m in keep:
+        confident[[m.i, m.j]] = True
+    return PoseEstimate(poses, confident, keep, rejected)

@@ -1,266 +1,456 @@
 """Mosaic of downward-camera frames in world coordinates (paper §3.1).
 
-This is the first version: frames are placed by the camera motion (odometry, or phase
-correlation when there is none) and each placement is refined by appearance-based
-template matching against the previous frame, as the paper describes. Global pose
-optimisation and the exposure blending of eq. (2) build on it.
+The paper's method, step by step: the camera's motion from the robot's odometry through
+the frame chain image → camera → robot → world (:func:`camera_poses`) gives each frame's
+initial place; appearance-based matching refines it (here sub-pixel, with rotation, over
+every overlapping pair, solved globally: :mod:`processing.alignment`); exposure is
+compensated and frames blended by the rule of eq. (2) with its threshold τ, gaps in the
+new frame's region filled by a 2D median filter (:func:`paper_blend_mask`).
+
+Beyond it: vignetting removed by a flat field, per-frame gains solved over all overlaps,
+feathered blending (the default; eq. (2) and newest-on-top are options), and rendering in
+horizontal bands so that a mosaic of any size is produced with bounded memory: frames are
+loaded on demand through a :class:`FrameSource` and each band is handed on as soon as it
+is finished (to a tiled-pyramid writer, a PNG stream, or :func:`stitch_frames`, which keeps
+the whole mosaic in memory for small jobs and tests).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections import OrderedDict, deque
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from threading import Lock
+from typing import Literal, Protocol
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.alignment import align_frames
+from processing.alignment import Level, PairMeasurement, RegistrationParams, estimate_poses, frame_to_mosaic, solve_gains
+
+Blend = Literal["feather", "paper", "newest"]
+Progress = Callable[[float, str], None]
+
+
+class FrameSource(Protocol):
+    """Frames by index, loaded on demand (a list of arrays is one)."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, index: int) -> NDArray[np.uint8]: ...
 
 
 @dataclass(frozen=True)
 class StitchParams:
     """Options of the stitcher."""
 
-    search_px: int = 24
-    min_score: float = 0.5
-    min_overlap: float = 0.15
+    registration: RegistrationParams = field(default_factory=RegistrationParams)
+    blend: Blend = "feather"
+    tau: float = 0.9  # eq. (2): the new pixel wins where τ·I2 > I1
+    median_px: int = 5  # eq. (2): gaps in the new frame's region filled by a median filter
+    gain_compensation: bool = True
     flat_field_min_frames: int = 8
-    global_alignment: bool = True
+    flat_field_sample: int = 16  # frames sampled to estimate the vignetting
+    flat_field_min_falloff: float = 0.04  # corrected when the corners are this much darker
+    band_bytes: int = 96 * 2**20  # working memory of one band of the mosaic
+    cache_bytes: int = 256 * 2**20  # decoded frames kept for reuse
 
 
 @dataclass
-class Mosaic:
-    """A stitched mosaic and where every frame went.
+class MosaicLayout:
+    """Where every frame goes in the mosaic and how mosaic pixels map to the world.
 
-    ``frame_poses_px`` is (N, 3): frame-centre x, y in mosaic pixels and rotation in degrees.
+    ``poses_px`` is (N, 3): frame-centre x, y in mosaic pixels and rotation in radians.
     Mosaic pixel (u, v) is at world ``origin_m + (u, v) / px_per_m``.
     """
 
-    image: NDArray[np.uint8]
-    coverage: NDArray[np.bool_]
+    width: int
+    height: int
+    frame_size: tuple[int, int]  # (w, h)
+    channels: int
     px_per_m: float
     origin_m: tuple[float, float]
-    frame_poses_px: NDArray[np.float64]
+    poses_px: NDArray[np.float64]
     confident: NDArray[np.bool_]
-    seams: NDArray[np.bool_] | None = None  # where a later frame's border cuts an earlier one
+    gains: NDArray[np.float64]
+    pairs: int
+    rejected_pairs: int
 
     def to_world(self, u: float, v: float) -> tuple[float, float]:
         """World (x, y) in metres of a mosaic pixel."""
         return self.origin_m[0] + u / self.px_per_m, self.origin_m[1] + v / self.px_per_m
 
+    def to_mosaic(self, x: float, y: float) -> tuple[float, float]:
+        """Mosaic pixel (u, v) of a world point (metres)."""
+        return (x - self.origin_m[0]) * self.px_per_m, (y - self.origin_m[1]) * self.px_per_m
 
-@dataclass(frozen=True)
-class _Patch:
-    image: NDArray[np.uint8]
-    mask: NDArray[np.uint8]
-    x0: int
+    def footprint(self, k: int) -> tuple[int, int, int, int]:
+        """Bounding box (x0, y0, x1, y1), end exclusive, of frame k in the mosaic."""
+        w, h = self.frame_size
+        A = frame_to_mosaic(self.poses_px[k], self.frame_size)
+        pts = A[:2] @ np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
+        lo, hi = np.floor(pts.min(axis=1)).astype(int), np.ceil(pts.max(axis=1)).astype(int) + 1
+        return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+
+
+@dataclass
+class Band:
+    """Rows ``y0 .. y0 + image.shape[0]`` of the mosaic."""
+
     y0: int
+    image: NDArray[np.uint8]
+    coverage: NDArray[np.bool_]
 
 
-def _warp_to_world(frame: NDArray[np.uint8], cx: float, cy: float, theta: float) -> _Patch:
-    """Rotate a frame by ``theta`` (rad) about its centre placed at mosaic pixel (cx, cy)."""
-    h, w = frame.shape[:2]
-    c, s = np.cos(theta), np.sin(theta)
-    R = np.array([[c, -s], [s, c]])
-    half = np.array([(w - 1) / 2, (h - 1) / 2])
-    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]]) - half
-    pts = corners @ R.T + (cx, cy)
-    x0, y0 = np.floor(pts.min(axis=0)).astype(int)
-    x1, y1 = np.ceil(pts.max(axis=0)).astype(int)
-    M = np.hstack([R, (np.array([cx - x0, cy - y0]) - R @ half)[:, None]])
-    size = (int(x1 - x0 + 1), int(y1 - y0 + 1))
-    img = cv2.warpAffine(frame, M, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    mask = cv2.warpAffine(np.full((h, w), 255, np.uint8), M, size, flags=cv2.INTER_NEAREST)
-    mask = cv2.erode(mask, np.ones((3, 3), np.uint8))
-    return _Patch(img, mask, int(x0), int(y0))
+@dataclass
+class Mosaic:
+    """A whole stitched mosaic in memory, with its layout."""
+
+    image: NDArray[np.uint8]
+    coverage: NDArray[np.bool_]
+    layout: MosaicLayout
+
+    @property
+    def frame_poses_px(self) -> NDArray[np.float64]:
+        """(N, 3): frame-centre x, y in mosaic pixels and rotation in degrees."""
+        p = self.layout.poses_px
+        return np.column_stack([p[:, :2], np.degrees(p[:, 2])])
+
+    @property
+    def confident(self) -> NDArray[np.bool_]:
+        """Frames placed by image registration (False: odometry only)."""
+        return self.layout.confident
+
+    def to_world(self, u: float, v: float) -> tuple[float, float]:
+        """World (x, y) in metres of a mosaic pixel."""
+        return self.layout.to_world(u, v)
+
+
+def camera_poses(robot_poses: NDArray[np.floating], T_robot_camera: Sequence[float], px_per_m: float) -> NDArray[np.float64]:
+    """Camera-centre poses in world pixels from robot odometry (the paper's chain
+    image → camera → robot → world: T_ic is the scale ``px_per_m``, T_cr the camera's mount
+    (x, y, yaw) on the robot, T_rw the odometry (x, y, yaw))."""
+    p = np.asarray(robot_poses, dtype=np.float64).reshape(-1, 3)
+    mx, my, myaw = (float(v) for v in T_robot_camera)
+    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+    x = p[:, 0] + c * mx - s * my
+    y = p[:, 1] + s * mx + c * my
+    return np.column_stack([x * px_per_m, y * px_per_m, p[:, 2] + myaw])
 
 
 def _gray(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
 
 
-def match_offset(
-    prev: _Patch, new: _Patch, search_px: int, min_overlap: float
-) -> tuple[float, float, float] | None:
-    """Translation (dx, dy) to add to ``new`` so it matches ``prev``, and the match score.
-
-    Template matching (normalised cross-correlation) of the part of ``new`` that the
-    placement says overlaps ``prev``, searched within ``search_px``; sub-pixel by a
-    parabola through the peak. None when the overlap is too small to match.
-    """
-    ax0, ay0 = max(prev.x0, new.x0), max(prev.y0, new.y0)
-    ax1 = min(prev.x0 + prev.mask.shape[1], new.x0 + new.mask.shape[1])
-    ay1 = min(prev.y0 + prev.mask.shape[0], new.y0 + new.mask.shape[0])
-    tx0, ty0, tx1, ty1 = ax0 + search_px, ay0 + search_px, ax1 - search_px, ay1 - search_px
-    area_new = new.mask.shape[0] * new.mask.shape[1]
-    if tx1 - tx0 < 16 or ty1 - ty0 < 16 or (tx1 - tx0) * (ty1 - ty0) < min_overlap * area_new * 0.5:
-        return None
-    tmpl = _gray(new.image)[ty0 - new.y0 : ty1 - new.y0, tx0 - new.x0 : tx1 - new.x0]
-    tmask = new.mask[ty0 - new.y0 : ty1 - new.y0, tx0 - new.x0 : tx1 - new.x0]
-    sx0, sy0 = max(tx0 - search_px, prev.x0), max(ty0 - search_px, prev.y0)
-    sx1 = min(tx1 + search_px, prev.x0 + prev.mask.shape[1])
-    sy1 = min(ty1 + search_px, prev.y0 + prev.mask.shape[0])
-    search = _gray(prev.image)[sy0 - prev.y0 : sy1 - prev.y0, sx0 - prev.x0 : sx1 - prev.x0]
-    if search.shape[0] <= tmpl.shape[0] or search.shape[1] <= tmpl.shape[1] or tmask.min() == 0:
-        return None
-    if float(tmpl.std()) < 1.0:
-        return None  # no texture to match
-    res = cv2.matchTemplate(search, tmpl, cv2.TM_CCOEFF_NORMED)
-    _, score, _, (px, py) = cv2.minMaxLoc(res)
-    fx, fy = float(px), float(py)
-    if 0 < px < res.shape[1] - 1:
-        l, c, r = res[py, px - 1], res[py, px], res[py, px + 1]
-        den = l - 2 * c + r
-        fx += 0.5 * (l - r) / den if den != 0 else 0.0
-    if 0 < py < res.shape[0] - 1:
-        u, c, d = res[py - 1, px], res[py, px], res[py + 1, px]
-        den = u - 2 * c + d
-        fy += 0.5 * (u - d) / den if den != 0 else 0.0
-    return sx0 + fx - tx0, sy0 + fy - ty0, float(score)
-
-
-def estimate_flat_field(frames: Sequence[NDArray[np.uint8]]) -> NDArray[np.float32]:
+def estimate_flat_field(frames: Sequence[NDArray[np.uint8]], *, scale: int = 8) -> NDArray[np.float32]:
     """Relative brightness of each pixel position over many frames (vignetting), (H, W).
 
-    The per-pixel median of the frames, each divided by its own mean, smoothed; dividing
-    a frame by it evens out its corners so seams between frames do not show.
+    The per-pixel median of the frames (each divided by its own mean, at 1/``scale``
+    resolution), fitted by a radial falloff c0 + c1·r² + c2·r⁴ (r normalised to 1 at the
+    frame's edge midpoints), so that no trace of the surface texture stays in it (a fixed
+    pattern in every frame would pull the registration towards zero motion). Dividing a
+    frame by it evens out its corners.
     """
-    stack = np.stack([_gray(f).astype(np.float32) / max(float(_gray(f).mean()), 1.0) for f in frames])
-    field = np.median(stack, axis=0)
-    h, w = field.shape
-    field = cv2.GaussianBlur(field, (0, 0), max(h, w) / 20)
-    return (field / max(float(field.mean()), 1e-6)).astype(np.float32)
+    h, w = frames[0].shape[:2]
+    small = (max(w // scale, 4), max(h // scale, 4))
+    stack = []
+    for f in frames:
+        g = cv2.resize(_gray(f), small, interpolation=cv2.INTER_AREA).astype(np.float32)
+        stack.append(g / max(float(g.mean()), 1.0))
+    median = np.median(np.stack(stack), axis=0).ravel()
+    yy, xx = np.mgrid[0 : small[1], 0 : small[0]]
+    r2 = (((xx + 0.5) / small[0] * 2 - 1) ** 2 + ((yy + 0.5) / small[1] * 2 - 1) ** 2).ravel()
+    A = np.column_stack([np.ones_like(r2), r2, r2 * r2])
+    (c0, c1, c2), *_ = np.linalg.lstsq(A, median, rcond=None)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    R2 = ((xs + 0.5) / w * 2 - 1) ** 2 + ((ys + 0.5) / h * 2 - 1) ** 2
+    flat = c0 + c1 * R2 + c2 * R2 * R2
+    return (flat / max(float(flat.mean()), 1e-6)).astype(np.float32)
 
 
-def apply_flat_field(frame: NDArray[np.uint8], field: NDArray[np.float32]) -> NDArray[np.uint8]:
+def apply_flat_field(frame: NDArray[np.uint8], flat: NDArray[np.float32]) -> NDArray[np.uint8]:
     """Divide a frame by its flat field."""
-    f = field if frame.ndim == 2 else field[..., None]
-    return np.clip(frame.astype(np.float32) / np.maximum(f, 0.2) + 0.5, 0, 255).astype(np.uint8)
+    return _times(frame, 1.0 / np.maximum(flat, 0.2))
 
 
-def estimate_motion_phase(a: NDArray[np.uint8], b: NDArray[np.uint8]) -> tuple[float, float]:
-    """Image-only translation of frame ``b`` relative to ``a`` by phase correlation (px).
+def _times(frame: NDArray[np.uint8], factor: NDArray[np.float32]) -> NDArray[np.uint8]:
+    """A frame multiplied pixel by pixel by a one-channel factor, rounded and saturated."""
+    f = factor if frame.ndim == 2 else cv2.merge([factor] * frame.shape[2])
+    return cv2.multiply(frame, f.astype(np.float32), dtype=cv2.CV_8U)
 
-    Phase correlation is ambiguous modulo the image size (a 190 px shift of a 320 px
-    frame reads as -130 px); each wrap-around candidate is scored by the normalised
-    correlation of the overlap it implies, and the best one is returned.
+
+class _Frames:
+    """Frames from a source, checked and cached (a bounded LRU), thread-safe; ``inv_flat``
+    undoes the vignetting (applied when frames are prepared for registration or rendered)."""
+
+    def __init__(self, source: FrameSource, capacity_bytes: int) -> None:
+        self.source, self.capacity = source, capacity_bytes
+        self._held = 0
+        self.inv_flat: NDArray[np.float32] | None = None
+        self.shape: tuple[int, ...] | None = None
+        self._cache: OrderedDict[int, tuple[NDArray[np.uint8], Level | None]] = OrderedDict()
+        self._lock = Lock()
+
+    def load(self, k: int) -> NDArray[np.uint8]:
+        """Frame k straight from the source, checked."""
+        img = self.source[k]
+        if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim not in (2, 3):
+            raise ValueError(f"frame {k} is not an 8-bit image")
+        if self.shape is not None and img.shape != self.shape:
+            raise ValueError(f"frame {k} is {img.shape[1]}x{img.shape[0]}; all frames must be {self.shape[1]}x{self.shape[0]}")
+        return img
+
+    def _entry(self, k: int, level: bool) -> tuple[NDArray[np.uint8], Level | None]:
+        with self._lock:
+            hit = self._cache.get(k)
+            if hit is not None:
+                self._cache.move_to_end(k)
+        if hit is None or (level and hit[1] is None):
+            img = hit[0] if hit is not None else self.load(k)
+            lv = None
+            if level:
+                gray = _gray(img).astype(np.float32)
+                lv = Level.of(gray * self.inv_flat if self.inv_flat is not None else gray)
+            hit = (img, lv)
+            with self._lock:
+                old = self._cache.pop(k, None)
+                self._held -= _nbytes(old) if old is not None else 0
+                self._cache[k] = hit
+                self._held += _nbytes(hit)
+                while self._held > self.capacity and len(self._cache) > 1:
+                    _, gone = self._cache.popitem(last=False)
+                    self._held -= _nbytes(gone)
+        return hit
+
+    def raw(self, k: int) -> NDArray[np.uint8]:
+        """Frame k as the camera took it."""
+        return self._entry(k, False)[0]
+
+    def image(self, k: int) -> NDArray[np.uint8]:
+        """Frame k, flat-fielded."""
+        img = self.raw(k)
+        return _times(img, self.inv_flat) if self.inv_flat is not None else img
+
+    def level(self, k: int) -> Level:
+        """Frame k's grey levels for registration (flat-fielded)."""
+        lv = self._entry(k, True)[1]
+        assert lv is not None
+        return lv
+
+
+def _nbytes(entry: tuple[NDArray[np.uint8], Level | None]) -> int:
+    return entry[0].nbytes + (entry[1].nbytes if entry[1] is not None else 0)
+
+
+def _prepare(source: FrameSource, params: StitchParams) -> _Frames:
+    n = len(source)
+    if n == 0:
+        raise ValueError("frames must not be empty")
+    frames = _Frames(source, params.cache_bytes)
+    first = frames.image(0)
+    frames.shape = first.shape
+    if n >= params.flat_field_min_frames:
+        picks = np.unique(np.linspace(0, n - 1, min(n, params.flat_field_sample)).round().astype(int))
+        flat = estimate_flat_field([frames.load(int(k)) for k in picks])
+        if float(flat.min()) < 1.0 - params.flat_field_min_falloff:  # correct real vignetting only
+            frames.inv_flat = (1.0 / np.maximum(flat, 0.2)).astype(np.float32)
+    return frames
+
+
+def plan_mosaic(
+    source: FrameSource, poses: NDArray[np.floating] | None, *, px_per_m: float = 1.0, params: StitchParams = StitchParams(),
+    progress: Progress | None = None,
+) -> tuple[MosaicLayout, _Frames]:
+    """Frame poses (registered and solved globally), exposure gains and the mosaic's extent.
+
+    ``poses`` (N, 3) are camera-centre poses in world *pixels* (see :func:`camera_poses`),
+    or None to estimate the motion from the images alone (then ``px_per_m`` only labels
+    the scale).
     """
-    ga, gb = (_gray(x).astype(np.float32) for x in (a, b))
-    h, w = ga.shape
-    win = cv2.createHanningWindow((w, h), cv2.CV_32F)
-    (px, py), _ = cv2.phaseCorrelate(ga, gb, win)
-    best, best_score = (-px, -py), -np.inf
-    for dx in (-px, -px - w, -px + w):
-        for dy in (-py, -py - h, -py + h):
-            ix, iy = int(round(dx)), int(round(dy))
-            ow, oh = w - abs(ix), h - abs(iy)
-            if ow < 8 or oh < 8 or ow * oh < 0.05 * w * h:
-                continue
-            pa = ga[max(iy, 0) : max(iy, 0) + oh, max(ix, 0) : max(ix, 0) + ow]
-            pb = gb[max(-iy, 0) : max(-iy, 0) + oh, max(-ix, 0) : max(-ix, 0) + ow]
-            score = float(cv2.matchTemplate(pa, pb, cv2.TM_CCOEFF_NORMED)[0, 0])
-            if score > best_score:
-                best, best_score = (dx, dy), score
-    return best
+    n = len(source)
+    if px_per_m <= 0:
+        raise ValueError(f"px_per_m must be positive, got {px_per_m}")
+    if poses is not None:
+        poses = np.asarray(poses, dtype=np.float64)
+        if poses.shape != (n, 3):
+            raise ValueError(f"poses must be ({n}, 3), one per frame, got {poses.shape}")
+        if not np.isfinite(poses).all():
+            raise ValueError("poses contain NaN or infinite values")
+    frames = _prepare(source, params)
+    h, w = frames.shape[:2]  # type: ignore[index]
+    if n == 1:
+        est_poses = (poses if poses is not None else np.zeros((1, 3))).copy()
+        confident, measurements, rejected = np.ones(1, bool), [], 0
+    else:
+        est = estimate_poses(frames.level, n, poses, params.registration, progress)
+        est_poses, confident, measurements, rejected = est.poses, est.confident, est.measurements, est.rejected
+    gains = _gains(n, measurements) if params.gain_compensation else np.ones(n)
+    layout = MosaicLayout(0, 0, (w, h), 1 if len(frames.shape) == 2 else frames.shape[2], px_per_m, (0.0, 0.0),  # type: ignore[arg-type]
+                          est_poses, confident, gains, len(measurements), rejected)
+    boxes = np.array([layout.footprint(k) for k in range(n)])
+    x0, y0 = boxes[:, 0].min(), boxes[:, 1].min()
+    layout.poses_px = est_poses - (x0, y0, 0)
+    layout.width, layout.height = int(boxes[:, 2].max() - x0), int(boxes[:, 3].max() - y0)
+    layout.origin_m = (float(x0) / px_per_m, float(y0) / px_per_m)
+    return layout, frames
+
+
+def _gains(n: int, measurements: Sequence[PairMeasurement]) -> NDArray[np.float64]:
+    g = solve_gains(n, measurements)
+    return np.clip(g / np.median(g), 0.5, 2.0)
+
+
+def feather_weight(size: tuple[int, int]) -> NDArray[np.float32]:
+    """Blending weight of a frame's pixels: highest at the centre, falling to ~0 at the edge
+    (the product of the distances to the borders, normalised)."""
+    w, h = size
+    wx = np.minimum(np.arange(w) + 1.0, w - np.arange(w)) / (w / 2)
+    wy = np.minimum(np.arange(h) + 1.0, h - np.arange(h)) / (h / 2)
+    return np.outer(wy, wx).astype(np.float32)
+
+
+def paper_blend_mask(existing: NDArray[np.uint8], new: NDArray[np.uint8], covered: NDArray[np.bool_], tau: float, median_px: int) -> NDArray[np.bool_]:
+    """Where the new frame's pixel replaces the mosaic's: eq. (2), I = I2 if τ·I2 > I1 else
+    I1, on grey levels, the region's gaps filled by a 2D median filter; everywhere the
+    mosaic has nothing yet."""
+    take = tau * _gray(new).astype(np.float32) > _gray(existing).astype(np.float32)
+    if median_px > 1:
+        take = cv2.medianBlur(take.astype(np.uint8) * 255, median_px | 1) > 0
+    return take | ~covered
+
+
+def band_rows(layout: MosaicLayout, params: StitchParams, in_flight: int = 1) -> int:
+    """Height of a rendering band: as many rows as the working-memory budget allows with
+    ``in_flight`` bands rendered at once (accumulators and the finished band)."""
+    per_row = max(layout.width, 1) * ((layout.channels + 1) * 4 + layout.channels + 1) * (in_flight + 1)
+    return int(np.clip(params.band_bytes // per_row, 32, 2048))
+
+
+def render_bands(layout: MosaicLayout, frames: _Frames, params: StitchParams = StitchParams(), progress: Progress | None = None) -> Iterator[Band]:
+    """The mosaic, top to bottom, one band at a time (bounded memory for any size); bands
+    are rendered on ``params.registration.workers`` threads, at most that many at once."""
+    n = len(layout.poses_px)
+    boxes = np.array([layout.footprint(k) for k in range(n)])
+    workers = max(1, params.registration.workers)
+    rows = band_rows(layout, params, workers)
+    weight = feather_weight(layout.frame_size)
+    starts = list(range(0, layout.height, rows))
+
+    def render(y0: int) -> Band:
+        y1 = min(layout.height, y0 + rows)
+        hits = np.nonzero((boxes[:, 1] < y1) & (boxes[:, 3] > y0))[0]
+        return _render_band(layout, frames, params, y0, y1, hits, weight)
+
+    with ThreadPoolExecutor(workers) as pool:
+        pending: deque[Future[Band]] = deque()
+        for y0 in starts:
+            pending.append(pool.submit(render, y0))
+            if len(pending) >= workers:
+                yield _done(pending.popleft(), layout, progress)
+        while pending:
+            yield _done(pending.popleft(), layout, progress)
+
+
+def _done(future: Future[Band], layout: MosaicLayout, progress: Progress | None) -> Band:
+    band = future.result()
+    if progress is not None:
+        y1 = band.y0 + band.image.shape[0]
+        progress(y1 / max(layout.height, 1), f"rendered {y1}/{layout.height} rows")
+    return band
+
+
+def _band_source(layout: MosaicLayout, k: int, x0: int, y0: int, w: int, h: int) -> tuple[NDArray[np.float64], tuple[slice, slice]]:
+    """The part of frame k that lands in the mosaic rectangle (x0, y0, w, h), and the 2x3
+    map from that part's pixels to the rectangle's."""
+    A = frame_to_mosaic(layout.poses_px[k], layout.frame_size)
+    A[:2, 2] -= (x0, y0)
+    corners = np.linalg.inv(A) @ np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float).T
+    fw, fh = layout.frame_size
+    sx0, sy0 = (max(0, int(np.floor(v)) - 1) for v in corners[:2].min(axis=1))
+    sx1, sy1 = min(fw, int(np.ceil(corners[0].max())) + 2), min(fh, int(np.ceil(corners[1].max())) + 2)
+    A = A @ np.array([[1, 0, sx0], [0, 1, sy0], [0, 0, 1.0]])
+    return A[:2], (slice(sy0, max(sy1, sy0 + 1)), slice(sx0, max(sx1, sx0 + 1)))
+
+
+def _flat(frames: _Frames, src: tuple[slice, slice]) -> NDArray[np.float32] | float:
+    return frames.inv_flat[src] if frames.inv_flat is not None else 1.0
+
+
+def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0: int, y1: int, hits: NDArray[np.int64],
+                 weight: NDArray[np.float32]) -> Band:
+    W, H, C = layout.width, y1 - y0, layout.channels
+    covered = np.zeros((H, W), bool)
+    if params.blend == "feather":
+        acc = np.zeros((H, W, C), np.float32)
+        wsum = np.zeros((H, W), np.float32)
+    else:
+        out = np.zeros((H, W) if C == 1 else (H, W, C), np.uint8)
+    for k in hits:
+        bx0, by0, bx1, by1 = layout.footprint(int(k))
+        cx0, cy0, cx1, cy1 = max(bx0, 0), max(by0, y0), min(bx1, W), min(by1, y1)
+        if cx1 <= cx0 or cy1 <= cy0:
+            continue
+        gain = float(layout.gains[k])
+        region = (slice(cy0 - y0, cy1 - y0), slice(cx0, cx1))
+        A, src = _band_source(layout, int(k), cx0, cy0, cx1 - cx0, cy1 - cy0)
+        size = (cx1 - cx0, cy1 - cy0)
+        if params.blend == "feather":
+            img = frames.raw(int(k))[src]
+            wt_src = np.ascontiguousarray(weight[src])
+            premult = cv2.multiply(img, cv2.merge([wt_src * _flat(frames, src)] * C) if C > 1 else wt_src * _flat(frames, src),
+                                   scale=gain, dtype=cv2.CV_32F)
+            warped = cv2.warpAffine(premult, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            wt = cv2.warpAffine(wt_src, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            np.add(acc[region], warped.reshape(acc[region].shape), out=acc[region])
+            np.add(wsum[region], wt, out=wsum[region])
+            continue
+        img = frames.image(int(k))[src]
+        src8 = img if gain == 1.0 else cv2.convertScaleAbs(img, alpha=gain)
+        warped = cv2.warpAffine(src8, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        inside = cv2.warpAffine(np.full(src8.shape[:2], 255, np.uint8), A, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        inside = cv2.erode(inside, np.ones((3, 3), np.uint8)) > 0
+        if params.blend == "paper":
+            take = paper_blend_mask(out[region], warped, covered[region], params.tau, params.median_px) & inside
+        else:
+            take = inside
+        out[region][take] = warped[take]
+        covered[region] |= inside
+    if params.blend == "feather":
+        covered = wsum > 1e-3
+        np.maximum(wsum, 1e-3, out=wsum)
+        acc /= wsum[..., None]
+        out = cv2.convertScaleAbs(acc)  # rounds and saturates to uint8
+        out[~covered] = 0
+    return Band(y0, out, covered)
 
 
 def stitch_frames(
-    frames: Sequence[NDArray[np.uint8]],
-    poses: NDArray[np.floating] | None,
-    *,
-    px_per_m: float = 1.0,
-    params: StitchParams = StitchParams(),
+    frames: FrameSource, poses: NDArray[np.floating] | None, *, px_per_m: float = 1.0, params: StitchParams = StitchParams(),
+    progress: Progress | None = None,
 ) -> Mosaic:
-    """Stitch frames into one mosaic in world orientation.
+    """Stitch frames into one in-memory mosaic in world orientation.
 
     Parameters
     ----------
-    frames : sequence of (H, W) or (H, W, 3) uint8 arrays, all the same size.
-    poses : (N, 3) array of camera-centre x, y (metres) and yaw (radians) in the world,
-        the initial guess; None to estimate motion from the images alone.
+    frames : (H, W) or (H, W, 3) uint8 frames, all the same size (a list, or any
+        :class:`FrameSource`).
+    poses : (N, 3) camera-centre x, y in world metres and yaw in radians (the odometry
+        guess); None to estimate the motion from the images alone.
     px_per_m : image scale (pixels per metre on the surface).
-
-    Returns
-    -------
-    Mosaic
     """
-    if len(frames) == 0:
-        raise ValueError("frames must not be empty")
-    shape = frames[0].shape
-    for i, f in enumerate(frames):
-        if f.shape != shape or f.dtype != np.uint8:
-            raise ValueError(f"frame {i} is {f.dtype} {f.shape}; all frames must be uint8 {shape}")
-    if px_per_m <= 0:
-        raise ValueError(f"px_per_m must be positive, got {px_per_m}")
-    if len(frames) >= params.flat_field_min_frames:
-        field = estimate_flat_field(frames)
-        frames = [apply_flat_field(f, field) for f in frames]
-    if poses is None:
-        guess = np.zeros((len(frames), 3))
-        for i in range(1, len(frames)):
-            dx, dy = estimate_motion_phase(frames[i - 1], frames[i])
-            guess[i] = guess[i - 1] + (dx, dy, 0.0)
-    else:
-        poses = np.asarray(poses, dtype=np.float64)
-        if poses.shape != (len(frames), 3):
-            raise ValueError(f"poses must be ({len(frames)}, 3), got {poses.shape}")
-        guess = np.column_stack([poses[:, :2] * px_per_m, poses[:, 2]])
-    placed = guess.copy()
-    confident = np.zeros(len(frames), bool)
-    confident[0] = True
-    patches = [_warp_to_world(frames[0], placed[0, 0], placed[0, 1], placed[0, 2])]
-    for i in range(1, len(frames)):
-        # carry the correction found so far (odometry drift is cumulative)
-        placed[i, :2] = placed[i - 1, :2] + (guess[i, :2] - guess[i - 1, :2])
-        placed[i, 2] = guess[i, 2]
-        patch = _warp_to_world(frames[i], placed[i, 0], placed[i, 1], placed[i, 2])
-        found = match_offset(patches[i - 1], patch, params.search_px, params.min_overlap)
-        if found is not None and found[2] >= params.min_score:
-            placed[i, :2] += found[:2]
-            confident[i] = True
-            patch = _warp_to_world(frames[i], placed[i, 0], placed[i, 1], placed[i, 2])
-        else:
-            placed[i, :2] = guess[i, :2] + (placed[i - 1, :2] - guess[i - 1, :2])
-        patches.append(patch)
-    if params.global_alignment and len(frames) > 1:
-        placed, _, linked = align_frames(frames, placed)
-        confident = linked
-        patches = [_warp_to_world(f, *p) for f, p in zip(frames, placed)]
-    return _compose(patches, placed, confident, px_per_m, shape)
-
-
-def _compose(
-    patches: list[_Patch],
-    placed: NDArray[np.float64],
-    confident: NDArray[np.bool_],
-    px_per_m: float,
-    shape: tuple[int, ...],
-) -> Mosaic:
-    x0 = min(p.x0 for p in patches)
-    y0 = min(p.y0 for p in patches)
-    x1 = max(p.x0 + p.mask.shape[1] for p in patches)
-    y1 = max(p.y0 + p.mask.shape[0] for p in patches)
-    canvas = np.zeros((y1 - y0, x1 - x0) + tuple(shape[2:]), np.uint8)
-    coverage = np.zeros((y1 - y0, x1 - x0), bool)
-    owner = np.zeros((y1 - y0, x1 - x0), np.float32)
-    for i, p in enumerate(patches, 1):
-        ys, xs = slice(p.y0 - y0, p.y0 - y0 + p.mask.shape[0]), slice(p.x0 - x0, p.x0 - x0 + p.mask.shape[1])
-        m = p.mask > 0
-        image = p.image
-        seen = coverage[ys, xs] & m
-        if seen.sum() > 1000:  # exposure compensation: match the new frame's gain to the mosaic
-            gain = float(np.median(canvas[ys, xs][seen])) / max(float(np.median(image[seen])), 1.0)
-            image = np.clip(image.astype(np.float32) * np.clip(gain, 0.6, 1.6) + 0.5, 0, 255).astype(np.uint8)
-        # the newest frame wins where frames overlap: no blending, so no ghosting of thin
-        # cracks where two frames disagree by a pixel or two
-        canvas[ys, xs][m] = image[m]
-        coverage[ys, xs] |= m
-        owner[ys, xs][m] = i
-    # seams: where the frame that supplies the pixels changes
-    k = np.ones((3, 3), np.uint8)
-    seams = ((cv2.dilate(owner, k) != owner) | (cv2.erode(owner, k) != owner)) & coverage
-    seams &= cv2.erode(coverage.astype(np.uint8), k) > 0
-    poses_px = np.column_stack([placed[:, 0] - x0, placed[:, 1] - y0, np.degrees(placed[:, 2])])
-    origin = (x0 / px_per_m, y0 / px_per_m)
-    return Mosaic(canvas, coverage, px_per_m, origin, poses_px, confident, seams)
+    guess = None
+    if poses is not None:
+        p = np.asarray(poses, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"poses must be ({len(frames)}, 3), one per frame, got {p.shape}")
+        guess = np.column_stack([p[:, :2] * px_per_m, p[:, 2]])
+    layout, loaded = plan_mosaic(frames, guess, px_per_m=px_per_m, params=params, progress=progress)
+    shape = (layout.height, layout.width) + ((layout.channels,) if layout.channels > 1 else ())
+    image = np.zeros(shape, np.uint8)
+    coverage = np.zeros((layout.height, layout.width), bool)
+    for band in render_bands(layout, loaded, params):
+        image[band.y0 : band.y0 + band.image.shape[0]] = band.image
+        coverage[band.y0 : band.y0 + band.image.shape[0]] = band.coverage
+    return Mosaic(image, coverage, layout)

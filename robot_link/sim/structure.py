@@ -49,7 +49,7 @@ def _noise(rng: np.random.Generator, shape: tuple[int, int], cell: int) -> NDArr
     return cv2.resize(small, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
 
 
-def _paint_texture(rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.float32]:
+def paint_texture(rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.float32]:
     """Painted steel: grey-blue paint with blotches, grain, brush marks and scratches."""
     base = np.array([118, 112, 104], np.float32)  # BGR
     tone = 10 * _noise(rng, shape, 200) + 6 * _noise(rng, shape, 40) + 4 * _noise(rng, shape, 8)
@@ -149,7 +149,7 @@ def make_structure(
     """
     rng = np.random.default_rng(seed)
     w_px, h_px = int(round(plate_size_m[0] / m_per_px)), int(round(plate_size_m[1] / m_per_px))
-    img = _paint_texture(rng, (h_px, w_px))
+    img = paint_texture(rng, (h_px, w_px))
     crack = np.zeros((h_px, w_px), np.uint8)
     rust = np.zeros((h_px, w_px), np.uint8)
     defects: list[TrueDefect] = []

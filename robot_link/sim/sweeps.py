@@ -1,0 +1,150 @@
+"""Camera sweeps over a surface texture with exact ground truth, for stitching benchmarks.
+
+A sweep is what the robot's downward camera sees while it drives a straight run or a
+lawn-mower pattern: frames cut from a large texture at known centres and headings, with
+the robot's imperfections (heading jitter, exposure gain, sensor noise, JPEG) and an
+odometry guess that drifts like wheel odometry does.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from robot_link.sim.structure import paint_texture
+
+Pattern = Literal["straight", "lawnmower"]
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """How a sweep is driven and imaged."""
+
+    frames: int = 40
+    pattern: Pattern = "lawnmower"
+    lanes: int = 4
+    frame_size: tuple[int, int] = (640, 480)  # (w, h)
+    overlap: float = 0.35
+    rotation_deg: float = 2.0  # heading jitter, ±
+    turn_lanes: bool = True  # return lanes are driven turned by 180° (a robot turns around)
+    gain: tuple[float, float] = (0.8, 1.2)
+    noise_sigma: float = 2.0
+    jpeg_quality: int = 90
+    odometry_drift: float = 0.02  # random-walk position error per step, fraction of the step
+    odometry_yaw_deg: float = 0.3  # random-walk heading error per step
+    scale: float = 1.0  # texture pixels per frame pixel
+    seed: int = 0
+
+
+@dataclass
+class Sweep:
+    """Frames (JPEG bytes) with their true poses and a drifting odometry guess.
+
+    Poses are (N, 3): frame-centre x, y in texture pixels divided by ``scale`` (so frame
+    pixels) and heading in radians (frame x axis from the texture's x axis, towards y).
+    """
+
+    frames: list[bytes]
+    truth: NDArray[np.float64]
+    odometry: NDArray[np.float64]
+    config: SweepConfig
+
+
+def texture_from_images(images: Sequence[NDArray[np.uint8]], columns: int, cell: tuple[int, int] = (544, 384)) -> NDArray[np.uint8]:
+    """A large BGR texture from real photographs laid side by side in a grid (each image
+    resized to ``cell`` (w, h)); each image appears once, so nothing repeats."""
+    if not images:
+        raise ValueError("no images to build a texture from")
+    rows = -(-len(images) // columns)
+    out = np.zeros((rows * cell[1], columns * cell[0], 3), np.uint8)
+    for k, img in enumerate(images):
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img
+        r, c = divmod(k, columns)
+        out[r * cell[1] : (r + 1) * cell[1], c * cell[0] : (c + 1) * cell[0]] = cv2.resize(img, cell, interpolation=cv2.INTER_AREA)
+    return out
+
+
+def painted_steel(shape: tuple[int, int], seed: int = 0) -> NDArray[np.uint8]:
+    """Low-texture painted steel, (h, w, 3), as the simulator paints its plates."""
+    img = paint_texture(np.random.default_rng(seed), shape)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def sweep_poses(cfg: SweepConfig, rng: np.random.Generator) -> NDArray[np.float64]:
+    """True frame poses (N, 3) in frame pixels, starting near (0, 0)."""
+    w, h = cfg.frame_size
+    step_x, step_y = (1 - cfg.overlap) * w, (1 - cfg.overlap) * h
+    jitter = np.radians(cfg.rotation_deg)
+    if cfg.pattern == "straight":
+        lanes, per_lane = 1, cfg.frames
+    else:
+        lanes = cfg.lanes
+        per_lane = -(-cfg.frames // lanes)
+    poses = []
+    for k in range(cfg.frames):
+        lane, i = divmod(k, per_lane)
+        back = lane % 2 == 1
+        x = (per_lane - 1 - i if back else i) * step_x
+        y = lane * step_y
+        heading = np.pi if back and cfg.turn_lanes else 0.0
+        poses.append((x + rng.normal(0, 2), y + rng.normal(0, 2), heading + rng.uniform(-jitter, jitter)))
+    return np.array(poses, float)
+
+
+def drifting_odometry(truth: NDArray[np.float64], cfg: SweepConfig, rng: np.random.Generator) -> NDArray[np.float64]:
+    """Odometry guess: the true motion with a random-walk error at every step."""
+    steps = np.diff(truth, axis=0)
+    length = np.linalg.norm(steps[:, :2], axis=1)
+    err_xy = rng.normal(0, 1, (len(steps), 2)) * (cfg.odometry_drift * length)[:, None]
+    err_yaw = rng.normal(0, np.radians(cfg.odometry_yaw_deg), len(steps))
+    odo = np.vstack([truth[:1], truth[:1] + np.cumsum(steps + np.column_stack([err_xy, err_yaw]), axis=0)])
+    return odo
+
+
+def render_frame(texture: NDArray[np.uint8], pose: NDArray[np.floating], cfg: SweepConfig, rng: np.random.Generator) -> bytes:
+    """One camera frame (JPEG) centred at ``pose`` (frame pixels) on the texture."""
+    w, h = cfg.frame_size
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    half = np.array([(w - 1) / 2, (h - 1) / 2])
+    R = cfg.scale * np.array([[c, -s], [s, c]])
+    centre = cfg.scale * np.asarray(pose[:2]) + _margin(cfg)
+    M = np.hstack([R, (centre - R @ half)[:, None]])  # frame pixel -> texture pixel
+    img = cv2.warpAffine(texture, M, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
+    img = img.astype(np.float32) * rng.uniform(*cfg.gain) + rng.normal(0, cfg.noise_sigma, img.shape).astype(np.float32)
+    ok, buf = cv2.imencode(".jpg", np.clip(img + 0.5, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+def _margin(cfg: SweepConfig) -> NDArray[np.float64]:
+    w, h = cfg.frame_size
+    pad = 0.05 * w + 10  # heading jitter and position noise
+    return (np.array([w / 2, h / 2]) + pad) * cfg.scale
+
+
+def texture_size_for(cfg: SweepConfig) -> tuple[int, int]:
+    """(w, h) of texture a sweep needs, margins included."""
+    w, h = cfg.frame_size
+    per_lane = cfg.frames if cfg.pattern == "straight" else -(-cfg.frames // cfg.lanes)
+    lanes = 1 if cfg.pattern == "straight" else cfg.lanes
+    pad = 0.05 * w + 10
+    width = ((per_lane - 1) * (1 - cfg.overlap) * w + w + 2 * pad) * cfg.scale
+    height = ((lanes - 1) * (1 - cfg.overlap) * h + h + 2 * pad) * cfg.scale
+    return int(np.ceil(width)), int(np.ceil(height))
+
+
+def make_sweep(texture: NDArray[np.uint8], cfg: SweepConfig = SweepConfig()) -> Sweep:
+    """Drive a sweep over ``texture`` (large enough: see :func:`texture_size_for`)."""
+    need = texture_size_for(cfg)
+    if texture.shape[1] < need[0] or texture.shape[0] < need[1]:
+        raise ValueError(f"texture {texture.shape[1]}x{texture.shape[0]} is smaller than the sweep needs ({need[0]}x{need[1]})")
+    rng = np.random.default_rng(cfg.seed)
+    truth = sweep_poses(cfg, rng)
+    frames = [render_frame(texture, p, cfg, rng) for p in truth]
+    return Sweep(frames, truth, drifting_odometry(truth, cfg, rng), cfg)
