@@ -319,8 +319,8 @@ def register_pair(
         return None
     W0 = (Q @ M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2]  # template pixel -> turned-j pixel
     # Lucas-Kanade on the half- and then the full-resolution image: wide basin, then precision
-    pad = 6 + int(params.max_refine_px + params.max_refine_rad * max(tw, th) / 2)
     tw, th = x1 - x0, y1 - y0
+    pad = 6 + int(params.max_refine_px + params.max_refine_rad * max(tw, th) / 2)
     half0 = _scale_warp(W0, 0.5)
     crop, cW = _crop_for(j_half, half0, tw // 2, th // 2, pad)
     hW, _, _, _ = refine_euclidean(li.half.crop(x0 // 2, y0 // 2, x1 // 2, y1 // 2), crop, _shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),

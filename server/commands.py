@@ -18,13 +18,15 @@ from processing.defects import measure_defects
 from processing.detection import detect_cracks, detect_cracks_tiled
 from processing.mapping import register_clouds
 from processing.poses import format_tum, parse_tum, yaw_of
-from processing.stitching import stitch_frames
+from processing.stitching import plan_mosaic, render_bands
 from server.errors import CommandError
+from server.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
 from server.storage import write_atomic
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CLOUD_EXTS = {".ply", ".pcd"}
 TILED_ABOVE_PX = 4_000_000
+EIGHT_BIT_MODES = {"L", "P", "RGB", "RGBA", "LA", "1"}
 
 
 def _read_image(path: Path) -> np.ndarray:
@@ -86,37 +88,39 @@ def _odometry(path: Path, n: int, what: str) -> np.ndarray:
 
 
 def stitch_folder(frames_dir: Path, out: Path, *, odometry: Path | None, px_per_m: float | None) -> None:
-    """Write ``mosaic.png`` and ``poses.csv`` for a folder of frames."""
+    """Write ``mosaic.png``, ``poses.csv``, the Deep Zoom pyramid, an overview and the world
+    mapping (``mosaic.json``) for a folder of frames, reading the frames as needed."""
     files = _list(frames_dir, IMAGE_EXTS, "image")
-    frames = []
-    for p in files:
-        img = _read_image(p)
-        if img.dtype != np.uint8:
-            raise CommandError(f"{p}: expected an 8-bit image, got {img.dtype}")
-        if img.ndim == 2:
-            img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-        elif img.shape[2] == 4:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-        if frames and img.shape != frames[0].shape:
-            raise CommandError(f"{p}: size {img.shape[1]}x{img.shape[0]} differs from the first frame's {frames[0].shape[1]}x{frames[0].shape[0]}")
-        frames.append(img)
-    poses = None
+    if px_per_m is not None and px_per_m <= 0:
+        raise CommandError(f"--px-per-m must be positive, got {px_per_m}")
+    first: tuple[int, int] | None = None
+    for p in files:  # headers only: bad input is refused before any work
+        try:
+            w, h, mode = image_header(p)
+        except ValueError as exc:
+            raise CommandError(str(exc)) from None
+        if mode not in EIGHT_BIT_MODES:
+            raise CommandError(f"{p}: expected an 8-bit image, got mode {mode}")
+        if first is not None and (w, h) != first:
+            raise CommandError(f"{p}: size {w}x{h} differs from the first frame's {first[0]}x{first[1]}")
+        first = first or (w, h)
+    guess = None
     if odometry is not None:
-        if not px_per_m or px_per_m <= 0:
-            raise CommandError("--odometry needs a positive --px-per-m")
-        T = _odometry(odometry, len(frames), "frames")
-        poses = np.array([[t[0, 3], t[1, 3], yaw_of(t)] for t in T])
+        if not px_per_m:
+            raise CommandError("--odometry needs --px-per-m (the image scale)")
+        T = _odometry(odometry, len(files), "frames")
+        guess = np.array([[t[0, 3] * px_per_m, t[1, 3] * px_per_m, yaw_of(t)] for t in T])
     try:
-        mosaic = stitch_frames(frames, poses, px_per_m=px_per_m or 1.0)
+        layout, frames = plan_mosaic(ImageFiles(files), guess, px_per_m=px_per_m or 1.0)
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["frame", "x", "y", "theta_deg"])
+        for p, (x, y, th) in zip(files, layout.poses_px):
+            w.writerow([p.name, f"{x:.3f}", f"{y:.3f}", f"{np.degrees(th):.4f}"])
+        world = {"world_referenced": odometry is not None, "frames": frame_records(layout, [p.name for p in files])}
+        write_mosaic(out, layout, render_bands(layout, frames), world=world)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
-    out.mkdir(parents=True, exist_ok=True)
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["frame", "x", "y", "theta_deg"])
-    for p, (x, y, th) in zip(files, mosaic.frame_poses_px):
-        w.writerow([p.name, f"{x:.3f}", f"{y:.3f}", f"{th:.4f}"])
-    write_atomic(out / "mosaic.png", _png(mosaic.image))
     write_atomic(out / "poses.csv", buf.getvalue().encode())
 
 

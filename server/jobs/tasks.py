@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import traceback
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
@@ -25,15 +26,15 @@ from processing.defects import measure_defects
 from processing.detection import CrackParams, detect_corrosion, detect_cracks_tiled, drop_along, estimate_background
 from processing.mapping import register_clouds
 from processing.poses import compose_se2, format_tum, image_to_world, se2_to_se3
-from processing.stitching import stitch_frames
+from processing.stitching import camera_poses, plan_mosaic, render_bands
 from robot_link.clouds import decode_cloud
 from server.models import Cloud, Defect, Frame, InspectionSession, Job, JobState, utcnow
+from server.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
 from server.storage import SessionFiles, write_atomic
 
 log = logging.getLogger(__name__)
 
 PIPELINE: list[tuple[str, list[str]]] = [("stitch", []), ("map", []), ("detect", ["stitch"])]
-OVERVIEW_MAX_PX = 2048
 
 
 @dataclass
@@ -115,7 +116,9 @@ def _write_png(path: Path, image: np.ndarray) -> None:
 
 
 def run_stitch(ctx: JobContext) -> dict[str, Any]:
-    """Mosaic of the session's frames placed by odometry and refined by template matching."""
+    """Mosaic of the session's frames: odometry through the camera mount as the initial
+    guess, every overlapping pair registered, poses solved globally, written as PNG, Deep
+    Zoom pyramid, overview and world mapping with bounded memory."""
     calib = ctx.session().calibration.get("camera", {})
     px_per_m = float(calib.get("px_per_m", 0)) or None
     T_rc = calib.get("T_robot_camera", [0.0, 0.0, 0.0])
@@ -123,38 +126,35 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         frames = list(db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)))
     if not frames:
         raise ValueError("the session has no camera frames")
-    images, poses, seqs, skipped = [], [], [], []
-    for i, f in enumerate(frames):
-        img = cv2.imread(str(ctx.files.resolve(f.path)), cv2.IMREAD_COLOR)
-        if img is None or (images and img.shape != images[0].shape):
-            skipped.append(f.seq)
-            continue
-        images.append(img)
-        seqs.append(f.seq)
-        if f.pose_x is not None and px_per_m:
-            poses.append(compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw]), np.array(T_rc)))
-        if i % 10 == 0:
-            ctx.progress(0.4 * i / len(frames), f"loaded {i}/{len(frames)} frames")
-    if not images:
+    # frames of another size than most, or whose file is gone, are skipped and reported
+    sizes = Counter((f.width, f.height) for f in frames)
+    size = sizes.most_common(1)[0][0]
+    use, skipped = [], []
+    for f in frames:
+        try:  # the header only: a frame that cannot be read is skipped, not fatal
+            w, h, _ = image_header(ctx.files.resolve(f.path))
+            ok = (w, h) == size
+        except ValueError:
+            ok = False
+        (use if ok else skipped).append(f)
+    if not use:
         raise ValueError(f"none of the session's {len(frames)} frames could be read as an image")
-    use_odometry = len(poses) == len(images) and px_per_m is not None
-    ctx.progress(0.4, "stitching")
-    mosaic = stitch_frames(images, np.array(poses) if use_odometry else None, px_per_m=px_per_m if use_odometry else 1.0)
+    with_pose = all(f.pose_x is not None for f in use) and px_per_m is not None
+    guess = None
+    if with_pose and px_per_m is not None:
+        robot = np.array([[f.pose_x, f.pose_y, f.pose_yaw] for f in use], dtype=np.float64)
+        guess = camera_poses(robot, T_rc, px_per_m)
+    source = ImageFiles([ctx.files.resolve(f.path) for f in use])
+    layout, loaded = plan_mosaic(source, guess, px_per_m=px_per_m if with_pose and px_per_m else 1.0,
+                                 progress=lambda f, m: ctx.progress(0.7 * f, m))
     out = ctx.results_dir()
-    _write_png(out / "mosaic.png", mosaic.image)
-    _write_png(out / "mosaic_coverage.png", mosaic.coverage.astype(np.uint8) * 255)
-    if mosaic.seams is not None:
-        _write_png(out / "mosaic_seams.png", mosaic.seams.astype(np.uint8) * 255)
-    scale = min(1.0, OVERVIEW_MAX_PX / max(mosaic.image.shape[:2]))
-    _write_png(out / "mosaic_overview.png", cv2.resize(mosaic.image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
-    world = {"px_per_m": mosaic.px_per_m, "origin_m": list(mosaic.origin_m), "world_referenced": use_odometry}
-    write_atomic(out / "mosaic.json", json.dumps({**world, "frames": [
-        {"seq": s, "x": float(p[0]), "y": float(p[1]), "theta_deg": float(p[2]), "confident": bool(c)}
-        for s, p, c in zip(seqs, mosaic.frame_poses_px, mosaic.confident)]}).encode())
-    h, w = mosaic.image.shape[:2]
-    return {"mosaic_path": str(out / "mosaic.png"), "overview_path": str(out / "mosaic_overview.png"), "width_px": w, "height_px": h,
-            **world, "frames": len(images), "skipped_frames": skipped, "low_confidence_frames": int((~mosaic.confident).sum()),
-            "overview_scale": scale}
+    world = {"world_referenced": with_pose, "frames": frame_records(layout, [f.seq for f in use]), "skipped_frames": [f.seq for f in skipped]}
+    files = write_mosaic(out, layout, render_bands(layout, loaded, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)), world=world)
+    return {"mosaic_path": str(files.mosaic), "overview_path": str(files.overview), "dzi_path": str(files.dzi) if files.dzi else None,
+            "width_px": layout.width, "height_px": layout.height, "px_per_m": layout.px_per_m, "origin_m": list(layout.origin_m),
+            "world_referenced": with_pose, "frames": len(use), "skipped_frames": [f.seq for f in skipped],
+            "low_confidence_frames": int((~layout.confident).sum()), "pairs": layout.pairs, "rejected_pairs": layout.rejected_pairs,
+            "overview_scale": files.overview_scale}
 
 
 def run_map(ctx: JobContext) -> dict[str, Any]:

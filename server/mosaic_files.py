@@ -1,0 +1,146 @@
+"""Mosaic files on disk: the full-resolution PNG, a Deep Zoom tile pyramid, an overview,
+the coverage mask and the world mapping, written from a stream of bands.
+
+Bands go to a raw scratch file as they are finished (bounded memory for any mosaic size);
+libvips then streams that file into the PNG, the Deep Zoom pyramid (``mosaic.dzi`` plus
+``mosaic_files/<level>/<col>_<row>.jpg``, the layout OpenSeadragon reads) and the overview.
+Every output appears atomically (written under a temporary name, then renamed).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pyvips
+
+from processing.stitching import Band, MosaicLayout
+
+OVERVIEW_MAX_PX = 2048
+TILE_SIZE = 254  # + 1 px overlap on each side = 256 px tiles
+TILE_OVERLAP = 1
+
+
+@dataclass(frozen=True)
+class MosaicFiles:
+    """Where a written mosaic's files are."""
+
+    mosaic: Path
+    coverage: Path
+    overview: Path
+    overview_scale: float
+    dzi: Path | None
+    world: Path
+
+
+def _raw_image(path: Path, width: int, height: int, bands: int) -> pyvips.Image:
+    img = pyvips.Image.rawload(str(path), width, height, bands)
+    return img.copy(interpretation="srgb" if bands == 3 else "b-w")
+
+
+def write_mosaic(out: Path, layout: MosaicLayout, bands: Iterable[Band], *, pyramid: bool = True,
+                 world: dict[str, Any] | None = None) -> MosaicFiles:
+    """Write the mosaic of ``layout`` from its ``bands`` (top to bottom) into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    scratch = out / ".mosaic-scratch"
+    shutil.rmtree(scratch, ignore_errors=True)
+    scratch.mkdir()
+    try:
+        raw, cov = scratch / "mosaic.raw", scratch / "coverage.raw"
+        rows = 0
+        with raw.open("wb") as f_img, cov.open("wb") as f_cov:
+            for band in bands:
+                if band.y0 != rows:
+                    raise ValueError(f"band at row {band.y0} arrived out of order (expected {rows})")
+                img = band.image
+                img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 else img
+                f_img.write(np.ascontiguousarray(img).tobytes())
+                f_cov.write((band.coverage.astype(np.uint8) * 255).tobytes())
+                rows += img.shape[0]
+        if rows != layout.height:
+            raise ValueError(f"mosaic has {rows} rows, layout says {layout.height}")
+        image = _raw_image(raw, layout.width, layout.height, layout.channels)
+        coverage = _raw_image(cov, layout.width, layout.height, 1)
+        files = _save_all(out, scratch, image, coverage, layout, pyramid)
+        _write_world(files.world, layout, files, world or {})
+        return files
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _save_all(out: Path, scratch: Path, image: pyvips.Image, coverage: pyvips.Image, layout: MosaicLayout,
+              pyramid: bool) -> MosaicFiles:
+    image.pngsave(str(scratch / "mosaic.png"), compression=3)
+    coverage.pngsave(str(scratch / "mosaic_coverage.png"), compression=3)
+    scale = min(1.0, OVERVIEW_MAX_PX / max(layout.width, layout.height, 1))
+    small = image.resize(scale, kernel="linear") if scale < 1.0 else image
+    small.pngsave(str(scratch / "mosaic_overview.png"))
+    if pyramid:
+        image.dzsave(str(scratch / "mosaic"), tile_size=TILE_SIZE, overlap=TILE_OVERLAP, suffix=".jpg[Q=88]", depth="onepixel")
+    for name in ("mosaic.png", "mosaic_coverage.png", "mosaic_overview.png"):
+        (scratch / name).replace(out / name)
+    dzi = None
+    if pyramid:
+        shutil.rmtree(out / "mosaic_files", ignore_errors=True)
+        (scratch / "mosaic_files").replace(out / "mosaic_files")
+        (scratch / "mosaic.dzi").replace(out / "mosaic.dzi")
+        dzi = out / "mosaic.dzi"
+    return MosaicFiles(out / "mosaic.png", out / "mosaic_coverage.png", out / "mosaic_overview.png", scale, dzi, out / "mosaic.json")
+
+
+def _write_world(path: Path, layout: MosaicLayout, files: MosaicFiles, extra: dict[str, Any]) -> None:
+    doc = {
+        "width_px": layout.width, "height_px": layout.height, "px_per_m": layout.px_per_m, "origin_m": list(layout.origin_m),
+        "overview_scale": files.overview_scale, "pairs": layout.pairs, "rejected_pairs": layout.rejected_pairs,
+        "dzi": files.dzi.name if files.dzi else None, **extra,
+    }
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(doc))
+    tmp.replace(path)
+
+
+def frame_records(layout: MosaicLayout, names: list[Any]) -> list[dict[str, Any]]:
+    """One record per frame: its name or sequence number, centre (mosaic px), rotation
+    (degrees), exposure gain and whether image registration placed it."""
+    return [{"frame": name, "x": float(p[0]), "y": float(p[1]), "theta_deg": float(np.degrees(p[2])), "gain": float(g),
+             "confident": bool(c)} for name, p, g, c in zip(names, layout.poses_px, layout.gains, layout.confident)]
+
+
+class ImageFiles:
+    """Frames read from image files on demand (a :class:`processing.stitching.FrameSource`):
+    grey and BGRA files come back as BGR."""
+
+    def __init__(self, paths: list[Path]) -> None:
+        self.paths = paths
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        path = self.paths[index]
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"{path.name}: not an image OpenCV can read")
+        if img.dtype != np.uint8:
+            raise ValueError(f"{path.name}: expected an 8-bit image, got {img.dtype}")
+        if img.ndim == 2:
+            return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR) if img.shape[2] == 4 else img
+
+
+def image_header(path: Path) -> tuple[int, int, str]:
+    """(width, height, mode) from an image file's header, without decoding it; ValueError
+    when it is not an image."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.size[0], im.size[1], im.mode
+    except (OSError, UnidentifiedImageError, ValueError) as exc:
+        raise ValueError(f"{path.name}: not a readable image ({exc.__class__.__name__})") from None
