@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -27,7 +27,7 @@ Gray = NDArray[np.float32]
 class RegistrationParams:
     """Options of pairwise registration and the pose graph."""
 
-    search_px: int = 48  # coarse translation search radius (full-resolution pixels)
+    search_px: int = 40  # coarse translation search radius (full-resolution pixels)
     margin_px: int = 8
     min_overlap: float = 0.15  # of the frame area (diagonal lane neighbours add little)
     min_texture: float = 1.5  # grey-level standard deviation of the overlap
@@ -283,10 +283,10 @@ def register_pair(
     Q = _quarter_turn(k, size)
     # coarse: the overlap shrunk by the search radius, so it stays inside frame j for any
     # guess error up to that radius; half resolution
-    s = params.search_px // 4 * 2
+    s = params.search_px // 2 * 2
     rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
     if rect is None:
-        s = params.search_px // 8 * 2
+        s = params.search_px // 4 * 2
         rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
     if rect is not None:
         hx0, hy0, hx1, hy1 = (v // 2 for v in rect)
@@ -414,22 +414,19 @@ def solve_pose_graph(
         r = np.column_stack([pred - Z[:, :2], L * wrap_angle(x[J, 2] - th - Z[:, 2])])
         norm = np.linalg.norm(r, axis=1)
         w = base_w * np.where(norm <= params.huber_px, 1.0, params.huber_px / np.maximum(norm, 1e-12))
-        # Jacobian blocks (3x3) with respect to pose i and pose j
-        rows, cols, vals = [], [], []
-        e = np.arange(len(edges))
-
-        def put(r_idx: int, node: NDArray[np.int64], k: int, v: NDArray[np.float64]) -> None:
-            rows.append(3 * e + r_idx)
-            cols.append(3 * node + k)
-            vals.append(v)
-
-        put(0, I, 0, -c), put(0, I, 1, -s), put(0, I, 2, -s * d[:, 0] + c * d[:, 1])
-        put(1, I, 0, s), put(1, I, 1, -c), put(1, I, 2, -c * d[:, 0] - s * d[:, 1])
-        put(2, I, 2, np.full(len(edges), -L))
-        put(0, J, 0, c), put(0, J, 1, s)
-        put(1, J, 0, -s), put(1, J, 1, c)
-        put(2, J, 2, np.full(len(edges), L))
-        Jm = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * len(edges), 3 * n))
+        # Jacobian: rows 3e..3e+2 of edge e, columns of pose i and pose j
+        ne = len(edges)
+        one = np.ones(ne)
+        blocks = [  # (residual row, node, pose component, derivative)
+            (0, I, 0, -c), (0, I, 1, -s), (0, I, 2, -s * d[:, 0] + c * d[:, 1]),
+            (1, I, 0, s), (1, I, 1, -c), (1, I, 2, -c * d[:, 0] - s * d[:, 1]),
+            (2, I, 2, -L * one), (0, J, 0, c), (0, J, 1, s), (1, J, 0, -s), (1, J, 1, c), (2, J, 2, L * one),
+        ]
+        e = np.arange(ne)
+        rows = np.concatenate([3 * e + r for r, _, _, _ in blocks])
+        cols = np.concatenate([3 * node + k for _, node, k, _ in blocks])
+        vals = np.concatenate([v for _, _, _, v in blocks])
+        Jm = sp.csr_matrix((vals, (rows, cols)), shape=(3 * ne, 3 * n))
         Wd = sp.diags(np.repeat(w, 3))
         H = (Jm.T @ Wd @ Jm).tocsc()[3:, 3:]  # frame 0 fixed
         g = (Jm.T @ (np.repeat(w, 3) * r.ravel()))[3:]
@@ -569,8 +566,11 @@ def estimate_poses(
     size = (w, h)
     with ThreadPoolExecutor(max(1, params.workers)) as pool:
 
+        # an image-only guess can be tens of pixels off: search wider, let the refinement travel
+        blind_params = replace(params, search_px=2 * params.search_px, max_refine_px=3 * params.search_px)
+
         def measure(pair: tuple[int, int], start: NDArray[np.float64], angles: Sequence[float] = (0.0,)) -> PairMeasurement | None:
-            found = register_pair(load(pair[0]), load(pair[1]), start, params, angles=angles)
+            found = register_pair(load(pair[0]), load(pair[1]), start, params if len(angles) == 1 else blind_params, angles=angles)
             if found is None:
                 return None
             delta, score, mi, mj = found
@@ -601,6 +601,10 @@ def estimate_poses(
             guess = np.asarray(guess, dtype=np.float64)
             priors = np.array([relative_pose(guess[k], guess[k + 1]) for k in range(n - 1)]).reshape(-1, 3)
             consecutive = list(pool.map(lambda k: measure((k, k + 1), priors[k]), range(n - 1)))
+            # where the odometry was too far off (wheel slip), the images alone decide
+            lost = [k for k, m in enumerate(consecutive) if m is None]
+            for k, (m, _) in zip(lost, pool.map(measure_blind, lost)):
+                consecutive[k] = m
         steps_now = [m.delta if m is not None else priors[k] for k, m in enumerate(consecutive)]
         chained = chain(guess[0], steps_now)
         report(0.4, "registering overlapping frames")

@@ -28,7 +28,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.alignment import Level, PairMeasurement, RegistrationParams, estimate_poses, frame_to_mosaic, solve_gains
+from processing.alignment import (
+    Level,
+    PairMeasurement,
+    RegistrationParams,
+    estimate_poses,
+    frame_to_mosaic,
+    solve_gains,
+)
 
 Blend = Literal["feather", "paper", "newest"]
 Progress = Callable[[float, str], None]

@@ -97,13 +97,18 @@ def sweep_poses(cfg: SweepConfig, rng: np.random.Generator) -> NDArray[np.float6
 
 
 def drifting_odometry(truth: NDArray[np.float64], cfg: SweepConfig, rng: np.random.Generator) -> NDArray[np.float64]:
-    """Odometry guess: the true motion with a random-walk error at every step."""
-    steps = np.diff(truth, axis=0)
-    length = np.linalg.norm(steps[:, :2], axis=1)
-    err_xy = rng.normal(0, 1, (len(steps), 2)) * (cfg.odometry_drift * length)[:, None]
-    err_yaw = rng.normal(0, np.radians(cfg.odometry_yaw_deg), len(steps))
-    odo = np.vstack([truth[:1], truth[:1] + np.cumsum(steps + np.column_stack([err_xy, err_yaw]), axis=0)])
-    return odo
+    """Odometry guess: each true step (in the robot's frame) with a random error, integrated
+    from the first pose, so heading errors accumulate into position drift as on a robot."""
+    from processing.alignment import compose_pose, relative_pose
+
+    odo = [truth[0].copy()]
+    for k in range(len(truth) - 1):
+        step = relative_pose(truth[k], truth[k + 1])
+        length = float(np.hypot(step[0], step[1]))
+        step[:2] += rng.normal(0, cfg.odometry_drift * length, 2)
+        step[2] += rng.normal(0, np.radians(cfg.odometry_yaw_deg))
+        odo.append(compose_pose(odo[-1], step))
+    return np.array(odo)
 
 
 def render_frame(texture: NDArray[np.uint8], pose: NDArray[np.floating], cfg: SweepConfig, rng: np.random.Generator) -> bytes:

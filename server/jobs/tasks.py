@@ -23,7 +23,13 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from processing.defects import Defect as Defect_
 from processing.defects import measure_defects
-from processing.detection import CrackParams, detect_corrosion, detect_cracks_tiled, drop_along, estimate_background
+from processing.detection import (
+    CrackParams,
+    detect_corrosion,
+    detect_cracks_tiled,
+    drop_along,
+    estimate_background,
+)
 from processing.mapping import register_clouds
 from processing.poses import compose_se2, format_tum, image_to_world, se2_to_se3
 from processing.stitching import camera_poses, plan_mosaic, render_bands
