@@ -448,9 +448,12 @@ def measurement_residuals(poses: NDArray[np.float64], measurements: Sequence[Pai
     return np.array(out)
 
 
-def solve_gains(n: int, measurements: Sequence[PairMeasurement], *, sigma_n: float = 10.0, sigma_g: float = 0.1) -> NDArray[np.float64]:
+def solve_gains(n: int, measurements: Sequence[PairMeasurement], *, sigma_n: float = 0.5, sigma_g: float = 0.1) -> NDArray[np.float64]:
     """Per-frame exposure gains that make overlapping frames equally bright (Brown & Lowe's
-    gain compensation: min Σ (g_i m_i − g_j m_j)² / σ_n² + Σ (g_k − 1)² / σ_g²)."""
+    gain compensation: min Σ (g_i m_i − g_j m_j)² / σ_n² + Σ (g_k − 1)² / σ_g², with m the
+    mean grey of the same surface points in both frames; Brown & Lowe sum the first term
+    over every overlapping pixel, here one term per pair carries that weight by a small
+    σ_n, so the prior only fixes the overall level)."""
     A = sp.lil_matrix((n, n))
     b = np.full(n, 1.0 / sigma_g**2)
     for k in range(n):

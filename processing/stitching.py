@@ -62,7 +62,7 @@ class StitchParams:
     flat_field_sample: int = 16  # frames sampled to estimate the vignetting
     flat_field_min_falloff: float = 0.04  # corrected when the corners are this much darker
     band_bytes: int = 96 * 2**20  # working memory of one band of the mosaic
-    cache_bytes: int = 256 * 2**20  # decoded frames kept for reuse
+    cache_bytes: int = 160 * 2**20  # decoded frames kept for reuse
 
 
 @dataclass

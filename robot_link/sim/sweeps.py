@@ -53,6 +53,7 @@ class Sweep:
     truth: NDArray[np.float64]
     odometry: NDArray[np.float64]
     config: SweepConfig
+    gains: NDArray[np.float64]  # the exposure gain of each frame
 
 
 def texture_from_images(images: Sequence[NDArray[np.uint8]], columns: int, cell: tuple[int, int] = (544, 384)) -> NDArray[np.uint8]:
@@ -111,8 +112,10 @@ def drifting_odometry(truth: NDArray[np.float64], cfg: SweepConfig, rng: np.rand
     return np.array(odo)
 
 
-def render_frame(texture: NDArray[np.uint8], pose: NDArray[np.floating], cfg: SweepConfig, rng: np.random.Generator) -> bytes:
-    """One camera frame (JPEG) centred at ``pose`` (frame pixels) on the texture."""
+def render_frame(texture: NDArray[np.uint8], pose: NDArray[np.floating], cfg: SweepConfig, rng: np.random.Generator,
+                 gain: float | None = None) -> bytes:
+    """One camera frame (JPEG) centred at ``pose`` (frame pixels) on the texture, with an
+    exposure ``gain`` (drawn from ``cfg.gain`` when None)."""
     w, h = cfg.frame_size
     c, s = np.cos(pose[2]), np.sin(pose[2])
     half = np.array([(w - 1) / 2, (h - 1) / 2])
@@ -120,7 +123,8 @@ def render_frame(texture: NDArray[np.uint8], pose: NDArray[np.floating], cfg: Sw
     centre = cfg.scale * np.asarray(pose[:2]) + _margin(cfg)
     M = np.hstack([R, (centre - R @ half)[:, None]])  # frame pixel -> texture pixel
     img = cv2.warpAffine(texture, M, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
-    img = img.astype(np.float32) * rng.uniform(*cfg.gain) + rng.normal(0, cfg.noise_sigma, img.shape).astype(np.float32)
+    gain = rng.uniform(*cfg.gain) if gain is None else gain
+    img = img.astype(np.float32) * gain + rng.normal(0, cfg.noise_sigma, img.shape).astype(np.float32)
     ok, buf = cv2.imencode(".jpg", np.clip(img + 0.5, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
     if not ok:
         raise RuntimeError("JPEG encoding failed")
@@ -151,5 +155,64 @@ def make_sweep(texture: NDArray[np.uint8], cfg: SweepConfig = SweepConfig()) -> 
         raise ValueError(f"texture {texture.shape[1]}x{texture.shape[0]} is smaller than the sweep needs ({need[0]}x{need[1]})")
     rng = np.random.default_rng(cfg.seed)
     truth = sweep_poses(cfg, rng)
-    frames = [render_frame(texture, p, cfg, rng) for p in truth]
-    return Sweep(frames, truth, drifting_odometry(truth, cfg, rng), cfg)
+    gains = rng.uniform(*cfg.gain, size=len(truth))
+    frames = [render_frame(texture, p, cfg, rng, g) for p, g in zip(truth, gains)]
+    return Sweep(frames, truth, drifting_odometry(truth, cfg, rng), cfg, gains)
+
+
+class TiledSurface:
+    """An unbounded painted-steel surface generated tile by tile from a seed, so that
+    sweeps of any length need no giant texture in memory (tiles are cached, LRU)."""
+
+    def __init__(self, seed: int = 0, tile: int = 512, cache_tiles: int = 64) -> None:
+        self.seed, self.tile, self.cache_tiles = seed, tile, cache_tiles
+        self._tiles: dict[tuple[int, int], NDArray[np.uint8]] = {}
+
+    def _tile(self, tx: int, ty: int) -> NDArray[np.uint8]:
+        key = (tx, ty)
+        hit = self._tiles.pop(key, None)
+        if hit is None:
+            rng = np.random.default_rng([self.seed, tx + 2**20, ty + 2**20])
+            hit = np.clip(paint_texture(rng, (self.tile, self.tile)) + 0.5, 0, 255).astype(np.uint8)
+        self._tiles[key] = hit
+        while len(self._tiles) > self.cache_tiles:
+            self._tiles.pop(next(iter(self._tiles)))
+        return hit
+
+    def patch(self, x0: int, y0: int, w: int, h: int) -> NDArray[np.uint8]:
+        """The surface's pixels [y0, y0 + h) x [x0, x0 + w)."""
+        out = np.empty((h, w, 3), np.uint8)
+        t = self.tile
+        for ty in range(y0 // t, (y0 + h - 1) // t + 1):
+            for tx in range(x0 // t, (x0 + w - 1) // t + 1):
+                sx0, sy0 = max(x0, tx * t), max(y0, ty * t)
+                sx1, sy1 = min(x0 + w, (tx + 1) * t), min(y0 + h, (ty + 1) * t)
+                out[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = self._tile(tx, ty)[sy0 - ty * t : sy1 - ty * t, sx0 - tx * t : sx1 - tx * t]
+        return out
+
+
+class LazySweep:
+    """A sweep over a :class:`TiledSurface` whose frames are rendered when asked for (a
+    frame source for runs of any length); ``truth`` and ``odometry`` as in :class:`Sweep`."""
+
+    def __init__(self, cfg: SweepConfig, surface: TiledSurface | None = None) -> None:
+        self.cfg = cfg
+        self.surface = surface or TiledSurface(cfg.seed)
+        rng = np.random.default_rng(cfg.seed)
+        self.truth = sweep_poses(cfg, rng)
+        self.odometry = drifting_odometry(self.truth, cfg, rng)
+
+    def __len__(self) -> int:
+        return len(self.truth)
+
+    def __getitem__(self, k: int) -> NDArray[np.uint8]:
+        cfg = self.cfg
+        w, h = cfg.frame_size
+        reach = int(np.ceil(np.hypot(w, h) / 2 * cfg.scale)) + 2
+        centre = cfg.scale * self.truth[k, :2] + _margin(cfg)
+        x0, y0 = int(centre[0]) - reach, int(centre[1]) - reach
+        patch = self.surface.patch(x0, y0, 2 * reach, 2 * reach)
+        pose = np.array([(centre[0] - x0 - _margin(cfg)[0]) / cfg.scale, (centre[1] - y0 - _margin(cfg)[1]) / cfg.scale, self.truth[k, 2]])
+        rng = np.random.default_rng([cfg.seed, k])
+        jpeg = render_frame(patch, pose, cfg, rng)
+        return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)

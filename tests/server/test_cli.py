@@ -82,26 +82,54 @@ def test_bad_inputs_give_one_line_errors_and_no_output(tmp_path: Path) -> None:
     assert_clean_error(steelscan("map", str(tmp_path / "empty"), "--out", str(tmp_path / "o4")), "no point cloud files")
 
 
-def test_stitch_folder_with_odometry_writes_mosaic_and_poses(tmp_path: Path) -> None:
-    from tests.processing.test_stitching import cut, texture
+def test_stitch_folder_with_odometry_writes_mosaic_pyramid_and_poses(tmp_path: Path) -> None:
+    from processing.alignment import relative_pose
+    from processing.poses import format_tum, se2_to_se3
+    from tests.processing.test_stitching import sweep
 
-    tex = texture(4)
+    s = sweep(frames=8, seed=12)
     frames = tmp_path / "frames"
     frames.mkdir()
-    lines = []
-    for i in range(4):
-        cv2.imwrite(str(frames / f"f{i:03d}.png"), cut(tex, 300 + 180 * i, 400))
-        lines.append(f"{i} {1.8 * i:.3f} 0 0 0 0 0 1")
-    (tmp_path / "odo.tum").write_text("\n".join(lines) + "\n")
-    proc = steelscan("stitch", str(frames), "--out", str(tmp_path / "out"), "--odometry", str(tmp_path / "odo.tum"), "--px-per-m", "100")
+    for i, jpeg in enumerate(s.frames):
+        (frames / f"f{i:03d}.jpg").write_bytes(jpeg)
+    T = np.array([se2_to_se3(p[0] / 100, p[1] / 100, p[2]) for p in s.odometry])  # metres at 100 px/m
+    (tmp_path / "odo.tum").write_text(format_tum(np.arange(8, dtype=float), T))
+    out = tmp_path / "out"
+    proc = steelscan("stitch", str(frames), "--out", str(out), "--odometry", str(tmp_path / "odo.tum"), "--px-per-m", "100")
     assert proc.returncode == 0, proc.stderr
-    rows = (tmp_path / "out" / "poses.csv").read_text().splitlines()
-    assert rows[0] == "frame,x,y,theta_deg" and len(rows) == 5
-    xs = [float(r.split(",")[1]) for r in rows[1:]]
-    assert np.allclose(np.diff(xs), 180, atol=0.5)
+    rows = (out / "poses.csv").read_text().splitlines()
+    assert rows[0] == "frame,x,y,theta_deg" and len(rows) == 9
+    est = np.array([[float(v) for v in r.split(",")[1:]] for r in rows[1:]])
+    est[:, 2] = np.radians(est[:, 2])
+    for k in range(7):  # consecutive frames placed as they truly are, rotation included
+        assert np.abs(relative_pose(est[k], est[k + 1]) - relative_pose(s.truth[k], s.truth[k + 1]))[:2].max() < 0.2
+    mosaic = cv2.imread(str(out / "mosaic.png"))
+    assert mosaic.shape[0] > 240 and mosaic.shape[1] > 320
+    world = json.loads((out / "mosaic.json").read_text())
+    assert world["width_px"] == mosaic.shape[1] and len(world["frames"]) == 8 and world["world_referenced"]
+    dzi = (out / "mosaic.dzi").read_text()
+    assert f'Width="{mosaic.shape[1]}"' in dzi and 'TileSize="254"' in dzi
+    top = max(int(p.name) for p in (out / "mosaic_files").iterdir() if p.is_dir())
+    assert cv2.imread(str(out / "mosaic_files" / str(top) / "0_0.jpg")) is not None
+    assert cv2.imread(str(out / "mosaic_files" / "0" / "0_0.jpg")).shape[:2] == (1, 1)
     (tmp_path / "short.tum").write_text("0 0 0 0 0 0 0 1\n")
     bad = steelscan("stitch", str(frames), "--out", str(tmp_path / "o5"), "--odometry", str(tmp_path / "short.tum"), "--px-per-m", "100")
-    assert_clean_error(bad, "1 poses for 4 frames")
+    assert_clean_error(bad, "1 poses for 8 frames")
+
+
+def test_stitch_refuses_corrupt_or_mismatched_frames_and_writes_nothing(tmp_path: Path) -> None:
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(frames / f"f{i}.png"), np.full((60, 80, 3), 100, np.uint8))
+    (frames / "f3.png").write_bytes(b"\x89PNG garbage")
+    assert_clean_error(steelscan("stitch", str(frames), "--out", str(tmp_path / "o1")), "f3.png")
+    (frames / "f3.png").unlink()
+    cv2.imwrite(str(frames / "f3.png"), np.full((61, 80, 3), 100, np.uint8))
+    assert_clean_error(steelscan("stitch", str(frames), "--out", str(tmp_path / "o2")), "differs from the first frame")
+    cv2.imwrite(str(frames / "f3.png"), np.full((60, 80), 4000, np.uint16))
+    assert_clean_error(steelscan("stitch", str(frames), "--out", str(tmp_path / "o3")), "8-bit")
+    assert not any((tmp_path / name).exists() for name in ("o1", "o2", "o3"))
 
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason="shared dataset not present")
@@ -141,7 +169,10 @@ def test_bench_stitch_and_map_measure_against_baselines() -> None:
     proc = steelscan("bench", "stitch", "map", "--limit", "8")
     assert proc.returncode == 0, proc.stderr
     results = {r["name"]: r for r in map(json.loads, proc.stdout.splitlines())}
-    assert {"stitch.sim.mean_overlap_error", "stitch.sim.max_centre_error_aligned", "stitch.sim.frames_per_second",
-            "map.sim.ate", "map.sim.seconds_per_cloud"} <= results.keys()
-    assert results["stitch.sim.mean_overlap_error"]["value"] <= results["stitch.sim.mean_overlap_error"]["baseline"]
+    for surface in ("textured", "painted_steel"):
+        mean = results[f"stitch.{surface}.lawnmower.mean_overlap_error"]
+        assert mean["value"] < 0.5 and mean["value"] < mean["baseline"]  # far better than odometry alone
+        assert results[f"stitch.{surface}.lawnmower.ms_per_frame"]["baseline_is"] == "cv2.Stitcher SCANS"
+        assert f"stitch.{surface}.lawnmower.images_only.end_drift" in results
+    assert {"map.sim.ate", "map.sim.seconds_per_cloud"} <= results.keys()
     assert results["map.sim.ate"]["value"] < 0.05

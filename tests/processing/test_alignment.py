@@ -1,0 +1,99 @@
+import cv2
+import numpy as np
+import pytest
+
+from processing.alignment import (
+    Level,
+    PairMeasurement,
+    compose_pose,
+    frame_to_mosaic,
+    phase_candidates,
+    register_pair,
+    relative_pose,
+    solve_gains,
+    solve_pose_graph,
+    wrap_angle,
+)
+from tests.processing.test_stitching import texture
+
+
+def frame_at(tex: np.ndarray, pose: np.ndarray, size: tuple[int, int] = (320, 240)) -> np.ndarray:
+    """Grey frame whose centre sits at ``pose`` (x, y, θ) on the texture."""
+    A = frame_to_mosaic(pose, size)
+    return cv2.warpAffine(cv2.cvtColor(tex, cv2.COLOR_BGR2GRAY), A[:2], size, flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP).astype(np.float32)
+
+
+@pytest.mark.parametrize("turn", [0.0, np.pi])
+def test_register_pair_recovers_rotation_and_translation_to_a_hundredth_of_a_pixel(turn: float) -> None:
+    tex = texture(4)
+    a = np.array([500.0, 400.0, 0.01])
+    b = np.array([707.3, 391.6, turn - 0.025])
+    true = relative_pose(a, b)
+    guess = true + np.array([9.0, -7.0, 0.004])  # odometry-sized error
+    found = register_pair(frame_at(tex, a), frame_at(tex, b), guess)
+    assert found is not None
+    delta, score, _, _ = found
+    assert score > 0.95
+    assert np.abs(delta[:2] - true[:2]).max() < 0.05
+    assert abs(float(wrap_angle(delta[2] - true[2]))) < 2e-4
+
+
+def test_register_pair_refuses_frames_that_do_not_overlap_or_have_no_texture() -> None:
+    tex = texture(5)
+    a, b = np.array([300.0, 300.0, 0]), np.array([900.0, 300.0, 0])
+    assert register_pair(frame_at(tex, a), frame_at(tex, b), relative_pose(a, b)) is None
+    flat = np.full((240, 320), 90, np.float32)
+    assert register_pair(flat, flat, np.array([200.0, 0, 0])) is None
+
+
+def test_levels_are_reusable_across_pairs() -> None:
+    tex = texture(6)
+    poses = [np.array([400.0 + 200 * k, 400.0, 0]) for k in range(3)]
+    levels = [Level.of(frame_at(tex, p)) for p in poses]
+    for i, j in ((0, 1), (1, 2)):
+        found = register_pair(levels[i], levels[j], relative_pose(poses[i], poses[j]) + (3, 2, 0))
+        assert found is not None and np.abs(found[0][:2] - relative_pose(poses[i], poses[j])[:2]).max() < 0.05
+
+
+def test_phase_candidates_find_the_shift_without_any_guess() -> None:
+    tex = texture(7)
+    a, b = np.array([400.0, 400.0, 0]), np.array([610.0, 377.0, 0])
+    cands = phase_candidates(frame_at(tex, a), frame_at(tex, b))
+    best = cands[0][0]
+    assert np.abs(best[:2] - relative_pose(a, b)[:2]).max() <= 2.5
+    turned = np.array([420.0, 560.0, np.pi])
+    best = phase_candidates(frame_at(tex, a), frame_at(tex, turned))[0][0]
+    assert np.abs(best[:2] - relative_pose(a, turned)[:2]).max() <= 2.5 and abs(abs(best[2]) - np.pi) < 1e-6
+
+
+def test_pose_graph_spreads_a_loop_closure_instead_of_drifting() -> None:
+    rng = np.random.default_rng(0)
+    truth = np.array([[200.0 * k, 0.0, 0.0] for k in range(6)] + [[200.0 * (5 - k), 150.0, np.pi] for k in range(6)])
+    meas = []
+    for i, j in [(k, k + 1) for k in range(11)] + [(k, 11 - k) for k in range(6)]:
+        delta = relative_pose(truth[i], truth[j]) + np.r_[rng.normal(0, 0.05, 2), rng.normal(0, 1e-4)]
+        meas.append(PairMeasurement(i, j, delta, 1.0, 100.0, 100.0))
+    # a start that has drifted 30 px and 2°
+    start = [truth[0]]
+    for k in range(11):
+        start.append(compose_pose(start[-1], relative_pose(truth[k], truth[k + 1]) + np.array([3.0, 2.0, 0.003])))
+    solved = solve_pose_graph(np.array(start), meas, None)
+    assert np.allclose(solved[0], truth[0])  # the gauge stays put
+    assert np.abs(solved[:, :2] - truth[:, :2]).max() < 0.5
+
+
+def test_pose_graph_holds_unmeasured_frames_by_their_priors() -> None:
+    truth = np.array([[0.0, 0, 0], [200, 0, 0], [400, 0, 0]])
+    priors = np.array([relative_pose(truth[0], truth[1]), relative_pose(truth[1], truth[2])])
+    meas = [PairMeasurement(0, 1, priors[0] + (0.5, 0, 0), 1.0, 1, 1)]
+    solved = solve_pose_graph(truth.copy(), meas, priors)
+    assert solved[1, 0] == pytest.approx(200.5, abs=0.01)
+    assert solved[2, 0] == pytest.approx(400.5, abs=0.01)  # moved with its neighbour
+
+
+def test_gains_equalise_overlap_brightness() -> None:
+    true = np.array([1.0, 1.25, 0.8, 1.1])
+    meas = [PairMeasurement(k, k + 1, np.zeros(3), 1.0, 100 * true[k], 100 * true[k + 1]) for k in range(3)]
+    g = solve_gains(4, meas, sigma_g=10.0)
+    fixed = g * true
+    assert fixed.std() / fixed.mean() < 0.01
