@@ -94,3 +94,25 @@ def match_defects(found: Sequence[Box], truth: Sequence[Box], *, margin_m: float
                 matched += 1
                 break
     return matched
+
+
+def mosaic_overlap_errors(est: NDArray[np.floating], truth: NDArray[np.floating], size: tuple[int, int]) -> tuple[NDArray[np.float64], float]:
+    """How far (px, worst frame corner) the estimated relative placement of every pair of
+    truly overlapping frames is from the true one, and the end drift (first frame to last).
+
+    ``est`` and ``truth`` are (N, 3) frame poses (centre x, y in pixels, rotation in
+    radians) in any two frames of reference: only relative placements are compared.
+    """
+    from processing.alignment import frame_to_mosaic
+
+    w, h = size
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
+
+    def err(i: int, j: int) -> float:
+        rel_e = np.linalg.inv(frame_to_mosaic(est[i], size)) @ frame_to_mosaic(est[j], size)
+        rel_t = np.linalg.inv(frame_to_mosaic(truth[i], size)) @ frame_to_mosaic(truth[j], size)
+        return float(np.linalg.norm((rel_e @ corners - rel_t @ corners)[:2], axis=0).max())
+
+    out = [err(i, j) for i in range(len(truth)) for j in range(i + 1, len(truth))
+           if abs(truth[j, 0] - truth[i, 0]) < 0.9 * w and abs(truth[j, 1] - truth[i, 1]) < 0.9 * h]
+    return np.array(out), (err(0, len(truth) - 1) if len(truth) > 1 else 0.0)

@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from threading import Lock
 from typing import Literal, Protocol
 
@@ -33,9 +33,11 @@ from processing.alignment import (
     PairMeasurement,
     RegistrationParams,
     estimate_poses,
+    frame_i_to_j,
     frame_to_mosaic,
     solve_gains,
 )
+from processing.vignetting import overlap_samples, solve_photometry
 
 Blend = Literal["feather", "paper", "newest"]
 Progress = Callable[[float, str], None]
@@ -60,7 +62,9 @@ class StitchParams:
     gain_compensation: bool = True
     flat_field_min_frames: int = 8
     flat_field_sample: int = 16  # frames sampled to estimate the vignetting
-    flat_field_min_falloff: float = 0.04  # corrected when the corners are this much darker
+    flat_field_min_falloff: float = 0.03  # corrected when the corners are this much darker
+    vignetting: bool = True  # estimate the lens falloff from registered overlaps and register again
+    vignetting_pairs: int = 300  # pairs sampled for it
     band_bytes: int = 96 * 2**20  # working memory of one band of the mosaic
     cache_bytes: int = 160 * 2**20  # decoded frames kept for reuse
 
@@ -231,6 +235,13 @@ class _Frames:
                     self._held -= _nbytes(gone)
         return hit
 
+    def set_flat(self, inv_flat: NDArray[np.float32] | None) -> None:
+        """Use another flat-field correction (registration levels are rebuilt)."""
+        with self._lock:
+            self.inv_flat = inv_flat
+            self._cache = OrderedDict((k, (img, None)) for k, (img, _) in self._cache.items())
+            self._held = sum(_nbytes(e) for e in self._cache.values())
+
     def raw(self, k: int) -> NDArray[np.uint8]:
         """Frame k as the camera took it."""
         return self._entry(k, False)[0]
@@ -291,7 +302,11 @@ def plan_mosaic(
         est_poses = (poses if poses is not None else np.zeros((1, 3))).copy()
         confident, measurements, rejected = np.ones(1, bool), [], 0
     else:
-        est = estimate_poses(frames.level, n, poses, params.registration, progress)
+        est = estimate_poses(frames.level, n, poses, params.registration, _scaled(progress, 0.0, 0.5))
+        if params.vignetting and _correct_vignetting(frames, est.measurements, params):
+            # registration sees the surface evenly lit now: register again from the solution
+            again = replace(params.registration, search_px=8)  # the first solution is close
+            est = estimate_poses(frames.level, n, est.poses, again, _scaled(progress, 0.5, 1.0))
         est_poses, confident, measurements, rejected = est.poses, est.confident, est.measurements, est.rejected
     gains = _gains(n, measurements) if params.gain_compensation else np.ones(n)
     layout = MosaicLayout(0, 0, (w, h), 1 if len(frames.shape) == 2 else frames.shape[2], px_per_m, (0.0, 0.0),  # type: ignore[arg-type]
@@ -302,6 +317,49 @@ def plan_mosaic(
     layout.width, layout.height = int(boxes[:, 2].max() - x0), int(boxes[:, 3].max() - y0)
     layout.origin_m = (float(x0) / px_per_m, float(y0) / px_per_m)
     return layout, frames
+
+
+def _scaled(progress: Progress | None, lo: float, hi: float) -> Progress | None:
+    if progress is None:
+        return None
+    return lambda f, m: progress(lo + (hi - lo) * f, m)
+
+
+def _correct_vignetting(frames: _Frames, measurements: Sequence[PairMeasurement], params: StitchParams) -> bool:
+    """Estimate the lens falloff from registered overlaps (:mod:`processing.vignetting`) on
+    up to ``params.vignetting_pairs`` pairs; install its correction when it is real and
+    differs from the one in use. True when frames must be registered again."""
+    if not measurements:
+        return False
+    h, w = frames.shape[:2]  # type: ignore[index]
+    picks = np.unique(np.linspace(0, len(measurements) - 1, min(len(measurements), params.vignetting_pairs)).round().astype(int))
+    smooth: dict[int, NDArray[np.float32]] = {}
+
+    def grey(k: int) -> NDArray[np.float32]:
+        if k not in smooth:
+            if len(smooth) > 64:
+                smooth.pop(next(iter(smooth)))
+            smooth[k] = cv2.GaussianBlur(_gray(frames.raw(k)).astype(np.float32), (0, 0), 3.0)
+        return smooth[k]
+
+    samples = []
+    for idx in picks:
+        m = measurements[int(idx)]
+        ri, rj, lr = overlap_samples(grey(m.i), grey(m.j), frame_i_to_j(m.delta, (w, h)))
+        if len(lr):
+            samples.append((m.i, m.j, ri, rj, lr))
+    photo = solve_photometry(len(frames.source), samples)
+    if photo is None:
+        return False
+    flat = photo.flat_field((w, h))
+    new = (1.0 / np.maximum(flat, 0.2)).astype(np.float32) if float(flat.min()) < 1.0 - params.flat_field_min_falloff else None
+    old = frames.inv_flat
+    if new is None and old is None:
+        return False
+    if new is not None and old is not None and float(np.abs(new - old).max()) < 0.005:
+        return False
+    frames.set_flat(new)
+    return True
 
 
 def _gains(n: int, measurements: Sequence[PairMeasurement]) -> NDArray[np.float64]:
@@ -343,12 +401,15 @@ def render_bands(layout: MosaicLayout, frames: _Frames, params: StitchParams = S
     workers = max(1, params.registration.workers)
     rows = band_rows(layout, params, workers)
     weight = feather_weight(layout.frame_size)
+    # the feather weight times the flat-field correction, one copy per colour channel
+    shaded = weight * frames.inv_flat if frames.inv_flat is not None else weight
+    weight_c = cv2.merge([shaded] * layout.channels) if layout.channels > 1 else shaded
     starts = list(range(0, layout.height, rows))
 
     def render(y0: int) -> Band:
         y1 = min(layout.height, y0 + rows)
         hits = np.nonzero((boxes[:, 1] < y1) & (boxes[:, 3] > y0))[0]
-        return _render_band(layout, frames, params, y0, y1, hits, weight)
+        return _render_band(layout, frames, params, y0, y1, hits, weight, weight_c)
 
     with ThreadPoolExecutor(workers) as pool:
         pending: deque[Future[Band]] = deque()
@@ -381,12 +442,8 @@ def _band_source(layout: MosaicLayout, k: int, x0: int, y0: int, w: int, h: int)
     return A[:2], (slice(sy0, max(sy1, sy0 + 1)), slice(sx0, max(sx1, sx0 + 1)))
 
 
-def _flat(frames: _Frames, src: tuple[slice, slice]) -> NDArray[np.float32] | float:
-    return frames.inv_flat[src] if frames.inv_flat is not None else 1.0
-
-
 def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0: int, y1: int, hits: NDArray[np.int64],
-                 weight: NDArray[np.float32]) -> Band:
+                 weight: NDArray[np.float32], weight_c: NDArray[np.float32]) -> Band:
     W, H, C = layout.width, y1 - y0, layout.channels
     covered = np.zeros((H, W), bool)
     if params.blend == "feather":
@@ -406,8 +463,7 @@ def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0
         if params.blend == "feather":
             img = frames.raw(int(k))[src]
             wt_src = np.ascontiguousarray(weight[src])
-            premult = cv2.multiply(img, cv2.merge([wt_src * _flat(frames, src)] * C) if C > 1 else wt_src * _flat(frames, src),
-                                   scale=gain, dtype=cv2.CV_32F)
+            premult = cv2.multiply(img, np.ascontiguousarray(weight_c[src]), scale=gain, dtype=cv2.CV_32F)
             warped = cv2.warpAffine(premult, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             wt = cv2.warpAffine(wt_src, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             np.add(acc[region], warped.reshape(acc[region].shape), out=acc[region])
@@ -425,11 +481,12 @@ def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0
         out[region][take] = warped[take]
         covered[region] |= inside
     if params.blend == "feather":
-        covered = wsum > 1e-3
-        np.maximum(wsum, 1e-3, out=wsum)
+        covered = wsum > 1e-7
+        np.maximum(wsum, 1e-7, out=wsum)  # where nothing landed the sum stays 0
         acc /= wsum[..., None]
         out = cv2.convertScaleAbs(acc)  # rounds and saturates to uint8
-        out[~covered] = 0
+        if C == 1:
+            out = out[..., 0]
     return Band(y0, out, covered)
 
 

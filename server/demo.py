@@ -18,7 +18,7 @@ import uvicorn
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from processing.metrics import Box, absolute_trajectory_error, match_defects
+from processing.metrics import Box, absolute_trajectory_error, match_defects, mosaic_overlap_errors
 from processing.poses import parse_tum
 from robot_link.client import RobotLink
 from robot_link.sim.inspection import InspectionSim, SimConfig, SimResult
@@ -70,7 +70,7 @@ def _boxes(defects: list[dict[str, Any]]) -> list[Box]:
 
 
 def score(result: SimResult, session: dict[str, Any], defects: list[dict[str, Any]], trajectory_tum: str | None,
-          frame_defects: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+          frame_defects: list[dict[str, Any]] | None = None, mosaic_world: dict[str, Any] | None = None) -> dict[str, Any]:
     """Compare what the station found (on the mosaic, and frame by frame) with the simulator's ground truth."""
     assert result.structure is not None
     truth = [Box(d.defect_class, *d.bbox_m) for d in result.structure.defects]
@@ -88,7 +88,22 @@ def score(result: SimResult, session: dict[str, Any], defects: list[dict[str, An
             out["map_ate_m"] = round(absolute_trajectory_error(est, gt), 4)
             odom = np.array([result.cloud_poses_odom[s] for s in seqs])
             out["odometry_ate_m"] = round(absolute_trajectory_error(odom, gt), 4)
+    out.update(_mosaic_scores(result, mosaic_world))
     return out
+
+
+def _mosaic_scores(result: SimResult, world: dict[str, Any] | None) -> dict[str, Any]:
+    """Relative placement error of overlapping frames in the mosaic against the simulator's
+    true camera poses (px, worst frame corner)."""
+    if not world or len(world.get("frames", [])) != len(result.frame_poses_true) or not result.frame_poses_true:
+        return {}
+    est = np.array([[f["x"], f["y"], np.radians(f["theta_deg"])] for f in world["frames"]])
+    truth = np.array(result.frame_poses_true, dtype=np.float64)
+    truth[:, :2] *= world["px_per_m"]
+    errors, _ = mosaic_overlap_errors(est, truth, tuple(result.frame_size))
+    if len(errors) == 0:
+        return {}
+    return {"mosaic_overlap_error_px": {"mean": round(float(errors.mean()), 3), "max": round(float(errors.max()), 3), "pairs": len(errors)}}
 
 
 def run_demo(settings: Settings, *, port: int = 0, exit_when_done: bool = False, keep_serving: bool = False,
@@ -175,6 +190,7 @@ def _summary(url: str, auth: dict[str, str], result: SimResult, session: dict[st
         defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "mosaic"}).raise_for_status().json()["data"]
         frame_defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "frame"}).raise_for_status().json()["data"]
         traj = client.get(f"/api/sessions/{sid}/results/trajectory.tum")
+        world = client.get(f"/api/sessions/{sid}/results/mosaic.json")
     jobs = {j["kind"]: j for j in session["jobs"]}
     mosaic = jobs.get("stitch", {}).get("result", {}).get("mosaic_path")
     map_path = jobs.get("map", {}).get("result", {}).get("map_path")
@@ -186,7 +202,8 @@ def _summary(url: str, auth: dict[str, str], result: SimResult, session: dict[st
         "clouds_sent": result.clouds_sent,
         "mosaic_path": mosaic,
         "map_path": map_path,
-        **score(result, session, defects, traj.text if traj.status_code == 200 else None, frame_defects),
+        **score(result, session, defects, traj.text if traj.status_code == 200 else None, frame_defects,
+                world.json() if world.status_code == 200 else None),
         "jobs": {k: j["state"] for k, j in jobs.items()},
         "job_errors": {k: j["error"] for k, j in jobs.items() if j["error"]},
         "dashboard_url": f"{url}/",

@@ -66,6 +66,7 @@ class SimResult:
     cloud_poses_true: dict[int, NDArray[np.float64]] = field(default_factory=dict)  # seq -> T_world_tof
     cloud_poses_odom: dict[int, NDArray[np.float64]] = field(default_factory=dict)  # what odometry said
     structure: SteelStructure | None = None
+    frame_size: tuple[int, int] = (640, 480)  # (w, h) of the camera frames
 
     def summary(self) -> dict[str, Any]:
         """The JSON line ``steelscan sim`` prints."""
@@ -94,7 +95,8 @@ class InspectionSim:
         self.robot = SimRobot(self.spec, self.rng, pose=start.copy(), odom=start.copy())
         self.spacing_m = self.camera.capture_spacing_m(config.min_overlap)
         self.lane_spacing_m = float(np.floor(self.camera.footprint_m[1] * (1 - config.min_overlap) * 100) / 100)
-        self.result = SimResult(session_id=str(link.session_id), structure=self.structure)
+        self.result = SimResult(session_id=str(link.session_id), structure=self.structure,
+                                frame_size=(self.camera.width, self.camera.height))
         self.progress = progress
         self.paused = False
         self.capture_requested = False

@@ -164,7 +164,7 @@ class TiledSurface:
     """An unbounded painted-steel surface generated tile by tile from a seed, so that
     sweeps of any length need no giant texture in memory (tiles are cached, LRU)."""
 
-    def __init__(self, seed: int = 0, tile: int = 512, cache_tiles: int = 64) -> None:
+    def __init__(self, seed: int = 0, tile: int = 512, cache_tiles: int = 400) -> None:
         self.seed, self.tile, self.cache_tiles = seed, tile, cache_tiles
         self._tiles: dict[tuple[int, int], NDArray[np.uint8]] = {}
 

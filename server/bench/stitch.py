@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.alignment import frame_to_mosaic
+from processing.metrics import mosaic_overlap_errors
 from processing.stitching import plan_mosaic, render_bands
 from robot_link.sim.sweeps import (
     Sweep,
@@ -64,24 +64,6 @@ def real_texture(need: tuple[int, int], dataset: Path | None) -> tuple[NDArray[n
     return texture_from_images(images, cols, cell), "scikit-image texture photographs"
 
 
-def pair_errors(est: NDArray[np.float64], truth: NDArray[np.float64], size: tuple[int, int]) -> tuple[NDArray[np.float64], float]:
-    """For every pair of truly overlapping frames, how far (px, worst frame corner) the
-    estimated relative placement is from the true one; and the end drift (first to last)."""
-    w, h = size
-    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-
-    def err(i: int, j: int) -> float:
-        rel_e = np.linalg.inv(frame_to_mosaic(est[i], size)) @ frame_to_mosaic(est[j], size)
-        rel_t = np.linalg.inv(frame_to_mosaic(truth[i], size)) @ frame_to_mosaic(truth[j], size)
-        return float(np.linalg.norm((rel_e @ corners - rel_t @ corners)[:2], axis=0).max())
-
-    reach = 0.85 * min(w, h) + 0.15 * max(w, h)
-    out = [err(i, j) for i in range(len(truth)) for j in range(i + 1, len(truth))
-           if abs(truth[j, 0] - truth[i, 0]) < 0.9 * w and abs(truth[j, 1] - truth[i, 1]) < 0.9 * h
-           and np.linalg.norm(truth[j, :2] - truth[i, :2]) < reach + max(w, h)]
-    return np.array(out), err(0, len(truth) - 1)
-
-
 def centre_errors(est_xy: NDArray[np.float64], truth_xy: NDArray[np.float64], *, with_scale: bool = False) -> NDArray[np.float64]:
     """Frame-centre errors (px) after the best rigid (or similarity) fit to the truth."""
     fit = similarity_align_2d if with_scale else rigid_align_2d
@@ -121,13 +103,13 @@ def _sequence(name: str, sweep: Sweep, *, blind: bool = False, opencv: bool = Fa
     size = sweep.config.frame_size
     n = len(sweep.frames)
     poses, seconds, weak = _ours(sweep, blind)
-    pairs, drift = pair_errors(poses, sweep.truth, size)
+    pairs, drift = mosaic_overlap_errors(poses, sweep.truth, size)
     centres = centre_errors(poses[:, :2], sweep.truth[:, :2])
     base = {"frames": n, "pairs": len(pairs), "guess": "images only" if blind else "drifting odometry"}
     if blind:
         odo_pairs, odo_drift, odo_centres = None, None, None
     else:
-        odo_pairs, odo_drift = pair_errors(sweep.odometry, sweep.truth, size)
+        odo_pairs, odo_drift = mosaic_overlap_errors(sweep.odometry, sweep.truth, size)
         odo_centres = centre_errors(sweep.odometry[:, :2], sweep.truth[:, :2])
 
     def vs_odometry(value: float, odo: float | None) -> Result:

@@ -25,6 +25,9 @@ router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[Depe
 RESULT_FILES = {
     "mosaic.png": "image/png",
     "mosaic_overview.png": "image/png",
+    "mosaic_coverage.png": "image/png",
+    "mosaic.json": "application/json",
+    "mosaic.dzi": "application/xml",
     "map.ply": "application/octet-stream",
     "trajectory.tum": "text/plain",
     "crack_mask.png": "image/png",
@@ -122,6 +125,18 @@ def read_result_file(db: SessionDep, state: StateDep, session_id: str, name: str
     if not path.is_file():
         raise NotFound(f"{name} of session {session_id} does not exist yet")
     return FileResponse(path, media_type=RESULT_FILES[name], filename=name)
+
+
+@router.get("/{session_id}/mosaic_files/{level}/{col}_{row}.jpg", response_class=FileResponse)
+def read_mosaic_tile(db: SessionDep, state: StateDep, session_id: str, level: int, col: int, row: int) -> FileResponse:
+    """One tile of the mosaic's Deep Zoom pyramid (``results/mosaic.dzi`` describes it)."""
+    get_session_or_404(db, session_id)
+    if min(level, col, row) < 0:
+        raise NotFound("tile indices are not negative")
+    path = state.files.results_dir(session_id) / "mosaic_files" / str(level) / f"{col}_{row}.jpg"
+    if not path.is_file():
+        raise NotFound(f"no tile {level}/{col}_{row} in the mosaic of session {session_id}")
+    return FileResponse(path, media_type="image/jpeg", headers={"Cache-Control": "private, max-age=3600"})
 
 
 @router.get("/{session_id}/report.json")

@@ -3,10 +3,12 @@
 import time
 import uuid
 
+import cv2
 import httpx
+import numpy as np
 from websockets.sync.client import connect
 
-from robot_link.protocol import decode_message
+from robot_link.protocol import MessageType, decode_message
 from tests.conftest import LiveServer
 from tests.server.test_ingest import frame, start, ws_url
 
@@ -49,3 +51,33 @@ def test_unknown_job_kind_is_a_422(live_server: LiveServer) -> None:
         decode_message(ws.recv(timeout=10))
     r = httpx.post(f"{live_server.url}/api/sessions/{sid}/jobs", json={"kind": "teleport"})
     assert r.status_code == 422
+
+
+def test_stitch_job_serves_a_deep_zoom_pyramid_of_the_session(live_server: LiveServer) -> None:
+    from tests.processing.test_stitching import sweep
+    from tests.server.test_ingest import msg
+
+    s = sweep(frames=6, pattern="straight", seed=21)
+    sid = uuid.uuid4()
+    calib = {"camera": {"px_per_m": 1000.0, "T_robot_camera": [0.0, 0.0, 0.0]}}
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+        ws.send(msg(sid, 1, MessageType.SESSION_START, {"structure": "plate", "operator": "t", "calibration": calib}))
+        for k, (jpeg, p) in enumerate(zip(s.frames, s.odometry), 2):
+            pose = {"x": p[0] / 1000, "y": p[1] / 1000, "yaw": p[2]}
+            ws.send(msg(sid, k, MessageType.FRAME, {"width": 320, "height": 240, "pose": pose}, jpeg))
+        for _ in range(7):
+            decode_message(ws.recv(timeout=10))
+    url = f"{live_server.url}/api/sessions/{sid}"
+    job = wait_job(live_server.url, httpx.post(f"{url}/jobs", json={"kind": "stitch"}).json()["id"])
+    assert job["state"] == "done", job
+    assert job["result"]["world_referenced"] and job["result"]["low_confidence_frames"] == 0
+    dzi = httpx.get(f"{url}/results/mosaic.dzi")
+    assert dzi.status_code == 200 and f'Width="{job["result"]["width_px"]}"' in dzi.text
+    top = int(np.ceil(np.log2(max(job["result"]["width_px"], job["result"]["height_px"]))))
+    tile = httpx.get(f"{url}/mosaic_files/{top}/0_0.jpg")
+    assert tile.status_code == 200 and tile.headers["content-type"] == "image/jpeg"
+    assert cv2.imdecode(np.frombuffer(tile.content, np.uint8), cv2.IMREAD_COLOR).shape[:2] == (255, 255)
+    assert httpx.get(f"{url}/mosaic_files/{top}/99_99.jpg").status_code == 404
+    assert httpx.get(f"{url}/mosaic_files/..%2F..%2Fmosaic/0_0.jpg").status_code in (404, 422)
+    world = httpx.get(f"{url}/results/mosaic.json").json()
+    assert [f["frame"] for f in world["frames"]] == list(range(2, 8))
