@@ -143,7 +143,7 @@ def test_flat_field_recovers_vignetting_and_ignores_texture() -> None:
     flat = estimate_flat_field(shaded)
     truth = vignette / vignette.mean()
     assert np.abs(flat - truth).max() < 0.04
-    assert np.abs(estimate_flat_field(plain) - 1).max() < StitchParams().flat_field_min_falloff  # not applied
+    assert np.abs(estimate_flat_field(plain) - 1).max() < 0.05  # a first guess; overlaps refine it
 
 
 def test_feather_weight_peaks_in_the_middle() -> None:
