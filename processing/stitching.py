@@ -269,7 +269,7 @@ def _prepare(source: FrameSource, params: StitchParams) -> _Frames:
     frames = _Frames(source, params.cache_bytes)
     first = frames.image(0)
     frames.shape = first.shape
-    if n >= params.flat_field_min_frames:
+    if n >= params.flat_field_min_frames and not params.vignetting:  # else measured on overlaps
         picks = np.unique(np.linspace(0, n - 1, min(n, params.flat_field_sample)).round().astype(int))
         flat = estimate_flat_field([frames.load(int(k)) for k in picks])
         if float(flat.min()) < 1.0 - params.flat_field_min_falloff:  # correct real vignetting only
@@ -333,19 +333,20 @@ def _correct_vignetting(frames: _Frames, measurements: Sequence[PairMeasurement]
         return False
     h, w = frames.shape[:2]  # type: ignore[index]
     picks = np.unique(np.linspace(0, len(measurements) - 1, min(len(measurements), params.vignetting_pairs)).round().astype(int))
-    smooth: dict[int, NDArray[np.float32]] = {}
+    # the registration's own half-resolution smoothed images, with any correction undone
+    half_size = frames.level(0).half.image.shape[::-1]
+    undo = None if frames.inv_flat is None else cv2.resize(1.0 / frames.inv_flat, half_size, interpolation=cv2.INTER_AREA)
+    to_half = np.diag([0.5, 0.5, 1.0])
 
     def grey(k: int) -> NDArray[np.float32]:
-        if k not in smooth:
-            if len(smooth) > 64:
-                smooth.pop(next(iter(smooth)))
-            smooth[k] = cv2.GaussianBlur(_gray(frames.raw(k)).astype(np.float32), (0, 0), 3.0)
-        return smooth[k]
+        img = frames.level(k).half.image
+        return img if undo is None else img * undo
 
     samples = []
     for idx in picks:
         m = measurements[int(idx)]
-        ri, rj, lr = overlap_samples(grey(m.i), grey(m.j), frame_i_to_j(m.delta, (w, h)))
+        M = to_half @ frame_i_to_j(m.delta, (w, h)) @ np.linalg.inv(to_half)
+        ri, rj, lr = overlap_samples(grey(m.i), grey(m.j), M)
         if len(lr):
             samples.append((m.i, m.j, ri, rj, lr))
     photo = solve_photometry(len(frames.source), samples)
