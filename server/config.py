@@ -25,6 +25,8 @@ class Settings(BaseSettings):
     auto_process: bool = Field(default=True, description="run jobs when a session ends")
     web_dir: Path = PROJECT_ROOT / "web"
     live_queue: int = Field(default=8, description="frames buffered per watching browser")
+    view3d: bool = Field(default=True, description="serve the 3D view (viser, proxied under /viser/)")
+    view3d_port: int = Field(default=0, description="loopback port of the viser server (0: any free one)")
 
     def resolved_database_url(self) -> str:
         """The database URL, SQLite in the data directory unless set."""

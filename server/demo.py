@@ -134,6 +134,9 @@ def run_demo(settings: Settings, *, port: int = 0, exit_when_done: bool = False,
             progress.update(sim_task, completed=1.0, note=f"{result.frames_sent} frames, {result.clouds_sent} clouds sent")
             session = _wait_for_jobs(server.url, auth, result.session_id, progress)
         summary = _summary(server.url, auth, result, session)
+        shown = httpx.post(f"{server.url}/api/sessions/{result.session_id}/view3d", headers=auth, timeout=60)
+        if shown.status_code == 200:
+            console.print(f"3D view of the session: {server.url}/viser/ (open it from the dashboard's session page)")
     except BaseException:
         server.stop()
         raise

@@ -18,7 +18,8 @@ from server.ingest import Ingest
 from server.jobs.runner import JobRunner
 from server.live import LiveHub
 from server.deps import get_current_user
-from server.routes import auth, jobs, sessions, ws
+from server.routes import auth, jobs, sessions, view3d, ws
+from server.scene3d import Scene3D
 from server.state import AppState
 from server.storage import SessionFiles
 
@@ -45,11 +46,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         state = build_state(settings)
         app.state.steelscan = state
+        if settings.view3d:
+            state.scene = Scene3D(settings.view3d_port)
         state.jobs.start()
         try:
             yield
         finally:
             state.jobs.stop()
+            if state.scene is not None:
+                state.scene.close()
             state.engine.dispose()
 
     # the API docs serve Swagger/ReDoc from the station itself: no CDN on a bridge
@@ -73,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(sessions.router)
     app.include_router(jobs.router)
     app.include_router(ws.router)
+    app.include_router(view3d.router)
     web_dir = settings.web_dir
 
     @app.get("/", include_in_schema=False)

@@ -11,6 +11,7 @@ from server.config import Settings
 from server.ingest import Ingest
 from server.jobs.runner import JobRunner
 from server.live import LiveHub
+from server.scene3d import Scene3D
 from server.storage import SessionFiles
 
 
@@ -25,3 +26,4 @@ class AppState:
     ingest: Ingest
     hub: LiveHub
     jobs: JobRunner
+    scene: Scene3D | None = None  # the 3D view, when switched on

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -19,6 +20,7 @@ class LiveServer:
     url: str
     settings: Settings
     token: str
+    app: Any = None  # the FastAPI app, for looking at its state
 
 
 def make_token(settings: Settings, name: str = "test-robot") -> str:
@@ -43,6 +45,6 @@ def live_server(settings: Settings) -> Iterator[LiveServer]:
     server = BackgroundServer(settings, free_port())
     server.start()
     try:
-        yield LiveServer(server.url, settings, token)
+        yield LiveServer(server.url, settings, token, server.server.config.app)
     finally:
         server.stop()

@@ -162,6 +162,22 @@ function showSession(s) {
       return tr;
     }));
   });
+  const mapJob = s.jobs.find((j) => j.kind === "map" && j.state === "done");
+  if (mapJob) {
+    // the 3D view (viser, proxied by the station): map, trajectory and defect markers
+    const button = document.createElement("button");
+    button.textContent = "Show 3D map";
+    button.addEventListener("click", async () => {
+      const res = await fetch(`/api/sessions/${s.id}/view3d`, { method: "POST", headers: authHeaders() });
+      if (!res.ok) { button.textContent = `3D view unavailable (${res.status})`; return; }
+      const frame = document.getElementById("view3d") || document.createElement("iframe");
+      frame.id = "view3d";
+      frame.title = "3D map";
+      frame.src = `/viser/${token ? `?token=${encodeURIComponent(token)}` : ""}`;
+      div.appendChild(frame);
+    });
+    div.appendChild(button);
+  }
   const a = document.createElement("a");
   a.href = "#"; a.textContent = "report.json";
   a.addEventListener("click", async (e) => {

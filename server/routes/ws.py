@@ -132,6 +132,9 @@ class RobotConnection:
         """Show the message to watching browsers."""
         hub = self.state.hub
         sid = str(message.session_id)
+        pose = message.meta.get("pose")
+        if self.state.scene is not None and isinstance(pose, dict) and message.type in (MessageType.FRAME, MessageType.TELEMETRY):
+            self.state.scene.show_pose(sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"]))
         if message.type is MessageType.FRAME:
             hub.publish_frame({"session_id": sid, "seq": message.seq, "t": message.timestamp, "pose": message.meta.get("pose")}, message.payload)
         elif message.type is MessageType.TELEMETRY:
