@@ -11,6 +11,8 @@ y across it, z down into it (so "up" is -z).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import threading
 from collections.abc import Sequence
@@ -62,7 +64,10 @@ class Scene3D:
     """One viser server; shows one session at a time."""
 
     def __init__(self, port: int = 0) -> None:
-        self.server = viser.ViserServer(host="127.0.0.1", port=port, label="steelscan 3D", verbose=False)
+        banner = io.StringIO()
+        with contextlib.redirect_stdout(banner):  # viser prints a banner whatever ``verbose`` says; stdout is the CLI's
+            self.server = viser.ViserServer(host="127.0.0.1", port=port, label="steelscan 3D", verbose=False)
+        log.debug("viser: %s", banner.getvalue())
         self.server.scene.set_up_direction("-z")
         self.session_id: str | None = None
         self._lock = threading.Lock()
@@ -139,5 +144,6 @@ class Scene3D:
         return len(self.server.get_clients())
 
     def close(self) -> None:
-        """Stop the viser server."""
-        self.server.stop()
+        """Stop the viser server (quietly: it announces that on stdout too)."""
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
