@@ -78,6 +78,7 @@ class MapParams:
     odometry_sigma_deg_per_m: float = 15.0  # ... and this heading error per metre driven
     odometry_sigma_floor_m: float = 0.002
     pose_graph: bool = True
+    refine: bool = True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
     map_voxel_m: float = 0.01
 
 
@@ -203,6 +204,11 @@ def register_clouds(
         if not np.isfinite(initial_poses).all():
             raise ValueError("initial_poses contain NaN or infinite values")
     pcds = [select(c, params, shape) for c in clouds]
+    if not params.refine:
+        if initial_poses is None:
+            raise ValueError("refine=False needs initial poses")
+        zeros = np.zeros(n)
+        return MapResult(initial_poses.copy(), fuse_map(pcds, initial_poses, params.map_voxel_m), zeros, zeros, np.ones(n, bool), np.zeros(n, int))
     front = _front_end(pcds, initial_poses, params)
     poses, loops, pruned = front.poses, 0, 0
     if params.pose_graph and n > 2:

@@ -81,3 +81,27 @@ def image_to_world(
     c, s = np.cos(camera_pose[2]), np.sin(camera_pose[2])
     offset = (np.asarray(uv, dtype=np.float64) - ((w - 1) / 2, (h - 1) / 2)) / px_per_m
     return offset @ np.array([[c, s], [-s, c]]) + camera_pose[:2]
+
+
+def _se2_of(M: NDArray[np.floating]) -> NDArray[np.float64]:
+    return np.array([M[0, 2], M[1, 2], np.arctan2(M[1, 0], M[0, 0])])
+
+
+def transfer_correction(
+    ref_times: NDArray[np.floating], ref_odometry: NDArray[np.floating], ref_truth: NDArray[np.floating],
+    times: NDArray[np.floating], odometry: NDArray[np.floating],
+) -> NDArray[np.float64]:
+    """Correct odometry poses (N, 3: x, y, yaw) taken at ``times`` by a better estimate known
+    at other instants: at each reference k the world-frame correction C_k = T_k · O_k⁻¹
+    (better pose times the inverse of the odometry there) is interpolated in time (linearly
+    in x, y and unwrapped yaw; held constant beyond the ends) and applied, C(t) · O(t).
+    Used to carry the mosaic's camera motion over to the ToF clouds."""
+    order = np.argsort(ref_times)
+    rt = np.asarray(ref_times, dtype=np.float64)[order]
+    corr = np.array([_se2_of(se2_matrix(*ref_truth[k]) @ np.linalg.inv(se2_matrix(*ref_odometry[k]))) for k in order])
+    corr[:, 2] = np.unwrap(corr[:, 2])
+    out = []
+    for t, o in zip(np.asarray(times, dtype=np.float64), np.asarray(odometry, dtype=np.float64)):
+        c = np.array([np.interp(t, rt, corr[:, d]) for d in range(3)])
+        out.append(_se2_of(se2_matrix(*c) @ se2_matrix(*o)))
+    return np.array(out)

@@ -57,12 +57,15 @@ class JobRunner:
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
 
-    def enqueue(self, session_id: str, kind: str, *, after: list[int] | None = None, params: dict[str, Any] | None = None) -> int:
-        """Queue one job; it runs when every job in ``after`` is done."""
+    def enqueue(self, session_id: str, kind: str, *, after: list[int] | None = None, uses: list[int] | None = None,
+                params: dict[str, Any] | None = None) -> int:
+        """Queue one job; it runs when every job in ``after`` is done (and fails if one of them
+        failed) and every job in ``uses`` has finished, whichever way (it uses their results
+        when there are some)."""
         if kind not in JOB_KINDS:
             raise ValueError(f"kind must be one of {sorted(JOB_KINDS)}, got {kind!r}")
         with self.factory() as db:
-            job = Job(session_id=session_id, kind=kind, params={**(params or {}), "after": after or []})
+            job = Job(session_id=session_id, kind=kind, params={**(params or {}), "after": after or [], "uses": uses or []})
             db.add(job)
             db.commit()
             job_id = job.id
@@ -72,8 +75,8 @@ class JobRunner:
     def enqueue_pipeline(self, session_id: str) -> list[int]:
         """Queue every processing stage of a session in dependency order."""
         ids: dict[str, int] = {}
-        for kind, deps in PIPELINE:
-            ids[kind] = self.enqueue(session_id, kind, after=[ids[d] for d in deps])
+        for kind, deps, uses in PIPELINE:
+            ids[kind] = self.enqueue(session_id, kind, after=[ids[d] for d in deps], uses=[ids[u] for u in uses])
         return list(ids.values())
 
     def _new_pool(self) -> ProcessPoolExecutor:
@@ -103,6 +106,9 @@ class JobRunner:
                     db.commit()
                     continue
                 if any(d is not None and d.state != JobState.done for d in deps):
+                    continue
+                used = [db.get(Job, u) for u in job.params.get("uses", [])]
+                if any(u is not None and u.state not in (JobState.done, JobState.failed) for u in used):
                     continue
                 self._submit(job.id)
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from processing.mapping import register_clouds
+from processing.mapping import MapParams, register_clouds
 from processing.metrics import absolute_trajectory_error
 from robot_link.clouds import depth_to_points
 from robot_link.sim.sensors import TofCamera
@@ -70,3 +70,11 @@ def test_empty_input_and_wrong_pose_count_raise() -> None:
         register_clouds([np.zeros((5, 3))], np.zeros((2, 4, 4)))
     with pytest.raises(ValueError, match="NaN"):
         register_clouds([np.zeros((5, 3))], np.full((1, 4, 4), np.nan))
+
+
+def test_without_refinement_the_given_poses_are_kept_and_fused() -> None:
+    sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.6,), x_range_m=(0.4, 0.6), revisit=False, seed=3))
+    result = register_clouds(sweep.clouds, sweep.truth, params=MapParams(refine=False), shape=(172, 224))
+    assert np.array_equal(result.poses, sweep.truth) and len(result.points) > 1000
+    with pytest.raises(ValueError, match="initial poses"):
+        register_clouds(sweep.clouds, None, params=MapParams(refine=False))
