@@ -35,6 +35,7 @@ class RegistrationParams:
     max_refine_px: float = 6.0  # the refinement may move the overlap this far from the coarse match
     max_refine_rad: float = 0.05  # ... and turn it this far
     points: int = 3000  # pixels used by the sub-pixel refinement
+    half_stage_below: float = 0.9  # refine at half resolution first when the coarse correlation is weaker
     iterations: int = 30
     lever_px: float = 200.0  # weight of a heading residual: radians times this, as pixels
     prior_weight: float = 0.01  # odometry steps, relative to image measurements
@@ -160,7 +161,7 @@ class Smoothed:
     @classmethod
     def of(cls, gray: Gray, sigma: float) -> Smoothed:
         """Smooth by a Gaussian of ``sigma``."""
-        return cls(cv2.GaussianBlur(gray, (0, 0), sigma))
+        return cls(cv2.GaussianBlur(gray, (5, 5), sigma))  # truncated at 2σ: cheaper, as good for registration
 
     def crop(self, x0: int, y0: int, x1: int, y1: int) -> Smoothed:
         """A rectangle of it."""
@@ -283,6 +284,7 @@ def register_pair(
     Q = _quarter_turn(k, size)
     # coarse: the overlap shrunk by the search radius, so it stays inside frame j for any
     # guess error up to that radius; half resolution
+    coarse = 0.0
     s = params.search_px // 2 * 2
     rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
     if rect is None:
@@ -308,7 +310,7 @@ def register_pair(
                     best = peak
                     shift = 2 * (_parabola_peak(res) - hs)
                     M_best = Ma @ np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]])
-            M = M_best
+            M, coarse = M_best, best
     # fine: the overlap as the coarse match places it
     rect = overlap_rect(M, size, params.margin_px, params.min_overlap)
     if rect is None:
@@ -321,12 +323,14 @@ def register_pair(
     # Lucas-Kanade on the half- and then the full-resolution image: wide basin, then precision
     tw, th = x1 - x0, y1 - y0
     pad = 6 + int(params.max_refine_px + params.max_refine_rad * max(tw, th) / 2)
-    half0 = _scale_warp(W0, 0.5)
-    crop, cW = _crop_for(j_half, half0, tw // 2, th // 2, pad)
-    hW, _, _, _ = refine_euclidean(li.half.crop(x0 // 2, y0 // 2, x1 // 2, y1 // 2), crop, _shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),
-                                   points=params.points // 4, iterations=params.iterations)
-    hW = _uncrop(_shift_origin(hW, -(x0 % 2) / 2, -(y0 % 2) / 2), cW, half0)
-    full0 = _scale_warp(hW, 2.0)
+    full0 = W0
+    if coarse < params.half_stage_below or len(angles) > 1:  # a weak or uncertain coarse match: widen the basin first
+        half0 = _scale_warp(W0, 0.5)
+        crop, cW = _crop_for(j_half, half0, tw // 2, th // 2, pad)
+        hW, _, _, _ = refine_euclidean(li.half.crop(x0 // 2, y0 // 2, x1 // 2, y1 // 2), crop, _shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),
+                                       points=params.points // 4, iterations=params.iterations)
+        hW = _uncrop(_shift_origin(hW, -(x0 % 2) / 2, -(y0 % 2) / 2), cW, half0)
+        full0 = _scale_warp(hW, 2.0)
     crop, cW = _crop_for(j_full, full0, tw, th, pad)
     W, score, mean_i, mean_j = refine_euclidean(template, crop, cW, points=params.points, iterations=params.iterations)
     W = _uncrop(W, cW, full0)
@@ -612,7 +616,18 @@ def estimate_poses(
         chained = chain(guess[0], steps_now)
         report(0.4, "registering overlapping frames")
         others = candidate_pairs(chained, size, skip_consecutive=True)
-        found = list(pool.map(lambda p: measure(p, relative_pose(chained[p[0]], chained[p[1]])), others))
+        # the chain is accurate where consecutive pairs registered: search near it, then wider
+        near = replace(params, search_px=max(8, params.search_px // 3))
+
+        def measure_other(p: tuple[int, int]) -> PairMeasurement | None:
+            start = relative_pose(chained[p[0]], chained[p[1]])
+            found = register_pair(load(p[0]), load(p[1]), start, near)
+            if found is None:
+                return measure(p, start)
+            delta, score, mi, mj = found
+            return PairMeasurement(p[0], p[1], delta, score, mi, mj)
+
+        found = list(pool.map(measure_other, others))
     measurements = [m for m in consecutive + found if m is not None]
     report(0.8, "solving the pose graph")
     poses = solve_pose_graph(chained, measurements, priors, params)

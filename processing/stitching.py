@@ -467,8 +467,9 @@ def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0
             premult = cv2.multiply(img, np.ascontiguousarray(weight_c[src]), scale=gain, dtype=cv2.CV_32F)
             warped = cv2.warpAffine(premult, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
             wt = cv2.warpAffine(wt_src, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            np.add(acc[region], warped.reshape(acc[region].shape), out=acc[region])
-            np.add(wsum[region], wt, out=wsum[region])
+            target = acc[region]  # a view: OpenCV adds in place, row stride and all, without the GIL
+            cv2.add(target, warped.reshape(target.shape), dst=target)
+            cv2.add(wsum[region], wt, dst=wsum[region])
             continue
         img = frames.image(int(k))[src]
         src8 = img if gain == 1.0 else cv2.convertScaleAbs(img, alpha=gain)
@@ -484,7 +485,8 @@ def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0
     if params.blend == "feather":
         covered = wsum > 1e-7
         np.maximum(wsum, 1e-7, out=wsum)  # where nothing landed the sum stays 0
-        acc /= wsum[..., None]
+        inv = cv2.divide(1.0, wsum)
+        cv2.multiply(acc, cv2.merge([inv] * C) if C > 1 else inv[..., None], dst=acc)
         out = cv2.convertScaleAbs(acc)  # rounds and saturates to uint8
         if C == 1:
             out = out[..., 0]
