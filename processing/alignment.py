@@ -535,12 +535,6 @@ def phase_candidates(gray_a: Gray, gray_b: Gray, *, turns: Sequence[int] = (0, 2
     return found[:keep]
 
 
-def phase_motion(gray_a: Gray, gray_b: Gray) -> NDArray[np.float64]:
-    """The best image-only guess of frame b's pose in frame a (see :func:`phase_candidates`)."""
-    found = phase_candidates(gray_a, gray_b, keep=1)
-    return found[0][0] if found else np.zeros(3)
-
-
 def chain(first: NDArray[np.float64], deltas: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
     """Poses from a first pose and the relative step to each next frame."""
     out = [np.asarray(first, float)]

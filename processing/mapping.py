@@ -82,9 +82,6 @@ class MapParams:
     map_voxel_m: float = 0.01
 
 
-IcpParams = MapParams  # the first version's name
-
-
 @dataclass
 class MapResult:
     """Registered poses T_world_sensor (N, 4, 4), the fused map (M, 3) and per-cloud facts."""
@@ -134,9 +131,6 @@ def select(points: NDArray[np.floating], params: MapParams = MapParams(), shape:
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.voxel_m * 3, max_nn=30))
         pcd.orient_normals_towards_camera_location(np.zeros(3))
     return pcd
-
-
-preprocess = select  # the first version's name
 
 
 def within_bounds(init: NDArray[np.float64], T: NDArray[np.float64], params: MapParams) -> bool:

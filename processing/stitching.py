@@ -181,11 +181,6 @@ def estimate_flat_field(frames: Sequence[NDArray[np.uint8]], *, scale: int = 8) 
     return (flat / max(float(flat.mean()), 1e-6)).astype(np.float32)
 
 
-def apply_flat_field(frame: NDArray[np.uint8], flat: NDArray[np.float32]) -> NDArray[np.uint8]:
-    """Divide a frame by its flat field."""
-    return _times(frame, 1.0 / np.maximum(flat, 0.2))
-
-
 def _times(frame: NDArray[np.uint8], factor: NDArray[np.float32]) -> NDArray[np.uint8]:
     """A frame multiplied pixel by pixel by a one-channel factor, rounded and saturated."""
     f = factor if frame.ndim == 2 else cv2.merge([factor] * frame.shape[2])
@@ -249,7 +244,7 @@ class _Frames:
     def image(self, k: int) -> NDArray[np.uint8]:
         """Frame k, flat-fielded."""
         img = self.raw(k)
-        return _times(img, self.inv_flat) if self.inv_flat is not None else img
+        return _times(img, self.inv_flat) if self.inv_flat is not None else img  # flat-field correction
 
     def level(self, k: int) -> Level:
         """Frame k's grey levels for registration (flat-fielded)."""
