@@ -21,8 +21,10 @@ from robot_link.protocol import (
     decode_message,
     encode_message,
 )
+from robot_link.spool import Spool
 
 log = logging.getLogger(__name__)
+SEQ_BLOCK = 1024  # sequence numbers reserved on disk at a time by a spooling link
 
 CommandHandler = Callable[[Message], Awaitable[None] | None]
 
@@ -42,6 +44,7 @@ class LinkStats:
     reconnects: int = 0
     errors: int = 0
     last_ack_latency_s: float = 0.0
+    spool_bytes: int = 0
 
 
 def robot_ws_url(server_url: str) -> str:
@@ -62,6 +65,11 @@ class RobotLink:
     ``send`` returns once the message is queued (at most ``window`` unacknowledged
     messages at a time); on a dropped connection the client reconnects with exponential
     backoff and resends everything not yet acknowledged, in sequence order.
+
+    With a :class:`~robot_link.spool.Spool` every message is on disk before it is first
+    sent and stays there until acknowledged: an outage of any length, or a restart of the
+    robot's computer, loses nothing (the spool's byte bound replaces the window, and the
+    session resumes with its id and sequence numbers).
     """
 
     def __init__(
@@ -73,6 +81,7 @@ class RobotLink:
         window: int = 64,
         on_command: CommandHandler | None = None,
         max_backoff_s: float = 5.0,
+        spool: Spool | None = None,
     ) -> None:
         self.url = robot_ws_url(server_url)
         self.token = token
@@ -90,13 +99,25 @@ class RobotLink:
         self._closing = False
         self._task: asyncio.Task[None] | None = None
         self._fatal: LinkError | None = None
+        self.spool = spool
+        self._reserved = 0
+        self._warned_full = False
+        if spool is not None:
+            resumed = spool.load_session()
+            if resumed is not None:
+                self.session_id, self._next_seq = resumed
+            self._next_seq = max([self._next_seq, *(s + 1 for s in spool.pending())])
+            for seq in spool.pending():  # never acknowledged before the restart: resend
+                self._unacked[seq] = (b"", time.monotonic())
+                self._transmitted.add(seq)
+            self.stats.spool_bytes = spool.used_bytes
 
     async def start(self) -> None:
         """Connect in the background (returns at once; sends wait for the connection)."""
         self._task = asyncio.create_task(self._run(), name="robot-link")
 
     async def close(self) -> None:
-        """Stop the link (unacknowledged messages are dropped: call ``flush`` first)."""
+        """Stop the link (unacknowledged messages are dropped unless spooled: call ``flush`` first)."""
         self._closing = True
         if self._ws is not None:
             await self._ws.close()
@@ -111,6 +132,9 @@ class RobotLink:
         """Take the next sequence number of this session."""
         seq = self._next_seq
         self._next_seq += 1
+        if self.spool is not None and seq >= self._reserved:
+            self._reserved = seq + SEQ_BLOCK
+            self.spool.save_session(self.session_id, self._reserved)
         return seq
 
     async def send(
@@ -120,10 +144,19 @@ class RobotLink:
         self._raise_if_failed()
         message = Message(mtype, self.session_id, self.next_seq(), time.time(), meta or {}, payload)
         data = encode_message(message)
+        spool = self.spool
         async with self._space:
-            await self._space.wait_for(lambda: len(self._unacked) < self.window or self._fatal is not None)
+            if spool is None:
+                await self._space.wait_for(lambda: len(self._unacked) < self.window or self._fatal is not None)
+            else:
+                await self._space.wait_for(lambda: spool.room_for(len(data)) or self._fatal is not None)
         self._raise_if_failed()
-        self._unacked[message.seq] = (data, time.monotonic())
+        if spool is not None:
+            await asyncio.to_thread(spool.put, message.seq, data)
+            self._note_spool()
+            self._unacked[message.seq] = (b"", time.monotonic())  # the bytes live on disk
+        else:
+            self._unacked[message.seq] = (data, time.monotonic())
         if await self._transmit(data):
             self._transmitted.add(message.seq)
         return message.seq
@@ -202,8 +235,17 @@ class RobotLink:
         async with self._space:
             self._space.notify_all()
 
+    def _note_spool(self) -> None:
+        assert self.spool is not None
+        self.stats.spool_bytes = self.spool.used_bytes
+        if self.spool.near_full and not self._warned_full:
+            log.warning("link: spool %.0f %% full (%d unacknowledged messages)", 100 * self.stats.spool_bytes / self.spool.max_bytes, len(self.spool))
+        self._warned_full = self.spool.near_full
+
     async def _resend_all(self, ws: ClientConnection) -> None:
         for seq, (data, _) in list(self._unacked.items()):
+            if not data and self.spool is not None:
+                data = await asyncio.to_thread(self.spool.read, seq)
             await ws.send(data)
             self.stats.sent += 1
             if seq in self._transmitted:
@@ -226,6 +268,9 @@ class RobotLink:
         if message.type is MessageType.ACK:
             entry = self._unacked.pop(message.seq, None)
             self._transmitted.discard(message.seq)
+            if self.spool is not None:
+                self.spool.remove(message.seq)
+                self._note_spool()
             if entry is not None:
                 self.stats.acked += 1
                 self.stats.last_ack_latency_s = time.monotonic() - entry[1]
@@ -238,6 +283,8 @@ class RobotLink:
             log.error("link: ground station rejected seq %d: %s", message.seq, message.meta.get("error"))
             # A rejected message will never be accepted: drop it so flush() can finish.
             self._unacked.pop(message.seq, None)
+            if self.spool is not None:
+                self.spool.remove(message.seq)
             self._transmitted.discard(message.seq)
             async with self._space:
                 self._space.notify_all()

@@ -46,7 +46,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
     config = SimConfig(seed=args.seed, lanes=args.lanes, time_scale=args.time_scale)
 
     async def main() -> dict:
-        link = RobotLink(args.server, token)
+        from robot_link.spool import Spool
+
+        spool = Spool(Path(args.spool), max_bytes=int(args.spool_max_mb * 2**20)) if args.spool else None
+        link = RobotLink(args.server, token, spool=spool)
         await link.start()
         sim = InspectionSim(link, config, progress=lambda f, m: logging.getLogger("sim").info("%3.0f%% %s", f * 100, m))
         try:
@@ -183,6 +186,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--server", required=True, help="ground station base URL, http://host:port")
     s.add_argument("--token")
     s.add_argument("--exit-when-done", action="store_true")
+    s.add_argument("--spool", help="durable spool folder: unacknowledged messages survive outages and restarts")
+    s.add_argument("--spool-max-mb", type=float, default=2048.0, help="size bound of the spool")
     s.add_argument("--time-scale", type=float, default=20.0)
     s.add_argument("--lanes", type=int, default=5)
     s.add_argument("--seed", type=int, default=7)
