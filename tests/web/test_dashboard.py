@@ -50,8 +50,10 @@ def test_live_page_shows_camera_and_telemetry_with_no_errors(live_server: LiveSe
         page.wait_for_selector("#view3d", timeout=20000)
         frame = page.frame_locator("#view3d")
         frame.locator("#root").wait_for(timeout=30000)
-        frame.get_by_text("Scene tree").wait_for(timeout=30000)
-        page.wait_for_function("() => document.querySelector('#view3d').contentDocument.body.innerText.includes('/map')", timeout=30000)
+        # the view's own panel arrives over the proxied websocket, with the session's title
+        frame.get_by_text("Click a defect marker to see it.").wait_for(timeout=30000)
+        frame.get_by_text("Simulated plate girder").first.wait_for(timeout=30000)
+        assert live_server.app.state.steelscan.scene.session_id in page.inner_text("#session-detail h3")
         page.screenshot(path=str(tmp_path / "session-3d.png"), full_page=True)
         browser.close()
     assert page_errors == []
