@@ -10,15 +10,16 @@ from pathlib import Path
 
 from server.bench.common import Result
 from server.bench.detect import bench_detect
+from server.bench.ingest import bench_ingest
 from server.bench.map import bench_map
 from server.bench.stitch import bench_stitch
 from server.bench.stitch_scale import bench_stitch_scale
 from server.errors import CommandError
 
 BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {
-    "detect": bench_detect, "stitch": bench_stitch, "map": bench_map, "stitch-scale": bench_stitch_scale,
+    "detect": bench_detect, "stitch": bench_stitch, "map": bench_map, "ingest": bench_ingest, "stitch-scale": bench_stitch_scale,
 }
-DEFAULT = ["detect", "stitch", "map"]  # stitch-scale takes many minutes: run it by name
+DEFAULT = ["detect", "stitch", "map", "ingest"]  # stitch-scale takes many minutes: run it by name
 
 
 def run_benchmarks(names: list[str], *, dataset: Path | None = None, limit: int | None = None) -> None:

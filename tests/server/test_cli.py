@@ -176,3 +176,12 @@ def test_bench_stitch_and_map_measure_against_baselines() -> None:
         assert f"stitch.{surface}.lawnmower.images_only.end_drift" in results
     assert {"map.sweep31.ate", "map.sweep31.drift", "map.sweep31.rpe", "map.sweep31.ms_per_cloud"} <= results.keys()
     assert results["map.sweep31.ate"]["value"] < 0.05
+
+
+def test_bench_ingest_counts_every_frame_it_sends() -> None:
+    proc = steelscan("bench", "ingest", "--limit", "2")
+    assert proc.returncode == 0, proc.stderr
+    results = {r["name"]: r for r in map(json.loads, proc.stdout.splitlines())}
+    assert results["ingest.lost"]["value"] == 0 and results["ingest.lost"]["acked"] > 0
+    assert results["ingest.frames_per_second"]["baseline_is"] == "bare websockets echo on loopback"
+    assert results["ingest.ack_latency_p99"]["value"] >= results["ingest.ack_latency_p50"]["value"] > 0

@@ -1,0 +1,169 @@
+"""``steelscan bench ingest``: how many camera frames per second the ground station stores
+durably (file written, SQLite row committed) and acknowledges, with the ACK latency, against
+the raw loopback websocket echo rate measured in the same run as the ceiling.
+
+The station runs as its own process (``steelscan serve`` on a scratch data directory, jobs
+off); several simulated robots stream ~68 KB JPEG-sized frames through the real robot
+protocol with a window of unacknowledged messages, for ``--limit`` seconds (10 by default;
+60 for the full measurement). Every frame sent is then counted in the database.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import websockets
+from websockets.asyncio.client import connect
+from websockets.asyncio.server import serve
+
+from robot_link.protocol import Message, MessageType, decode_message, encode_message
+from server.bench.common import Result
+
+FRAME_BYTES = 68 * 1024
+ROBOTS = 4
+WINDOW = 16
+
+
+def _payload(rng: np.random.Generator) -> bytes:
+    return b"\xff\xd8\xff\xe0" + rng.integers(0, 256, FRAME_BYTES - 4, dtype=np.uint8).tobytes()
+
+
+async def _robot(url: str, token: str, seconds: float, latencies: list[float], rng: np.random.Generator) -> tuple[str, int]:
+    """Stream frames for ``seconds``; returns the session id and how many were acknowledged."""
+    sid = uuid.uuid4()
+    payload = _payload(rng)
+    sent_at: dict[int, float] = {}
+    acked = 0
+    window = asyncio.Semaphore(WINDOW)
+    async with connect(url, additional_headers={"Authorization": f"Bearer {token}"}, max_size=2**20, compression=None) as ws:
+        await ws.send(encode_message(Message(MessageType.SESSION_START, sid, 1, time.time(), {"structure": "ingest bench"})))
+        decode_message(await ws.recv())
+        done = asyncio.Event()
+
+        async def reader() -> None:
+            nonlocal acked
+            async for raw in ws:
+                m = decode_message(raw)  # type: ignore[arg-type]
+                if m.type is MessageType.ACK and m.seq in sent_at:
+                    latencies.append(time.perf_counter() - sent_at.pop(m.seq))
+                    acked += 1
+                    window.release()
+                if done.is_set() and not sent_at:
+                    return
+
+        task = asyncio.create_task(reader())
+        seq, end = 2, time.perf_counter() + seconds
+        while time.perf_counter() < end:
+            await window.acquire()
+            meta = {"width": 640, "height": 480, "pose": {"x": 0.0, "y": 0.0, "yaw": 0.0}}
+            sent_at[seq] = time.perf_counter()
+            await ws.send(encode_message(Message(MessageType.FRAME, sid, seq, time.time(), meta, payload)))
+            seq += 1
+        done.set()
+        await asyncio.wait_for(task, 60)
+    return str(sid), acked
+
+
+async def _echo_ceiling(seconds: float) -> float:
+    """Frames per second a bare ``websockets`` echo on loopback manages (same size, same window)."""
+
+    async def echo(ws: websockets.asyncio.server.ServerConnection) -> None:
+        try:
+            async for _ in ws:
+                await ws.send(b"ok")
+        except websockets.ConnectionClosed:
+            pass
+
+    async with serve(echo, "127.0.0.1", 0, max_size=2**20, compression=None) as server:
+        port = server.sockets[0].getsockname()[1]
+        payload = _payload(np.random.default_rng(0))
+        async with connect(f"ws://127.0.0.1:{port}", max_size=2**20, compression=None) as ws:
+            window = asyncio.Semaphore(WINDOW)
+            count = 0
+
+            async def reader() -> None:
+                nonlocal count
+                async for _ in ws:
+                    count += 1
+                    window.release()
+
+            task = asyncio.create_task(reader())
+            t0 = time.perf_counter()
+            while time.perf_counter() - t0 < seconds:
+                await window.acquire()
+                await ws.send(payload)
+            elapsed = time.perf_counter() - t0
+            task.cancel()
+            return count / elapsed
+
+
+def _serve(data_dir: Path, port: int) -> subprocess.Popen[bytes]:
+    env = {**os.environ, "STEELSCAN_AUTO_PROCESS": "false", "STEELSCAN_VIEW3D": "false"}
+    proc = subprocess.Popen([sys.executable, "-m", "server.cli", "serve", "--data-dir", str(data_dir), "--port", str(port)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code == 200:
+                return proc
+        except httpx.HTTPError:
+            time.sleep(0.1)
+    proc.kill()
+    raise RuntimeError("the ground station did not start")
+
+
+def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
+    """Sustained durable ingest rate and ACK latency of several robots, against the echo ceiling."""
+    from server.config import Settings
+    from server.db import make_engine, make_sessionmaker, upgrade
+    from server.demo import free_port
+    from server.robots import create_robot
+
+    seconds = float(limit or 10)
+    root = Path(tempfile.mkdtemp(prefix="steelscan-ingest-"))
+    try:
+        settings = Settings(data_dir=root / "data")
+        upgrade(settings.resolved_database_url())
+        engine = make_engine(settings.resolved_database_url())
+        token = create_robot(make_sessionmaker(engine), "bench")
+        engine.dispose()
+        port = free_port()
+        proc = _serve(settings.data_dir, port)
+        try:
+            latencies: list[float] = []
+            url = f"ws://127.0.0.1:{port}/ws/robot"
+
+            async def all_robots() -> list[tuple[str, int]]:
+                rngs = [np.random.default_rng(k) for k in range(ROBOTS)]
+                return await asyncio.gather(*(_robot(url, token, seconds, latencies, r) for r in rngs))
+
+            t0 = time.perf_counter()
+            results = asyncio.run(all_robots())
+            elapsed = time.perf_counter() - t0
+            stored = sum(httpx.get(f"http://127.0.0.1:{port}/api/sessions/{sid}", timeout=30).json()["frames"] for sid, _ in results)
+        finally:
+            proc.terminate()
+            proc.wait(timeout=30)
+        acked = sum(a for _, a in results)
+        ceiling = asyncio.run(_echo_ceiling(min(seconds, 5.0)))
+        rate = acked / elapsed
+        lat = np.array(latencies) * 1000
+        yield {"name": "ingest.frames_per_second", "value": round(rate, 1), "unit": "frames/s", "target": 2000,
+               "baseline": round(ceiling, 1), "ratio": round(rate / ceiling, 3), "baseline_is": "bare websockets echo on loopback",
+               "robots": ROBOTS, "window": WINDOW, "frame_kb": FRAME_BYTES // 1024, "seconds": round(elapsed, 1)}
+        yield {"name": "ingest.ack_latency_p50", "value": round(float(np.percentile(lat, 50)), 2), "unit": "ms"}
+        yield {"name": "ingest.ack_latency_p99", "value": round(float(np.percentile(lat, 99)), 2), "unit": "ms", "target": 2.0}
+        yield {"name": "ingest.lost", "value": acked - stored, "unit": "frames", "acked": acked, "stored": stored}
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
