@@ -25,6 +25,7 @@ from robot_link.spool import Spool
 
 log = logging.getLogger(__name__)
 SEQ_BLOCK = 1024  # sequence numbers reserved on disk at a time by a spooling link
+RETRY_S = 0.2  # wait before sending again a message the station could not store yet
 
 CommandHandler = Callable[[Message], Awaitable[None] | None]
 
@@ -151,12 +152,12 @@ class RobotLink:
             else:
                 await self._space.wait_for(lambda: spool.room_for(len(data)) or self._fatal is not None)
         self._raise_if_failed()
+        self._unacked[message.seq] = (data, time.monotonic())
         if spool is not None:
             await asyncio.to_thread(spool.put, message.seq, data)
             self._note_spool()
-            self._unacked[message.seq] = (b"", time.monotonic())  # the bytes live on disk
-        else:
-            self._unacked[message.seq] = (data, time.monotonic())
+            if message.seq in self._unacked:  # from now on the bytes live on disk only
+                self._unacked[message.seq] = (b"", self._unacked[message.seq][1])
         if await self._transmit(data):
             self._transmitted.add(message.seq)
         return message.seq
@@ -187,9 +188,10 @@ class RobotLink:
             raise self._fatal
 
     async def _transmit(self, data: bytes) -> bool:
-        """Send now if connected; False if it waits for the (re)connection."""
+        """Send now if connected (and the resend after a reconnect is done, so the order
+        holds); False if it waits for the (re)connection, which sends it."""
         ws = self._ws
-        if ws is None:
+        if ws is None or not self._connected.is_set():
             return False
         try:
             await ws.send(data)
@@ -243,14 +245,36 @@ class RobotLink:
         self._warned_full = self.spool.near_full
 
     async def _resend_all(self, ws: ClientConnection) -> None:
-        for seq, (data, _) in list(self._unacked.items()):
-            if not data and self.spool is not None:
-                data = await asyncio.to_thread(self.spool.read, seq)
-            await ws.send(data)
-            self.stats.sent += 1
-            if seq in self._transmitted:
-                self.stats.resent += 1
-            self._transmitted.add(seq)
+        """Send every unacknowledged message, in order, including those queued meanwhile."""
+        done: set[int] = set()
+        while True:
+            todo = [seq for seq in sorted(self._unacked) if seq not in done]
+            if not todo:
+                return
+            for seq in todo:
+                entry = self._unacked.get(seq)
+                if entry is None:
+                    continue
+                data = entry[0]
+                if not data and self.spool is not None:
+                    data = await asyncio.to_thread(self.spool.read, seq)
+                await ws.send(data)
+                done.add(seq)
+                self.stats.sent += 1
+                if seq in self._transmitted:
+                    self.stats.resent += 1
+                self._transmitted.add(seq)
+
+    async def _retry(self, seq: int) -> None:
+        """Send one unacknowledged message again (after a retryable ERROR)."""
+        entry = self._unacked.get(seq)
+        if entry is None:
+            return
+        data = entry[0]
+        if not data and self.spool is not None:
+            data = await asyncio.to_thread(self.spool.read, seq)
+        if await self._transmit(data):
+            self.stats.resent += 1
 
     async def _read(self, ws: ClientConnection) -> None:
         async for raw in ws:
@@ -278,6 +302,10 @@ class RobotLink:
                     self.stats.duplicates += 1
             async with self._space:
                 self._space.notify_all()
+        elif message.type is MessageType.ERROR and message.meta.get("retry") and message.seq in self._unacked:
+            self.stats.errors += 1
+            log.info("link: seq %d not stored yet (%s); sending it again", message.seq, message.meta.get("error"))
+            asyncio.get_running_loop().call_later(RETRY_S, lambda seq=message.seq: asyncio.ensure_future(self._retry(seq)))
         elif message.type is MessageType.ERROR:
             self.stats.errors += 1
             log.error("link: ground station rejected seq %d: %s", message.seq, message.meta.get("error"))

@@ -116,6 +116,7 @@ class AckMeta(_Meta):
 
 class ErrorMeta(_Meta):
     error: str
+    retry: bool = False  # the station cannot store it yet (unknown session): resend later
 
 
 class CommandAckMeta(_Meta):

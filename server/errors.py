@@ -14,7 +14,12 @@ class Conflict(SteelscanError):
 
 
 class IngestError(SteelscanError):
-    """A robot message that is well-formed but cannot be stored (unknown session, ...)."""
+    """A robot message that is well-formed but cannot be stored (unknown session, ...);
+    ``retry`` when it may be stored later (its session is not known yet)."""
+
+    def __init__(self, message: str, *, retry: bool = False) -> None:
+        super().__init__(message)
+        self.retry = retry
 
 
 class CommandError(SteelscanError):

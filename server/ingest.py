@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
+import queue
+import threading
 from dataclasses import dataclass
 from typing import Literal
 
@@ -41,25 +44,48 @@ class Ingest:
 
     def store(self, message: Message, robot_id: int | None) -> StoreResult:
         """Store one decoded message durably; raise IngestError if it cannot be stored."""
-        sid = str(message.session_id)
+        result = self.store_many([(message, robot_id)])[0]
+        if isinstance(result, Exception):
+            raise result
+        return result
+
+    def store_many(self, items: list[tuple[Message, int | None]]) -> list[StoreResult | Exception]:
+        """Store several messages in one transaction (group commit), in order; each gets its
+        result, or the IngestError/OSError that refused it alone. Should the commit fail as a
+        whole, each message is stored again on its own."""
         with self.factory() as db:
-            session = db.get(InspectionSession, sid)
-            if message.type is MessageType.SESSION_START:
-                if session is not None:
-                    self._check_owner(session, robot_id)
-                    return StoreResult("duplicate")
-            elif session is None:
-                raise IngestError(f"session {sid} is unknown: send SESSION_START first")
-            else:
-                self._check_owner(session, robot_id)
-            if db.get(ReceivedMessage, (sid, message.seq)) is not None:
-                return StoreResult("duplicate")
-            ended = self._add_rows(db, message, sid, robot_id, session)
+            results: list[StoreResult | Exception] = []
+            seen: set[tuple[str, int]] = set()
+            for message, robot_id in items:
+                try:
+                    results.append(self._stage(db, message, robot_id, seen))
+                except (IngestError, OSError) as exc:
+                    results.append(exc)
             try:
                 db.commit()
             except IntegrityError:
                 db.rollback()
+                if len(items) == 1:
+                    return [StoreResult("duplicate")]
+                return [self.store_many([item])[0] for item in items]
+        return results
+
+    def _stage(self, db: Session, message: Message, robot_id: int | None, seen: set[tuple[str, int]]) -> StoreResult:
+        """Write one message's file and add its rows to the open transaction."""
+        sid = str(message.session_id)
+        session = db.get(InspectionSession, sid)
+        if message.type is MessageType.SESSION_START:
+            if session is not None:
+                self._check_owner(session, robot_id)
                 return StoreResult("duplicate")
+        elif session is None:
+            raise IngestError(f"session {sid} is unknown: send SESSION_START first", retry=True)
+        else:
+            self._check_owner(session, robot_id)
+        if (sid, message.seq) in seen or db.get(ReceivedMessage, (sid, message.seq)) is not None:
+            return StoreResult("duplicate")
+        ended = self._add_rows(db, message, sid, robot_id, session)  # the file first: a failed write adds no row
+        seen.add((sid, message.seq))
         return StoreResult("stored", session_ended=ended)
 
     @staticmethod
@@ -78,6 +104,13 @@ class Ingest:
         meta = message.meta
         pose = meta.get("pose") or {}
         mtype = message.type
+        rel = None
+        if mtype is MessageType.FRAME:  # files before rows: a write that fails adds nothing
+            rel = self.files.frame_relpath(sid, message.seq)
+        elif mtype is MessageType.CLOUD:
+            rel = self.files.cloud_relpath(sid, message.seq, meta["encoding"])
+        if rel is not None:
+            self.files.write(rel, message.payload)
         if mtype is MessageType.SESSION_START:
             db.add(
                 InspectionSession(
@@ -91,8 +124,7 @@ class Ingest:
             db.flush()
         db.add(ReceivedMessage(session_id=sid, seq=message.seq, type=mtype.name))
         if mtype is MessageType.FRAME:
-            rel = self.files.frame_relpath(sid, message.seq)
-            self.files.write(rel, message.payload)
+            assert rel is not None
             db.add(
                 Frame(
                     session_id=sid,
@@ -108,8 +140,7 @@ class Ingest:
                 )
             )
         elif mtype is MessageType.CLOUD:
-            rel = self.files.cloud_relpath(sid, message.seq, meta["encoding"])
-            self.files.write(rel, message.payload)
+            assert rel is not None
             intrinsics = {k: meta[k] for k in ("fx", "fy", "cx", "cy") if k in meta}
             db.add(
                 Cloud(
@@ -141,3 +172,59 @@ class Ingest:
             return True
         return False
 
+
+
+class GroupCommit:
+    """Stores the messages of every robot connection on one writer thread, as many per
+    transaction as have arrived meanwhile (up to ``max_batch``): one SQLite commit for many
+    frames, each acknowledged only once its transaction is committed."""
+
+    def __init__(self, ingest: Ingest, max_batch: int = 128) -> None:
+        self.ingest = ingest
+        self.max_batch = max_batch
+        self._queue: queue.SimpleQueue[tuple[Message, int | None, asyncio.Future[StoreResult], asyncio.AbstractEventLoop] | None] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name="ingest-writer", daemon=True)
+        self._thread.start()
+
+    def store(self, message: Message, robot_id: int | None) -> asyncio.Future[StoreResult]:
+        """Queue one message; the future resolves when it is durably stored (or refused)."""
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[StoreResult] = loop.create_future()
+        self._queue.put((message, robot_id, future, loop))
+        return future
+
+    def close(self) -> None:
+        """Store what is queued, then stop the writer."""
+        self._queue.put(None)
+        self._thread.join(timeout=30)
+
+    def _run(self) -> None:
+        while True:
+            first = self._queue.get()
+            if first is None:
+                return
+            batch = [first]
+            while len(batch) < self.max_batch:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is None:
+                    self._queue.put(None)
+                    break
+                batch.append(item)
+            try:
+                results: list[StoreResult | Exception] = self.ingest.store_many([(m, r) for m, r, _, _ in batch])
+            except Exception as exc:  # the database itself failed: every message of the batch hears it  # noqa: BLE001
+                results = [exc] * len(batch)
+            for (_, _, future, loop), result in zip(batch, results):
+                loop.call_soon_threadsafe(_settle, future, result)
+
+
+def _settle(future: asyncio.Future[StoreResult], result: StoreResult | Exception) -> None:
+    if future.done():
+        return
+    if isinstance(result, Exception):
+        future.set_exception(result)
+    else:
+        future.set_result(result)

@@ -21,6 +21,7 @@ from server.deps import get_current_user
 from server.routes import auth, jobs, sessions, view3d, ws
 from server.scene3d import Scene3D
 from server.state import AppState
+from server.ingest import GroupCommit, Ingest
 from server.storage import SessionFiles
 
 log = logging.getLogger(__name__)
@@ -35,7 +36,8 @@ def build_state(settings: Settings) -> AppState:
     factory = db.make_sessionmaker(engine)
     files = SessionFiles(settings.data_dir, fsync=settings.fsync)
     runner = JobRunner(factory, url, str(settings.data_dir.resolve()), settings.job_workers)
-    return AppState(settings, engine, factory, files, Ingest(factory, files), LiveHub(settings.live_queue), runner)
+    ingest = Ingest(factory, files)
+    return AppState(settings, engine, factory, files, ingest, LiveHub(settings.live_queue), runner, GroupCommit(ingest))
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -53,6 +55,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             state.jobs.stop()
+            state.writer.close()
             if state.scene is not None:
                 state.scene.close()
             state.engine.dispose()

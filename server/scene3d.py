@@ -15,6 +15,7 @@ import contextlib
 import io
 import logging
 import threading
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -27,6 +28,7 @@ from numpy.typing import NDArray
 log = logging.getLogger(__name__)
 
 MAX_DISPLAY_POINTS = 300_000
+POSE_HZ = 20.0
 CLASS_COLOURS = {"crack": (230, 40, 40), "corrosion": (240, 140, 20)}
 
 
@@ -72,6 +74,7 @@ class Scene3D:
         self.session_id: str | None = None
         self._lock = threading.Lock()
         self._trail: list[tuple[float, float]] = []
+        self._last_pose_t = 0.0
         self._info = self.server.gui.add_markdown("Click a defect marker to see it.")
         self._title = self.server.gui.add_markdown("**No session shown yet.**")
 
@@ -122,7 +125,12 @@ class Scene3D:
 
     def show_pose(self, session_id: str, x: float, y: float, yaw: float) -> None:
         """Move the robot marker (and grow its trail) for the session being shown; a new
-        live session takes over the view."""
+        live session takes over the view. At most ``POSE_HZ`` updates a second reach the
+        browsers (a robot may report far more often)."""
+        now = time.monotonic()
+        if session_id == self.session_id and now - self._last_pose_t < 1.0 / POSE_HZ:
+            return
+        self._last_pose_t = now
         with self._lock:
             if session_id != self.session_id:
                 self.session_id = session_id

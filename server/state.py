@@ -8,7 +8,7 @@ from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.config import Settings
-from server.ingest import Ingest
+from server.ingest import GroupCommit, Ingest
 from server.jobs.runner import JobRunner
 from server.live import LiveHub
 from server.scene3d import Scene3D
@@ -26,4 +26,5 @@ class AppState:
     ingest: Ingest
     hub: LiveHub
     jobs: JobRunner
+    writer: GroupCommit
     scene: Scene3D | None = None  # the 3D view, when switched on

@@ -29,6 +29,7 @@ from server.robots import authenticate_robot
 
 log = logging.getLogger(__name__)
 router = APIRouter()
+IN_FLIGHT = 64
 
 
 def _bearer(websocket: WebSocket) -> str | None:
@@ -63,9 +64,9 @@ class RobotConnection:
         async with self.send_lock:
             await self.ws.send_bytes(data)
 
-    async def send_error(self, sid: uuid.UUID, seq: int, error: str) -> None:
-        """Tell the robot a message was rejected."""
-        await self.send(Message(MessageType.ERROR, sid, seq, time.time(), {"error": error[:500]}))
+    async def send_error(self, sid: uuid.UUID, seq: int, error: str, *, retry: bool = False) -> None:
+        """Tell the robot a message was rejected (``retry``: for now only)."""
+        await self.send(Message(MessageType.ERROR, sid, seq, time.time(), {"error": error[:500], "retry": retry}))
 
     def command_sender(self, sid: uuid.UUID):  # type: ignore[no-untyped-def]
         """A coroutine function the hub calls to forward an operator's command."""
@@ -81,6 +82,8 @@ class RobotConnection:
     async def run(self) -> None:
         """Serve the robot until it disconnects."""
         senders: dict[str, Any] = {}
+        in_flight: set[asyncio.Task[None]] = set()
+        room = asyncio.Semaphore(IN_FLIGHT)  # messages of this robot being stored at once
         try:
             while True:
                 event = await self.ws.receive()
@@ -90,10 +93,17 @@ class RobotConnection:
                 if data is None:
                     await self.send_error(uuid.UUID(int=0), 0, "text messages are not part of the protocol; send binary")
                     continue
-                await self.handle(data, senders)
+                await room.acquire()
+                # handled concurrently (stored by the group-commit writer in arrival order),
+                # so the next message is read while this one is being stored
+                task = asyncio.create_task(self.handle(data, senders))
+                in_flight.add(task)
+                task.add_done_callback(lambda t: (in_flight.discard(t), room.release()))
         except WebSocketDisconnect:
             pass
         finally:
+            if in_flight:
+                await asyncio.gather(*in_flight, return_exceptions=True)
             for sid, sender in senders.items():
                 self.state.hub.detach_robot(sid, sender)
 
@@ -111,9 +121,9 @@ class RobotConnection:
             self.state.hub.publish_json({"type": "command_ack", "session_id": str(message.session_id), "seq": message.seq, **message.meta})
             return
         try:
-            result = await anyio.to_thread.run_sync(self.state.ingest.store, message, self.robot_id)
+            result = await self.state.writer.store(message, self.robot_id)
         except IngestError as exc:
-            await self.send_error(message.session_id, message.seq, str(exc))
+            await self.send_error(message.session_id, message.seq, str(exc), retry=exc.retry)
             return
         except (OSError, SQLAlchemyError) as exc:
             log.exception("ingest: could not store seq %d", message.seq)
