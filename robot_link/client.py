@@ -26,6 +26,7 @@ from robot_link.spool import Spool
 log = logging.getLogger(__name__)
 SEQ_BLOCK = 1024  # sequence numbers reserved on disk at a time by a spooling link
 RETRY_S = 0.2  # wait before sending again a message the station could not store yet
+ALWAYS_OBEYED = frozenset({"stop", "estop"})  # commands that are safe to act on whatever their seq
 
 CommandHandler = Callable[[Message], Awaitable[None] | None]
 
@@ -101,6 +102,7 @@ class RobotLink:
         self._task: asyncio.Task[None] | None = None
         self._fatal: LinkError | None = None
         self.spool = spool
+        self._last_command_seq = 0
         self._reserved = 0
         self._warned_full = False
         if spool is not None:
@@ -317,6 +319,13 @@ class RobotLink:
             async with self._space:
                 self._space.notify_all()
         elif message.type is MessageType.COMMAND and self.on_command is not None:
+            cmd = message.meta.get("cmd")
+            if message.seq <= self._last_command_seq and cmd not in ALWAYS_OBEYED:
+                # an old command delivered again (a replay): never act on it twice; stopping is always safe
+                log.warning("link: ignoring command %r with stale seq %d (last %d)", cmd, message.seq, self._last_command_seq)
+                await self.notify(MessageType.COMMAND_ACK, {"cmd": str(cmd), "accepted": False}, seq=message.seq)
+                return
+            self._last_command_seq = max(self._last_command_seq, message.seq)
             result = self.on_command(message)
             if asyncio.iscoroutine(result):
                 await result
