@@ -47,6 +47,25 @@ def _seq_of(data: bytes) -> int:
         return 0
 
 
+class TokenBucket:
+    """At most ``rate`` events a second on average, ``burst`` at once."""
+
+    def __init__(self, rate: float, burst: float) -> None:
+        self.rate, self.burst = rate, burst
+        self.tokens = burst
+        self.t = time.monotonic()
+
+    def take(self) -> bool:
+        """Spend a token if there is one."""
+        now = time.monotonic()
+        self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
+        self.t = now
+        if self.tokens < 1:
+            return False
+        self.tokens -= 1
+        return True
+
+
 class RobotConnection:
     """One robot's websocket: decodes, stores, acknowledges, relays, forwards commands."""
 
@@ -57,6 +76,8 @@ class RobotConnection:
         self.state = websocket.app.state.steelscan
         self.send_lock = asyncio.Lock()
         self.session_ids: set[str] = set()
+        settings = self.state.settings
+        self.bucket = TokenBucket(settings.robot_messages_per_s, settings.robot_message_burst)
 
     async def send(self, message: Message) -> None:
         """Send one protocol message to the robot."""
@@ -119,6 +140,9 @@ class RobotConnection:
             return
         if message.type is MessageType.COMMAND_ACK:
             self.state.hub.publish_json({"type": "command_ack", "session_id": str(message.session_id), "seq": message.seq, **message.meta})
+            return
+        if not self.bucket.take():
+            await self.send_error(message.session_id, message.seq, "rate limit: too many messages, send it again shortly", retry=True)
             return
         try:
             result = await self.state.writer.store(message, self.robot_id)

@@ -185,3 +185,31 @@ def test_api_docs_need_no_internet(live_server: LiveServer) -> None:
     assert assets and all(a.startswith("/") for a in assets), assets
     for a in assets:
         assert httpx.get(live_server.url + a).status_code == 200, a
+
+
+def test_a_robot_over_its_rate_limit_is_slowed_not_lost(tmp_path) -> None:
+    from server.config import Settings
+    from server.demo import BackgroundServer, free_port
+    from tests.conftest import make_token
+
+    settings = Settings(data_dir=tmp_path / "data", job_workers=1, robot_messages_per_s=100, robot_message_burst=10)
+    token = make_token(settings)
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    try:
+        async def run() -> RobotLink:
+            link = RobotLink(server.url, token, window=64)
+            await link.start()
+            await link.send(MessageType.SESSION_START, {"structure": "chatty robot"})
+            for i in range(60):
+                await link.send(MessageType.FRAME, {"width": 640, "height": 480}, JPEG + bytes([i]))
+            await link.flush(timeout_s=30)
+            await link.close()
+            return link
+
+        link = asyncio.run(run())
+        assert link.stats.errors > 0  # it was told to slow down...
+        frames = httpx.get(f"{server.url}/api/sessions/{link.session_id}").json()["frames"]
+        assert frames == 60  # ...and lost nothing
+    finally:
+        server.stop()
