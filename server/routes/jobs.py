@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, status
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Path, status
 from sqlalchemy import select
 
 from server.deps import OperatorUser, SessionDep, StateDep, get_current_user
@@ -37,7 +39,7 @@ def create_job(db: SessionDep, state: StateDep, session_id: str, body: JobCreate
 
 
 @router.get("/jobs/{job_id}", response_model=JobPublic)
-def read_job(db: SessionDep, job_id: int) -> Job:
+def read_job(db: SessionDep, job_id: Annotated[int, Path(ge=1, le=2**63 - 1)]) -> Job:
     """One job with its state, progress and result."""
     job = db.get(Job, job_id)
     if job is None:

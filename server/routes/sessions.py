@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import FileResponse
 from sqlalchemy import func, select
 
@@ -22,6 +22,7 @@ from server.schemas import (
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[Depends(get_current_user)])
 
+MAX_INT = 2**63 - 1  # SQLite's largest integer: a bigger id cannot exist
 RESULT_FILES = {
     "mosaic.png": "image/png",
     "mosaic_overview.png": "image/png",
@@ -62,7 +63,7 @@ def get_session_or_404(db: SessionDep, session_id: str) -> InspectionSession:
 
 
 @router.get("", response_model=SessionsPublic)
-def read_sessions(db: SessionDep, skip: Annotated[int, Query(ge=0)] = 0, limit: Annotated[int, Query(ge=1, le=500)] = 100) -> SessionsPublic:
+def read_sessions(db: SessionDep, skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0, limit: Annotated[int, Query(ge=1, le=500)] = 100) -> SessionsPublic:
     """List inspection sessions, newest first."""
     count = db.scalar(select(func.count()).select_from(InspectionSession)) or 0
     rows = db.scalars(select(InspectionSession).order_by(InspectionSession.started_at.desc()).offset(skip).limit(limit))
@@ -76,7 +77,7 @@ def read_session(db: SessionDep, session_id: str) -> SessionPublic:
 
 
 @router.get("/{session_id}/frames", response_model=FramesPublic)
-def read_frames(db: SessionDep, session_id: str, skip: Annotated[int, Query(ge=0)] = 0, limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> FramesPublic:
+def read_frames(db: SessionDep, session_id: str, skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0, limit: Annotated[int, Query(ge=1, le=1000)] = 100) -> FramesPublic:
     """Camera frames of a session in sequence order."""
     get_session_or_404(db, session_id)
     rows = db.scalars(select(Frame).where(Frame.session_id == session_id).order_by(Frame.seq).offset(skip).limit(limit))
@@ -84,7 +85,7 @@ def read_frames(db: SessionDep, session_id: str, skip: Annotated[int, Query(ge=0
 
 
 @router.get("/{session_id}/frames/{seq}/image", response_class=FileResponse)
-def read_frame_image(db: SessionDep, state: StateDep, session_id: str, seq: int) -> FileResponse:
+def read_frame_image(db: SessionDep, state: StateDep, session_id: str, seq: Annotated[int, Path(ge=0, le=MAX_INT)]) -> FileResponse:
     """The JPEG of one frame."""
     frame = db.scalar(select(Frame).where(Frame.session_id == session_id, Frame.seq == seq))
     if frame is None:
@@ -93,7 +94,7 @@ def read_frame_image(db: SessionDep, state: StateDep, session_id: str, seq: int)
 
 
 @router.get("/{session_id}/telemetry", response_model=TelemetryListPublic)
-def read_telemetry(db: SessionDep, session_id: str, skip: Annotated[int, Query(ge=0)] = 0, limit: Annotated[int, Query(ge=1, le=5000)] = 500) -> TelemetryListPublic:
+def read_telemetry(db: SessionDep, session_id: str, skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0, limit: Annotated[int, Query(ge=1, le=5000)] = 500) -> TelemetryListPublic:
     """Telemetry samples of a session in sequence order."""
     get_session_or_404(db, session_id)
     rows = db.scalars(select(TelemetrySample).where(TelemetrySample.session_id == session_id).order_by(TelemetrySample.seq).offset(skip).limit(limit))
@@ -102,7 +103,7 @@ def read_telemetry(db: SessionDep, session_id: str, skip: Annotated[int, Query(g
 
 @router.get("/{session_id}/defects", response_model=DefectsPublic)
 def read_defects(db: SessionDep, session_id: str, defect_class: str | None = None,
-                 source: Annotated[str | None, Query(pattern="^(mosaic|frame)$")] = None, skip: Annotated[int, Query(ge=0)] = 0, limit: Annotated[int, Query(ge=1, le=5000)] = 1000) -> DefectsPublic:
+                 source: Annotated[str | None, Query(pattern="^(mosaic|frame)$")] = None, skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0, limit: Annotated[int, Query(ge=1, le=5000)] = 1000) -> DefectsPublic:
     """Defects found in a session, optionally of one class or one source (mosaic or frame)."""
     get_session_or_404(db, session_id)
     q = select(Defect).where(Defect.session_id == session_id)
@@ -128,11 +129,10 @@ def read_result_file(db: SessionDep, state: StateDep, session_id: str, name: str
 
 
 @router.get("/{session_id}/mosaic_files/{level}/{col}_{row}.jpg", response_class=FileResponse)
-def read_mosaic_tile(db: SessionDep, state: StateDep, session_id: str, level: int, col: int, row: int) -> FileResponse:
+def read_mosaic_tile(db: SessionDep, state: StateDep, session_id: str, level: Annotated[int, Path(ge=0, le=64)],
+                     col: Annotated[int, Path(ge=0, le=MAX_INT)], row: Annotated[int, Path(ge=0, le=MAX_INT)]) -> FileResponse:
     """One tile of the mosaic's Deep Zoom pyramid (``results/mosaic.dzi`` describes it)."""
     get_session_or_404(db, session_id)
-    if min(level, col, row) < 0:
-        raise NotFound("tile indices are not negative")
     path = state.files.results_dir(session_id) / "mosaic_files" / str(level) / f"{col}_{row}.jpg"
     if not path.is_file():
         raise NotFound(f"no tile {level}/{col}_{row} in the mosaic of session {session_id}")
