@@ -8,6 +8,7 @@ import threading
 from dataclasses import dataclass
 from typing import Literal
 
+from sqlalchemy import select, tuple_
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -55,7 +56,12 @@ class Ingest:
         whole, each message is stored again on its own."""
         with self.factory() as db:
             results: list[StoreResult | Exception] = []
-            seen: set[tuple[str, int]] = set()
+            # what of this batch is stored already: one query, not one per message
+            keys = [(str(m.session_id), m.seq) for m, _ in items]
+            seen: set[tuple[str, int]] = set(
+                (row.session_id, row.seq)
+                for row in db.execute(select(ReceivedMessage.session_id, ReceivedMessage.seq).where(tuple_(ReceivedMessage.session_id, ReceivedMessage.seq).in_(keys)))
+            ) if keys else set()
             for message, robot_id in items:
                 try:
                     results.append(self._stage(db, message, robot_id, seen))
@@ -82,7 +88,7 @@ class Ingest:
             raise IngestError(f"session {sid} is unknown: send SESSION_START first", retry=True)
         else:
             self._check_owner(session, robot_id)
-        if (sid, message.seq) in seen or db.get(ReceivedMessage, (sid, message.seq)) is not None:
+        if (sid, message.seq) in seen:
             return StoreResult("duplicate")
         ended = self._add_rows(db, message, sid, robot_id, session)  # the file first: a failed write adds no row
         seen.add((sid, message.seq))

@@ -39,9 +39,13 @@ class SessionFiles:
         return path
 
     def write(self, relpath: str, data: bytes) -> Path:
-        """Write a file atomically (temp file + rename), fsync'd when configured."""
-        path = self.resolve(relpath)
-        return write_atomic(path, data, fsync=self.fsync)
+        """Write a file atomically (temp file + rename), fsync'd when configured. The path
+        is checked by its parts (no symlink resolution on this hot path: the relative paths
+        written are the station's own)."""
+        parts = Path(relpath).parts
+        if not parts or Path(relpath).is_absolute() or ".." in parts:
+            raise ValueError(f"path {relpath!r} leaves the data directory")
+        return write_atomic(self.data_dir / relpath, data, fsync=self.fsync)
 
 
 def write_atomic(path: Path, data: bytes, *, fsync: bool = False) -> Path:
