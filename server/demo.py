@@ -5,11 +5,14 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import os
 import secrets
 import socket
+import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -22,10 +25,10 @@ from processing.metrics import Box, absolute_trajectory_error, match_defects, mo
 from processing.poses import parse_tum
 from robot_link.client import RobotLink
 from robot_link.sim.inspection import InspectionSim, SimConfig, SimResult
+from server.accounts import create_user
 from server.config import Settings
 from server.db import make_engine, make_sessionmaker, upgrade
 from server.main import create_app
-from server.accounts import create_user
 from server.models import Role
 from server.robots import create_robot
 
@@ -62,6 +65,22 @@ class BackgroundServer:
         """Ask uvicorn to exit and wait for it."""
         self.server.should_exit = True
         self.thread.join(timeout=20)
+
+
+def serve_process(data_dir: Path, port: int, **env: str) -> subprocess.Popen[bytes]:
+    """``steelscan serve`` as a separate process on loopback (``env``: extra STEELSCAN_*
+    settings), returned once it answers its health check."""
+    proc = subprocess.Popen([sys.executable, "-m", "server.cli", "serve", "--data-dir", str(data_dir), "--port", str(port)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, **env})
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code == 200:
+                return proc
+        except httpx.HTTPError:
+            time.sleep(0.1)
+    proc.kill()
+    raise RuntimeError("the ground station did not start")
 
 
 def _boxes(defects: list[dict[str, Any]]) -> list[Box]:

@@ -11,10 +11,7 @@ protocol with a window of unacknowledged messages, for ``--limit`` seconds (10 b
 from __future__ import annotations
 
 import asyncio
-import os
 import shutil
-import subprocess
-import sys
 import tempfile
 import time
 import uuid
@@ -108,26 +105,11 @@ async def _echo_ceiling(seconds: float) -> float:
             return count / elapsed
 
 
-def _serve(data_dir: Path, port: int) -> subprocess.Popen[bytes]:
-    env = {**os.environ, "STEELSCAN_AUTO_PROCESS": "false", "STEELSCAN_VIEW3D": "false"}
-    proc = subprocess.Popen([sys.executable, "-m", "server.cli", "serve", "--data-dir", str(data_dir), "--port", str(port)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code == 200:
-                return proc
-        except httpx.HTTPError:
-            time.sleep(0.1)
-    proc.kill()
-    raise RuntimeError("the ground station did not start")
-
-
 def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
     """Sustained durable ingest rate and ACK latency of several robots, against the echo ceiling."""
     from server.config import Settings
     from server.db import make_engine, make_sessionmaker, upgrade
-    from server.demo import free_port
+    from server.demo import free_port, serve_process
     from server.robots import create_robot
 
     seconds = float(limit or 10)
@@ -139,7 +121,7 @@ def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Itera
         token = create_robot(make_sessionmaker(engine), "bench")
         engine.dispose()
         port = free_port()
-        proc = _serve(settings.data_dir, port)
+        proc = serve_process(settings.data_dir, port, STEELSCAN_AUTO_PROCESS="false", STEELSCAN_VIEW3D="false")
         try:
             latencies: list[float] = []
             url = f"ws://127.0.0.1:{port}/ws/robot"

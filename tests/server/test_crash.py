@@ -2,12 +2,9 @@
 the database stays consistent, and the robot's resends fill the gap exactly once."""
 
 import asyncio
-import os
 import signal
 import sqlite3
 import subprocess
-import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -16,23 +13,13 @@ from robot_link.client import RobotLink
 from robot_link.protocol import MessageType
 from robot_link.spool import Spool
 from server.config import Settings
-from server.demo import free_port
+from server.demo import free_port, serve_process
 from tests.conftest import make_token
 from tests.server.test_ingest import JPEG
 
 
 def serve(data_dir: Path, port: int) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "server.cli", "serve", "--data-dir", str(data_dir), "--port", str(port)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, "STEELSCAN_AUTO_PROCESS": "false"})
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code == 200:
-                return proc
-        except httpx.HTTPError:
-            time.sleep(0.1)
-    proc.kill()
-    raise RuntimeError("the ground station did not start")
+    return serve_process(data_dir, port, STEELSCAN_AUTO_PROCESS="false")
 
 
 def test_sigkill_mid_session_loses_nothing(tmp_path: Path) -> None:
