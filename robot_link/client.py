@@ -254,12 +254,9 @@ class RobotLink:
             if not todo:
                 return
             for seq in todo:
-                entry = self._unacked.get(seq)
-                if entry is None:
+                data = await self._bytes_of(seq)
+                if data is None:
                     continue
-                data = entry[0]
-                if not data and self.spool is not None:
-                    data = await asyncio.to_thread(self.spool.read, seq)
                 await ws.send(data)
                 done.add(seq)
                 self.stats.sent += 1
@@ -269,14 +266,18 @@ class RobotLink:
 
     async def _retry(self, seq: int) -> None:
         """Send one unacknowledged message again (after a retryable ERROR)."""
+        data = await self._bytes_of(seq)
+        if data is not None and await self._transmit(data):
+            self.stats.resent += 1
+
+    async def _bytes_of(self, seq: int) -> bytes | None:
+        """An unacknowledged message's bytes, from memory or the spool; None once acknowledged."""
         entry = self._unacked.get(seq)
         if entry is None:
-            return
-        data = entry[0]
-        if not data and self.spool is not None:
-            data = await asyncio.to_thread(self.spool.read, seq)
-        if await self._transmit(data):
-            self.stats.resent += 1
+            return None
+        if not entry[0] and self.spool is not None:
+            return await asyncio.to_thread(self.spool.read, seq)
+        return entry[0]
 
     async def _read(self, ws: ClientConnection) -> None:
         async for raw in ws:
