@@ -68,6 +68,7 @@ class Pose2D(BaseModel):
 class SessionStartMeta(_Meta):
     structure: str = Field(min_length=1, max_length=200)
     operator: str = Field(default="", max_length=200)
+    location: str = Field(default="", max_length=200)
     robot: str = Field(default="", max_length=200)
     calibration: dict[str, Any] = Field(default_factory=dict)
 

@@ -9,6 +9,7 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 from pathlib import Path
 
 from server.config import Settings
@@ -152,6 +153,83 @@ def cmd_map(args: argparse.Namespace) -> int:
     return 0
 
 
+def _database(args: argparse.Namespace) -> tuple[Any, Any]:
+    """(sessionmaker, SessionFiles) of the data directory, migrated to head."""
+    from server.db import make_engine, make_sessionmaker, upgrade
+    from server.storage import SessionFiles
+
+    settings = _settings(args)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url = settings.resolved_database_url()
+    upgrade(url)
+    return make_sessionmaker(make_engine(url)), SessionFiles(settings.data_dir)
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """Import an MCAP session log into a new session; prints its id and counts as JSON."""
+    from server.session_mcap import McapImportError, import_session
+
+    path = Path(args.file)
+    if not path.is_file():
+        raise CommandError(f"{path}: no such file")
+    factory, files = _database(args)
+    with factory() as db:
+        try:
+            result = import_session(db, files, path)
+        except McapImportError as exc:
+            raise CommandError(str(exc)) from None
+    print(json.dumps(result))
+    return 0
+
+
+def _session_id(factory: Any, session_id: str) -> str:
+    from server.models import InspectionSession
+
+    with factory() as db:
+        if db.get(InspectionSession, session_id) is None:
+            raise CommandError(f"no session {session_id!r} in this data directory")
+    return session_id
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """Write a session as an MCAP file."""
+    from server.session_mcap import export_session
+
+    factory, files = _database(args)
+    sid = _session_id(factory, args.session_id)
+    out = Path(args.out)
+    tmp = out.with_name(f".{out.name}.tmp")
+    try:
+        with factory() as db, tmp.open("wb") as fh:
+            counts = export_session(db, files, sid, fh)
+        tmp.replace(out)
+    except OSError as exc:
+        raise CommandError(f"cannot write {out}: {exc}") from None
+    finally:
+        tmp.unlink(missing_ok=True)
+    print(json.dumps({"session_id": sid, "mcap_path": str(out.resolve()), **counts}))
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Write a session's report.pdf, report.json and defects.csv into a folder."""
+    from server.exports import defects_csv
+    from server.report import build_report, write_pdf
+    from server.storage import write_atomic
+
+    factory, files = _database(args)
+    sid = _session_id(factory, args.session_id)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with factory() as db:
+        report = build_report(db, files, sid)
+        write_atomic(out / "report.json", json.dumps(report, indent=1).encode())
+        write_atomic(out / "defects.csv", "".join(defects_csv(report["defects"])).encode("utf-8"))
+        write_pdf(db, files, sid, out / "report.pdf")
+    print(json.dumps({name: str((out / name).resolve()) for name in ("report.pdf", "report.json", "defects.csv")}))
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     """Run benchmarks; one JSON line per result."""
     from server.bench import run_benchmarks
@@ -219,7 +297,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--limit", type=int, help="use at most this many images")
     s.set_defaults(func=cmd_bench)
 
-    admin = sub.add_parser("admin", help="robots (and, later, accounts)")
+    s = sub.add_parser("import", help="import a session's MCAP log (as exported) into a new session")
+    s.add_argument("file")
+    s.add_argument("--data-dir")
+    s.set_defaults(func=cmd_import)
+
+    s = sub.add_parser("export", help="write a session as an MCAP log that opens in Foxglove")
+    s.add_argument("session_id")
+    s.add_argument("--out", required=True)
+    s.add_argument("--data-dir")
+    s.set_defaults(func=cmd_export)
+
+    s = sub.add_parser("report", help="write a session's inspection report (PDF, JSON, CSV) into a folder")
+    s.add_argument("session_id")
+    s.add_argument("--out", required=True)
+    s.add_argument("--data-dir")
+    s.set_defaults(func=cmd_report)
+
+    admin = sub.add_parser("admin", help="accounts and robots")
     asub = admin.add_subparsers(dest="admin_command", required=True)
     s = asub.add_parser("create-user", help="create an account; the password is read from stdin")
     s.add_argument("name")

@@ -230,6 +230,10 @@ def _summary(url: str, auth: dict[str, str], result: SimResult, session: dict[st
         "job_errors": {k: j["error"] for k, j in jobs.items() if j["error"]},
         "dashboard_url": f"{url}/",
         "report_json_url": f"{url}/api/sessions/{sid}/report.json",
+        "report_pdf_url": f"{url}/api/sessions/{sid}/report.pdf",
+        "report_csv_url": f"{url}/api/sessions/{sid}/defects.csv",
+        "mcap_url": f"{url}/api/sessions/{sid}/export.mcap",
+        "mcap_path": jobs.get("export", {}).get("result", {}).get("mcap_path"),
     }
     if any(j["state"] == "failed" for j in jobs.values()):
         print(f"warning: some jobs failed: {summary['job_errors']}", file=sys.stderr)

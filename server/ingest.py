@@ -124,6 +124,7 @@ class Ingest:
                     robot_id=robot_id,
                     structure=meta["structure"],
                     operator=meta.get("operator", ""),
+                    location=meta.get("location", ""),
                     calibration=meta.get("calibration", {}),
                 )
             )

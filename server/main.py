@@ -18,7 +18,7 @@ from server.ingest import Ingest
 from server.jobs.runner import JobRunner
 from server.live import LiveHub
 from server.deps import get_current_user
-from server.routes import auth, jobs, sessions, view3d, ws
+from server.routes import auth, jobs, reports, sessions, view3d, ws
 from server.scene3d import Scene3D
 from server.state import AppState
 from server.ingest import GroupCommit, Ingest
@@ -79,6 +79,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(auth.router)
     app.include_router(sessions.router)
+    app.include_router(reports.router)
     app.include_router(jobs.router)
     app.include_router(ws.router)
     app.include_router(view3d.router)

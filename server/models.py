@@ -79,6 +79,8 @@ class InspectionSession(Base):
     robot_id: Mapped[int | None] = mapped_column(ForeignKey("robots.id"))
     structure: Mapped[str] = mapped_column(String(200))
     operator: Mapped[str] = mapped_column(String(200), default="")
+    location: Mapped[str] = mapped_column(String(200), default="", server_default="")
+    notes: Mapped[str] = mapped_column(Text, default="", server_default="")
     status: Mapped[SessionStatus] = mapped_column(
         Enum(SessionStatus, native_enum=False, length=16), default=SessionStatus.live
     )
@@ -200,3 +202,5 @@ class Defect(Base):
     review_status: Mapped[str] = mapped_column(String(16), default="unreviewed")
     condition_state: Mapped[str | None] = mapped_column(String(8))
     comment: Mapped[str] = mapped_column(Text, default="")
+    reviewed_by: Mapped[str | None] = mapped_column(String(200))
+    reviewed_at: Mapped[datetime | None]

@@ -144,3 +144,34 @@ def image_header(path: Path) -> tuple[int, int, str]:
             return im.size[0], im.size[1], im.mode
     except (OSError, UnidentifiedImageError, ValueError) as exc:
         raise ValueError(f"{path.name}: not a readable image ({exc.__class__.__name__})") from None
+
+
+def read_region(results: Path, x: int, y: int, w: int, h: int) -> np.ndarray:
+    """BGR pixels of the full-resolution mosaic in ``[x, x+w) × [y, y+h)`` (clipped to the
+    mosaic), read from the Deep Zoom tiles that cover it so the whole mosaic is never
+    decoded; from ``mosaic.png`` when there is no pyramid."""
+    world = json.loads((results / "mosaic.json").read_text())
+    width, height = int(world["width_px"]), int(world["height_px"])
+    x0, y0 = max(0, int(x)), max(0, int(y))
+    x1, y1 = min(width, int(x) + int(w)), min(height, int(y) + int(h))
+    if x1 <= x0 or y1 <= y0:
+        raise ValueError(f"region {x},{y},{w},{h} lies outside the {width}×{height} mosaic")
+    tiles = results / "mosaic_files"
+    if not world.get("dzi") or not tiles.is_dir():
+        img = pyvips.Image.new_from_file(str(results / "mosaic.png"), access="sequential")
+        rgb = np.ndarray(buffer=img.crop(x0, y0, x1 - x0, y1 - y0).write_to_memory(), dtype=np.uint8,
+                         shape=(y1 - y0, x1 - x0, img.bands))
+        return cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if img.bands == 3 else cv2.cvtColor(rgb, cv2.COLOR_GRAY2BGR)
+    level = int(np.ceil(np.log2(max(width, height)))) if max(width, height) > 1 else 0
+    out = np.zeros((y1 - y0, x1 - x0, 3), np.uint8)
+    for row in range(y0 // TILE_SIZE, (y1 - 1) // TILE_SIZE + 1):
+        for col in range(x0 // TILE_SIZE, (x1 - 1) // TILE_SIZE + 1):
+            tile = cv2.imread(str(tiles / str(level) / f"{col}_{row}.jpg"), cv2.IMREAD_COLOR)
+            if tile is None:
+                raise ValueError(f"mosaic tile {level}/{col}_{row} is missing or unreadable")
+            tx = col * TILE_SIZE - (TILE_OVERLAP if col > 0 else 0)  # where the tile's pixel 0 lies
+            ty = row * TILE_SIZE - (TILE_OVERLAP if row > 0 else 0)
+            cx0, cy0 = max(x0, col * TILE_SIZE), max(y0, row * TILE_SIZE)
+            cx1, cy1 = min(x1, (col + 1) * TILE_SIZE), min(y1, (row + 1) * TILE_SIZE)
+            out[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0] = tile[cy0 - ty:cy1 - ty, cx0 - tx:cx1 - tx]
+    return out

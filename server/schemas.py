@@ -27,13 +27,15 @@ class JobPublic(ORM):
 
 
 class JobCreate(BaseModel):
-    kind: Literal["stitch", "map", "detect"]
+    kind: Literal["stitch", "map", "detect", "export"]
 
 
 class SessionPublic(ORM):
     id: str
     structure: str
     operator: str
+    location: str = ""
+    notes: str = ""
     status: str
     started_at: datetime
     ended_at: datetime | None
@@ -46,6 +48,16 @@ class SessionPublic(ORM):
     robot_name: str | None = None
     calibration: dict[str, Any] = Field(default_factory=dict)
     jobs: list[JobPublic] = Field(default_factory=list)
+
+
+class SessionUpdate(BaseModel):
+    """What a user may correct about a session (for the report's cover)."""
+
+    model_config = ConfigDict(extra="forbid")
+    structure: str | None = Field(default=None, min_length=1, max_length=200)
+    location: str | None = Field(default=None, max_length=200)
+    operator: str | None = Field(default=None, max_length=200)
+    notes: str | None = Field(default=None, max_length=10_000)
 
 
 class SessionsPublic(BaseModel):
@@ -66,6 +78,24 @@ class FramePublic(ORM):
 
 class FramesPublic(BaseModel):
     data: list[FramePublic]
+    count: int
+
+
+class CloudPublic(ORM):
+    seq: int
+    timestamp: float
+    encoding: str
+    width: int
+    height: int
+    intrinsics: dict[str, Any]
+    size_bytes: int
+    pose_x: float | None
+    pose_y: float | None
+    pose_yaw: float | None
+
+
+class CloudsPublic(BaseModel):
+    data: list[CloudPublic]
     count: int
 
 
@@ -104,6 +134,22 @@ class DefectPublic(ORM):
     review_status: str
     condition_state: str | None
     comment: str
+    reviewed_by: str | None = None
+    reviewed_at: datetime | None = None
+
+
+ReviewStatus = Literal["unreviewed", "confirmed", "rejected"]
+ConditionState = Literal["CS1", "CS2", "CS3", "CS4"]
+
+
+class DefectReview(BaseModel):
+    """An inspector's verdict on one defect; fields left out stay as they are."""
+
+    model_config = ConfigDict(extra="forbid")
+    review_status: ReviewStatus | None = None
+    condition_state: ConditionState | None = None
+    clear_condition_state: bool = Field(default=False, description="set the condition state back to none")
+    comment: str | None = Field(default=None, max_length=2000)
 
 
 class DefectsPublic(BaseModel):

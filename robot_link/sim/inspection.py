@@ -49,6 +49,7 @@ class SimConfig:
     telemetry_hz: float = 4.0
     structure: str = "Simulated plate girder G3, span 2"
     operator: str = "demo"
+    location: str = "Steelscan test yard (simulated)"
     inclination_deg: float = 90.0
     ir_eps_m: float = 0.02
 
@@ -131,6 +132,7 @@ class InspectionSim:
         """Run the whole route and wait until the station acknowledged everything."""
         self._wall0 = time.monotonic()
         await self.link.send(MessageType.SESSION_START, {"structure": self.cfg.structure, "operator": self.cfg.operator,
+                                                          "location": self.cfg.location,
                                                           "robot": "sim", "calibration": self.calibration()})
         heading = 0.0
         for lane in range(self.cfg.lanes):

@@ -11,7 +11,7 @@ import logging
 import traceback
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -25,6 +25,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from processing.defects import Defect as Defect_
 from processing.defects import measure_defects
 from processing.detection import (
+    CorrosionParams,
     CrackParams,
     detect_corrosion,
     detect_cracks_tiled,
@@ -33,7 +34,7 @@ from processing.detection import (
 )
 from processing.mapping import MapParams, register_clouds
 from processing.poses import compose_se2, format_tum, image_to_world, se2_matrix, se2_to_se3, transfer_correction
-from processing.stitching import camera_poses, plan_mosaic, render_bands
+from processing.stitching import StitchParams, camera_poses, plan_mosaic, render_bands
 from robot_link.clouds import decode_cloud
 from server.models import Cloud, Defect, Frame, InspectionSession, Job, JobState, utcnow
 from server.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
@@ -42,7 +43,8 @@ from server.storage import SessionFiles, write_atomic
 log = logging.getLogger(__name__)
 
 # (kind, needs: fails without them, uses: waits for them and uses their results if any)
-PIPELINE: list[tuple[str, list[str], list[str]]] = [("stitch", [], []), ("map", [], ["stitch"]), ("detect", ["stitch"], [])]
+PIPELINE: list[tuple[str, list[str], list[str]]] = [("stitch", [], []), ("map", [], ["stitch"]), ("detect", ["stitch"], []),
+                                                    ("export", [], ["stitch", "map", "detect"])]
 
 
 @dataclass
@@ -162,7 +164,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
             "width_px": layout.width, "height_px": layout.height, "px_per_m": layout.px_per_m, "origin_m": list(layout.origin_m),
             "world_referenced": with_pose, "frames": len(use), "skipped_frames": [f.seq for f in skipped],
             "low_confidence_frames": int((~layout.confident).sum()), "pairs": layout.pairs, "rejected_pairs": layout.rejected_pairs,
-            "overview_scale": files.overview_scale}
+            "overview_scale": files.overview_scale, "params": params_record(StitchParams())}
 
 
 def run_map(ctx: JobContext) -> dict[str, Any]:
@@ -214,7 +216,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     return {"map_path": str(out / "map.ply"), "trajectory_path": str(out / "trajectory.tum"), "points": len(result.points),
             "guided_by_mosaic": robot is not None, "loop_closures": result.loop_closures,
             "clouds": len(clouds), "skipped_clouds": skipped, "cloud_seqs": seqs, "odometry_fallbacks": int(result.used_odometry.sum()),
-            "mean_fitness": float(result.fitness.mean())}
+            "mean_fitness": float(result.fitness.mean()), "params": params_record(params)}
 
 
 def _visual_robot_poses(ctx: JobContext, clouds: list[Cloud], seqs: list[int]) -> NDArray[np.float64] | None:
@@ -351,7 +353,29 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
         db.commit()
     by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
     return {"defects": len(found), "by_class": by_class, "frame_defects": len(frame_rows), "method": "proposed",
-            "crack_mask": str(out / "crack_mask.png")}
+            "crack_mask": str(out / "crack_mask.png"), "params": {"crack": params_record(CrackParams()), "corrosion": params_record(CorrosionParams())}}
 
 
-JOB_KINDS: dict[str, Callable[[JobContext], dict[str, Any]]] = {"stitch": run_stitch, "map": run_map, "detect": run_detect}
+def run_export(ctx: JobContext) -> dict[str, Any]:
+    """The whole session as an MCAP file (``results/session.mcap``), written under a temporary
+    name and renamed when complete."""
+    from server.session_mcap import export_session
+
+    out = ctx.results_dir()
+    tmp = out / f".session.mcap.{ctx.job_id}.tmp"
+    try:
+        with ctx.factory() as db, tmp.open("wb") as fh:
+            counts = export_session(db, ctx.files, ctx.session_id, fh, progress=ctx.progress)
+        tmp.replace(out / "session.mcap")
+    finally:
+        tmp.unlink(missing_ok=True)
+    return {"mcap_path": str(out / "session.mcap"), "bytes": (out / "session.mcap").stat().st_size, **counts}
+
+
+def params_record(params: Any) -> dict[str, Any]:
+    """A parameters dataclass as JSON-ready data (for the report's parameter table)."""
+    return json.loads(json.dumps(asdict(params), default=str))
+
+
+JOB_KINDS: dict[str, Callable[[JobContext], dict[str, Any]]] = {"stitch": run_stitch, "map": run_map, "detect": run_detect,
+                                                               "export": run_export}

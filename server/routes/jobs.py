@@ -25,7 +25,7 @@ def read_session_jobs(db: SessionDep, session_id: str) -> list[Job]:
 
 @router.post("/sessions/{session_id}/jobs", response_model=JobPublic, status_code=status.HTTP_202_ACCEPTED)
 def create_job(db: SessionDep, state: StateDep, session_id: str, body: JobCreate, _: OperatorUser) -> Job:
-    """Queue a processing job (stitch, map or detect) for a session (operator role)."""
+    """Queue a processing job (stitch, map, detect, or export: the session as MCAP) for a session (operator role)."""
     get_session_or_404(db, session_id)
     after: list[int] = []
     if body.kind == "detect":
