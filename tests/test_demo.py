@@ -1,27 +1,56 @@
-"""`steelscan demo --exit-when-done`: the whole ground station end to end, as a user runs it."""
+"""`steelscan demo --exit-when-done --keep-serving`: the whole ground station end to end, as a
+user runs it, then the report, CSV and MCAP fetched from the URLs it prints."""
 
+import csv
+import io
 import json
 import subprocess
 import sys
 from pathlib import Path
 
+import httpx
+from mcap.reader import make_reader
+
 
 def test_demo_runs_end_to_end(tmp_path: Path) -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "server.cli", "demo", "--data-dir", str(tmp_path), "--exit-when-done", "--lanes", "2", "--time-scale", "0"],
-        capture_output=True, text=True, timeout=300,
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "server.cli", "demo", "--data-dir", str(tmp_path), "--exit-when-done", "--keep-serving",
+         "--lanes", "2", "--time-scale", "0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    lines = proc.stdout.strip().splitlines()
-    assert lines[0].startswith("Dashboard: http://127.0.0.1:")
-    summary = json.loads(lines[-1])
-    assert summary["frames"] == summary["frames_sent"] > 0  # every frame stored exactly once
-    assert summary["clouds"] == summary["clouds_sent"] > 0
-    assert summary["jobs"] == {"stitch": "done", "map": "done", "detect": "done"}
-    assert Path(summary["mosaic_path"]).is_file() and Path(summary["map_path"]).is_file()
-    assert 0 <= summary["defects_matched"] <= summary["defects_true"] == 9
-    assert summary["defects_found"] >= summary["defects_matched"]
-    assert summary["frame_defects_found"] >= summary["frame_defects_matched"] >= 1  # frames placed on the structure
-    assert isinstance(summary["map_ate_m"], float) and summary["map_ate_m"] < 0.05
-    for key in ("session_id", "report_json_url"):
-        assert summary[key]
+    try:
+        assert proc.stdout is not None
+        lines = []
+        while not (lines and lines[-1].startswith("{")):
+            line = proc.stdout.readline()
+            assert line, f"demo ended early: {proc.stderr.read()[-3000:] if proc.stderr else ''}"
+            lines.append(line.strip())
+        assert lines[0].startswith("Dashboard: http://127.0.0.1:")
+        name, password = lines[1].removeprefix("Operator login: ").split(" / ")
+        summary = json.loads(lines[-1])
+        assert summary["frames"] == summary["frames_sent"] > 0  # every frame stored exactly once
+        assert summary["clouds"] == summary["clouds_sent"] > 0
+        assert summary["jobs"] == {"stitch": "done", "map": "done", "detect": "done", "export": "done"}
+        assert Path(summary["mosaic_path"]).is_file() and Path(summary["map_path"]).is_file()
+        assert 0 <= summary["defects_matched"] <= summary["defects_true"] == 9
+        assert summary["defects_found"] >= summary["defects_matched"]
+        assert summary["frame_defects_found"] >= summary["frame_defects_matched"] >= 1  # frames placed on the structure
+        assert isinstance(summary["map_ate_m"], float) and summary["map_ate_m"] < 0.05
+
+        base = lines[0].split()[1].rstrip("/")
+        token = httpx.post(f"{base}/api/auth/token", data={"username": name, "password": password}).json()["access_token"]
+        auth = {"Authorization": f"Bearer {token}"}
+        assert httpx.get(summary["report_pdf_url"]).status_code == 401  # the URLs need the operator's login
+        report = httpx.get(summary["report_json_url"], headers=auth).json()
+        assert report["summary"]["defects"] == summary["defects_found"]
+        pdf = httpx.get(summary["report_pdf_url"], headers=auth, timeout=120)
+        assert pdf.status_code == 200 and pdf.content.startswith(b"%PDF")
+        rows = list(csv.DictReader(io.StringIO(httpx.get(summary["report_csv_url"], headers=auth).content.decode("utf-8-sig"))))
+        assert len(rows) == summary["defects_found"]
+        mcap = httpx.get(summary["mcap_url"], headers=auth, timeout=120)
+        assert mcap.status_code == 200
+        stats = make_reader(io.BytesIO(mcap.content)).get_summary().statistics
+        assert stats is not None and stats.message_count > summary["frames"] + summary["clouds"]
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)

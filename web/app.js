@@ -153,14 +153,23 @@ function showSession(s) {
     });
   }
   defectsReq.then((body) => {
-    const head = ["#", "class", "length (mm)", "max width (mm)", "area (mm²)", "x (m)", "y (m)"];
-    const rows = body.data.map((d) => [d.id, d.defect_class, d.length_mm, d.max_width_mm, d.area_mm2, d.world_x_m, d.world_y_m]
-      .map((v) => (typeof v === "number" && !Number.isInteger(v) ? v.toFixed(2) : v ?? "–")));
-    table.replaceChildren(...[head, ...rows].map((cells, i) => {
+    const head = ["#", "class", "length (mm)", "max width (mm)", "area (mm²)", "x (m)", "y (m)", "review", "CS", "comment"];
+    const rows = body.data.map((d) => {
       const tr = document.createElement("tr");
-      for (const c of cells) { const td = document.createElement(i ? "td" : "th"); td.textContent = c; tr.appendChild(td); }
+      tr.dataset.defect = d.id;
+      for (const v of [d.id, d.defect_class, d.length_mm, d.max_width_mm, d.area_mm2, d.world_x_m, d.world_y_m]) {
+        const td = document.createElement("td");
+        td.textContent = typeof v === "number" && !Number.isInteger(v) ? v.toFixed(2) : v ?? "–";
+        tr.appendChild(td);
+      }
+      tr.append(reviewCell(s.id, d, "review_status", ["unreviewed", "confirmed", "rejected"]),
+                reviewCell(s.id, d, "condition_state", ["", "CS1", "CS2", "CS3", "CS4"]),
+                reviewCell(s.id, d, "comment", null));
       return tr;
-    }));
+    });
+    const hr = document.createElement("tr");
+    for (const c of head) { const th = document.createElement("th"); th.textContent = c; hr.appendChild(th); }
+    table.replaceChildren(hr, ...rows);
   });
   const mapJob = s.jobs.find((j) => j.kind === "map" && j.state === "done");
   if (mapJob) {
@@ -178,14 +187,78 @@ function showSession(s) {
     });
     div.appendChild(button);
   }
-  const a = document.createElement("a");
-  a.href = "#"; a.textContent = "report.json";
-  a.addEventListener("click", async (e) => {
-    e.preventDefault();
-    const blob = await (await api(`/api/sessions/${s.id}/report.json`)).blob();
-    window.open(URL.createObjectURL(blob));
+  div.appendChild(exportLinks(s));
+}
+
+function reviewCell(sessionId, d, field, options) {
+  // one review field of a defect, saved (PATCH) as soon as it changes
+  const td = document.createElement("td");
+  const input = options ? document.createElement("select") : document.createElement("input");
+  input.name = field;
+  input.setAttribute("aria-label", `${field} of defect ${d.id}`);
+  if (options) {
+    for (const o of options) { const opt = document.createElement("option"); opt.value = o; opt.textContent = o || "–"; input.appendChild(opt); }
+  }
+  input.value = d[field] ?? "";
+  input.addEventListener("change", async () => {
+    const body = field === "condition_state" && !input.value ? { clear_condition_state: true } : { [field]: input.value };
+    const res = await fetch(`/api/sessions/${sessionId}/defects/${d.id}`, {
+      method: "PATCH", headers: { ...authHeaders(), "Content-Type": "application/json" }, body: JSON.stringify(body),
+    });
+    input.classList.toggle("saved", res.ok);
+    input.classList.toggle("failed", !res.ok);
+    input.title = res.ok ? "saved" : `not saved (${res.status})`;
   });
-  div.appendChild(a);
+  td.appendChild(input);
+  return td;
+}
+
+async function download(path, filename, status) {
+  // authenticated download; an export that is still being made (202) is waited for
+  for (let attempt = 0; attempt < 600; attempt++) {
+    const res = await api(path);
+    if (res.status === 202) {
+      const job = await res.json();
+      text(status, `preparing… ${Math.round(job.progress * 100)}%`);
+      await new Promise((r) => setTimeout(r, 1000));
+      continue;
+    }
+    if (!res.ok) { text(status, `failed (${res.status})`); return; }
+    const url = URL.createObjectURL(await res.blob());
+    const a = document.createElement("a");
+    a.href = url; a.download = filename;
+    document.body.appendChild(a); a.click(); a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 60000);
+    text(status, "");
+    return;
+  }
+}
+
+function exportLinks(s) {
+  const box = document.createElement("div");
+  box.className = "exports";
+  box.id = "exports";
+  const status = document.createElement("span");
+  const done = (kind) => s.jobs.some((j) => j.kind === kind && j.state === "done");
+  const items = [
+    ["PDF report", "report.pdf", `${s.id}-report.pdf`, true],
+    ["Defects CSV", "defects.csv", `${s.id}-defects.csv`, true],
+    ["Report JSON", "report.json", `${s.id}-report.json`, true],
+    ["Session MCAP (Foxglove)", "export.mcap", `${s.id}.mcap`, true],
+    ["Mosaic overview PNG", "results/mosaic_overview.png", `${s.id}-mosaic.png`, done("stitch")],
+    ["Map PLY", "results/map.ply", `${s.id}-map.ply`, done("map")],
+    ["Trajectory TUM", "results/trajectory.tum", `${s.id}-trajectory.tum`, done("map")],
+  ];
+  for (const [label, path, filename, available] of items) {
+    if (!available) continue;
+    const b = document.createElement("button");
+    b.textContent = label;
+    b.dataset.export = path;
+    b.addEventListener("click", () => download(`/api/sessions/${s.id}/${path}`, filename, status));
+    box.appendChild(b);
+  }
+  box.appendChild(status);
+  return box;
 }
 
 let started = false;

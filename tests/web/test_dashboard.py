@@ -5,6 +5,7 @@ import subprocess
 import sys
 from urllib.parse import urlparse
 
+import httpx
 import pytest
 
 from tests.conftest import LiveServer
@@ -44,6 +45,27 @@ def test_live_page_shows_camera_and_telemetry_with_no_errors(live_server: LiveSe
         page.click("#sessions tbody tr:first-child")
         page.wait_for_function("document.querySelectorAll('#defects tr').length >= 2", timeout=20000)
         assert "crack" in page.inner_text("#defects") or "corrosion" in page.inner_text("#defects")
+        # review a defect in the table: saved at once, and in the report downloaded from the page
+        row = page.locator("#defects tr[data-defect]").first
+        defect_id = row.get_attribute("data-defect")
+        row.locator("select[name=review_status]").select_option("confirmed")
+        row.locator("select[name=condition_state]").select_option("CS2")
+        row.locator("input[name=comment]").fill("check weld toe")
+        row.locator("input[name=comment]").press("Enter")
+        row.locator("input[name=comment]").blur()
+        page.wait_for_selector(f"#defects tr[data-defect='{defect_id}'] input.saved", timeout=10000)
+        sid = page.inner_text("#session-detail h3").split(" — ")[-1]
+        stored = httpx.get(f"{live_server.url}/api/sessions/{sid}/defects/{defect_id}").json()
+        assert (stored["review_status"], stored["condition_state"], stored["comment"]) == ("confirmed", "CS2", "check weld toe")
+        with page.expect_download(timeout=120000) as dl:
+            page.click("#exports button[data-export='report.pdf']")
+        pdf = tmp_path / "report.pdf"
+        dl.value.save_as(pdf)
+        assert pdf.read_bytes().startswith(b"%PDF")
+        with page.expect_download(timeout=120000) as dl:
+            page.click("#exports button[data-export='defects.csv']")
+        dl.value.save_as(tmp_path / "defects.csv")
+        assert "check weld toe" in (tmp_path / "defects.csv").read_text(encoding="utf-8-sig")
         page_errors = list(errors)  # the 3D view's own WebGL console is not the dashboard's
         # the 3D map, proxied from viser under /viser/, embedded in the session page
         page.click("text=Show 3D map")

@@ -1,0 +1,240 @@
+"""Reports and exports of a real inspection: the simulated robot streams a session to the real
+server, the pipeline processes it, then report.json, the PDF (rendered to PNG pages), the CSV,
+defect review, thumbnails and the MCAP log (read back with the mcap library, re-imported)."""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import io
+import json
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+import pypdfium2
+import pytest
+from mcap.reader import make_reader
+from websockets.sync.client import connect
+
+from robot_link.client import RobotLink
+from robot_link.protocol import decode_message
+from robot_link.sim.inspection import InspectionSim, SimConfig
+from server.config import Settings
+from server.demo import BackgroundServer, free_port
+from tests.conftest import LiveServer, make_token
+from tests.server.test_ingest import start, ws_url
+from tests.server.test_jobs import wait_job
+
+
+@pytest.fixture(scope="module")
+def inspected(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveServer, str]]:
+    """A live server that holds one simulated inspection, fully processed."""
+    settings = Settings(data_dir=tmp_path_factory.mktemp("reports") / "data", job_workers=2, view3d=False)
+    token = make_token(settings)
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    try:
+        async def run() -> str:
+            link = RobotLink(server.url, token)
+            await link.start()
+            try:
+                return (await InspectionSim(link, SimConfig(seed=11, lanes=2, time_scale=0.0)).run()).session_id
+            finally:
+                await link.close()
+
+        sid = asyncio.run(run())
+        deadline = time.monotonic() + 240
+        while True:
+            jobs = httpx.get(f"{server.url}/api/sessions/{sid}/jobs").json()
+            if len(jobs) == 4 and all(j["state"] in ("done", "failed") for j in jobs):
+                break
+            assert time.monotonic() < deadline, jobs
+            time.sleep(0.3)
+        assert {j["kind"]: j["state"] for j in jobs} == {"stitch": "done", "map": "done", "detect": "done", "export": "done"}, jobs
+        yield LiveServer(server.url, settings, token, server.server.config.app), sid
+    finally:
+        server.stop()
+
+
+def test_report_json_summarises_the_session(inspected: tuple[LiveServer, str]) -> None:
+    live, sid = inspected
+    report = httpx.get(f"{live.url}/api/sessions/{sid}/report.json").raise_for_status().json()
+    assert report["cover"]["structure"] and report["cover"]["location"] and report["cover"]["operator"] == "demo"
+    s = report["summary"]
+    assert s["frames"] > 20 and s["clouds"] > 5
+    assert 0.1 < s["area_covered_m2"] < 2.0 and 1.0 < s["distance_travelled_m"] < 20.0
+    assert report["missing"] == [] and report["defect_source"] == "mosaic"
+    assert s["defects"] == len(report["defects"]) > 0
+    assert sum(s["defects_by_class"].values()) == s["defects"]
+    assert all(d["length_mm"] and d["world_x_m"] is not None for d in report["defects"])
+    assert [d["number"] for d in report["defects"]] == list(range(1, s["defects"] + 1))
+    assert set(report["parameters"]) == {"stitch", "map", "detect"}
+
+
+def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, str]) -> None:
+    live, sid = inspected
+    api = f"{live.url}/api/sessions/{sid}"
+    defects = httpx.get(f"{api}/defects", params={"source": "mosaic"}).json()["data"]
+    first, second = defects[0]["id"], defects[1]["id"]
+    r = httpx.patch(f"{api}/defects/{first}", json={"review_status": "confirmed", "condition_state": "CS3",
+                                                    "comment": "=HYPERLINK(\"x\") Riß at weld toe, re-inspect"})
+    assert r.status_code == 200 and r.json()["condition_state"] == "CS3" and r.json()["reviewed_by"]
+    assert httpx.patch(f"{api}/defects/{second}", json={"review_status": "rejected"}).status_code == 200
+    assert httpx.patch(f"{api}/defects/{first}", json={"condition_state": "CS9"}).status_code == 422
+    assert httpx.patch(f"{api}/defects/999999", json={"review_status": "confirmed"}).status_code == 404
+    confirmed = httpx.get(f"{api}/defects", params={"review_status": "confirmed"}).json()
+    assert [d["id"] for d in confirmed["data"]] == [first]
+    by_length = httpx.get(f"{api}/defects", params={"source": "mosaic", "sort": "-length_mm"}).json()["data"]
+    lengths = [d["length_mm"] for d in by_length]
+    assert lengths == sorted(lengths, reverse=True)
+
+    raw = httpx.get(f"{api}/defects.csv")
+    assert raw.status_code == 200 and raw.headers["content-type"].startswith("text/csv")
+    assert "attachment" in raw.headers["content-disposition"]
+    rows = list(csv.DictReader(io.StringIO(raw.content.decode("utf-8-sig"))))
+    assert len(rows) == len(defects)
+    row = next(r for r in rows if int(r["id"]) == first)
+    assert row["condition_state"] == "CS3" and row["review_status"] == "confirmed"
+    assert row["comment"].startswith("'=HYPERLINK") and "Riß" in row["comment"]  # no formula injection, accents intact
+    assert float(row["length_mm"]) > 0
+
+    report = httpx.get(f"{api}/report.json").json()
+    assert report["summary"]["defects_by_condition_state"]["CS3"] == 1
+    assert report["summary"]["defects_rejected"] == 1
+
+    pdf = httpx.get(f"{api}/report.pdf", timeout=120)
+    assert pdf.status_code == 200 and pdf.headers["content-type"] == "application/pdf"
+    doc = pypdfium2.PdfDocument(pdf.content)
+    assert len(doc) >= 5
+    text = " ".join(" ".join(doc[i].get_textpage().get_text_range() for i in range(len(doc))).split())
+    for expected in ("Steel structure inspection report", report["cover"]["structure"], "Summary", "Defects",
+                     "3D map of the structure", "Processing parameters", "CS3", "Riß at weld toe", "confirmed"):
+        assert expected in text, expected
+    for i in range(len(doc)):  # every page renders and has something on it
+        page = np.asarray(doc[i].render(scale=0.5).to_pil().convert("L"))
+        assert page.shape[0] > page.shape[1] > 200  # A4 portrait
+        assert (page < 200).mean() > 0.005, f"page {i + 1} is blank"
+    mosaic_page = np.asarray(doc[2].render(scale=1.0).to_pil().convert("RGB"))
+    red = (mosaic_page[..., 0] > 180) & (mosaic_page[..., 1] < 80) & (mosaic_page[..., 2] < 80)
+    assert red.sum() > 50  # the numbered defect markers are drawn
+    doc.close()
+
+
+def test_defect_thumbnail_and_cloud_downloads(inspected: tuple[LiveServer, str]) -> None:
+    live, sid = inspected
+    api = f"{live.url}/api/sessions/{sid}"
+    for source in ("mosaic", "frame"):
+        d = httpx.get(f"{api}/defects", params={"source": source, "limit": 1}).json()["data"][0]
+        r = httpx.get(f"{api}/defects/{d['id']}/thumbnail.jpg", params={"size": 128})
+        assert r.status_code == 200 and r.headers["content-type"] == "image/jpeg"
+        img = cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR)
+        assert max(img.shape[:2]) == 128 and img.std() > 5
+    clouds = httpx.get(f"{api}/clouds", params={"limit": 2}).json()
+    assert clouds["count"] > 5 and len(clouds["data"]) == 2
+    seq = clouds["data"][0]["seq"]
+    ply = httpx.get(f"{api}/clouds/{seq}/points.ply")
+    assert ply.status_code == 200 and ply.content.startswith(b"ply\nformat binary_little_endian")
+    n = int(ply.content.split(b"element vertex ")[1].split(b"\n")[0])
+    assert n > 1000 and len(ply.content.split(b"end_header\n", 1)[1]) == 12 * n
+    assert httpx.get(f"{api}/clouds/{seq}/raw").status_code == 200
+    assert httpx.get(f"{api}/clouds/99999999/raw").status_code == 404
+
+
+def test_mcap_opens_with_foxglove_schemas_and_reimports_losslessly(inspected: tuple[LiveServer, str], tmp_path: Path) -> None:
+    live, sid = inspected
+    api = f"{live.url}/api/sessions/{sid}"
+    path = tmp_path / "session.mcap"
+    with httpx.stream("GET", f"{api}/export.mcap", timeout=60) as r:
+        assert r.status_code == 200
+        with path.open("wb") as fh:
+            for chunk in r.iter_bytes():
+                fh.write(chunk)
+    with path.open("rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        assert summary is not None
+        schemas = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+        counts = {summary.channels[cid].topic: n for cid, n in summary.statistics.channel_message_counts.items()}
+    assert schemas["/camera/image"] == "foxglove.CompressedImage"
+    assert schemas["/tof/points"] == "foxglove.PointCloud" and schemas["/tf"] == "foxglove.FrameTransform"
+    assert schemas["/camera/odometry"] == "foxglove.PoseInFrame" and schemas["/map/points"] == "foxglove.PointCloud"
+    session = httpx.get(api).json()
+    assert counts["/camera/image"] == session["frames"] and counts["/tof/points"] == session["clouds"]
+    assert counts["/robot/telemetry"] == session["telemetry"]
+
+    out = subprocess.run([sys.executable, "-m", "server.cli", "import", str(path), "--data-dir", str(live.settings.data_dir)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    new = result["session_id"]
+    assert new != sid and result["frames"] == session["frames"] and result["clouds"] == session["clouds"]
+    copy = httpx.get(f"{live.url}/api/sessions/{new}").json()
+    assert copy["structure"] == session["structure"] and copy["calibration"] == session["calibration"]
+    a = httpx.get(f"{api}/frames", params={"limit": 1000}).json()["data"]
+    b = httpx.get(f"{live.url}/api/sessions/{new}/frames", params={"limit": 1000}).json()["data"]
+    assert a == b  # sequence numbers, timestamps, sizes and odometry poses
+    for f in a[:: max(1, len(a) // 8)]:
+        assert httpx.get(f"{api}/frames/{f['seq']}/image").content == httpx.get(f"{live.url}/api/sessions/{new}/frames/{f['seq']}/image").content
+    ca = httpx.get(f"{api}/clouds", params={"limit": 1000}).json()["data"]
+    cb = httpx.get(f"{live.url}/api/sessions/{new}/clouds", params={"limit": 1000}).json()["data"]
+    assert ca == cb
+    for c in ca[:: max(1, len(ca) // 5)]:
+        assert httpx.get(f"{api}/clouds/{c['seq']}/raw").content == httpx.get(f"{live.url}/api/sessions/{new}/clouds/{c['seq']}/raw").content
+
+
+def test_import_refuses_a_file_that_is_not_an_mcap_session(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"\x89MCAP0\r\n" + b"garbage" * 100)
+    data = tmp_path / "data"
+    for target in (bad, tmp_path / "missing.mcap"):
+        out = subprocess.run([sys.executable, "-m", "server.cli", "import", str(target), "--data-dir", str(data)],
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode != 0 and out.stderr.strip().splitlines()[-1].startswith("error: ")
+        assert "Traceback" not in out.stderr
+    assert not list((data / "sessions").glob("*")) if (data / "sessions").exists() else True
+
+
+def test_report_of_an_empty_session_says_what_is_missing(live_server: LiveServer) -> None:
+    sid = uuid.uuid4()
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+        ws.send(start(sid))
+        decode_message(ws.recv(timeout=10))
+    api = f"{live_server.url}/api/sessions/{sid}"
+    report = httpx.get(f"{api}/report.json").json()
+    assert report["summary"]["frames"] == 0 and report["defects"] == []
+    assert report["missing"] == ["stitch", "map", "detect"]
+    assert any("No mosaic" in n and "not been run" in n for n in report["notes"])
+    pdf = httpx.get(f"{api}/report.pdf", timeout=60)
+    assert pdf.status_code == 200
+    doc = pypdfium2.PdfDocument(pdf.content)
+    text = "\n".join(doc[i].get_textpage().get_text_range() for i in range(len(doc)))
+    assert "No mosaic" in text and "Defect detection has not run" in text and "No 3D map" in text
+    doc.close()
+    rows = httpx.get(f"{api}/defects.csv").content.decode("utf-8-sig").splitlines()
+    assert len(rows) == 1 and rows[0].startswith("number,id,defect_class")
+    assert httpx.get(f"{live_server.url}/api/sessions/nope/report.pdf").status_code == 404
+    # a session that is still live gets an export job, not a stale file
+    r = httpx.get(f"{api}/export.mcap")
+    assert r.status_code == 202 and r.json()["kind"] == "export"
+    job = wait_job(live_server.url, r.json()["id"])
+    assert job["state"] == "done", job
+
+
+def test_session_cover_fields_can_be_corrected(live_server: LiveServer) -> None:
+    sid = uuid.uuid4()
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+        ws.send(start(sid))
+        decode_message(ws.recv(timeout=10))
+    api = f"{live_server.url}/api/sessions/{sid}"
+    r = httpx.patch(api, json={"location": "Bridge 12, pier 3 east", "notes": "wind 8 m/s"})
+    assert r.status_code == 200 and r.json()["location"] == "Bridge 12, pier 3 east"
+    assert httpx.patch(api, json={"structure": ""}).status_code == 422
+    assert httpx.patch(api, json={"robot_id": 3}).status_code == 422
+    assert httpx.get(f"{api}/report.json").json()["cover"]["notes"] == "wind 8 m/s"
