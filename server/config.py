@@ -20,6 +20,7 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = 8765
     max_message_bytes: int = 8 * 1024 * 1024
+    max_import_bytes: int = Field(default=50 * 1024**3, description="largest MCAP file POST /api/sessions/import accepts")
     robot_messages_per_s: float = Field(default=3000.0, description="rate limit per robot connection (ERROR, retry, beyond it)")
     robot_message_burst: float = Field(default=500.0, description="messages a robot may send at once before the rate limit")
     fsync: bool = Field(default=False, description="fsync every stored file (power-loss safety)")

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import uuid
 from typing import Any
 
-from fastapi import APIRouter, Depends, Request, status
+from fastapi import APIRouter, Depends, HTTPException, Request, UploadFile, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from sqlalchemy import select
 
-from server.deps import SessionDep, StateDep, get_current_user
+from server.deps import OperatorUser, SessionDep, StateDep, get_current_user
 from server.exports import defects_csv
 from server.models import InspectionSession, Job, JobState, SessionStatus
 from server.report import build_report, write_pdf
@@ -92,3 +93,29 @@ def read_session_mcap(db: SessionDep, state: StateDep, session_id: str) -> Any:
     assert pending is not None
     body = JobPublic.model_validate(pending).model_dump(mode="json")
     return JSONResponse(body, status_code=status.HTTP_202_ACCEPTED, headers={"Retry-After": "2", "Location": f"/api/jobs/{pending.id}"})
+
+
+@router.post("/import", status_code=status.HTTP_201_CREATED)
+async def import_mcap(db: SessionDep, state: StateDep, file: UploadFile, _: OperatorUser) -> dict[str, Any]:
+    """Import a session's MCAP log (as exported by this station) into a new session (operator
+    role); frames and clouds are stored byte for byte."""
+    from server.session_mcap import McapImportError, import_session
+
+    tmp_dir = state.files.data_dir / "imports"
+    tmp_dir.mkdir(parents=True, exist_ok=True)
+    tmp = tmp_dir / f".upload-{uuid.uuid4().hex}.mcap"
+    try:
+        size = 0
+        with tmp.open("wb") as fh:
+            while chunk := await file.read(1 << 20):
+                size += len(chunk)
+                if size > state.settings.max_import_bytes:
+                    raise HTTPException(status.HTTP_413_REQUEST_ENTITY_TOO_LARGE,
+                                        f"the file is larger than the import limit of {state.settings.max_import_bytes} bytes")
+                fh.write(chunk)
+        try:
+            return await run_in_threadpool(import_session, db, state.files, tmp)
+        except McapImportError as exc:
+            raise HTTPException(422, str(exc).replace(tmp.name, file.filename or "upload")) from None
+    finally:
+        tmp.unlink(missing_ok=True)

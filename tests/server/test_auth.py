@@ -51,6 +51,12 @@ def test_open_until_the_first_account_then_401_and_403(live_server: LiveServer) 
     job = {"kind": "stitch"}
     assert httpx.post(f"{url}/api/sessions/{sid}/jobs", json=job, headers=viewer).status_code == 403
     assert httpx.post(f"{url}/api/sessions/{sid}/jobs", json=job, headers=operator).status_code == 202
+    # viewers read reports but may not change what they say
+    assert httpx.get(f"{url}/api/sessions/{sid}/report.json", headers=viewer).status_code == 200
+    assert httpx.get(f"{url}/api/sessions/{sid}/defects.csv").status_code == 401
+    assert httpx.patch(f"{url}/api/sessions/{sid}", json={"location": "x"}, headers=viewer).status_code == 403
+    assert httpx.patch(f"{url}/api/sessions/{sid}", json={"location": "x"}, headers=operator).status_code == 200
+    assert httpx.patch(f"{url}/api/sessions/{sid}/defects/1", json={"comment": "x"}, headers=viewer).status_code == 403
     # static pages and the OpenAPI document stay reachable
     assert httpx.get(f"{url}/").status_code == 200
     assert httpx.get(f"{url}/static/app.js").status_code == 200

@@ -182,6 +182,11 @@ def test_mcap_opens_with_foxglove_schemas_and_reimports_losslessly(inspected: tu
     assert a == b  # sequence numbers, timestamps, sizes and odometry poses
     for f in a[:: max(1, len(a) // 8)]:
         assert httpx.get(f"{api}/frames/{f['seq']}/image").content == httpx.get(f"{live.url}/api/sessions/{new}/frames/{f['seq']}/image").content
+    with path.open("rb") as fh:  # the same through REST
+        up = httpx.post(f"{live.url}/api/sessions/import", files={"file": ("session.mcap", fh)}, timeout=120)
+    assert up.status_code == 201 and up.json()["frames"] == session["frames"] and up.json()["session_id"] not in (sid, new)
+    bad = httpx.post(f"{live.url}/api/sessions/import", files={"file": ("x.mcap", b"not an mcap at all")})
+    assert bad.status_code == 422 and "x.mcap" in bad.json()["detail"]
     ca = httpx.get(f"{api}/clouds", params={"limit": 1000}).json()["data"]
     cb = httpx.get(f"{live.url}/api/sessions/{new}/clouds", params={"limit": 1000}).json()["data"]
     assert ca == cb
