@@ -47,6 +47,7 @@ class LinkStats:
     errors: int = 0
     last_ack_latency_s: float = 0.0
     spool_bytes: int = 0
+    video_dropped: int = 0
 
 
 def robot_ws_url(server_url: str) -> str:
@@ -84,8 +85,12 @@ class RobotLink:
         on_command: CommandHandler | None = None,
         max_backoff_s: float = 5.0,
         spool: Spool | None = None,
+        on_link_change: Callable[[bool], None] | None = None,
     ) -> None:
         self.url = robot_ws_url(server_url)
+        self.on_link_change = on_link_change  # called with True on (re)connect, False when the link drops
+        self._video_busy = False
+        self._video_seq = 0
         self.token = token
         self.session_id = session_id or uuid.uuid4()
         self.window = window
@@ -169,6 +174,19 @@ class RobotLink:
         data = encode_message(Message(mtype, self.session_id, seq, time.time(), meta))
         await self._transmit(data)
 
+    async def send_video(self, meta: dict[str, Any], jpeg: bytes) -> bool:
+        """Send a live preview frame (VIDEO): never spooled or resent; dropped when offline or
+        while the previous one is still being written (stale video is worth nothing)."""
+        if self._video_busy or self._ws is None or not self._connected.is_set():
+            self.stats.video_dropped += 1
+            return False
+        self._video_busy = True
+        try:
+            self._video_seq += 1
+            return await self._transmit(encode_message(Message(MessageType.VIDEO, self.session_id, self._video_seq, time.time(), meta, jpeg)))
+        finally:
+            self._video_busy = False
+
     async def flush(self, timeout_s: float = 60.0) -> None:
         """Wait until every message sent so far is acknowledged."""
         async with self._space:
@@ -208,12 +226,14 @@ class RobotLink:
             try:
                 headers = {"Authorization": f"Bearer {self.token}"}
                 async with connect(
-                    self.url, additional_headers=headers, max_size=2**20, open_timeout=10
+                    self.url, additional_headers=headers, max_size=2**20, open_timeout=10,
+                    compression=None,  # JPEG and PNG payloads do not deflate: compression only costs CPU
                 ) as ws:
                     self._ws = ws
                     backoff = 0.1
                     await self._resend_all(ws)
                     self._connected.set()
+                    self._link_changed(True)
                     await self._read(ws)
             except websockets.InvalidStatus as exc:
                 status = exc.response.status_code
@@ -227,12 +247,21 @@ class RobotLink:
                 log.info("link: connection lost (%s); reconnecting in %.1f s", exc, backoff)
             finally:
                 self._ws = None
-                self._connected.clear()
+                if self._connected.is_set():
+                    self._connected.clear()
+                    self._link_changed(False)
             if self._closing:
                 return
             self.stats.reconnects += 1
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, self.max_backoff_s)
+
+    def _link_changed(self, up: bool) -> None:
+        if self.on_link_change is not None:
+            try:
+                self.on_link_change(up)
+            except Exception:  # the robot's own handler must not break the link
+                log.exception("link: on_link_change handler failed")
 
     async def _fail(self, error: LinkError) -> None:
         self._fatal = error

@@ -50,6 +50,7 @@ class MessageType(enum.IntEnum):
     ACK = 7
     ERROR = 8
     COMMAND_ACK = 9
+    VIDEO = 10  # live preview frame: relayed to browsers, never stored, never acknowledged
 
 
 class _Meta(BaseModel):
@@ -105,8 +106,22 @@ class TelemetryMeta(_Meta):
     battery_v: dict[str, float] | None = None
 
 
+class VideoMeta(_Meta):
+    encoding: Literal["jpeg"] = "jpeg"
+    width: int = Field(gt=0, le=16384)
+    height: int = Field(gt=0, le=16384)
+
+
+COMMANDS = ("drive", "stop", "estop", "resume", "capture", "lift", "auto_capture", "end_session")
+DRIVE_HOLD_S = 0.2  # a drive command holds this long; the robot stops unless a newer one arrives
+
+
 class CommandMeta(_Meta):
-    cmd: Literal["drive", "stop", "estop", "resume", "capture", "lift", "auto_capture"]
+    """An operator's command. ``drive`` args: ``linear_mps``, ``angular_radps`` (held for
+    DRIVE_HOLD_S); ``lift``: ``axle`` front|rear, ``up`` bool; ``auto_capture``: ``on`` bool,
+    ``spacing_m``; any command may carry ``sent_ms`` (the operator's clock, ms since the epoch)."""
+
+    cmd: Literal["drive", "stop", "estop", "resume", "capture", "lift", "auto_capture", "end_session"]
     args: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -135,6 +150,7 @@ META_MODELS: dict[MessageType, type[_Meta]] = {
     MessageType.ACK: AckMeta,
     MessageType.ERROR: ErrorMeta,
     MessageType.COMMAND_ACK: CommandAckMeta,
+    MessageType.VIDEO: VideoMeta,
 }
 
 JPEG_SOI = b"\xff\xd8"
@@ -222,9 +238,9 @@ def _validate_meta(mtype: MessageType, meta: dict[str, Any]) -> dict[str, Any]:
 
 
 def _check_payload(mtype: MessageType, meta: dict[str, Any], payload: bytes) -> None:
-    if mtype is MessageType.FRAME:
+    if mtype in (MessageType.FRAME, MessageType.VIDEO):
         if not payload.startswith(JPEG_SOI):
-            raise ProtocolError("FRAME payload is not a JPEG (missing FF D8 start marker)")
+            raise ProtocolError(f"{mtype.name} payload is not a JPEG (missing FF D8 start marker)")
     elif mtype is MessageType.CLOUD:
         if meta["encoding"] == "png16_depth_mm":
             if not payload.startswith(PNG_SIGNATURE):

@@ -32,7 +32,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = _settings(args)
     host = args.host or settings.host
     port = args.port if args.port is not None else settings.port
-    uvicorn.run(create_app(settings), host=host, port=port, log_level="info", ws_max_size=settings.max_message_bytes + 1024)
+    uvicorn.run(create_app(settings), host=host, port=port, log_level="info", ws_max_size=settings.max_message_bytes + 1024,
+                ws_per_message_deflate=False)  # media does not deflate: compression would only cost CPU
     return 0
 
 
@@ -52,7 +53,13 @@ def cmd_sim(args: argparse.Namespace) -> int:
         spool = Spool(Path(args.spool), max_bytes=int(args.spool_max_mb * 2**20)) if args.spool else None
         link = RobotLink(args.server, token, spool=spool)
         await link.start()
-        sim = InspectionSim(link, config, progress=lambda f, m: logging.getLogger("sim").info("%3.0f%% %s", f * 100, m))
+        if args.teleop:
+            from robot_link.sim.teleop import TeleopConfig, TeleopSim
+
+            sim: InspectionSim = TeleopSim(link, SimConfig(seed=args.seed, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0),
+                                           TeleopConfig(duration_s=args.duration))
+        else:
+            sim = InspectionSim(link, config, progress=lambda f, m: logging.getLogger("sim").info("%3.0f%% %s", f * 100, m))
         try:
             result = await sim.run()
             if not args.exit_when_done:
@@ -269,6 +276,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--time-scale", type=float, default=20.0)
     s.add_argument("--lanes", type=int, default=5)
     s.add_argument("--seed", type=int, default=7)
+    s.add_argument("--teleop", action="store_true", help="drive as the operator commands (live video, dead-man stop) instead of the route")
+    s.add_argument("--duration", type=float, help="with --teleop: end the session after this many seconds (default: on the operator's end_session)")
     s.set_defaults(func=cmd_sim)
 
     s = sub.add_parser("detect", help="crack/defect segmentation of images")

@@ -47,7 +47,7 @@ class BackgroundServer:
 
     def __init__(self, settings: Settings, port: int) -> None:
         config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning",
-                                ws_max_size=settings.max_message_bytes + 1024, lifespan="on")
+                                ws_max_size=settings.max_message_bytes + 1024, ws_per_message_deflate=False, lifespan="on")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
         self.url = f"http://127.0.0.1:{port}"

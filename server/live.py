@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import struct
 import time
@@ -19,6 +20,8 @@ class Watcher:
 
     queue: asyncio.Queue[bytes | str] = field(default_factory=lambda: asyncio.Queue(maxsize=8))
     dropped: int = 0
+    id: int = 0
+    user: str = ""
 
     def offer(self, item: bytes | str) -> None:
         """Queue an item without ever blocking the robot's ingest."""
@@ -45,7 +48,9 @@ class LiveHub:
         self.watchers: set[Watcher] = set()
         self.robots: dict[str, SendCommand] = {}  # session id -> command sender
         self.latest: dict[str, dict[str, Any]] = {}  # session id -> last telemetry
+        self.controllers: dict[str, Watcher] = {}  # session id -> the one browser that drives its robot
         self._command_seq: dict[str, int] = {}
+        self._watcher_ids = itertools.count(1)
 
     def next_command_seq(self, session_id: str) -> int:
         """Increasing command seq, clock-based so a restarted station never reuses one."""
@@ -53,17 +58,51 @@ class LiveHub:
         self._command_seq[session_id] = seq
         return seq
 
-    def watch(self) -> Watcher:
+    def watch(self, user: str = "") -> Watcher:
         """Register a browser."""
-        watcher = Watcher(queue=asyncio.Queue(maxsize=self.queue_size))
+        watcher = Watcher(queue=asyncio.Queue(maxsize=self.queue_size), id=next(self._watcher_ids), user=user)
         self.watchers.add(watcher)
+        watcher.offer(json.dumps({"type": "hello", "watcher_id": watcher.id}))
+        for sid in self.robots:
+            watcher.offer(json.dumps({"type": "robot", "session_id": sid, "connected": True}))
         for sid, telemetry in self.latest.items():
             watcher.offer(json.dumps({"type": "telemetry", "session_id": sid, "data": telemetry}))
+        for sid in self.controllers:
+            watcher.offer(json.dumps(self._control_event(sid)))
         return watcher
 
-    def unwatch(self, watcher: Watcher) -> None:
-        """Forget a browser."""
+    def unwatch(self, watcher: Watcher) -> list[str]:
+        """Forget a browser; the sessions whose robot it was driving (now released)."""
         self.watchers.discard(watcher)
+        released = [sid for sid, w in self.controllers.items() if w is watcher]
+        for sid in released:
+            self.release_control(sid, watcher)
+        return released
+
+    def _control_event(self, session_id: str) -> dict[str, Any]:
+        w = self.controllers.get(session_id)
+        return {"type": "control", "session_id": session_id, "holder": w.user if w else None, "holder_id": w.id if w else None}
+
+    def take_control(self, session_id: str, watcher: Watcher, *, force: bool = False) -> str:
+        """Make ``watcher`` the one that drives the robot of a session; '' on success, else
+        who holds it. ``force`` (admins) takes it over."""
+        holder = self.controllers.get(session_id)
+        if holder is not None and holder is not watcher and not force:
+            return f"the robot is driven by {holder.user or 'another operator'}"
+        self.controllers[session_id] = watcher
+        if holder is not watcher:
+            self.publish_json(self._control_event(session_id))
+        return ""
+
+    def release_control(self, session_id: str, watcher: Watcher) -> None:
+        """Give up driving a robot (only its holder can)."""
+        if self.controllers.get(session_id) is watcher:
+            del self.controllers[session_id]
+            self.publish_json(self._control_event(session_id))
+
+    def controller(self, session_id: str) -> Watcher | None:
+        """The browser that drives the robot of a session, if any."""
+        return self.controllers.get(session_id)
 
     def publish_json(self, event: dict[str, Any]) -> None:
         """Send a JSON event to every browser."""

@@ -226,6 +226,11 @@ class InspectionSim:
             await asyncio.sleep(0)
 
     async def send_telemetry(self) -> None:
+        """Send one telemetry sample."""
+        await self.link.send(MessageType.TELEMETRY, self.telemetry_meta())
+        self.result.telemetry_sent += 1
+
+    def telemetry_meta(self) -> dict[str, Any]:
         """One telemetry sample: odometry, Hall wheel speeds/distances, IR, batteries, adhesion."""
         r = self.robot
         ranges = r.ir_ranges(self.structure.on_plate)
@@ -243,10 +248,10 @@ class InspectionSim:
             "distance_m": round(r.distance_m, 4),
             "paused": self.paused,
             "link": {"pending": self.link.pending, "resent": self.link.stats.resent,
-                     "ack_latency_ms": round(self.link.stats.last_ack_latency_s * 1000, 2)},
+                     "ack_latency_ms": round(self.link.stats.last_ack_latency_s * 1000, 2),
+                     "reconnects": self.link.stats.reconnects, "video_dropped": self.link.stats.video_dropped},
         }
-        await self.link.send(MessageType.TELEMETRY, meta)
-        self.result.telemetry_sent += 1
+        return meta
 
     async def capture(self) -> None:
         """Stop, take a camera frame and a ToF cloud, and send both with the odometry pose."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import struct
@@ -138,6 +139,11 @@ class RobotConnection:
         if message.type in (MessageType.ACK, MessageType.ERROR, MessageType.COMMAND):
             await self.send_error(message.session_id, message.seq, f"{message.type.name} is not sent by robots")
             return
+        if message.type is MessageType.VIDEO:  # live preview: relayed, never stored or acknowledged
+            if self.bucket.take():
+                self.state.hub.publish_frame({"session_id": str(message.session_id), "seq": message.seq, "t": message.timestamp,
+                                              "video": True}, message.payload)
+            return
         if message.type is MessageType.COMMAND_ACK:
             self.state.hub.publish_json({"type": "command_ack", "session_id": str(message.session_id), "seq": message.seq, **message.meta})
             return
@@ -202,7 +208,7 @@ async def live_socket(websocket: WebSocket) -> None:
         await websocket.close(code=1008, reason="a valid token is required")
         return
     await websocket.accept()
-    watcher = hub.watch()
+    watcher = hub.watch(user.name)
 
     async def pump() -> None:
         while True:
@@ -219,12 +225,14 @@ async def live_socket(websocket: WebSocket) -> None:
             if not has_role(user, Role.operator):
                 await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "error": f"commands need the operator role; you are {user.role.value}"}))
                 continue
-            await _handle_browser_command(websocket, hub, text)
+            await _handle_browser_message(websocket, hub, watcher, user, text)
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:
         pump_task.cancel()
-        hub.unwatch(watcher)
+        for sid in hub.unwatch(watcher):  # the driver's page went away: stop its robot now
+            with contextlib.suppress(KeyError, ProtocolError, RuntimeError, OSError):
+                await hub.command(sid, "stop", {"reason": "operator disconnected"})
 
 
 def _browser_user(factory: Any, token: str | None) -> User | None:
@@ -235,22 +243,52 @@ def _browser_user(factory: Any, token: str | None) -> User | None:
         return user_for_token(db, token)
 
 
-async def _handle_browser_command(websocket: WebSocket, hub: Any, text: str) -> None:
+async def _reply(websocket: WebSocket, **fields: Any) -> None:
+    await websocket.send_text(json.dumps({"type": "command_result", **fields}))
+
+
+async def _handle_browser_message(websocket: WebSocket, hub: Any, watcher: Any, user: User, text: str) -> None:
+    """One operator message: ``{"type": "control", "session_id", "action": "take"|"release",
+    "force"}`` or a command ``{"session_id", "cmd", "args"}``. Anyone with the operator role
+    may stop or e-stop; other commands come only from the one browser that drives the robot
+    (the first to command a free robot takes it)."""
     try:
         request = json.loads(text)
+        if not isinstance(request, dict):
+            raise TypeError("a message must be a JSON object")
         sid = str(request["session_id"])
-        cmd = str(request["cmd"])
-        args = request.get("args") or {}
-        if not isinstance(args, dict):
-            raise TypeError("args must be an object")
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
-        await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "error": f"bad command: {exc}"}))
+        if request.get("type") == "control":
+            action = request.get("action")
+            if action not in ("take", "release"):
+                raise ValueError("action must be take or release")
+        else:
+            cmd = str(request["cmd"])
+            args = request.get("args") or {}
+            if not isinstance(args, dict):
+                raise TypeError("args must be an object")
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        await _reply(websocket, ok=False, error=f"bad command: {exc}")
         return
+    if request.get("type") == "control":
+        if action == "release":
+            hub.release_control(sid, watcher)
+            await _reply(websocket, ok=True, cmd="release")
+            return
+        refused = hub.take_control(sid, watcher, force=bool(request.get("force")) and has_role(user, Role.admin))
+        await _reply(websocket, ok=not refused, cmd="take", error=refused or None)
+        return
+    if cmd not in ("stop", "estop"):
+        refused = hub.take_control(sid, watcher) if hub.controller(sid) in (None, watcher) else \
+            f"the robot is driven by {hub.controller(sid).user or 'another operator'}; you can watch, stop or e-stop it"
+        if refused:
+            await _reply(websocket, ok=False, cmd=cmd, error=refused)
+            return
     try:
         seq = await hub.command(sid, cmd, args)
     except KeyError:
-        await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "cmd": cmd, "error": "no robot is connected for that session"}))
+        await _reply(websocket, ok=False, cmd=cmd, error="no robot is connected for that session")
     except ProtocolError as exc:
-        await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "cmd": cmd, "error": str(exc)}))
+        await _reply(websocket, ok=False, cmd=cmd, error=str(exc))
     else:
-        await websocket.send_text(json.dumps({"type": "command_result", "ok": True, "cmd": cmd, "seq": seq}))
+        if cmd != "drive":  # drive repeats 20 times a second: its result would only be noise
+            await _reply(websocket, ok=True, cmd=cmd, seq=seq)

@@ -1,0 +1,158 @@
+"""The teleoperated simulated robot against the real server, driven through the browsers'
+websocket: it moves while commands arrive, stops by itself within the dead-man bound when
+they stop, on e-stop, and when its driver's page goes away; one operator drives, others watch."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import struct
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import pytest
+from websockets.sync.client import ClientConnection, connect
+
+from robot_link.client import RobotLink
+from robot_link.protocol import DRIVE_HOLD_S
+from robot_link.sim.inspection import SimConfig
+from robot_link.sim.teleop import TeleopConfig, TeleopSim
+from server.config import Settings
+from tests.conftest import LiveServer
+
+DEADMAN_BOUND_MS = 300
+
+
+@dataclass
+class Robot:
+    sim: TeleopSim
+    session_id: str
+    thread: threading.Thread
+    loop: asyncio.AbstractEventLoop
+
+
+@pytest.fixture
+def settings(tmp_path) -> Settings:  # type: ignore[no-untyped-def]
+    return Settings(data_dir=tmp_path / "data", job_workers=1, auto_process=False, view3d=False)
+
+
+@pytest.fixture
+def robot(live_server: LiveServer) -> Iterator[Robot]:
+    ready = threading.Event()
+    holder: dict = {}
+
+    def run() -> None:
+        async def main() -> None:
+            link = RobotLink(live_server.url, live_server.token)
+            sim = TeleopSim(link, SimConfig(seed=3, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0), TeleopConfig(video_fps=10))
+            holder.update(sim=sim, loop=asyncio.get_running_loop(), sid=str(link.session_id))
+            await link.start()
+            ready.set()
+            try:
+                await sim.run()
+            finally:
+                await link.close()
+
+        asyncio.run(main())
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    assert ready.wait(30)
+    r = Robot(holder["sim"], holder["sid"], thread, holder["loop"])
+    yield r
+    r.sim.end_requested = True
+    thread.join(timeout=60)
+
+
+def browser(live_server: LiveServer) -> ClientConnection:
+    return connect(live_server.url.replace("http", "ws") + "/ws/live", max_size=2**22, close_timeout=0.5)
+
+
+def events(ws: ClientConnection, until: float) -> Iterator[dict | bytes]:
+    while time.monotonic() < until:
+        try:
+            item = ws.recv(timeout=max(0.01, until - time.monotonic()))
+        except TimeoutError:
+            return
+        yield item if isinstance(item, bytes) else json.loads(item)
+
+
+def wait_for_robot(ws: ClientConnection, sid: str) -> None:
+    for e in events(ws, time.monotonic() + 20):
+        if isinstance(e, dict) and e.get("type") == "robot" and e["session_id"] == sid and e["connected"]:
+            return
+    raise AssertionError("the robot never attached")
+
+
+def drive(ws: ClientConnection, sid: str, seconds: float, v: float = 0.1) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        ws.send(json.dumps({"session_id": sid, "cmd": "drive", "args": {"linear_mps": v, "angular_radps": 0.0,
+                                                                          "sent_ms": time.time() * 1000}}))
+        time.sleep(0.05)
+
+
+def test_drives_while_commanded_and_stops_within_the_deadman_bound(live_server: LiveServer, robot: Robot) -> None:
+    with browser(live_server) as ws:
+        wait_for_robot(ws, robot.session_id)
+        x0 = float(robot.sim.robot.odom[0])
+        drive(ws, robot.session_id, 1.0)
+        assert robot.sim.v == pytest.approx(0.1)
+        time.sleep(DEADMAN_BOUND_MS / 1000)  # no more commands: the robot stops by itself
+        assert robot.sim.v == 0.0
+        moved = float(robot.sim.robot.odom[0]) - x0
+        assert 0.07 < moved < 0.14  # about a second at 0.1 m/s
+        assert robot.sim.log.deadman_stops_ms and max(robot.sim.log.deadman_stops_ms) <= DEADMAN_BOUND_MS
+        assert min(robot.sim.log.deadman_stops_ms) >= DRIVE_HOLD_S * 1000
+        assert robot.sim.log.command_latency_ms and sorted(robot.sim.log.command_latency_ms)[len(robot.sim.log.command_latency_ms) // 2] < 50
+        # live video and telemetry reach the browser
+        video, telemetry = 0, None
+        for e in events(ws, time.monotonic() + 2):
+            if isinstance(e, bytes):
+                header = json.loads(e[4:4 + struct.unpack("<I", e[:4])[0]])
+                video += bool(header.get("video")) and e[4 + struct.unpack("<I", e[:4])[0]:].startswith(b"\xff\xd8")
+            elif e.get("type") == "telemetry" and e["session_id"] == robot.session_id:
+                telemetry = e["data"]
+        assert video >= 10 and telemetry is not None
+        assert telemetry["mode"] == "teleop" and telemetry["drive"]["linear_mps"] == 0.0
+
+
+def test_estop_holds_until_resume(live_server: LiveServer, robot: Robot) -> None:
+    with browser(live_server) as ws:
+        wait_for_robot(ws, robot.session_id)
+        drive(ws, robot.session_id, 0.3)
+        ws.send(json.dumps({"session_id": robot.session_id, "cmd": "estop"}))
+        time.sleep(0.2)
+        assert robot.sim.v == 0.0 and robot.sim.estopped
+        drive(ws, robot.session_id, 0.3)
+        assert robot.sim.v == 0.0 and any("emergency stop" in r for r in robot.sim.log.refused)
+        ws.send(json.dumps({"session_id": robot.session_id, "cmd": "resume"}))
+        time.sleep(0.2)
+        drive(ws, robot.session_id, 0.2)
+        assert robot.sim.v > 0
+
+
+def test_one_operator_drives_others_watch_and_the_robot_stops_when_the_driver_leaves(live_server: LiveServer, robot: Robot) -> None:
+    with browser(live_server) as watcher:
+        wait_for_robot(watcher, robot.session_id)
+        driver = browser(live_server)
+        wait_for_robot(driver, robot.session_id)
+        drive(driver, robot.session_id, 0.3)
+        # the second browser may not drive, but may stop
+        watcher.send(json.dumps({"session_id": robot.session_id, "cmd": "drive", "args": {"linear_mps": -0.1}}))
+        refusal = next(e for e in events(watcher, time.monotonic() + 5) if isinstance(e, dict) and e.get("type") == "command_result")
+        assert not refusal["ok"] and "driven by" in refusal["error"]
+        # the driver's page goes away mid-drive: the station stops the robot at once
+        drive(driver, robot.session_id, 0.3)
+        driver.close()
+        t0 = time.monotonic()
+        while robot.sim.v != 0.0:
+            assert time.monotonic() - t0 < DEADMAN_BOUND_MS / 1000
+            time.sleep(0.005)
+        control = [e for e in events(watcher, time.monotonic() + 1) if isinstance(e, dict) and e.get("type") == "control"]
+        assert control and control[-1]["holder"] is None
+        # now the watcher may take over
+        drive(watcher, robot.session_id, 0.2)
+        assert robot.sim.v < 0 or robot.sim.log.drive_commands > 0
