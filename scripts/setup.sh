@@ -11,6 +11,8 @@ ldconfig -p 2>/dev/null | grep -q 'libgomp.so.1' || need_apt+=(libgomp1)
 if [ "${STEELSCAN_BROWSER_TESTS:-1}" = "1" ] && ! command -v chromium >/dev/null 2>&1; then
   need_apt+=(chromium)
 fi
+# the dashboard's front-end libraries come from the npm registry (web/package-lock.json)
+command -v npm >/dev/null 2>&1 || need_apt+=(nodejs npm)
 if [ ${#need_apt[@]} -gt 0 ]; then
   echo "setup: installing system packages: ${need_apt[*]}" >&2
   SUDO=""; [ "$(id -u)" = "0" ] || SUDO="sudo"
@@ -29,4 +31,11 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
   .venv/bin/python -m pip install -q -e '.[dev]'
   touch "$stamp"
+fi
+
+web_stamp=web/node_modules/.steelscan-installed
+if [ ! -f "$web_stamp" ] || [ web/package-lock.json -nt "$web_stamp" ]; then
+  echo "setup: installing the dashboard's front-end libraries (npm ci in web/)" >&2
+  (cd web && npm ci --no-audit --no-fund --loglevel=error >/dev/null)
+  touch "$web_stamp"
 fi

@@ -90,4 +90,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return FileResponse(web_dir / "index.html")
 
     app.mount("/static", StaticFiles(directory=web_dir), name="static")
+    # front-end libraries installed from npm by scripts/setup.sh (web/package-lock.json): served here, never from a CDN
+    for name, folder in (("openseadragon", "openseadragon/build/openseadragon"), ("uplot", "uplot/dist")):
+        path = web_dir / "node_modules" / folder
+        if path.is_dir():
+            app.mount(f"/vendor/{name}", StaticFiles(directory=path), name=f"vendor-{name}")
+        else:
+            log.warning("web: %s is missing: run scripts/setup.sh (npm ci in web/)", path)
     return app

@@ -1,8 +1,16 @@
-"""The page at / in Debian's headless chromium, against the real server and simulator."""
+"""The dashboard in Debian's headless chromium against the real server and simulator: live
+video and telemetry, driving by keyboard with the dead-man stop, e-stop, one driver per robot,
+session review with the mosaic viewer and a review that survives a reload, downloads, 3D view.
+Screenshots of each page go to the test's output folder."""
+
+from __future__ import annotations
 
 import shutil
 import subprocess
 import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
 from urllib.parse import urlparse
 
 import httpx
@@ -14,71 +22,192 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = [pytest.mark.browser, pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")]
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync"]
+SHOTS = Path(__file__).resolve().parent.parent.parent / "test-output" / "screenshots"
 
 
-def test_live_page_shows_camera_and_telemetry_with_no_errors(live_server: LiveServer, tmp_path) -> None:
+def shot(page, name: str) -> None:  # type: ignore[no-untyped-def]
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
+
+
+def watch_errors(page, errors: list[str], foreign: list[str]) -> None:  # type: ignore[no-untyped-def]
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("request", lambda r: foreign.append(r.url) if urlparse(r.url).hostname not in ("127.0.0.1", None)
+            and not r.url.startswith(("data:", "blob:")) else None)
+
+
+def sim(live_server: LiveServer, *args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "server.cli", "sim", "--server", live_server.url, "--token", live_server.token, *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def latest_telemetry(url: str, sid: str) -> dict:
+    count = httpx.get(f"{url}/api/sessions/{sid}/telemetry", params={"limit": 1}).json()["count"]
+    return httpx.get(f"{url}/api/sessions/{sid}/telemetry", params={"skip": max(0, count - 1), "limit": 1}).json()["data"][0]["data"]
+
+
+def wait_until(predicate, timeout_s: float, what: str) -> float:  # type: ignore[no-untyped-def]
+    t0 = time.monotonic()
+    while not predicate():
+        assert time.monotonic() - t0 < timeout_s, f"timed out waiting for {what}"
+        time.sleep(0.05)
+    return time.monotonic() - t0
+
+
+def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: LiveServer, tmp_path: Path) -> None:
     from playwright.sync_api import sync_playwright
 
     errors: list[str] = []
     foreign: list[str] = []
     with sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1280, "height": 900})
-        page.on("pageerror", lambda exc: errors.append(str(exc)))
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("request", lambda r: foreign.append(r.url) if urlparse(r.url).hostname not in ("127.0.0.1", None) and not r.url.startswith("data:") else None)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        watch_errors(page, errors, foreign)
         page.goto(live_server.url + "/")
         page.wait_for_selector("#link-state.ok", timeout=15000)
-        sim = subprocess.Popen([sys.executable, "-m", "server.cli", "sim", "--server", live_server.url, "--token", live_server.token,
-                                "--exit-when-done", "--lanes", "1", "--time-scale", "4"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        robot = sim(live_server, "--exit-when-done", "--lanes", "1", "--time-scale", "4")
         try:
             page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 2", timeout=120000)
             page.wait_for_selector("#telemetry dt", timeout=20000)
             assert "battery" in page.inner_text("#telemetry")
-            page.wait_for_function("document.querySelectorAll('#sessions tbody tr').length >= 1", timeout=20000)
-            page.screenshot(path=str(tmp_path / "dashboard.png"))
+            shot(page, "drive-route")
         finally:
-            out, err = sim.communicate(timeout=120)
-        assert sim.returncode == 0, err[-2000:]
-        # once processed, a session shows its mosaic and defect table
-        page.wait_for_function("document.querySelector('#sessions tbody').textContent.includes('detect: done')", timeout=120000)
+            out, err = robot.communicate(timeout=120)
+        assert robot.returncode == 0, err[-2000:]
+        page.goto(live_server.url + "/#/sessions")
+        page.wait_for_function("document.querySelector('#sessions tbody')?.textContent.includes('detect ✓')", timeout=120000)
+        shot(page, "sessions")
         page.click("#sessions tbody tr:first-child")
-        page.wait_for_function("document.querySelectorAll('#defects tr').length >= 2", timeout=20000)
+        page.wait_for_selector("#defects tr[data-defect]", timeout=20000)
+        page.wait_for_selector("#mosaic-viewer[data-ready]", timeout=20000)  # OpenSeadragon over the tile pyramid
+        assert page.locator(".defect-box").count() == page.locator("#defects tr[data-defect]").count()
         assert "crack" in page.inner_text("#defects") or "corrosion" in page.inner_text("#defects")
-        # review a defect in the table: saved at once, and in the report downloaded from the page
-        row = page.locator("#defects tr[data-defect]").first
-        defect_id = row.get_attribute("data-defect")
-        row.locator("select[name=review_status]").select_option("confirmed")
-        row.locator("select[name=condition_state]").select_option("CS2")
+        # keyboard review: next defect, confirm, condition state 3; then a comment
+        page.keyboard.press("j")
+        defect_id = page.get_attribute("#defects tr.selected", "data-defect")
+        page.keyboard.press("c")
+        page.keyboard.press("3")
+        row = page.locator(f"#defects tr[data-defect='{defect_id}']")
         row.locator("input[name=comment]").fill("check weld toe")
-        row.locator("input[name=comment]").press("Enter")
-        row.locator("input[name=comment]").blur()
+        row.locator("input[name=comment]").press("Tab")
         page.wait_for_selector(f"#defects tr[data-defect='{defect_id}'] input.saved", timeout=10000)
+        page.wait_for_selector(f"#defects tr[data-defect='{defect_id}'] select[name=condition_state].saved", timeout=10000)
         sid = page.inner_text("#session-detail h3").split(" — ")[-1]
         stored = httpx.get(f"{live_server.url}/api/sessions/{sid}/defects/{defect_id}").json()
-        assert (stored["review_status"], stored["condition_state"], stored["comment"]) == ("confirmed", "CS2", "check weld toe")
+        assert (stored["review_status"], stored["condition_state"], stored["comment"]) == ("confirmed", "CS3", "check weld toe")
+        # the review survives a reload of the page
+        page.reload()
+        page.wait_for_selector(f"#defects tr[data-defect='{defect_id}']", timeout=20000)
+        row = page.locator(f"#defects tr[data-defect='{defect_id}']")
+        assert row.locator("select[name=review_status]").input_value() == "confirmed"
+        assert row.locator("select[name=condition_state]").input_value() == "CS3"
+        assert row.locator("input[name=comment]").input_value() == "check weld toe"
+        # filters and sorting
+        page.select_option("#filter-review", "confirmed")
+        assert page.locator("#defects tr[data-defect]").count() == 1
+        page.select_option("#filter-review", "")
+        page.click("#defects th:has-text('length')")
+        page.click("#defects th:has-text('length')")  # descending
+        lengths = [float(t) for t in page.locator("#defects tr[data-defect] td:nth-child(3)").all_inner_texts() if t != "–"]
+        assert lengths == sorted(lengths, reverse=True)
+        shot(page, "session-review")
+        # downloads from the page
         with page.expect_download(timeout=120000) as dl:
             page.click("#exports button[data-export='report.pdf']")
-        pdf = tmp_path / "report.pdf"
-        dl.value.save_as(pdf)
-        assert pdf.read_bytes().startswith(b"%PDF")
+        dl.value.save_as(tmp_path / "report.pdf")
+        assert (tmp_path / "report.pdf").read_bytes().startswith(b"%PDF")
         with page.expect_download(timeout=120000) as dl:
             page.click("#exports button[data-export='defects.csv']")
         dl.value.save_as(tmp_path / "defects.csv")
         assert "check weld toe" in (tmp_path / "defects.csv").read_text(encoding="utf-8-sig")
         page_errors = list(errors)  # the 3D view's own WebGL console is not the dashboard's
         # the 3D map, proxied from viser under /viser/, embedded in the session page
-        page.click("text=Show 3D map")
+        page.click("#show-3d")
         page.wait_for_selector("#view3d", timeout=20000)
         frame = page.frame_locator("#view3d")
         frame.locator("#root").wait_for(timeout=30000)
-        # the view's own panel arrives over the proxied websocket, with the session's title
         frame.get_by_text("Click a defect marker to see it.").wait_for(timeout=30000)
         frame.get_by_text("Simulated plate girder").first.wait_for(timeout=30000)
-        assert live_server.app.state.steelscan.scene.session_id in page.inner_text("#session-detail h3")
-        page.screenshot(path=str(tmp_path / "session-3d.png"), full_page=True)
+        assert live_server.app.state.steelscan.scene.session_id == sid
+        shot(page, "session-3d")
         browser.close()
     assert page_errors == []
+    assert foreign == []
+
+
+@pytest.fixture
+def teleop_robot(live_server: LiveServer) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """A teleoperated simulated robot, connected, and its session id."""
+    robot = sim(live_server, "--teleop", "--duration", "120", "--exit-when-done")
+    try:
+        def session() -> str | None:
+            rows = httpx.get(f"{live_server.url}/api/sessions").json()["data"]
+            return rows[0]["id"] if rows else None
+
+        wait_until(lambda: session() is not None, 60, "the teleop session")
+        yield robot, str(session())
+    finally:
+        robot.terminate()
+        robot.wait(timeout=30)
+
+
+def test_drive_by_keyboard_with_deadman_estop_and_one_driver(live_server: LiveServer, teleop_robot: tuple) -> None:
+    from playwright.sync_api import sync_playwright
+
+    _, sid = teleop_robot
+    url = live_server.url
+    errors: list[str] = []
+    foreign: list[str] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        watch_errors(page, errors, foreign)
+        page.goto(url + "/")
+        page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000)  # live video
+        x0 = latest_telemetry(url, sid)["pose"]["x"]
+        # a held key drives the robot and the telemetry shows it
+        page.keyboard.down("ArrowUp")
+        page.wait_for_function("document.querySelector('#telemetry').textContent.includes('0.08 · turn')", timeout=5000)
+        time.sleep(1.0)
+        assert page.inner_text("#control-state") == "you drive"
+        shot(page, "drive-teleop")
+        page.keyboard.up("ArrowUp")
+        stopped = wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0, 2, "the robot to stop on key release")
+        assert latest_telemetry(url, sid)["pose"]["x"] > x0 + 0.05
+        assert stopped < 1.0
+        # e-stop: the robot stops and refuses to drive until the e-stop is reset
+        page.keyboard.down("ArrowUp")
+        time.sleep(0.5)
+        page.click("#estop")
+        wait_until(lambda: latest_telemetry(url, sid)["estop"], 2, "the e-stop")
+        page.keyboard.up("ArrowUp")
+        page.keyboard.down("ArrowUp")
+        time.sleep(0.5)
+        assert latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0
+        page.wait_for_function("document.querySelector('#command-result').textContent.includes('emergency stop')", timeout=5000)
+        page.keyboard.up("ArrowUp")
+        page.click("button[data-cmd=resume]")
+        wait_until(lambda: not latest_telemetry(url, sid)["estop"], 2, "the e-stop reset")
+        # a second operator's page watches, may not drive, may stop
+        other = browser.new_page()
+        watch_errors(other, errors, foreign)
+        other.goto(url + "/")
+        other.wait_for_function("document.querySelector('#control-state').textContent.startsWith('driven by')", timeout=20000)
+        other.focus("body")
+        other.keyboard.down("ArrowUp")
+        other.wait_for_function("document.querySelector('#command-result').textContent.includes('driven by')", timeout=5000)
+        other.keyboard.up("ArrowUp")
+        assert latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0
+        # the driver's page closes while driving: the robot stops
+        page.keyboard.down("ArrowUp")
+        wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] > 0, 3, "driving again")
+        page.close()
+        wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0, 2, "the robot to stop when its driver's page closed")
+        other.wait_for_function("document.querySelector('#control-state').textContent === 'nobody drives'", timeout=5000)
+        other.close()
+        browser.close()
+    assert errors == []
     assert foreign == []
 
 
@@ -96,6 +225,7 @@ def test_sign_in_when_accounts_exist(live_server: LiveServer) -> None:
         page.on("pageerror", lambda exc: errors.append(str(exc)))
         page.goto(live_server.url + "/")
         page.wait_for_selector("#login:not([hidden])", timeout=15000)
+        shot(page, "sign-in")
         page.fill("input[name=username]", "otto")
         page.fill("input[name=password]", "wrong password")
         page.click("#login button")

@@ -1,0 +1,217 @@
+// The drive page: live video, drive controls (buttons, keys, gamepad), robot selection and
+// control, capture and lift. Drive commands repeat every REPEAT_MS while an input is held;
+// the robot stops by itself when they stop arriving (its dead-man hold), and this page sends
+// an explicit stop when the input is released, the tab is hidden or loses focus.
+import { text } from "./api.js";
+import { link, on, send } from "./live.js";
+
+const REPEAT_MS = 50;
+const TURN_RADPS = 0.5;
+const canvas = document.getElementById("camera");
+const ctx2d = canvas.getContext("2d");
+const robots = new Map(); // session id -> {connected, holder, holderId, lastTelemetry}
+const held = new Set(); // drive inputs held: forward, back, left, right (keys and pad buttons)
+let selected = null;
+let moving = false;
+let drawing = false;
+const frameTimes = [];
+
+// what the teleop benchmark and the tests read
+export const stats = { video: [], command: [], frames: 0 };
+window.steelscanStats = stats;
+
+export function selectedSession() { return selected; }
+
+function robotLabel(sid) { return `session ${sid.slice(0, 8)}`; }
+
+function refreshRobots() {
+  const select = document.getElementById("robot-select");
+  const live = [...robots.entries()].filter(([, r]) => r.connected);
+  if (!selected || !robots.get(selected)?.connected) selected = live.length ? live[live.length - 1][0] : null;
+  select.replaceChildren(...live.map(([sid]) => {
+    const o = document.createElement("option"); o.value = sid; o.textContent = robotLabel(sid); o.selected = sid === selected; return o;
+  }));
+  const state = document.getElementById("robot-state");
+  text(state, selected ? `robot: ${robotLabel(selected)}` : "no robot");
+  state.classList.toggle("ok", Boolean(selected));
+  refreshControl();
+}
+
+function iDrive() { const r = robots.get(selected); return Boolean(r && r.holderId !== null && r.holderId === link.watcherId); }
+
+function refreshControl() {
+  const r = robots.get(selected);
+  const state = document.getElementById("control-state");
+  const button = document.getElementById("take-control");
+  if (!r) { text(state, "no robot connected"); button.disabled = true; return; }
+  button.disabled = false;
+  if (r.holder === null || r.holder === undefined) { text(state, "nobody drives"); text(button, "Take control"); }
+  else if (iDrive()) { text(state, "you drive"); text(button, "Release control"); }
+  else { text(state, `driven by ${r.holder}`); text(button, "Take control"); }
+  state.classList.toggle("ok", iDrive());
+}
+
+function robot(sid) {
+  if (!robots.has(sid)) robots.set(sid, { connected: false, holder: null, holderId: null });
+  return robots.get(sid);
+}
+
+export function command(cmd, args = {}) {
+  if (!selected) { text(document.getElementById("command-result"), "no live robot"); return false; }
+  return send({ session_id: selected, cmd, args: { ...args, sent_ms: Date.now() } });
+}
+
+function estopAll() {
+  // any operator may stop every robot, whoever drives it
+  for (const [sid, r] of robots) if (r.connected) send({ session_id: sid, cmd: "estop", args: { sent_ms: Date.now() } });
+  held.clear();
+  moving = false;
+}
+
+function velocity() {
+  const speed = Number(document.getElementById("speed").value);
+  let v = 0; let w = 0;
+  if (held.has("forward")) v += speed;
+  if (held.has("back")) v -= speed;
+  if (held.has("left")) w += TURN_RADPS;
+  if (held.has("right")) w -= TURN_RADPS;
+  const pad = gamepad();
+  if (pad) { v += -pad.y * speed; w += -pad.x * TURN_RADPS; }
+  return [v, w];
+}
+
+function gamepad() {
+  const pads = navigator.getGamepads ? [...navigator.getGamepads()].filter(Boolean) : [];
+  if (!pads.length) return null;
+  const p = pads[0];
+  const dead = (a) => (Math.abs(a) < 0.15 ? 0 : a);
+  if (p.buttons[1]?.pressed) { held.clear(); return null; } // B: stop
+  const x = dead(p.axes[0] || 0); const y = dead(p.axes[1] || 0);
+  return x || y ? { x, y } : null;
+}
+
+function tick() {
+  const [v, w] = velocity();
+  if (v || w) {
+    if (command("drive", { linear_mps: v, angular_radps: w })) moving = true;
+  } else if (moving) {
+    command("stop");
+    moving = false;
+  }
+}
+
+function release(reason) {
+  if (held.size || moving) { held.clear(); command("stop", { reason }); moving = false; }
+}
+
+const KEYS = { ArrowUp: "forward", KeyW: "forward", ArrowDown: "back", KeyS: "back", ArrowLeft: "left", KeyA: "left", ArrowRight: "right", KeyD: "right" };
+
+function typing(e) { return ["INPUT", "SELECT", "TEXTAREA"].includes(e.target.tagName) && e.target.type !== "range" && e.target.type !== "checkbox"; }
+
+function onKeyDown(e) {
+  if (document.getElementById("view-drive").hidden) return;
+  if (e.code === "Escape") { estopAll(); return; }
+  if (typing(e)) return;
+  if (e.code === "Space") { e.preventDefault(); release("space"); command("stop"); return; }
+  if (e.code === "KeyC" && !e.repeat) { command("capture"); return; }
+  const input = KEYS[e.code];
+  if (!input) return;
+  e.preventDefault();
+  if (!held.has(input)) {
+    held.add(input);
+    stats.keyDownAt = performance.timeOrigin + e.timeStamp;
+    tick(); // at once, not on the next repeat
+  }
+}
+
+function onKeyUp(e) {
+  const input = KEYS[e.code];
+  if (!input || !held.has(input)) return;
+  held.delete(input);
+  if (!held.size) release("key released");
+}
+
+function drawFrame(header, jpeg) {
+  if (header.session_id !== selected && selected) return;
+  if (drawing) return; // never queue frames: draw the newest, drop what arrives meanwhile
+  drawing = true;
+  createImageBitmap(new Blob([jpeg], { type: "image/jpeg" })).then((bmp) => {
+    ctx2d.drawImage(bmp, 0, 0, canvas.width, canvas.height);
+    bmp.close();
+    const now = Date.now();
+    const latency = now - header.t * 1000;
+    stats.video.push(latency);
+    if (stats.video.length > 5000) stats.video.shift();
+    stats.frames += 1;
+    canvas.dataset.frames = String(stats.frames);
+    frameTimes.push(now);
+    while (frameTimes.length && frameTimes[0] < now - 2000) frameTimes.shift();
+    text(document.getElementById("video-info"), `${(frameTimes.length / 2).toFixed(0)} fps · ${latency.toFixed(0)} ms`);
+    text(document.getElementById("frame-info"), `${robotLabel(header.session_id)} · ${header.video ? "live" : `frame #${header.seq}`}`);
+  }).catch(() => {}).finally(() => { drawing = false; });
+}
+
+function onEvent(ev) {
+  if (ev.type === "robot") { robot(ev.session_id).connected = ev.connected; refreshRobots(); }
+  else if (ev.type === "control") {
+    const r = robot(ev.session_id); r.holder = ev.holder; r.holderId = ev.holder_id; refreshControl();
+  } else if (ev.type === "command_ack" && typeof ev.latency_ms === "number") {
+    stats.command.push(ev.latency_ms);
+    if (stats.command.length > 5000) stats.command.shift();
+    if (!ev.accepted && ev.reason) text(document.getElementById("command-result"), `robot refused ${ev.cmd}: ${ev.reason}`);
+  } else if (ev.type === "command_result") {
+    text(document.getElementById("command-result"), ev.ok ? `${ev.cmd} sent` : `${ev.cmd || "command"}: ${ev.error}`);
+  } else if (ev.type === "telemetry") {
+    const r = robot(ev.session_id);
+    r.lastTelemetry = ev.data;
+    if (!r.connected) { r.connected = true; refreshRobots(); }
+    if (ev.session_id === selected && ev.data.lift) {
+      for (const axle of ["front", "rear"]) document.getElementById(`lift-${axle}`).setAttribute("aria-pressed", String(Boolean(ev.data.lift[axle])));
+    }
+    if (ev.session_id === selected && ev.data.drive) text(document.getElementById("hold-ms"), String(ev.data.drive.hold_ms));
+  } else if (ev.type === "session" && ev.event === "session_end") {
+    robot(ev.session_id).connected = false; refreshRobots();
+  } else if (ev.type === "link" && !ev.open) {
+    held.clear(); moving = false;
+  }
+}
+
+export function initDrive() {
+  on("event", onEvent);
+  on("frame", drawFrame);
+  document.getElementById("estop").addEventListener("click", estopAll);
+  document.getElementById("robot-select").addEventListener("change", (e) => { release("robot changed"); selected = e.target.value; refreshControl(); });
+  document.getElementById("take-control").addEventListener("click", () => {
+    if (!selected) return;
+    send({ type: "control", session_id: selected, action: iDrive() ? "release" : "take" });
+  });
+  document.querySelectorAll("button[data-cmd]").forEach((b) => b.addEventListener("click", () => command(b.dataset.cmd)));
+  document.querySelectorAll("button[data-drive]").forEach((b) => {
+    const input = b.dataset.drive;
+    b.addEventListener("pointerdown", (e) => { b.setPointerCapture(e.pointerId); held.add(input); tick(); });
+    for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) {
+      b.addEventListener(type, () => { if (held.delete(input) && !held.size) release("button released"); });
+    }
+  });
+  document.querySelectorAll("button[data-lift]").forEach((b) => b.addEventListener("click", () => {
+    command("lift", { axle: b.dataset.lift, up: b.getAttribute("aria-pressed") !== "true" });
+  }));
+  const autoCapture = () => command("auto_capture", {
+    on: document.getElementById("auto-capture").checked,
+    spacing_m: Number(document.getElementById("capture-spacing").value) / 100,
+  });
+  document.getElementById("auto-capture").addEventListener("change", autoCapture);
+  document.getElementById("capture-spacing").addEventListener("change", autoCapture);
+  document.getElementById("end-session").addEventListener("click", () => {
+    if (confirm("End the robot's inspection session? Processing starts when it ends.")) command("end_session");
+  });
+  const speed = document.getElementById("speed");
+  speed.addEventListener("input", () => text(document.getElementById("speed-value"), `${Number(speed.value).toFixed(2)} m/s`));
+  document.addEventListener("keydown", onKeyDown);
+  document.addEventListener("keyup", onKeyUp);
+  window.addEventListener("blur", () => release("window lost focus"));
+  document.addEventListener("visibilitychange", () => { if (document.hidden) release("tab hidden"); });
+  window.addEventListener("pagehide", () => release("page closed"));
+  setInterval(tick, REPEAT_MS);
+  refreshRobots();
+}

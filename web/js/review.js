@@ -1,0 +1,236 @@
+// One session: cover details, downloads, the mosaic in a pan-and-zoom viewer (OpenSeadragon
+// over the Deep Zoom pyramid) with the defects drawn on it, the defect table with filters,
+// sorting and review (confirm / reject, CS1–CS4, comment; keyboard shortcuts), the 3D view.
+import { api, apiJSON, authHeaders, download, el, fmt, patchJSON, text, token } from "./api.js";
+
+const COLUMNS = [
+  ["id", "#"], ["defect_class", "class"], ["length_mm", "length (mm)"], ["max_width_mm", "max width (mm)"],
+  ["area_mm2", "area (mm²)"], ["world_x_m", "x (m)"], ["world_y_m", "y (m)"],
+];
+const view = { session: null, defects: [], sort: "id", desc: false, selected: null, viewer: null, overlays: new Map() };
+
+function visible() {
+  const cls = document.getElementById("filter-class")?.value || "";
+  const review = document.getElementById("filter-review")?.value || "";
+  const cs = document.getElementById("filter-cs")?.value || "";
+  const rows = view.defects.filter((d) => (!cls || d.defect_class === cls) && (!review || d.review_status === review)
+    && (!cs || (cs === "none" ? !d.condition_state : d.condition_state === cs)));
+  const key = view.sort;
+  rows.sort((a, b) => {
+    const x = a[key]; const y = b[key];
+    if (x === y) return a.id - b.id;
+    if (x === null || x === undefined) return 1;
+    if (y === null || y === undefined) return -1;
+    return (x < y ? -1 : 1) * (view.desc ? -1 : 1);
+  });
+  return rows;
+}
+
+async function save(d, body, input) {
+  const res = await patchJSON(`/api/sessions/${view.session.id}/defects/${d.id}`, body);
+  if (input) {
+    input.classList.toggle("saved", res.ok);
+    input.classList.toggle("failed", !res.ok);
+    input.title = res.ok ? "saved" : `not saved (HTTP ${res.status})`;
+  }
+  if (res.ok) {
+    Object.assign(d, await res.json());
+    styleOverlay(d);
+  }
+  return res.ok;
+}
+
+function reviewInput(d, field, options) {
+  const input = options ? el("select", { name: field, "aria-label": `${field} of defect ${d.id}` },
+    ...options.map((o) => el("option", { value: o }, o || "–")))
+    : el("input", { name: field, "aria-label": `comment on defect ${d.id}`, placeholder: "comment", maxlength: "2000" });
+  input.value = d[field] ?? "";
+  input.addEventListener("change", () => {
+    const body = field === "condition_state" && !input.value ? { clear_condition_state: true } : { [field]: input.value };
+    save(d, body, input);
+  });
+  return el("td", {}, input);
+}
+
+function renderTable() {
+  const table = document.getElementById("defects");
+  const rows = visible();
+  const head = el("tr", {}, ...COLUMNS.map(([key, label]) => el("th", {
+    class: "sortable", "aria-sort": view.sort === key ? (view.desc ? "descending" : "ascending") : "none",
+    onclick: () => { view.desc = view.sort === key ? !view.desc : false; view.sort = key; renderTable(); },
+  }, label + (view.sort === key ? (view.desc ? " ▼" : " ▲") : ""))), el("th", {}, "review"), el("th", {}, "CS"), el("th", {}, "comment"));
+  table.replaceChildren(head, ...rows.map((d) => {
+    const tr = el("tr", { dataset: { defect: d.id }, class: d.id === view.selected ? "selected" : "", onclick: (e) => {
+      if (!["SELECT", "INPUT", "OPTION"].includes(e.target.tagName)) select(d.id);
+    } }, ...[d.id, d.defect_class, d.length_mm, d.max_width_mm, d.area_mm2, d.world_x_m, d.world_y_m].map((v) => el("td", {},
+      typeof v === "number" && !Number.isInteger(v) ? v.toFixed(v > 100 ? 0 : 2) : v ?? "–")),
+    reviewInput(d, "review_status", ["unreviewed", "confirmed", "rejected"]),
+    reviewInput(d, "condition_state", ["", "CS1", "CS2", "CS3", "CS4"]),
+    reviewInput(d, "comment", null));
+    return tr;
+  }));
+  text(document.getElementById("defect-count"), `${rows.length} of ${view.defects.length} defects`);
+}
+
+function styleOverlay(d) {
+  const box = view.overlays.get(d.id);
+  if (!box) return;
+  box.className = `defect-box ${d.defect_class} ${d.review_status}${d.id === view.selected ? " selected" : ""}`;
+}
+
+function select(id, { pan = true } = {}) {
+  view.selected = id;
+  document.querySelectorAll("#defects tr[data-defect]").forEach((tr) => tr.classList.toggle("selected", Number(tr.dataset.defect) === id));
+  const row = document.querySelector(`#defects tr[data-defect='${id}']`);
+  row?.scrollIntoView({ block: "nearest" });
+  view.defects.forEach(styleOverlay);
+  const d = view.defects.find((x) => x.id === id);
+  if (!d) return;
+  const detail = document.getElementById("defect-detail");
+  const img = el("img", { alt: `defect ${d.id}`, width: "192", height: "192" });
+  api(`/api/sessions/${view.session.id}/defects/${d.id}/thumbnail.jpg?size=192`).then((r) => (r.ok ? r.blob() : null)).then((b) => {
+    if (b) img.src = URL.createObjectURL(b);
+  }).catch(() => {});
+  detail.replaceChildren(img, el("dl", {},
+    el("dt", {}, "defect"), el("dd", {}, `#${d.id} ${d.defect_class} (${d.source})`),
+    el("dt", {}, "size"), el("dd", {}, `${fmt(d.length_mm, 1)} mm long, up to ${fmt(d.max_width_mm, 2)} mm wide, ${fmt(d.area_mm2, 0)} mm²`),
+    el("dt", {}, "on the structure"), el("dd", {}, d.world_x_m === null ? "not placed" : `x ${fmt(d.world_x_m, 3)} m, y ${fmt(d.world_y_m, 3)} m`),
+    el("dt", {}, "review"), el("dd", {}, `${d.review_status}${d.condition_state ? `, ${d.condition_state}` : ""}${d.reviewed_by ? ` by ${d.reviewed_by}` : ""}`)));
+  if (pan && view.viewer && d.source === "mosaic") {
+    const pad = Math.max(d.bbox_w, d.bbox_h) * 1.5 + 60;
+    const rect = view.viewer.viewport.imageToViewportRectangle(d.bbox_x + d.bbox_w / 2 - pad / 2, d.bbox_y + d.bbox_h / 2 - pad / 2, pad, pad);
+    view.viewer.viewport.fitBoundsWithConstraints(rect);
+  }
+}
+
+function onKey(e) {
+  if (document.getElementById("view-session").hidden) return;
+  if (["INPUT", "SELECT", "TEXTAREA"].includes(e.target.tagName)) return;
+  const rows = visible();
+  const i = rows.findIndex((d) => d.id === view.selected);
+  const d = rows[i];
+  const input = (name) => document.querySelector(`#defects tr[data-defect='${view.selected}'] [name=${name}]`);
+  const set = (field, value, body) => { if (!d) return; const inp = input(field); if (inp) inp.value = value; save(d, body || { [field]: value }, inp); };
+  if (e.key === "j" || e.key === "ArrowDown") { e.preventDefault(); if (rows.length) select(rows[Math.min(rows.length - 1, i + 1)].id); }
+  else if (e.key === "k" || e.key === "ArrowUp") { e.preventDefault(); if (rows.length) select(rows[Math.max(0, i - 1)].id); }
+  else if (e.key === "c") set("review_status", "confirmed");
+  else if (e.key === "x") set("review_status", "rejected");
+  else if (e.key === "u") set("review_status", "unreviewed");
+  else if (["1", "2", "3", "4"].includes(e.key)) set("condition_state", `CS${e.key}`);
+  else if (e.key === "0") set("condition_state", "", { clear_condition_state: true });
+  else if (e.key === "/" || e.key === "Enter") { if (d) { e.preventDefault(); input("comment")?.focus(); } }
+}
+
+async function openViewer(s, stitch) {
+  const box = document.getElementById("mosaic-viewer");
+  const dzi = await api(`/api/sessions/${s.id}/results/mosaic.dzi`);
+  if (!dzi.ok || !window.OpenSeadragon) {
+    // no pyramid (or no viewer library): the overview image
+    const res = await api(`/api/sessions/${s.id}/results/mosaic_overview.png`);
+    if (res.ok) box.replaceChildren(el("img", { src: URL.createObjectURL(await res.blob()), alt: "mosaic overview", class: "overview" }));
+    return;
+  }
+  const xml = new DOMParser().parseFromString(await dzi.text(), "application/xml").documentElement;
+  const size = xml.getElementsByTagName("Size")[0];
+  const source = { Image: { xmlns: "http://schemas.microsoft.com/deepzoom/2008", Url: `/api/sessions/${s.id}/mosaic_files/`,
+    Format: xml.getAttribute("Format"), Overlap: xml.getAttribute("Overlap"), TileSize: xml.getAttribute("TileSize"),
+    Size: { Width: size.getAttribute("Width"), Height: size.getAttribute("Height") } } };
+  const viewer = window.OpenSeadragon({
+    element: box, tileSources: source, prefixUrl: "/vendor/openseadragon/images/", loadTilesWithAjax: true,
+    ajaxHeaders: authHeaders(), showNavigator: true, navigatorPosition: "BOTTOM_RIGHT", maxZoomPixelRatio: 4,
+    gestureSettingsMouse: { clickToZoom: false }, crossOriginPolicy: false,
+  });
+  view.viewer = viewer;
+  viewer.addHandler("open", () => {
+    for (const d of view.defects.filter((x) => x.source === "mosaic")) {
+      const node = el("div", { class: "defect-box", dataset: { defect: d.id }, title: `#${d.id} ${d.defect_class}` });
+      view.overlays.set(d.id, node);
+      styleOverlay(d);
+      viewer.addOverlay({ element: node, location: viewer.viewport.imageToViewportRectangle(d.bbox_x - 4, d.bbox_y - 4, d.bbox_w + 8, d.bbox_h + 8) });
+    }
+    box.dataset.ready = "true";
+  });
+  viewer.addHandler("canvas-click", (ev) => {
+    if (!ev.quick) return;
+    const p = viewer.viewport.viewerElementToImageCoordinates(ev.position);
+    const hit = view.defects.find((d) => d.source === "mosaic" && p.x >= d.bbox_x - 6 && p.x <= d.bbox_x + d.bbox_w + 6
+      && p.y >= d.bbox_y - 6 && p.y <= d.bbox_y + d.bbox_h + 6);
+    if (hit) select(hit.id, { pan: false });
+  });
+  void stitch;
+}
+
+function exportsBar(s) {
+  const status = el("span", { class: "muted" });
+  const done = (kind) => s.jobs.some((j) => j.kind === kind && j.state === "done");
+  const items = [
+    ["PDF report", "report.pdf", "report.pdf", true], ["Defects CSV", "defects.csv", "defects.csv", true],
+    ["Report JSON", "report.json", "report.json", true], ["Session MCAP (Foxglove)", "export.mcap", "session.mcap", true],
+    ["Mosaic overview PNG", "results/mosaic_overview.png", "mosaic.png", done("stitch")],
+    ["Map PLY", "results/map.ply", "map.ply", done("map")], ["Trajectory TUM", "results/trajectory.tum", "trajectory.tum", done("map")],
+  ];
+  return el("div", { class: "exports", id: "exports" }, ...items.filter((i) => i[3]).map(([label, path, name]) => el("button", {
+    dataset: { export: path }, onclick: () => download(`/api/sessions/${s.id}/${path}`, `${s.id.slice(0, 8)}-${name}`, status),
+  }, label)), status);
+}
+
+function detailsForm(s) {
+  const field = (name, label, value) => {
+    const input = el("input", { name, value: value || "", "aria-label": label, placeholder: label });
+    input.addEventListener("change", async () => {
+      const res = await patchJSON(`/api/sessions/${s.id}`, { [name]: input.value });
+      input.classList.toggle("saved", res.ok); input.classList.toggle("failed", !res.ok);
+    });
+    return el("label", {}, `${label} `, input);
+  };
+  return el("div", { class: "details" }, field("location", "Location", s.location), field("notes", "Notes", s.notes));
+}
+
+function view3dButton(s, root) {
+  const button = el("button", { id: "show-3d" }, "Show 3D map");
+  button.addEventListener("click", async () => {
+    const res = await api(`/api/sessions/${s.id}/view3d`, { method: "POST" });
+    if (!res.ok) { text(button, `3D view unavailable (${res.status})`); return; }
+    const frame = document.getElementById("view3d") || el("iframe", { id: "view3d", title: "3D map" });
+    frame.src = `/viser/${token ? `?token=${encodeURIComponent(token)}` : ""}`;
+    root.appendChild(frame);
+  });
+  return button;
+}
+
+export async function showSession(id) {
+  const root = document.getElementById("session-detail");
+  root.replaceChildren(el("p", { class: "muted" }, "loading…"));
+  const s = await apiJSON(`/api/sessions/${id}`);
+  view.session = s; view.selected = null; view.overlays.clear();
+  if (view.viewer) { view.viewer.destroy(); view.viewer = null; }
+  const stitch = s.jobs.filter((j) => j.kind === "stitch" && j.state === "done").pop();
+  const source = stitch ? "mosaic" : "frame";
+  const jobs = s.jobs.map((j) => `${j.kind}: ${j.state}${j.error ? ` (${j.error})` : ""}`).join(" · ") || "no processing yet";
+  root.replaceChildren(
+    el("h3", {}, `${s.structure} — ${s.id}`),
+    el("p", { class: "muted" }, `${new Date(s.started_at).toLocaleString()} · operator ${s.operator || "–"} · robot ${s.robot_name || "–"} · ${s.status}`
+      + ` · ${s.frames} frames, ${s.clouds} clouds · ${jobs}`),
+    detailsForm(s), exportsBar(s),
+    el("div", { class: "review" },
+      el("div", { id: "mosaic-viewer", class: "mosaic-viewer" }),
+      el("aside", { id: "defect-detail", class: "defect-detail" }, el("p", { class: "muted" }, "Select a defect (click it, or j / k)."))),
+    el("div", { class: "filters" },
+      el("label", {}, "class ", el("select", { id: "filter-class", onchange: renderTable }, ...["", "crack", "corrosion"].map((v) => el("option", { value: v }, v || "all")))),
+      el("label", {}, "review ", el("select", { id: "filter-review", onchange: renderTable }, ...["", "unreviewed", "confirmed", "rejected"].map((v) => el("option", { value: v }, v || "all")))),
+      el("label", {}, "CS ", el("select", { id: "filter-cs", onchange: renderTable }, ...["", "CS1", "CS2", "CS3", "CS4", "none"].map((v) => el("option", { value: v }, v || "all")))),
+      el("span", { id: "defect-count", class: "muted" }),
+      el("span", { class: "muted small" }, "Keys: j/k next/previous · c confirm · x reject · u unreviewed · 1–4 condition state · 0 clear · / comment")),
+    el("table", { id: "defects" }),
+  );
+  const mapDone = s.jobs.some((j) => j.kind === "map" && j.state === "done");
+  if (mapDone) root.appendChild(view3dButton(s, root));
+  view.defects = (await apiJSON(`/api/sessions/${id}/defects?source=${source}&limit=5000`)).data;
+  renderTable();
+  if (stitch) await openViewer(s, stitch);
+  else document.getElementById("mosaic-viewer").replaceChildren(el("p", { class: "muted" }, "No mosaic yet: the stitch job has not finished."));
+}
+
+export function initReview() {
+  document.addEventListener("keydown", onKey);
+}
