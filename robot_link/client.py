@@ -174,7 +174,7 @@ class RobotLink:
         data = encode_message(Message(mtype, self.session_id, seq, time.time(), meta))
         await self._transmit(data)
 
-    async def send_video(self, meta: dict[str, Any], jpeg: bytes) -> bool:
+    async def send_video(self, meta: dict[str, Any], jpeg: bytes, *, timestamp: float | None = None) -> bool:
         """Send a live preview frame (VIDEO): never spooled or resent; dropped when offline or
         while the previous one is still being written (stale video is worth nothing)."""
         if self._video_busy or self._ws is None or not self._connected.is_set():
@@ -183,7 +183,8 @@ class RobotLink:
         self._video_busy = True
         try:
             self._video_seq += 1
-            return await self._transmit(encode_message(Message(MessageType.VIDEO, self.session_id, self._video_seq, time.time(), meta, jpeg)))
+            stamp = time.time() if timestamp is None else timestamp  # when the image was taken
+            return await self._transmit(encode_message(Message(MessageType.VIDEO, self.session_id, self._video_seq, stamp, meta, jpeg)))
         finally:
             self._video_busy = False
 

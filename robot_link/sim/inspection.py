@@ -258,13 +258,14 @@ class InspectionSim:
         r = self.robot
         odom_pose = {"x": float(r.odom[0]), "y": float(r.odom[1]), "yaw": float(r.odom[2])}
         cam_true = self.camera.pose_in_world(r.pose)
-        image = self.camera.render(self.structure, cam_true, self.rng)
+        # rendered off the event loop: the link keeps reading commands meanwhile
+        image = await asyncio.to_thread(self.camera.render, self.structure, cam_true, self.rng)
         await self.link.send(MessageType.FRAME, {"encoding": "jpeg", "width": self.camera.width,
                                                   "height": self.camera.height, "pose": odom_pose}, self.camera.encode(image))
         self.result.frames_sent += 1
         self.result.frame_poses_true.append([float(v) for v in cam_true])
         T_true = self.tof.T_world_tof(r.pose)
-        depth = self.tof.render(T_true, self.rng)
+        depth = await asyncio.to_thread(self.tof.render, T_true, self.rng)
         seq = await self.link.send(MessageType.CLOUD, {"encoding": "png16_depth_mm", **self.tof.intrinsics(), "pose": odom_pose},
                                    encode_depth_png(depth))
         self.result.clouds_sent += 1

@@ -42,6 +42,7 @@ class TeleopLog:
     """What the robot measured of its operator: for the teleop benchmark and tests."""
 
     command_latency_ms: list[float] = field(default_factory=list)  # sent (operator clock) -> received
+    key_latency_ms: list[float] = field(default_factory=list)  # key pressed in the browser -> its drive command received
     deadman_stops_ms: list[float] = field(default_factory=list)  # last drive received -> standstill
     drive_commands: int = 0
     video_sent: int = 0
@@ -62,6 +63,7 @@ class TeleopSim(InspectionSim):
         self.auto_capture = teleop.auto_capture
         self.end_requested = False
         self.log = TeleopLog()
+        self.video_rng = np.random.default_rng(config.seed + 99)  # the video renders in its own thread
         link.on_link_change = self._on_link_change
 
     def _on_link_change(self, up: bool) -> None:
@@ -74,6 +76,8 @@ class TeleopSim(InspectionSim):
         now_ms = time.time() * 1000
         if isinstance(args.get("sent_ms"), (int, float)):
             self.log.command_latency_ms.append(now_ms - float(args["sent_ms"]))
+            if args.get("key_event"):
+                self.log.key_latency_ms.append(self.log.command_latency_ms[-1])
         reason = self._apply(str(cmd), args)
         if reason:
             self.log.refused.append(f"{cmd}: {reason}")
@@ -157,10 +161,12 @@ class TeleopSim(InspectionSim):
         period = 1.0 / self.teleop.video_fps
         while not self.end_requested:
             t0 = time.monotonic()
+            captured = time.time()  # the exposure: latency is measured from here, rendering included
             cam = self.camera.pose_in_world(self.robot.pose.copy())
-            image = await asyncio.to_thread(self.camera.render, self.structure, cam, self.rng)
+            image = await asyncio.to_thread(self.camera.render, self.structure, cam, self.video_rng)
             ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.teleop.video_quality])
-            if ok and await self.link.send_video({"encoding": "jpeg", "width": image.shape[1], "height": image.shape[0]}, buf.tobytes()):
+            meta = {"encoding": "jpeg", "width": image.shape[1], "height": image.shape[0]}
+            if ok and await self.link.send_video(meta, buf.tobytes(), timestamp=captured):
                 self.log.video_sent += 1
             await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
 

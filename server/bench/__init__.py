@@ -14,12 +14,14 @@ from server.bench.ingest import bench_ingest
 from server.bench.map import bench_map
 from server.bench.stitch import bench_stitch
 from server.bench.stitch_scale import bench_stitch_scale
+from server.bench.teleop import bench_teleop
 from server.errors import CommandError
 
 BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {
     "detect": bench_detect, "stitch": bench_stitch, "map": bench_map, "ingest": bench_ingest, "stitch-scale": bench_stitch_scale,
+    "teleop": bench_teleop,
 }
-DEFAULT = ["detect", "stitch", "map", "ingest"]  # stitch-scale takes many minutes: run it by name
+DEFAULT = ["detect", "stitch", "map", "ingest", "teleop"]  # stitch-scale takes many minutes: run it by name
 
 
 def run_benchmarks(names: list[str], *, dataset: Path | None = None, limit: int | None = None) -> None:
