@@ -163,12 +163,19 @@ def run_demo(settings: Settings, *, port: int = 0, exit_when_done: bool = False,
     if exit_when_done and not keep_serving:
         server.stop()
         return 0
-    console.print(f"Serving {server.url}/ — press Ctrl-C to stop.")
+    # a second robot the user drives from the dashboard's Drive page (live video, dead-man stop)
+    from robot_link.sim.teleop import start_teleop_robot
+
+    teleop = start_teleop_robot(server.url, token, seed=seed)
+    console.print(f"Serving {server.url}/ — drive the simulated robot on the Drive page (arrows/WASD), review the "
+                  f"inspection under Sessions. Ctrl-C stops.")
     try:
         while server.thread.is_alive():
             time.sleep(0.5)
     except KeyboardInterrupt:
         pass
+    teleop.sim.end_requested = True
+    teleop.thread.join(timeout=10)
     server.stop()
     return 0
 

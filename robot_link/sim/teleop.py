@@ -22,6 +22,7 @@ from robot_link.sim.inspection import InspectionSim, SimConfig
 from robot_link.sim.robot import edge_avoidance
 
 FRONT, REAR = {0, 1}, {2, 3}  # IR sensor indices (IR_NAMES order)
+TELEOP_SIM = SimConfig(time_scale=1.0, dt_s=0.02, telemetry_hz=10.0)  # real time, 50 Hz control loop
 
 
 @dataclass(frozen=True)
@@ -52,8 +53,7 @@ class TeleopLog:
 class TeleopSim(InspectionSim):
     """A robot the operator drives."""
 
-    def __init__(self, link: RobotLink, config: SimConfig = SimConfig(time_scale=1.0, dt_s=0.02, telemetry_hz=10.0),
-                 teleop: TeleopConfig = TeleopConfig(), **kwargs: Any) -> None:
+    def __init__(self, link: RobotLink, config: SimConfig = TELEOP_SIM, teleop: TeleopConfig = TeleopConfig(), **kwargs: Any) -> None:
         super().__init__(link, config, **kwargs)
         self.teleop = teleop
         self.v = self.w = 0.0
@@ -195,3 +195,47 @@ class TeleopSim(InspectionSim):
                                                         "clouds": self.result.clouds_sent})
         await self.link.flush(timeout_s=120)
         return self.result
+
+
+@dataclass
+class TeleopRobot:
+    """A teleoperated simulated robot running in its own thread and event loop."""
+
+    sim: TeleopSim
+    session_id: str
+    thread: Any
+
+    def stop(self, timeout_s: float = 120) -> None:
+        """End its session (sent and acknowledged) and wait for the thread."""
+        self.sim.end_requested = True
+        self.thread.join(timeout=timeout_s)
+
+
+def start_teleop_robot(server_url: str, token: str, *, seed: int = 5, duration_s: float | None = None,
+                       video_fps: float = 10.0, timeout_s: float = 30) -> TeleopRobot:
+    """Connect a teleoperated simulated robot to a ground station from a background thread."""
+    import threading
+
+    holder: dict[str, Any] = {}
+    ready = threading.Event()
+
+    def run() -> None:
+        async def main() -> None:
+            link = RobotLink(server_url, token)
+            sim = TeleopSim(link, SimConfig(seed=seed, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0),
+                            TeleopConfig(duration_s=duration_s, video_fps=video_fps))
+            holder.update(sim=sim, sid=str(link.session_id))
+            await link.start()
+            ready.set()
+            try:
+                await sim.run()
+            finally:
+                await link.close()
+
+        asyncio.run(main())
+
+    thread = threading.Thread(target=run, name="teleop-robot", daemon=True)
+    thread.start()
+    if not ready.wait(timeout_s):
+        raise TimeoutError("the teleop robot did not start")
+    return TeleopRobot(holder["sim"], holder["sid"], thread)

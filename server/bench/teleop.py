@@ -14,49 +14,20 @@ baselines; ``ratio`` = measured / target (≤ 1 meets it).
 
 from __future__ import annotations
 
-import asyncio
 import shutil
 import tempfile
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from robot_link.sim.teleop import start_teleop_robot
 from server.bench.common import Result
 
 TARGETS_MS = {"video_p99": 150.0, "command_p99": 20.0, "deadman_max": 300.0}
 PATTERN = [("ArrowUp", 1.0), (None, 0.4), ("ArrowLeft", 0.5), (None, 0.3), ("ArrowDown", 1.0), (None, 0.4), ("ArrowRight", 0.5), (None, 0.3)]
 DEADMAN_TRIALS = 10
-
-
-def _robot_thread(url: str, token: str, seconds: float) -> tuple[threading.Thread, dict[str, Any], threading.Event]:
-    from robot_link.client import RobotLink
-    from robot_link.sim.inspection import SimConfig
-    from robot_link.sim.teleop import TeleopConfig, TeleopSim
-
-    holder: dict[str, Any] = {}
-    ready = threading.Event()
-
-    def run() -> None:
-        async def main() -> None:
-            link = RobotLink(url, token)
-            sim = TeleopSim(link, SimConfig(seed=5, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0), TeleopConfig(duration_s=seconds))
-            holder["sim"] = sim
-            await link.start()
-            ready.set()
-            try:
-                await sim.run()
-            finally:
-                await link.close()
-
-        asyncio.run(main())
-
-    thread = threading.Thread(target=run, name="teleop-robot", daemon=True)
-    thread.start()
-    return thread, holder, ready
 
 
 def _pct(values: list[float], q: float) -> float:
@@ -85,9 +56,8 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
     engine.dispose()
     server = BackgroundServer(settings, free_port())
     server.start()
-    thread, holder, ready = _robot_thread(server.url, token, seconds + 30 + DEADMAN_TRIALS * 2)
+    robot = start_teleop_robot(server.url, token, duration_s=seconds + 30 + DEADMAN_TRIALS * 2)
     try:
-        ready.wait(30)
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=chromium, headless=True,
                                          args=["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-sync"])
@@ -95,7 +65,7 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
             page.goto(server.url + "/")
             page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000)
             page.evaluate("window.steelscanStats.video.length = 0")
-            sim = holder["sim"]
+            sim = robot.sim
             sim.log.command_latency_ms.clear()
             sim.log.key_latency_ms.clear()
             end = time.monotonic() + seconds
@@ -124,9 +94,7 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
             browser.close()
         commands, keys, deadman = list(sim.log.command_latency_ms), list(sim.log.key_latency_ms), list(sim.log.deadman_stops_ms)
     finally:
-        if "sim" in holder:
-            holder["sim"].end_requested = True
-        thread.join(timeout=120)
+        robot.stop()
         server.stop()
         shutil.rmtree(scratch, ignore_errors=True)
     base = {"seconds": seconds}

@@ -4,33 +4,20 @@ they stop, on e-stop, and when its driver's page goes away; one operator drives,
 
 from __future__ import annotations
 
-import asyncio
 import json
 import struct
-import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import pytest
 from websockets.sync.client import ClientConnection, connect
 
-from robot_link.client import RobotLink
 from robot_link.protocol import DRIVE_HOLD_S
-from robot_link.sim.inspection import SimConfig
-from robot_link.sim.teleop import TeleopConfig, TeleopSim
+from robot_link.sim.teleop import TeleopRobot, start_teleop_robot
 from server.config import Settings
 from tests.conftest import LiveServer
 
 DEADMAN_BOUND_MS = 300
-
-
-@dataclass
-class Robot:
-    sim: TeleopSim
-    session_id: str
-    thread: threading.Thread
-    loop: asyncio.AbstractEventLoop
 
 
 @pytest.fixture
@@ -39,31 +26,10 @@ def settings(tmp_path) -> Settings:  # type: ignore[no-untyped-def]
 
 
 @pytest.fixture
-def robot(live_server: LiveServer) -> Iterator[Robot]:
-    ready = threading.Event()
-    holder: dict = {}
-
-    def run() -> None:
-        async def main() -> None:
-            link = RobotLink(live_server.url, live_server.token)
-            sim = TeleopSim(link, SimConfig(seed=3, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0), TeleopConfig(video_fps=10))
-            holder.update(sim=sim, loop=asyncio.get_running_loop(), sid=str(link.session_id))
-            await link.start()
-            ready.set()
-            try:
-                await sim.run()
-            finally:
-                await link.close()
-
-        asyncio.run(main())
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    assert ready.wait(30)
-    r = Robot(holder["sim"], holder["sid"], thread, holder["loop"])
+def robot(live_server: LiveServer) -> Iterator[TeleopRobot]:
+    r = start_teleop_robot(live_server.url, live_server.token, seed=3)
     yield r
-    r.sim.end_requested = True
-    thread.join(timeout=60)
+    r.stop(timeout_s=60)
 
 
 def browser(live_server: LiveServer) -> ClientConnection:
@@ -94,7 +60,7 @@ def drive(ws: ClientConnection, sid: str, seconds: float, v: float = 0.1) -> Non
         time.sleep(0.05)
 
 
-def test_drives_while_commanded_and_stops_within_the_deadman_bound(live_server: LiveServer, robot: Robot) -> None:
+def test_drives_while_commanded_and_stops_within_the_deadman_bound(live_server: LiveServer, robot: TeleopRobot) -> None:
     with browser(live_server) as ws:
         wait_for_robot(ws, robot.session_id)
         x0 = float(robot.sim.robot.odom[0])
@@ -119,7 +85,7 @@ def test_drives_while_commanded_and_stops_within_the_deadman_bound(live_server: 
         assert telemetry["mode"] == "teleop" and telemetry["drive"]["linear_mps"] == 0.0
 
 
-def test_estop_holds_until_resume(live_server: LiveServer, robot: Robot) -> None:
+def test_estop_holds_until_resume(live_server: LiveServer, robot: TeleopRobot) -> None:
     with browser(live_server) as ws:
         wait_for_robot(ws, robot.session_id)
         drive(ws, robot.session_id, 0.3)
@@ -134,7 +100,7 @@ def test_estop_holds_until_resume(live_server: LiveServer, robot: Robot) -> None
         assert robot.sim.v > 0
 
 
-def test_one_operator_drives_others_watch_and_the_robot_stops_when_the_driver_leaves(live_server: LiveServer, robot: Robot) -> None:
+def test_one_operator_drives_others_watch_and_the_robot_stops_when_the_driver_leaves(live_server: LiveServer, robot: TeleopRobot) -> None:
     with browser(live_server) as watcher:
         wait_for_robot(watcher, robot.session_id)
         driver = browser(live_server)
