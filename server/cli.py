@@ -9,8 +9,8 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 from server.config import Settings
 from server.errors import CommandError

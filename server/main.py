@@ -7,21 +7,21 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI, Request
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
 from server import db
+from server.accounts import accounts_exist
 from server.config import Settings
+from server.deps import get_current_user
 from server.errors import Conflict, NotFound
-from server.ingest import Ingest
+from server.ingest import GroupCommit, Ingest
 from server.jobs.runner import JobRunner
 from server.live import LiveHub
-from server.deps import get_current_user
 from server.routes import auth, jobs, reports, sessions, view3d, ws
 from server.scene3d import Scene3D
 from server.state import AppState
-from server.ingest import GroupCommit, Ingest
 from server.storage import SessionFiles
 
 log = logging.getLogger(__name__)
@@ -86,8 +86,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     web_dir = settings.web_dir
 
     @app.get("/", include_in_schema=False)
-    def read_index() -> FileResponse:
-        return FileResponse(web_dir / "index.html")
+    def read_index(request: Request) -> HTMLResponse:
+        # the page learns whether it must ask for a sign-in without calling the API first
+        # (an unauthenticated API call would be a 401 in the browser's console)
+        with request.app.state.steelscan.factory() as db:
+            required = accounts_exist(db)
+        html = (web_dir / "index.html").read_text(encoding="utf-8")
+        meta = f'<meta name="steelscan-auth" content="{"required" if required else "open"}">'
+        return HTMLResponse(html.replace("<head>", f"<head>\n{meta}", 1), headers={"Cache-Control": "no-store"})
 
     app.mount("/static", StaticFiles(directory=web_dir), name="static")
     # front-end libraries installed from npm by scripts/setup.sh (web/package-lock.json): served here, never from a CDN

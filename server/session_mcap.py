@@ -36,6 +36,13 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from google.protobuf.message import DecodeError
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
@@ -44,13 +51,6 @@ from mcap_protobuf.schema import register_schema
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
-from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
-from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
-from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
-from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from robot_link.clouds import decode_cloud
 from server.models import Cloud, Defect, Frame, InspectionSession, SessionStatus, TelemetrySample
 from server.report import GENERATOR
@@ -239,7 +239,7 @@ def _write_results(ch: _Channels, db: Session, files: SessionFiles, session_id: 
     except (OSError, ValueError):
         pass
     try:
-        stamps, poses = parse_tum((results / "trajectory.tum").read_text())
+        _, poses = parse_tum((results / "trajectory.tum").read_text())
     except (OSError, ValueError):
         poses = np.empty((0, 4, 4))
     if len(poses):

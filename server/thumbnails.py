@@ -18,9 +18,9 @@ MIN_VIEW_PX = 96
 
 def crop_box(x: int, y: int, w: int, h: int) -> tuple[int, int, int, int]:
     """A square window around a box, with a margin of half its size and at least MIN_VIEW_PX wide."""
-    side = max(MIN_VIEW_PX, int(round(1.5 * max(w, h))))
+    side = max(MIN_VIEW_PX, round(1.5 * max(w, h)))
     cx, cy = x + w / 2, y + h / 2
-    return int(round(cx - side / 2)), int(round(cy - side / 2)), side, side
+    return round(cx - side / 2), round(cy - side / 2), side, side
 
 
 def defect_image(db: Session, files: SessionFiles, defect: Defect, size: int = 256) -> np.ndarray:

@@ -33,7 +33,14 @@ from processing.detection import (
     estimate_background,
 )
 from processing.mapping import MapParams, register_clouds
-from processing.poses import compose_se2, format_tum, image_to_world, se2_matrix, se2_to_se3, transfer_correction
+from processing.poses import (
+    compose_se2,
+    format_tum,
+    image_to_world,
+    se2_matrix,
+    se2_to_se3,
+    transfer_correction,
+)
 from processing.stitching import StitchParams, camera_poses, plan_mosaic, render_bands
 from robot_link.clouds import decode_cloud
 from server.models import Cloud, Defect, Frame, InspectionSession, Job, JobState, utcnow

@@ -133,8 +133,8 @@ def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
         markers.append(DefectMarker(d.id, d.defect_class, d.world_x_m + (d.world_w_m or 0) / 2, d.world_y_m + (d.world_h_m or 0) / 2, size, text))
     title = f"{s.structure or 'session'} — {session_id[:8]}" if s is not None else session_id
     state.scene.show_session(session_id, points, trajectory, markers, title)  # type: ignore[union-attr]
-    return {"session_id": session_id, "points": 0 if points is None else int(len(points)),
-            "trajectory_poses": 0 if trajectory is None else int(len(trajectory)), "defects": len(markers), "url": "/viser/"}
+    return {"session_id": session_id, "points": 0 if points is None else len(points),
+            "trajectory_poses": 0 if trajectory is None else len(trajectory), "defects": len(markers), "url": "/viser/"}
 
 
 @router.post("/api/sessions/{session_id}/view3d", dependencies=[Depends(get_current_user)])

@@ -3,7 +3,15 @@ import numpy as np
 import pytest
 
 from processing.alignment import relative_pose
-from robot_link.sim.sweeps import LazySweep, SweepConfig, TiledSurface, make_sweep, painted_steel, texture_from_images, texture_size_for
+from robot_link.sim.sweeps import (
+    LazySweep,
+    SweepConfig,
+    TiledSurface,
+    make_sweep,
+    painted_steel,
+    texture_from_images,
+    texture_size_for,
+)
 
 
 def test_lawnmower_sweep_overlaps_as_configured_and_turns_at_lane_ends() -> None:

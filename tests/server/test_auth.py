@@ -67,9 +67,8 @@ def test_live_socket_needs_a_token_and_viewers_cannot_command(live_server: LiveS
 
     add_user(live_server, "vera", Role.viewer)
     live = live_server.url.replace("http://", "ws://") + "/ws/live"
-    with pytest.raises(InvalidStatus):
-        with connect(live):
-            pass
+    with pytest.raises(InvalidStatus), connect(live):
+        pass
     token = login(live_server, "vera")["Authorization"].split()[1]
     with connect(f"{live}?token={token}") as ws:
         ws.send(json.dumps({"session_id": str(uuid.uuid4()), "cmd": "estop"}))

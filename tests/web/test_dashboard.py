@@ -223,13 +223,16 @@ def test_sign_in_when_accounts_exist(live_server: LiveServer) -> None:
         browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
         page = browser.new_page()
         page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
         page.goto(live_server.url + "/")
         page.wait_for_selector("#login:not([hidden])", timeout=15000)
         shot(page, "sign-in")
+        assert errors == []  # the page asks for a sign-in without a 401 from the API first
         page.fill("input[name=username]", "otto")
         page.fill("input[name=password]", "wrong password")
         page.click("#login button")
         page.wait_for_function("document.querySelector('#login-error').textContent.length > 0", timeout=10000)
+        errors.clear()  # the refused sign-in is a 401 by design
         page.fill("input[name=password]", "correct horse")
         page.click("#login button")
         page.wait_for_function("document.querySelector('#who').textContent.includes('otto (operator)')", timeout=10000)

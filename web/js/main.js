@@ -35,6 +35,8 @@ document.getElementById("login").addEventListener("submit", async (e) => {
 });
 
 async function start() {
+  const auth = document.querySelector("meta[name=steelscan-auth]")?.content;
+  if (auth === "required" && !sessionStorage.getItem("steelscan-token")) { showLogin(); return; }
   let me;
   try { me = await apiJSON("/api/auth/me"); } catch { return; }
   text(document.getElementById("who"), `${me.name} (${me.role})`);
