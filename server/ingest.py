@@ -5,10 +5,11 @@ from __future__ import annotations
 import asyncio
 import queue
 import threading
-from dataclasses import dataclass
-from typing import Literal
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
-from sqlalchemy import select, tuple_
+from sqlalchemy import insert, select, tuple_
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -52,22 +53,27 @@ class Ingest:
 
     def store_many(self, items: list[tuple[Message, int | None]]) -> list[StoreResult | Exception]:
         """Store several messages in one transaction (group commit), in order; each gets its
-        result, or the IngestError/OSError that refused it alone. Should the commit fail as a
-        whole, each message is stored again on its own."""
+        result, or the IngestError/OSError that refused it alone. Rows go in as one
+        multi-row INSERT per table. Should the commit fail as a whole, each message is
+        stored again on its own."""
         with self.factory() as db:
             results: list[StoreResult | Exception] = []
             # what of this batch is stored already: one query, not one per message
             keys = [(str(m.session_id), m.seq) for m, _ in items]
-            seen: set[tuple[str, int]] = set(
+            seen: set[tuple[str, int]] = {
                 (row.session_id, row.seq)
                 for row in db.execute(select(ReceivedMessage.session_id, ReceivedMessage.seq).where(tuple_(ReceivedMessage.session_id, ReceivedMessage.seq).in_(keys)))
-            ) if keys else set()
+            } if keys else set()
+            batch = _Batch(seen)
             for message, robot_id in items:
                 try:
-                    results.append(self._stage(db, message, robot_id, seen))
+                    results.append(self._stage(db, message, robot_id, batch))
                 except (IngestError, OSError) as exc:
                     results.append(exc)
             try:
+                for model, rows in batch.rows.items():
+                    if rows:
+                        db.execute(insert(model), rows)
                 db.commit()
             except IntegrityError:
                 db.rollback()
@@ -76,10 +82,12 @@ class Ingest:
                 return [self.store_many([item])[0] for item in items]
         return results
 
-    def _stage(self, db: Session, message: Message, robot_id: int | None, seen: set[tuple[str, int]]) -> StoreResult:
-        """Write one message's file and add its rows to the open transaction."""
+    def _stage(self, db: Session, message: Message, robot_id: int | None, batch: _Batch) -> StoreResult:
+        """Write one message's file and add its rows to the batch."""
         sid = str(message.session_id)
-        session = db.get(InspectionSession, sid)
+        if sid not in batch.sessions:
+            batch.sessions[sid] = db.get(InspectionSession, sid)
+        session = batch.sessions[sid]
         if message.type is MessageType.SESSION_START:
             if session is not None:
                 self._check_owner(session, robot_id)
@@ -88,10 +96,10 @@ class Ingest:
             raise IngestError(f"session {sid} is unknown: send SESSION_START first", retry=True)
         else:
             self._check_owner(session, robot_id)
-        if (sid, message.seq) in seen:
+        if (sid, message.seq) in batch.seen:
             return StoreResult("duplicate")
-        ended = self._add_rows(db, message, sid, robot_id, session)  # the file first: a failed write adds no row
-        seen.add((sid, message.seq))
+        ended = self._add_rows(db, message, sid, robot_id, session, batch)  # the file first: a failed write adds no row
+        batch.seen.add((sid, message.seq))
         return StoreResult("stored", session_ended=ended)
 
     @staticmethod
@@ -99,14 +107,8 @@ class Ingest:
         if session.robot_id is not None and robot_id is not None and session.robot_id != robot_id:
             raise IngestError(f"session {session.id} belongs to another robot")
 
-    def _add_rows(
-        self,
-        db: Session,
-        message: Message,
-        sid: str,
-        robot_id: int | None,
-        session: InspectionSession | None,
-    ) -> bool:
+    def _add_rows(self, db: Session, message: Message, sid: str, robot_id: int | None, session: InspectionSession | None,
+                  batch: _Batch) -> bool:
         meta = message.meta
         pose = meta.get("pose") or {}
         mtype = message.type
@@ -116,61 +118,27 @@ class Ingest:
         elif mtype is MessageType.CLOUD:
             rel = self.files.cloud_relpath(sid, message.seq, meta["encoding"])
         if rel is not None:
-            self.files.write(rel, message.payload)
+            # no temporary name: the row that makes the file visible is committed after it,
+            # and a resend after a crash writes it again
+            self.files.write_in_place(rel, message.payload)
         if mtype is MessageType.SESSION_START:
-            db.add(
-                InspectionSession(
-                    id=sid,
-                    robot_id=robot_id,
-                    structure=meta["structure"],
-                    operator=meta.get("operator", ""),
-                    location=meta.get("location", ""),
-                    calibration=meta.get("calibration", {}),
-                )
-            )
+            session = InspectionSession(id=sid, robot_id=robot_id, structure=meta["structure"], operator=meta.get("operator", ""),
+                                        location=meta.get("location", ""), calibration=meta.get("calibration", {}))
+            db.add(session)
             db.flush()
-        db.add(ReceivedMessage(session_id=sid, seq=message.seq, type=mtype.name))
+            batch.sessions[sid] = session
+        batch.rows[ReceivedMessage].append({"session_id": sid, "seq": message.seq, "type": mtype.name, "received_at": utcnow()})
+        poses = {"pose_x": pose.get("x"), "pose_y": pose.get("y"), "pose_yaw": pose.get("yaw")}
         if mtype is MessageType.FRAME:
-            assert rel is not None
-            db.add(
-                Frame(
-                    session_id=sid,
-                    seq=message.seq,
-                    timestamp=message.timestamp,
-                    width=meta["width"],
-                    height=meta["height"],
-                    path=rel,
-                    size_bytes=len(message.payload),
-                    pose_x=pose.get("x"),
-                    pose_y=pose.get("y"),
-                    pose_yaw=pose.get("yaw"),
-                )
-            )
+            batch.rows[Frame].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "width": meta["width"],
+                                      "height": meta["height"], "path": rel, "size_bytes": len(message.payload), **poses})
         elif mtype is MessageType.CLOUD:
-            assert rel is not None
             intrinsics = {k: meta[k] for k in ("fx", "fy", "cx", "cy") if k in meta}
-            db.add(
-                Cloud(
-                    session_id=sid,
-                    seq=message.seq,
-                    timestamp=message.timestamp,
-                    encoding=meta["encoding"],
-                    width=meta["width"],
-                    height=meta["height"],
-                    intrinsics=intrinsics,
-                    path=rel,
-                    size_bytes=len(message.payload),
-                    pose_x=pose.get("x"),
-                    pose_y=pose.get("y"),
-                    pose_yaw=pose.get("yaw"),
-                )
-            )
+            batch.rows[Cloud].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp,
+                                      "encoding": meta["encoding"], "width": meta["width"], "height": meta["height"],
+                                      "intrinsics": intrinsics, "path": rel, "size_bytes": len(message.payload), **poses})
         elif mtype is MessageType.TELEMETRY:
-            db.add(
-                TelemetrySample(
-                    session_id=sid, seq=message.seq, timestamp=message.timestamp, data=meta
-                )
-            )
+            batch.rows[TelemetrySample].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "data": meta})
         elif mtype is MessageType.SESSION_END:
             assert session is not None
             session.status = SessionStatus.ended
@@ -179,6 +147,14 @@ class Ingest:
             return True
         return False
 
+
+@dataclass
+class _Batch:
+    """What one group commit has gathered: rows per table, sessions looked up, keys stored."""
+
+    seen: set[tuple[str, int]]
+    sessions: dict[str, InspectionSession | None] = field(default_factory=dict)
+    rows: dict[Any, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
 
 
 class GroupCommit:

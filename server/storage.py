@@ -13,6 +13,7 @@ class SessionFiles:
     def __init__(self, data_dir: Path, *, fsync: bool = False) -> None:
         self.data_dir = data_dir.resolve()
         self.fsync = fsync
+        self._made: set[Path] = set()  # folders known to exist (the ingest path writes many files per folder)
 
     def session_dir(self, session_id: str) -> Path:
         """Folder of one session."""
@@ -46,6 +47,25 @@ class SessionFiles:
         if not parts or Path(relpath).is_absolute() or ".." in parts:
             raise ValueError(f"path {relpath!r} leaves the data directory")
         return write_atomic(self.data_dir / relpath, data, fsync=self.fsync)
+
+
+    def write_in_place(self, relpath: str, data: bytes) -> Path:
+        """Write a file under its final name (no temporary file): for files that a database
+        row committed afterwards makes visible, so a torn write is never read and is
+        rewritten by the resend. Checked by its parts like :meth:`write`."""
+        parts = Path(relpath).parts
+        if not parts or Path(relpath).is_absolute() or ".." in parts:
+            raise ValueError(f"path {relpath!r} leaves the data directory")
+        path = self.data_dir / relpath
+        if path.parent not in self._made:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._made.add(path.parent)
+        with open(path, "wb") as fh:
+            fh.write(data)
+            if self.fsync:
+                fh.flush()
+                os.fsync(fh.fileno())
+        return path
 
 
 def write_atomic(path: Path, data: bytes, *, fsync: bool = False) -> Path:

@@ -59,7 +59,8 @@ def test_open_until_the_first_account_then_401_and_403(live_server: LiveServer) 
     assert httpx.patch(f"{url}/api/sessions/{sid}/defects/1", json={"comment": "x"}, headers=viewer).status_code == 403
     # static pages and the OpenAPI document stay reachable
     assert httpx.get(f"{url}/").status_code == 200
-    assert httpx.get(f"{url}/static/app.js").status_code == 200
+    assert httpx.get(f"{url}/static/js/main.js").status_code == 200
+    assert httpx.get(f"{url}/vendor/openseadragon/openseadragon.min.js").status_code == 200
 
 
 def test_live_socket_needs_a_token_and_viewers_cannot_command(live_server: LiveServer) -> None:
