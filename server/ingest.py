@@ -9,7 +9,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from sqlalchemy import insert, select, tuple_
+from sqlalchemy import Connection, bindparam, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -37,12 +37,26 @@ class StoreResult:
     session_ended: bool = False
 
 
+@dataclass
+class _Owner:
+    """What ingest needs to know of a stored session (cached: only ingest changes it)."""
+
+    robot_id: int | None
+    ended: bool
+
+
 class Ingest:
-    """Stores each robot message exactly once per (session, seq)."""
+    """Stores each robot message exactly once per (session, seq).
+
+    The hot path uses SQLAlchemy Core on one connection (no ORM unit of work): per group
+    commit one duplicate query, one multi-row INSERT per table and one commit.
+    """
 
     def __init__(self, factory: sessionmaker[Session], files: SessionFiles) -> None:
         self.factory = factory
+        self.engine = factory.kw["bind"]
         self.files = files
+        self._owners: dict[str, _Owner] = {}
 
     def store(self, message: Message, robot_id: int | None) -> StoreResult:
         """Store one decoded message durably; raise IngestError if it cannot be stored."""
@@ -51,64 +65,86 @@ class Ingest:
             raise result
         return result
 
-    def store_many(self, items: list[tuple[Message, int | None]]) -> list[StoreResult | Exception]:
+    def store_many(self, items: list[tuple[Message, int | None]], *, check: bool = False) -> list[StoreResult | Exception]:
         """Store several messages in one transaction (group commit), in order; each gets its
-        result, or the IngestError/OSError that refused it alone. Rows go in as one
-        multi-row INSERT per table. Should the commit fail as a whole, each message is
-        stored again on its own."""
-        with self.factory() as db:
-            results: list[StoreResult | Exception] = []
-            # what of this batch is stored already: one query, not one per message
-            keys = [(str(m.session_id), m.seq) for m, _ in items]
-            seen: set[tuple[str, int]] = {
-                (row.session_id, row.seq)
-                for row in db.execute(select(ReceivedMessage.session_id, ReceivedMessage.seq).where(tuple_(ReceivedMessage.session_id, ReceivedMessage.seq).in_(keys)))
-            } if keys else set()
-            batch = _Batch(seen)
-            for message, robot_id in items:
-                try:
-                    results.append(self._stage(db, message, robot_id, batch))
-                except (IngestError, OSError) as exc:
-                    results.append(exc)
-            try:
-                for model, rows in batch.rows.items():
+        result, or the IngestError/OSError that refused it alone.
+
+        Optimistic first: resends are rare, so the batch goes in without asking which of it
+        is stored already; the primary key of ``received_messages`` refuses a duplicate, and
+        then the batch is stored again with that check (``check``), message by message if
+        the commit still fails."""
+        results: list[StoreResult | Exception] = []
+        try:
+            with self.engine.begin() as conn:
+                batch = _Batch(self._stored_already(conn, items) if check else set())
+                for message, robot_id in items:
+                    try:
+                        results.append(self._stage(conn, message, robot_id, batch))
+                    except (IngestError, OSError) as exc:
+                        results.append(exc)
+                for table, rows in batch.rows.items():
                     if rows:
-                        db.execute(insert(model), rows)
-                db.commit()
-            except IntegrityError:
-                db.rollback()
-                if len(items) == 1:
-                    return [StoreResult("duplicate")]
-                return [self.store_many([item])[0] for item in items]
+                        conn.execute(table.insert(), rows)
+        except IntegrityError:
+            self._owners.clear()  # trust the database again
+            if not check:
+                return self.store_many(items, check=True)
+            if len(items) == 1:
+                return [StoreResult("duplicate")]
+            return [self.store_many([item], check=True)[0] for item in items]
+        except BaseException:
+            self._owners.clear()
+            raise
+        for sid, owner in batch.new_owners.items():
+            self._owners[sid] = owner
         return results
 
-    def _stage(self, db: Session, message: Message, robot_id: int | None, batch: _Batch) -> StoreResult:
+    @staticmethod
+    def _stored_already(conn: Connection, items: list[tuple[Message, int | None]]) -> set[tuple[str, int]]:
+        """Which (session, seq) of a batch are stored: one primary-key range query per session
+        (a row-value IN over both columns does not use the index in SQLite: 0.7 ms)."""
+        by_session: dict[str, list[int]] = defaultdict(list)
+        for m, _ in items:
+            by_session[str(m.session_id)].append(m.seq)
+        seen: set[tuple[str, int]] = set()
+        for sid, seqs in by_session.items():
+            rows = conn.execute(STORED, {"sid": sid, "seqs": seqs})
+            seen.update((sid, r[0]) for r in rows)
+        return seen
+
+    def _owner(self, conn: Connection, sid: str, batch: _Batch) -> _Owner | None:
+        owner = batch.new_owners.get(sid) or self._owners.get(sid)
+        if owner is None:
+            row = conn.execute(select(SESSIONS.c.robot_id, SESSIONS.c.status).where(SESSIONS.c.id == sid)).first()
+            if row is not None:
+                owner = _Owner(row[0], row[1] == SessionStatus.ended)
+                self._owners[sid] = owner
+        return owner
+
+    def _stage(self, conn: Connection, message: Message, robot_id: int | None, batch: _Batch) -> StoreResult:
         """Write one message's file and add its rows to the batch."""
         sid = str(message.session_id)
-        if sid not in batch.sessions:
-            batch.sessions[sid] = db.get(InspectionSession, sid)
-        session = batch.sessions[sid]
+        owner = self._owner(conn, sid, batch)
         if message.type is MessageType.SESSION_START:
-            if session is not None:
-                self._check_owner(session, robot_id)
+            if owner is not None:
+                self._check_owner(sid, owner, robot_id)
                 return StoreResult("duplicate")
-        elif session is None:
+        elif owner is None:
             raise IngestError(f"session {sid} is unknown: send SESSION_START first", retry=True)
         else:
-            self._check_owner(session, robot_id)
+            self._check_owner(sid, owner, robot_id)
         if (sid, message.seq) in batch.seen:
             return StoreResult("duplicate")
-        ended = self._add_rows(db, message, sid, robot_id, session, batch)  # the file first: a failed write adds no row
+        ended = self._add_rows(conn, message, sid, robot_id, batch)  # the file first: a failed write adds no row
         batch.seen.add((sid, message.seq))
         return StoreResult("stored", session_ended=ended)
 
     @staticmethod
-    def _check_owner(session: InspectionSession, robot_id: int | None) -> None:
-        if session.robot_id is not None and robot_id is not None and session.robot_id != robot_id:
-            raise IngestError(f"session {session.id} belongs to another robot")
+    def _check_owner(sid: str, owner: _Owner, robot_id: int | None) -> None:
+        if owner.robot_id is not None and robot_id is not None and owner.robot_id != robot_id:
+            raise IngestError(f"session {sid} belongs to another robot")
 
-    def _add_rows(self, db: Session, message: Message, sid: str, robot_id: int | None, session: InspectionSession | None,
-                  batch: _Batch) -> bool:
+    def _add_rows(self, conn: Connection, message: Message, sid: str, robot_id: int | None, batch: _Batch) -> bool:
         meta = message.meta
         pose = meta.get("pose") or {}
         mtype = message.type
@@ -121,39 +157,44 @@ class Ingest:
             # no temporary name: the row that makes the file visible is committed after it,
             # and a resend after a crash writes it again
             self.files.write_in_place(rel, message.payload)
-        if mtype is MessageType.SESSION_START:
-            session = InspectionSession(id=sid, robot_id=robot_id, structure=meta["structure"], operator=meta.get("operator", ""),
-                                        location=meta.get("location", ""), calibration=meta.get("calibration", {}))
-            db.add(session)
-            db.flush()
-            batch.sessions[sid] = session
-        batch.rows[ReceivedMessage].append({"session_id": sid, "seq": message.seq, "type": mtype.name, "received_at": utcnow()})
+        if mtype is MessageType.SESSION_START:  # at once: the batch's other rows refer to it
+            conn.execute(SESSIONS.insert().values(id=sid, robot_id=robot_id, structure=meta["structure"],
+                                                  operator=meta.get("operator", ""), location=meta.get("location", ""),
+                                                  calibration=meta.get("calibration", {})))
+            batch.new_owners[sid] = _Owner(robot_id, False)
+        batch.rows[RECEIVED].append({"session_id": sid, "seq": message.seq, "type": mtype.name, "received_at": utcnow()})
         poses = {"pose_x": pose.get("x"), "pose_y": pose.get("y"), "pose_yaw": pose.get("yaw")}
         if mtype is MessageType.FRAME:
-            batch.rows[Frame].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "width": meta["width"],
-                                      "height": meta["height"], "path": rel, "size_bytes": len(message.payload), **poses})
+            batch.rows[FRAMES].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "width": meta["width"],
+                                       "height": meta["height"], "path": rel, "size_bytes": len(message.payload), **poses})
         elif mtype is MessageType.CLOUD:
             intrinsics = {k: meta[k] for k in ("fx", "fy", "cx", "cy") if k in meta}
-            batch.rows[Cloud].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp,
-                                      "encoding": meta["encoding"], "width": meta["width"], "height": meta["height"],
-                                      "intrinsics": intrinsics, "path": rel, "size_bytes": len(message.payload), **poses})
+            batch.rows[CLOUDS].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp,
+                                       "encoding": meta["encoding"], "width": meta["width"], "height": meta["height"],
+                                       "intrinsics": intrinsics, "path": rel, "size_bytes": len(message.payload), **poses})
         elif mtype is MessageType.TELEMETRY:
-            batch.rows[TelemetrySample].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "data": meta})
+            batch.rows[TELEMETRY].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "data": meta})
         elif mtype is MessageType.SESSION_END:
-            assert session is not None
-            session.status = SessionStatus.ended
-            session.ended_at = utcnow()
-            session.end_reason = meta.get("reason", "completed")
+            conn.execute(SESSIONS.update().where(SESSIONS.c.id == sid).values(
+                status=SessionStatus.ended, ended_at=utcnow(), end_reason=meta.get("reason", "completed")))
             return True
         return False
 
 
+SESSIONS = InspectionSession.__table__
+RECEIVED = ReceivedMessage.__table__
+FRAMES = Frame.__table__
+CLOUDS = Cloud.__table__
+TELEMETRY = TelemetrySample.__table__
+STORED = select(RECEIVED.c.seq).where(RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.seq.in_(bindparam("seqs", expanding=True)))
+
+
 @dataclass
 class _Batch:
-    """What one group commit has gathered: rows per table, sessions looked up, keys stored."""
+    """What one group commit has gathered: rows per table, sessions started, keys stored."""
 
     seen: set[tuple[str, int]]
-    sessions: dict[str, InspectionSession | None] = field(default_factory=dict)
+    new_owners: dict[str, _Owner] = field(default_factory=dict)
     rows: dict[Any, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
 
 
