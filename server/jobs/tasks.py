@@ -355,12 +355,14 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
         placed = (ox + x / px_per_m, oy + y / px_per_m, w / px_per_m, h / px_per_m) if referenced else None
         mosaic_rows.append(_defect_row(ctx, d, "mosaic", referenced, placed))
     with ctx.factory() as db:
+        reviewed = list(db.scalars(select(Defect).where(Defect.session_id == ctx.session_id, Defect.reviewed_by.is_not(None))))
+        kept = carry_reviews(reviewed, frame_rows + mosaic_rows)
         db.execute(delete(Defect).where(Defect.session_id == ctx.session_id))
         db.add_all(frame_rows + mosaic_rows)
         db.commit()
     by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
     return {"defects": len(found), "by_class": by_class, "frame_defects": len(frame_rows), "method": "proposed",
-            "crack_mask": str(out / "crack_mask.png"), "params": {"crack": params_record(CrackParams()), "corrosion": params_record(CorrosionParams())}}
+            "reviews_carried_over": kept, "crack_mask": str(out / "crack_mask.png"), "params": {"crack": params_record(CrackParams()), "corrosion": params_record(CorrosionParams())}}
 
 
 def run_export(ctx: JobContext) -> dict[str, Any]:
@@ -377,6 +379,29 @@ def run_export(ctx: JobContext) -> dict[str, Any]:
     finally:
         tmp.unlink(missing_ok=True)
     return {"mcap_path": str(out / "session.mcap"), "bytes": (out / "session.mcap").stat().st_size, **counts}
+
+
+def _box_iou(a: Defect, b: Defect) -> float:
+    x0, y0 = max(a.bbox_x, b.bbox_x), max(a.bbox_y, b.bbox_y)
+    x1, y1 = min(a.bbox_x + a.bbox_w, b.bbox_x + b.bbox_w), min(a.bbox_y + a.bbox_h, b.bbox_y + b.bbox_h)
+    inter = max(0, x1 - x0) * max(0, y1 - y0)
+    union = a.bbox_w * a.bbox_h + b.bbox_w * b.bbox_h - inter
+    return inter / union if union > 0 else 0.0
+
+
+def carry_reviews(reviewed: list[Defect], new: list[Defect], min_iou: float = 0.3) -> int:
+    """Give each new defect the review of the reviewed old one it overlaps most (same
+    class, source and frame, box IoU ≥ ``min_iou``): re-running detection keeps the
+    inspectors' work. Returns how many reviews were carried over."""
+    carried = 0
+    for d in new:
+        same = [r for r in reviewed if (r.defect_class, r.source, r.frame_seq) == (d.defect_class, d.source, d.frame_seq)]
+        best = max(same, key=lambda r: _box_iou(r, d), default=None)
+        if best is not None and _box_iou(best, d) >= min_iou:
+            d.review_status, d.condition_state, d.comment = best.review_status, best.condition_state, best.comment
+            d.reviewed_by, d.reviewed_at = best.reviewed_by, best.reviewed_at
+            carried += 1
+    return carried
 
 
 def params_record(params: Any) -> dict[str, Any]:
