@@ -16,6 +16,7 @@ topic                      schema                      what
 ``/map/points``            foxglove.PointCloud         the registered map (world), once
 ``/map/trajectory``        foxglove.PosesInFrame       the map's sensor trajectory, once
 ``/inspection/defects``    JSON                        the detected and reviewed defects, once
+``/inspection/defect_markers`` foxglove.SceneUpdate    a box and label per defect on the structure
 =========================  ==========================  ====================================
 
 Every message's MCAP ``sequence`` is the robot's sequence number, and the ``steelscan.session``
@@ -43,6 +44,7 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.message import DecodeError
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
@@ -253,6 +255,28 @@ def _write_results(ch: _Channels, db: Session, files: SessionFiles, session_id: 
         from server.schemas import DefectPublic
 
         ch.write("/inspection/defects", {"defects": [DefectPublic.model_validate(d).model_dump(mode="json") for d in defects]}, t)
+        placed = [d for d in defects if d.source == "mosaic" and d.world_x_m is not None]
+        if placed:
+            ch.write("/inspection/defect_markers", _defect_markers(placed, t), t)
+
+
+def _defect_markers(defects: list[Defect], t: float) -> SceneUpdate:
+    """A box and a label per defect on the structure (Foxglove's 3D panel shows them)."""
+    update = SceneUpdate()
+    for d in defects:
+        entity = update.entities.add(frame_id="world", id=f"defect-{d.id}")
+        entity.timestamp.FromNanoseconds(_ns(t))
+        red, green = (1.0, 0.23) if d.defect_class == "crack" else (1.0, 0.8)
+        w, h = max(d.world_w_m or 0.0, 0.005), max(d.world_h_m or 0.0, 0.005)
+        cube = entity.cubes.add()
+        _set_pose(cube.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.0), (0.0, 0.0, 0.0, 1.0))
+        cube.size.x, cube.size.y, cube.size.z = w, h, 0.004
+        cube.color.r, cube.color.g, cube.color.b, cube.color.a = red, green, 0.2, 0.6
+        label = entity.texts.add(billboard=True, font_size=14.0, scale_invariant=True,
+                                 text=f"#{d.id} {d.defect_class} {d.length_mm or 0:.0f} mm {d.condition_state or ''}".strip())
+        _set_pose(label.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.02), (0.0, 0.0, 0.0, 1.0))
+        label.color.r = label.color.g = label.color.b = label.color.a = 1.0
+    return update
 
 
 # --------------------------------------------------------------------------- import

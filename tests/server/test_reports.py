@@ -181,6 +181,7 @@ def test_mcap_opens_with_foxglove_schemas_and_reimports_losslessly(inspected: tu
     assert schemas["/camera/image"] == "foxglove.CompressedImage"
     assert schemas["/tof/points"] == "foxglove.PointCloud" and schemas["/tf"] == "foxglove.FrameTransform"
     assert schemas["/camera/odometry"] == "foxglove.PoseInFrame" and schemas["/map/points"] == "foxglove.PointCloud"
+    assert schemas["/inspection/defect_markers"] == "foxglove.SceneUpdate"
     session = httpx.get(api).json()
     assert counts["/camera/image"] == session["frames"] and counts["/tof/points"] == session["clouds"]
     assert counts["/robot/telemetry"] == session["telemetry"]
