@@ -117,3 +117,23 @@ def _orientation_deg(xs: NDArray[np.intp], ys: NDArray[np.intp]) -> float:
     evals, evecs = np.linalg.eigh(cov)
     vx, vy = evecs[:, np.argmax(evals)]
     return float(np.degrees(np.arctan2(vy, vx)) % 180.0)
+
+
+def seam_links(above: NDArray[np.integer], below: NDArray[np.integer]) -> set[tuple[int, int]]:
+    """Pairs ``(label above, label below)`` of components that touch (8-connected) across the
+    seam between the last row of one band's labels (``above``) and the first row of the next
+    (``below``); 0 is background."""
+    links: set[tuple[int, int]] = set()
+    w = len(above)
+    for dx in (-1, 0, 1):
+        a = above[max(0, -dx) : w - max(0, dx)]
+        b = below[max(0, dx) : w - max(0, -dx)]
+        both = (a > 0) & (b > 0)
+        links.update(zip(a[both].tolist(), b[both].tolist()))
+    return links
+
+
+def moved(d: Defect, dx: int, dy: int, new_id: int) -> Defect:
+    """The defect ``d`` measured on a crop, placed back at offset (dx, dy) with a new id."""
+    x, y, w, h = d.bbox
+    return replace(d, id=new_id, bbox=(x + dx, y + dy, w, h), centroid_px=(d.centroid_px[0] + dx, d.centroid_px[1] + dy))

@@ -49,6 +49,7 @@ from server.storage import SessionFiles, write_atomic
 
 log = logging.getLogger(__name__)
 
+MOSAIC_IN_MEMORY_PX = 48_000_000  # larger mosaics are searched band by band with bounded memory
 # (kind, needs: fails without them, uses: waits for them and uses their results if any)
 PIPELINE: list[tuple[str, list[str], list[str]]] = [("stitch", [], []), ("map", [], ["stitch"]), ("detect", ["stitch"], []),
                                                     ("export", [], ["stitch", "map", "detect"])]
@@ -272,9 +273,10 @@ def _defect_row(ctx: JobContext, d: Defect_, source: str, mm: bool, world: tuple
     )
 
 
-def _detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | None = None,
-               seams: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
-    """Crack and rust masks of one image and its measured defects."""
+def masks_in(image: np.ndarray, valid: np.ndarray | None = None,
+             seams: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Crack and rust masks of one image, and each pixel's contrast (how much darker than
+    its surroundings it is, grey levels) for the cracks' widths at half their contrast."""
     cracks = detect_cracks_tiled(image)
     rust = detect_corrosion(image)
     if valid is not None:
@@ -285,19 +287,35 @@ def _detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | N
     # a rust patch's rim reads as a dark line: cracks there are counted as corrosion
     cracks &= cv2.dilate(rust.astype(np.uint8), np.ones((15, 15), np.uint8)) == 0
     smooth, background = estimate_background(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), CrackParams().background_px)
-    found = measure_defects(cracks, "crack", mm_per_px=mm_per_px, contrast=background - smooth)
+    return cracks, rust, background - smooth
+
+
+def _detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | None = None,
+               seams: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
+    """Crack and rust masks of one image and its measured defects."""
+    cracks, rust, contrast = masks_in(image, valid, seams)
+    found = measure_defects(cracks, "crack", mm_per_px=mm_per_px, contrast=contrast)
     found += measure_defects(rust, "corrosion", mm_per_px=mm_per_px, first_id=len(found) + 1)
     return cracks, rust, found
 
 
-def _on_surface(image: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+def surface_level(image: np.ndarray, coverage: np.ndarray) -> float:
+    """The surface's typical brightness: median of the grey background over covered pixels."""
+    background = cv2.morphologyEx(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), cv2.MORPH_CLOSE,
+                                  cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (45, 45)))
+    covered = coverage > 0
+    return float(np.median(background[covered])) if covered.any() else 0.0
+
+
+def on_surface(image: np.ndarray, coverage: np.ndarray, level: float | None = None) -> np.ndarray:
     """Where the mosaic shows the steel surface: not far darker than the surface typically
-    is (beyond a plate's edge the camera sees the dark void below), and well inside the
-    covered area (its edge is a dark step, not a crack)."""
+    is (``level``; beyond a plate's edge the camera sees the dark void below), and well
+    inside the covered area (its edge is a dark step, not a crack)."""
     gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     background = cv2.morphologyEx(gray, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (45, 45)))
     covered = coverage > 0
-    level = float(np.median(background[covered])) if covered.any() else 0.0
+    if level is None:
+        level = float(np.median(background[covered])) if covered.any() else 0.0
     surface = (background > 0.4 * level) & covered
     return cv2.erode(surface.astype(np.uint8), np.ones((31, 31), np.uint8)) > 0
 
@@ -333,22 +351,17 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     """Cracks and corrosion in every frame and on the mosaic, measured and placed on the structure."""
     frame_rows = _detect_frames(ctx)
     out = ctx.results_dir()
-    mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
-    if mosaic is None:
+    if not (out / "mosaic.png").is_file() or not (out / "mosaic.json").is_file():
         raise ValueError("no mosaic to run detection on: run the stitch job first")
     world = json.loads((out / "mosaic.json").read_text())
     px_per_m, (ox, oy) = world["px_per_m"], world["origin_m"]
     referenced = bool(world.get("world_referenced"))
-    coverage = cv2.imread(str(out / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
-    if coverage is None or coverage.shape != mosaic.shape[:2]:
-        coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
-    inside = _on_surface(mosaic, coverage)
+    mm_per_px = 1000.0 / px_per_m if referenced else None
     ctx.progress(0.6, "mosaic")
-    seams = cv2.imread(str(out / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE)
-    seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
-    cracks, rust, found = _detect_in(mosaic, 1000.0 / px_per_m if referenced else None, inside, seams)
-    _write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
-    _write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
+    if int(world["width_px"]) * int(world["height_px"]) > MOSAIC_IN_MEMORY_PX:
+        found = _detect_mosaic_banded(ctx, out, mm_per_px)
+    else:
+        found = _detect_mosaic(out, mm_per_px)
     mosaic_rows = []
     for d in found:
         x, y, w, h = d.bbox
@@ -363,6 +376,34 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
     return {"defects": len(found), "by_class": by_class, "frame_defects": len(frame_rows), "method": "proposed",
             "reviews_carried_over": kept, "crack_mask": str(out / "crack_mask.png"), "params": {"crack": params_record(CrackParams()), "corrosion": params_record(CorrosionParams())}}
+
+
+def _detect_mosaic(out: Path, mm_per_px: float | None) -> list[Defect_]:
+    """Defects of a mosaic that fits in memory, found in one pass; writes the mask PNGs."""
+    mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
+    if mosaic is None:
+        raise ValueError("mosaic.png cannot be read")
+    coverage = cv2.imread(str(out / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
+    if coverage is None or coverage.shape != mosaic.shape[:2]:
+        coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
+    seams = cv2.imread(str(out / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE)
+    seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
+    cracks, rust, found = _detect_in(mosaic, mm_per_px, on_surface(mosaic, coverage), seams)
+    _write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
+    _write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
+    return found
+
+
+def _detect_mosaic_banded(ctx: JobContext, out: Path, mm_per_px: float | None) -> list[Defect_]:
+    """Defects of a mosaic too large for memory, band by band (:mod:`server.jobs.banded`);
+    the surface's brightness level comes from the overview."""
+    from server.jobs.banded import detect_banded
+
+    overview = cv2.imread(str(out / "mosaic_overview.png"), cv2.IMREAD_COLOR)
+    if overview is None:
+        raise ValueError("mosaic_overview.png cannot be read")
+    level = surface_level(overview, np.any(overview > 0, axis=2))
+    return detect_banded(out, masks_in, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m))
 
 
 def run_export(ctx: JobContext) -> dict[str, Any]:

@@ -260,3 +260,32 @@ def test_session_cover_fields_can_be_corrected(live_server: LiveServer) -> None:
     assert httpx.patch(api, json={"structure": ""}).status_code == 422
     assert httpx.patch(api, json={"robot_id": 3}).status_code == 422
     assert httpx.get(f"{api}/report.json").json()["cover"]["notes"] == "wind 8 m/s"
+
+
+def test_banded_detection_matches_the_one_pass_result(inspected: tuple[LiveServer, str], tmp_path: Path) -> None:
+    """Bounded-memory detection (bands of 200 rows, defects crossing seams joined) finds the
+    same defects as the in-memory pass on the session's mosaic."""
+    import shutil as sh
+
+    from server.jobs.banded import detect_banded
+    from server.jobs.tasks import _detect_mosaic, masks_in, on_surface, surface_level
+
+    live, sid = inspected
+    results = tmp_path / "results"
+    sh.copytree(live.settings.data_dir / "sessions" / sid / "results", results)
+    one = _detect_mosaic(results, 0.25)
+    mosaic = cv2.imread(str(results / "mosaic.png"), cv2.IMREAD_COLOR)
+    coverage = cv2.imread(str(results / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
+    level = surface_level(mosaic, coverage)
+    assert on_surface(mosaic, coverage, level).any()
+    banded = detect_banded(results, masks_in, 0.25, level, rows=200, overlap=128)
+    assert mosaic.shape[0] > 400  # several bands, so defects cross seams
+    key = lambda d: (d.defect_class, d.bbox)  # noqa: E731
+    assert sorted(map(key, banded)) == sorted(map(key, one))
+    by_box = {key(d): d for d in one}
+    for d in banded:
+        ref = by_box[key(d)]
+        assert d.area_px == ref.area_px and abs(d.length_px - ref.length_px) < 1e-6
+        assert abs(d.max_width_px - ref.max_width_px) <= 1.0  # contrast kept as whole grey levels
+    masks = cv2.imread(str(results / "crack_mask.png"), cv2.IMREAD_GRAYSCALE)
+    assert masks.shape == mosaic.shape[:2] and set(np.unique(masks)) <= {0, 255}
