@@ -62,20 +62,24 @@ def _rows(path: Path, bands: int, rows: int) -> Iterator[NDArray[np.uint8]]:
         yield cv2.cvtColor(block, cv2.COLOR_RGB2BGR) if bands == 3 else block[..., 0]  # OpenCV's channel order
 
 
-def band_rows(width: int, budget_bytes: int = 384 * 2**20, per_px: int = 48) -> int:
-    """Rows per band so that a band's working set (about ``per_px`` bytes a pixel) fits the budget."""
-    return int(max(256, budget_bytes // max(1, width * per_px)))
+BUDGET_BYTES = 768 * 2**20  # a band's working set, context rows included
+BYTES_PER_PX = 96  # measured: the detectors' intermediates per pixel of a band
+
+
+def band_rows(width: int, overlap: int, budget_bytes: int = BUDGET_BYTES, per_px: int = BYTES_PER_PX) -> int:
+    """Core rows per band so that a band with its context rows fits the memory budget."""
+    return int(max(128, budget_bytes // max(1, width * per_px) - 2 * overlap))
 
 
 def detect_banded(results: Path, masks: Masks, mm_per_px: float | None, level: float, *, rows: int | None = None,
-                  overlap: int = 128, progress: Callable[[float, str], None] = lambda f, m: None) -> list[Defect]:
+                  overlap: int = 64, progress: Callable[[float, str], None] = lambda f, m: None) -> list[Defect]:
     """Cracks and corrosion of ``results/mosaic.png`` (with its coverage and seams), band by
     band; writes the two mask PNGs and returns the measured defects (mosaic pixels)."""
     from server.jobs.tasks import on_surface
 
     header = pyvips.Image.new_from_file(str(results / "mosaic.png"))
     width, height = header.width, header.height
-    rows = rows or band_rows(width)
+    rows = rows or band_rows(width, overlap)
     scratch = results / ".detect-scratch"
     shutil.rmtree(scratch, ignore_errors=True)
     scratch.mkdir()

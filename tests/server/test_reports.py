@@ -278,7 +278,7 @@ def test_banded_detection_matches_the_one_pass_result(inspected: tuple[LiveServe
     coverage = cv2.imread(str(results / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     level = surface_level(mosaic, coverage)
     assert on_surface(mosaic, coverage, level).any()
-    banded = detect_banded(results, masks_in, 0.25, level, rows=200, overlap=128)
+    banded = detect_banded(results, masks_in, 0.25, level, rows=200)
     assert mosaic.shape[0] > 400  # several bands, so defects cross seams
     key = lambda d: (d.defect_class, d.bbox)  # noqa: E731
     assert sorted(map(key, banded)) == sorted(map(key, one))
