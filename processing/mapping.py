@@ -228,19 +228,64 @@ def _front_end(pcds: list[o3d.geometry.PointCloud], initial: NDArray[np.float64]
             delta = np.linalg.inv(poses[i - 2]) @ poses[i - 1] if i >= 2 else np.eye(4)
         init = poses[i - 1] @ delta
         target = _local_map(pcds, poses, i, params)
-        if len(pcds[i].points) < 10 or len(target.points) < 10:
-            poses[i], used_odo[i], degenerate[i] = init, True, 6
-            continue
-        start = match(pcds[i], target, init, params)
-        result = align(pcds[i], target, start, params)
-        fitness[i], rmse[i] = result.fitness, result.inlier_rmse
-        if result.fitness < params.min_fitness or not np.isfinite(result.transformation).all():
-            poses[i], used_odo[i], degenerate[i] = init, True, 6
-            continue
-        poses[i], degenerate[i] = constrain_to_observable(init, result.transformation, pcds[i], target, params)
-        if not within_bounds(init, poses[i], params):
-            poses[i], used_odo[i] = init, True
+        poses[i], fitness[i], rmse[i], used_odo[i], degenerate[i] = front_end_step(pcds[i], target, init, params)
     return MapResult(poses, np.zeros((0, 3), np.float32), fitness, rmse, used_odo, degenerate)
+
+
+def front_end_step(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: NDArray[np.float64],
+                   params: MapParams) -> tuple[NDArray[np.float64], float, float, bool, int]:
+    """One cloud's pose: matching, then ICP against the local map ``target``, kept only
+    along observable directions and within the odometry's bounds. Returns (pose, fitness,
+    rmse, whether the odometry was used instead, degenerate directions)."""
+    if len(source.points) < 10 or len(target.points) < 10:
+        return init, 0.0, 0.0, True, 6
+    start = match(source, target, init, params)
+    result = align(source, target, start, params)
+    if result.fitness < params.min_fitness or not np.isfinite(result.transformation).all():
+        return init, float(result.fitness), float(result.inlier_rmse), True, 6
+    pose, degenerate = constrain_to_observable(init, result.transformation, source, target, params)
+    if not within_bounds(init, pose, params):
+        return init, float(result.fitness), float(result.inlier_rmse), True, degenerate
+    return pose, float(result.fitness), float(result.inlier_rmse), False, degenerate
+
+
+class IncrementalMap:
+    """The map growing one cloud at a time, as the robot sends them (the live map): each
+    cloud is placed by :func:`front_end_step` against a local map of the previous ones,
+    seeded by its odometry, and fused into a voxel map. No pose graph: the job builds the
+    final map when the session ends."""
+
+    def __init__(self, params: MapParams = MapParams()) -> None:
+        self.params = params
+        self.poses: list[NDArray[np.float64]] = []
+        self.used_odometry = 0
+        self._guesses: list[NDArray[np.float64]] = []
+        self._recent: list[tuple[o3d.geometry.PointCloud, NDArray[np.float64]]] = []  # the last clouds and poses
+        self._fused = o3d.geometry.PointCloud()
+
+    def add(self, points: NDArray[np.floating], guess: NDArray[np.floating], shape: tuple[int, int] | None = None) -> NDArray[np.float64]:
+        """Place one cloud (sensor frame) given its odometry pose ``guess``; its pose."""
+        guess = np.asarray(guess, dtype=np.float64)
+        pcd = select(points, self.params, shape)
+        if not self.poses:
+            pose = guess
+        else:
+            init = self.poses[-1] @ np.linalg.inv(self._guesses[-1]) @ guess
+            recent = [p for p, _ in self._recent]
+            target = _local_map(recent, np.array([T for _, T in self._recent]), len(recent), self.params)
+            pose, _, _, odometry, _ = front_end_step(pcd, target, init, self.params)
+            self.used_odometry += int(odometry)
+        self._recent = [*self._recent, (pcd, pose)][-self.params.local_map_clouds:]
+        self._fused += o3d.geometry.PointCloud(pcd).transform(pose)
+        self._fused = self._fused.voxel_down_sample(self.params.map_voxel_m)
+        self.poses.append(pose)
+        self._guesses.append(guess)
+        return pose
+
+    @property
+    def points(self) -> NDArray[np.float32]:
+        """The fused map so far, (M, 3) world frame."""
+        return np.asarray(self._fused.points, dtype=np.float32)
 
 
 def _odometry_steps(initial: NDArray[np.float64] | None, front: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -30,6 +30,7 @@ class Settings(BaseSettings):
     live_queue: int = Field(default=8, description="frames buffered per watching browser")
     view3d: bool = Field(default=True, description="serve the 3D view (viser, proxied under /viser/)")
     view3d_port: int = Field(default=0, description="loopback port of the viser server (0: any free one)")
+    live_map: bool = Field(default=True, description="grow the 3D map during a session (ICP in a worker process) and show it")
 
     def resolved_database_url(self) -> str:
         """The database URL, SQLite in the data directory unless set."""

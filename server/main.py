@@ -19,6 +19,7 @@ from server.errors import Conflict, NotFound
 from server.ingest import GroupCommit, Ingest
 from server.jobs.runner import JobRunner
 from server.live import LiveHub
+from server.live_map import LiveMap
 from server.routes import auth, jobs, reports, sessions, view3d, ws
 from server.scene3d import Scene3D
 from server.state import AppState
@@ -50,12 +51,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.steelscan = state
         if settings.view3d:
             state.scene = Scene3D(settings.view3d_port)
+            if settings.live_map:
+                state.live_map = LiveMap(state.factory, state.scene)
         state.jobs.start()
         try:
             yield
         finally:
             state.jobs.stop()
             state.writer.close()
+            if state.live_map is not None:
+                state.live_map.close()
             if state.scene is not None:
                 state.scene.close()
             state.engine.dispose()

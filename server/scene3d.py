@@ -75,6 +75,7 @@ class Scene3D:
         self._lock = threading.Lock()
         self._trail: list[tuple[float, float]] = []
         self._last_pose_t = 0.0
+        self.live_map_points = 0  # points of the live map last shown
         self._info = self.server.gui.add_markdown("Click a defect marker to see it.")
         self._title = self.server.gui.add_markdown("**No session shown yet.**")
 
@@ -135,6 +136,7 @@ class Scene3D:
             if session_id != self.session_id:
                 self.session_id = session_id
                 self._trail = []
+                self.live_map_points = 0
                 self.server.scene.reset()
                 self._title.content = f"**Live: {session_id}**"
             q = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
@@ -146,6 +148,18 @@ class Scene3D:
                 if len(self._trail) > 1:
                     pts = np.array([[px, py, -0.002] for px, py in self._trail], dtype=np.float32)
                     self.server.scene.add_line_segments("/live_trail", np.stack([pts[:-1], pts[1:]], axis=1), colors=(250, 200, 0), thickness=0.004)
+
+    def show_live_map(self, session_id: str, points: NDArray[np.floating], clouds: int) -> None:
+        """Show the map growing during a live session (when that session is on view)."""
+        with self._lock:
+            if session_id != self.session_id or not len(points):
+                return
+            pts = np.asarray(points, dtype=np.float32)
+            self.server.scene.add_point_cloud("/live_map", pts, height_colours(pts), point_size=0.006, precision="float32")
+            self._title.content = f"**Live: {session_id}** — map of {clouds} clouds, {len(pts)} points"
+            if not self.live_map_points:
+                self._frame_view(pts)
+            self.live_map_points = len(pts)
 
     def clients(self) -> int:
         """Browsers connected to the view."""

@@ -11,6 +11,7 @@ from server.config import Settings
 from server.ingest import GroupCommit, Ingest
 from server.jobs.runner import JobRunner
 from server.live import LiveHub
+from server.live_map import LiveMap
 from server.scene3d import Scene3D
 from server.storage import SessionFiles
 
@@ -28,3 +29,4 @@ class AppState:
     jobs: JobRunner
     writer: GroupCommit
     scene: Scene3D | None = None  # the 3D view, when switched on
+    live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view

@@ -165,6 +165,9 @@ class RobotConnection:
             senders[sid] = self.command_sender(message.session_id)
             self.state.hub.attach_robot(sid, senders[sid])
         self.relay(message)
+        live_map = self.state.live_map
+        if live_map is not None and message.type is MessageType.CLOUD and result.status == "stored":
+            live_map.offer(sid, message.payload, message.meta)
         if result.session_ended and self.state.settings.auto_process:
             await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, sid)
 

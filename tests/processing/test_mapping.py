@@ -78,3 +78,24 @@ def test_without_refinement_the_given_poses_are_kept_and_fused() -> None:
     assert np.array_equal(result.poses, sweep.truth) and len(result.points) > 1000
     with pytest.raises(ValueError, match="initial poses"):
         register_clouds(sweep.clouds, None, params=MapParams(refine=False))
+
+
+def test_the_live_map_places_each_cloud_as_the_front_end_does() -> None:
+    """One cloud at a time (the live map), the poses are those of the batch front end, and
+    the fused map grows with every cloud."""
+    from processing.mapping import IncrementalMap, _front_end, select
+
+    sweep = tof_sweep(TofSweepConfig(seed=9))
+    n = 12
+    params = MapParams(pose_graph=False)
+    live = IncrementalMap(params)
+    sizes = []
+    for cloud, guess in zip(sweep.clouds[:n], sweep.odometry[:n]):
+        live.add(cloud, guess, shape=(172, 224))
+        sizes.append(len(live.points))
+    batch = _front_end([select(c, params, (172, 224)) for c in sweep.clouds[:n]], np.asarray(sweep.odometry[:n]), params)
+    assert np.allclose(np.array(live.poses), batch.poses, atol=1e-9)
+    assert sizes[-1] > sizes[0] and all(b >= a * 0.9 for a, b in zip(sizes, sizes[1:]))
+    ate_live = absolute_trajectory_error(np.array(live.poses), np.asarray(sweep.truth[:n]))
+    ate_odo = absolute_trajectory_error(np.asarray(sweep.odometry[:n]), np.asarray(sweep.truth[:n]))
+    assert ate_live <= ate_odo * 1.5 + 0.002

@@ -62,3 +62,30 @@ def test_live_poses_move_the_robot_and_sessions_can_be_shown(live_server: LiveSe
     shown = httpx.post(f"{live_server.url}/api/sessions/{sid}/view3d").raise_for_status().json()
     assert shown == {"session_id": str(sid), "points": 0, "trajectory_poses": 0, "defects": 0, "url": "/viser/"}
     assert httpx.post(f"{live_server.url}/api/sessions/{uuid.uuid4()}/view3d").status_code == 404
+
+
+def test_the_map_grows_live_during_a_session(live_server: LiveServer) -> None:
+    """Clouds placed by ICP in a worker process while the robot inspects, shown in the view."""
+    import asyncio
+    import time
+
+    from robot_link.client import RobotLink
+    from robot_link.sim.inspection import InspectionSim, SimConfig
+
+    async def run() -> None:
+        link = RobotLink(live_server.url, live_server.token)
+        await link.start()
+        sim = InspectionSim(link, SimConfig(seed=4, lanes=1, time_scale=6.0))
+        try:
+            await sim.run()
+        finally:
+            await link.close()
+
+    asyncio.run(run())
+    scene = live_server.app.state.steelscan.scene
+    deadline = time.monotonic() + 60
+    while scene.live_map_points == 0:
+        assert time.monotonic() < deadline, "the live map never showed"
+        time.sleep(0.2)
+    assert scene.live_map_points > 1000
+    assert "map of" in scene._title.content
