@@ -301,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_map)
 
     s = sub.add_parser("bench", help="benchmarks against baselines measured in the same run")
-    s.add_argument("names", nargs="*", help="benchmarks to run: detect, stitch, map, ingest (the default set), stitch-scale")
+    s.add_argument("names", nargs="*", help="benchmarks to run: detect, stitch, map, ingest, teleop (the default set), stitch-scale")
     s.add_argument("--dataset", help="crack dataset folder with images/ and masks/ (detect)")
     s.add_argument("--limit", type=int, help="use at most this many images")
     s.set_defaults(func=cmd_bench)

@@ -220,14 +220,20 @@ def test_import_refuses_a_file_that_is_not_an_mcap_session(tmp_path: Path) -> No
                              capture_output=True, text=True, timeout=120)
         assert out.returncode != 0 and out.stderr.strip().splitlines()[-1].startswith("error: ")
         assert "Traceback" not in out.stderr
-    assert not list((data / "sessions").glob("*")) if (data / "sessions").exists() else True
+    assert not (data / "sessions").exists() or not list((data / "sessions").glob("*"))  # nothing left behind
 
 
-def test_report_of_an_empty_session_says_what_is_missing(live_server: LiveServer) -> None:
+def empty_session(live_server: LiveServer) -> uuid.UUID:
+    """A session the robot started and sent nothing else to."""
     sid = uuid.uuid4()
     with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
         ws.send(start(sid))
         decode_message(ws.recv(timeout=10))
+    return sid
+
+
+def test_report_of_an_empty_session_says_what_is_missing(live_server: LiveServer) -> None:
+    sid = empty_session(live_server)
     api = f"{live_server.url}/api/sessions/{sid}"
     report = httpx.get(f"{api}/report.json").json()
     assert report["summary"]["frames"] == 0 and report["defects"] == []
@@ -250,10 +256,7 @@ def test_report_of_an_empty_session_says_what_is_missing(live_server: LiveServer
 
 
 def test_session_cover_fields_can_be_corrected(live_server: LiveServer) -> None:
-    sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
-        ws.send(start(sid))
-        decode_message(ws.recv(timeout=10))
+    sid = empty_session(live_server)
     api = f"{live_server.url}/api/sessions/{sid}"
     r = httpx.patch(api, json={"location": "Bridge 12, pier 3 east", "notes": "wind 8 m/s"})
     assert r.status_code == 200 and r.json()["location"] == "Bridge 12, pier 3 east"
@@ -280,7 +283,7 @@ def test_banded_detection_matches_the_one_pass_result(inspected: tuple[LiveServe
     assert on_surface(mosaic, coverage, level).any()
     banded = detect_banded(results, masks_in, 0.25, level, rows=200)
     assert mosaic.shape[0] > 400  # several bands, so defects cross seams
-    key = lambda d: (d.defect_class, d.bbox)  # noqa: E731
+    key = lambda d: (d.defect_class, d.bbox)
     assert sorted(map(key, banded)) == sorted(map(key, one))
     by_box = {key(d): d for d in one}
     for d in banded:

@@ -37,6 +37,15 @@ def watch_errors(page, errors: list[str], foreign: list[str]) -> None:  # type: 
             and not r.url.startswith(("data:", "blob:")) else None)
 
 
+def open_dashboard(pw, url: str, errors: list[str], foreign: list[str]):  # type: ignore[no-untyped-def]
+    """Debian's chromium on the dashboard, recording errors and requests to other hosts."""
+    browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    watch_errors(page, errors, foreign)
+    page.goto(url + "/")
+    return browser, page
+
+
 def sim(live_server: LiveServer, *args: str) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, "-m", "server.cli", "sim", "--server", live_server.url, "--token", live_server.token, *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -61,10 +70,7 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: Live
     errors: list[str] = []
     foreign: list[str] = []
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        watch_errors(page, errors, foreign)
-        page.goto(live_server.url + "/")
+        browser, page = open_dashboard(pw, live_server.url, errors, foreign)
         page.wait_for_selector("#link-state.ok", timeout=15000)
         robot = sim(live_server, "--exit-when-done", "--lanes", "1", "--time-scale", "4")
         try:
@@ -73,7 +79,7 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: Live
             assert "battery" in page.inner_text("#telemetry")
             shot(page, "drive-route")
         finally:
-            out, err = robot.communicate(timeout=120)
+            _, err = robot.communicate(timeout=120)
         assert robot.returncode == 0, err[-2000:]
         page.goto(live_server.url + "/#/sessions")
         page.wait_for_function("document.querySelector('#sessions tbody')?.textContent.includes('detect ✓')", timeout=120000)
@@ -160,10 +166,7 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(live_server: LiveSe
     errors: list[str] = []
     foreign: list[str] = []
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        watch_errors(page, errors, foreign)
-        page.goto(url + "/")
+        browser, page = open_dashboard(pw, url, errors, foreign)
         page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000)  # live video
         x0 = latest_telemetry(url, sid)["pose"]["x"]
         # a held key drives the robot and the telemetry shows it
