@@ -46,9 +46,12 @@ def open_dashboard(pw, url: str, errors: list[str], foreign: list[str]):  # type
     return browser, page
 
 
-def sim(live_server: LiveServer, *args: str) -> subprocess.Popen[str]:
+def sim(live_server: LiveServer, *args: str, log: Path | None = None) -> subprocess.Popen[str]:
+    """``steelscan sim`` as a subprocess; a long-running one logs to a file (a pipe nobody
+    reads would fill up and stall it)."""
+    out = log.open("w") if log is not None else subprocess.PIPE
     return subprocess.Popen([sys.executable, "-m", "server.cli", "sim", "--server", live_server.url, "--token", live_server.token, *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=out, stderr=subprocess.STDOUT if log is not None else subprocess.PIPE, text=True)
 
 
 def latest_telemetry(url: str, sid: str) -> dict:
@@ -143,15 +146,21 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: Live
 
 
 @pytest.fixture
-def teleop_robot(live_server: LiveServer) -> Iterator[tuple[subprocess.Popen[str], str]]:
+def teleop_robot(live_server: LiveServer, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
     """A teleoperated simulated robot, connected, and its session id."""
-    robot = sim(live_server, "--teleop", "--duration", "120", "--exit-when-done")
+    log = tmp_path / "teleop-robot.log"
+    robot = sim(live_server, "--teleop", "--duration", "120", "--exit-when-done", log=log)
     try:
         def session() -> str | None:
             rows = httpx.get(f"{live_server.url}/api/sessions").json()["data"]
             return rows[0]["id"] if rows else None
 
-        wait_until(lambda: session() is not None, 60, "the teleop session")
+        def started() -> bool:
+            if robot.poll() is not None:
+                raise AssertionError(f"the teleop robot exited: {log.read_text()[-2000:]}")
+            return session() is not None
+
+        wait_until(started, 60, "the teleop session")
         yield robot, str(session())
     finally:
         robot.terminate()
@@ -212,6 +221,33 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(live_server: LiveSe
         browser.close()
     assert errors == []
     assert foreign == []
+
+
+def test_a_gamepad_drives_and_its_b_button_stops(live_server: LiveServer, teleop_robot: tuple) -> None:
+    """The Gamepad API, faked in the page before it loads: the left stick pushed forward
+    drives the robot, letting go stops it."""
+    from playwright.sync_api import sync_playwright
+
+    _, sid = teleop_robot
+    url = live_server.url
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        page = browser.new_page()
+        page.add_init_script("""
+            window.fakePad = { axes: [0, 0, 0, 0], buttons: Array.from({ length: 16 }, () => ({ pressed: false, value: 0 })) };
+            navigator.getGamepads = () => [window.fakePad];
+        """)
+        page.goto(url + "/")
+        page.wait_for_function("document.querySelector('#robot-state').textContent.startsWith('robot:')", timeout=30000)
+        page.evaluate("window.fakePad.axes[1] = -1")  # stick forward
+        wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] > 0.05, 3, "the gamepad to drive")
+        page.evaluate("window.fakePad.axes[1] = 0")  # let go
+        wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0, 2, "the robot to stop when the stick is let go")
+        page.evaluate("window.fakePad.axes[0] = -1")  # stick left: turn left
+        wait_until(lambda: latest_telemetry(url, sid)["drive"]["angular_radps"] > 0.1, 3, "the gamepad to turn")
+        page.evaluate("window.fakePad.buttons[1].pressed = true")  # B: stop, whatever the stick says
+        wait_until(lambda: latest_telemetry(url, sid)["drive"]["angular_radps"] == 0.0, 2, "B to stop the robot")
+        browser.close()
 
 
 def test_sign_in_when_accounts_exist(live_server: LiveServer) -> None:
