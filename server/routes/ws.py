@@ -280,6 +280,9 @@ async def _handle_browser_message(websocket: WebSocket, hub: Any, watcher: Any, 
         refused = hub.take_control(sid, watcher, force=bool(request.get("force")) and has_role(user, Role.admin))
         await _reply(websocket, ok=not refused, cmd="take", error=refused or None)
         return
+    if sid not in hub.robots:
+        await _reply(websocket, ok=False, cmd=cmd, error="no robot is connected for that session")
+        return
     if cmd not in ("stop", "estop"):
         refused = hub.take_control(sid, watcher) if hub.controller(sid) in (None, watcher) else \
             f"the robot is driven by {hub.controller(sid).user or 'another operator'}; you can watch, stop or e-stop it"
