@@ -148,15 +148,9 @@ class Ingest:
         meta = message.meta
         pose = meta.get("pose") or {}
         mtype = message.type
-        rel = None
-        if mtype is MessageType.FRAME:  # files before rows: a write that fails adds nothing
-            rel = self.files.frame_relpath(sid, message.seq)
-        elif mtype is MessageType.CLOUD:
-            rel = self.files.cloud_relpath(sid, message.seq, meta["encoding"])
-        if rel is not None:
-            # no temporary name: the row that makes the file visible is committed after it,
-            # and a resend after a crash writes it again
-            self.files.write_in_place(rel, message.payload)
+        rel, offset = None, None
+        if mtype in (MessageType.FRAME, MessageType.CLOUD):  # the payload before the row: a failed write adds nothing
+            rel, offset = self.files.append(sid, "frames" if mtype is MessageType.FRAME else "clouds", message.payload)
         if mtype is MessageType.SESSION_START:  # at once: the batch's other rows refer to it
             conn.execute(SESSIONS.insert().values(id=sid, robot_id=robot_id, structure=meta["structure"],
                                                   operator=meta.get("operator", ""), location=meta.get("location", ""),
@@ -166,17 +160,20 @@ class Ingest:
         poses = {"pose_x": pose.get("x"), "pose_y": pose.get("y"), "pose_yaw": pose.get("yaw")}
         if mtype is MessageType.FRAME:
             batch.rows[FRAMES].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "width": meta["width"],
-                                       "height": meta["height"], "path": rel, "size_bytes": len(message.payload), **poses})
+                                       "height": meta["height"], "path": rel, "data_offset": offset, "size_bytes": len(message.payload),
+                                       **poses})
         elif mtype is MessageType.CLOUD:
             intrinsics = {k: meta[k] for k in ("fx", "fy", "cx", "cy") if k in meta}
             batch.rows[CLOUDS].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp,
                                        "encoding": meta["encoding"], "width": meta["width"], "height": meta["height"],
-                                       "intrinsics": intrinsics, "path": rel, "size_bytes": len(message.payload), **poses})
+                                       "intrinsics": intrinsics, "path": rel, "data_offset": offset,
+                                       "size_bytes": len(message.payload), **poses})
         elif mtype is MessageType.TELEMETRY:
             batch.rows[TELEMETRY].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "data": meta})
         elif mtype is MessageType.SESSION_END:
             conn.execute(SESSIONS.update().where(SESSIONS.c.id == sid).values(
                 status=SessionStatus.ended, ended_at=utcnow(), end_reason=meta.get("reason", "completed")))
+            self.files.close_session(sid)
             return True
         return False
 

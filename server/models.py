@@ -8,6 +8,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     DateTime,
     Enum,
     Float,
@@ -122,6 +123,7 @@ class Frame(_PoseColumns, Base):
     height: Mapped[int]
     path: Mapped[str] = mapped_column(String(500))
     size_bytes: Mapped[int]
+    data_offset: Mapped[int | None] = mapped_column(BigInteger)  # where in a segment file; None: the whole file
 
 
 class Cloud(_PoseColumns, Base):
@@ -139,6 +141,7 @@ class Cloud(_PoseColumns, Base):
     intrinsics: Mapped[dict[str, Any]] = mapped_column(default=dict)
     path: Mapped[str] = mapped_column(String(500))
     size_bytes: Mapped[int]
+    data_offset: Mapped[int | None] = mapped_column(BigInteger)  # where in a segment file; None: the whole file
 
 
 class TelemetrySample(Base):

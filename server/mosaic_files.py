@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -134,16 +134,37 @@ class ImageFiles:
         return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR) if img.shape[2] == 4 else img
 
 
-def image_header(path: Path) -> tuple[int, int, str]:
-    """(width, height, mode) from an image file's header, without decoding it; ValueError
-    when it is not an image."""
+def image_header(source: Path | bytes, name: str = "") -> tuple[int, int, str]:
+    """(width, height, mode) from an image's header (a file or its bytes), without decoding
+    it; ValueError when it is not an image."""
+    import io
+
     from PIL import Image, UnidentifiedImageError
 
+    name = name or (source.name if isinstance(source, Path) else "image")
     try:
-        with Image.open(path) as im:
+        with Image.open(io.BytesIO(source) if isinstance(source, bytes) else source) as im:
             return im.size[0], im.size[1], im.mode
     except (OSError, UnidentifiedImageError, ValueError) as exc:
-        raise ValueError(f"{path.name}: not a readable image ({exc.__class__.__name__})") from None
+        raise ValueError(f"{name}: not a readable image ({exc.__class__.__name__})") from None
+
+
+class StoredImages:
+    """Frames stored by the station, read and decoded on demand (a
+    :class:`processing.stitching.FrameSource`); ``read(k)`` gives frame k's bytes."""
+
+    def __init__(self, read: Callable[[int], bytes], count: int) -> None:
+        self.read = read
+        self.count = count
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        img = cv2.imdecode(np.frombuffer(self.read(index), np.uint8), cv2.IMREAD_COLOR)
+        if img is None:
+            raise ValueError(f"stored frame {index} is not an image OpenCV can read")
+        return img
 
 
 def read_region(results: Path, x: int, y: int, w: int, h: int) -> np.ndarray:

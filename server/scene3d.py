@@ -76,6 +76,7 @@ class Scene3D:
         self._trail: list[tuple[float, float]] = []
         self._last_pose_t = 0.0
         self.live_map_points = 0  # points of the live map last shown
+        self._closed = False
         self._info = self.server.gui.add_markdown("Click a defect marker to see it.")
         self._title = self.server.gui.add_markdown("**No session shown yet.**")
 
@@ -152,7 +153,7 @@ class Scene3D:
     def show_live_map(self, session_id: str, points: NDArray[np.floating], clouds: int) -> None:
         """Show the map growing during a live session (when that session is on view)."""
         with self._lock:
-            if session_id != self.session_id or not len(points):
+            if self._closed or session_id != self.session_id or not len(points):
                 return
             pts = np.asarray(points, dtype=np.float32)
             self.server.scene.add_point_cloud("/live_map", pts, height_colours(pts), point_size=0.006, precision="float32")
@@ -167,5 +168,7 @@ class Scene3D:
 
     def close(self) -> None:
         """Stop the viser server (quietly: it announces that on stdout too)."""
+        with self._lock:
+            self._closed = True
         with contextlib.redirect_stdout(io.StringIO()):
             self.server.stop()

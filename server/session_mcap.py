@@ -196,14 +196,14 @@ def _write_pose(ch: _Channels, topic: str, row: Frame | Cloud) -> None:
 
 def _write_frame(ch: _Channels, files: SessionFiles, f: Frame) -> None:
     _write_pose(ch, "/camera/odometry", f)
-    msg = CompressedImage(frame_id="camera", format="jpeg", data=files.resolve(f.path).read_bytes())
+    msg = CompressedImage(frame_id="camera", format="jpeg", data=files.payload(f))
     msg.timestamp.FromNanoseconds(_ns(f.timestamp))
     ch.write("/camera/image", msg, f.timestamp, f.seq)
 
 
 def _write_cloud(ch: _Channels, files: SessionFiles, c: Cloud) -> None:
     _write_pose(ch, "/tof/odometry", c)
-    payload = files.resolve(c.path).read_bytes()
+    payload = files.payload(c)
     k = c.intrinsics
     # always written: it carries the cloud's organised width × height (K is zero when unknown)
     fx, fy, cx, cy = (float(k.get(n, 0.0)) for n in ("fx", "fy", "cx", "cy"))

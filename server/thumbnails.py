@@ -28,7 +28,10 @@ def defect_image(db: Session, files: SessionFiles, defect: Defect, size: int = 2
     wx, wy, ww, wh = crop_box(defect.bbox_x, defect.bbox_y, defect.bbox_w, defect.bbox_h)
     if defect.source == "frame":
         frame = db.scalar(select(Frame).where(Frame.session_id == defect.session_id, Frame.seq == defect.frame_seq))
-        image = cv2.imread(str(files.resolve(frame.path)), cv2.IMREAD_COLOR) if frame is not None else None
+        try:
+            image = cv2.imdecode(np.frombuffer(files.payload(frame), np.uint8), cv2.IMREAD_COLOR) if frame is not None else None
+        except OSError:
+            image = None
         if image is None:
             raise NotFound(f"the frame of defect {defect.id} is gone or unreadable")
         crop, (ox, oy) = _cut(image, wx, wy, ww, wh)

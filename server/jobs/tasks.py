@@ -44,7 +44,7 @@ from processing.poses import (
 from processing.stitching import StitchParams, camera_poses, plan_mosaic, render_bands
 from robot_link.clouds import decode_cloud
 from server.models import Cloud, Defect, Frame, InspectionSession, Job, JobState, utcnow
-from server.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
+from server.mosaic_files import StoredImages, frame_records, image_header, write_mosaic
 from server.storage import SessionFiles, write_atomic
 
 log = logging.getLogger(__name__)
@@ -150,9 +150,9 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     use, skipped = [], []
     for f in frames:
         try:  # the header only: a frame that cannot be read is skipped, not fatal
-            w, h, _ = image_header(ctx.files.resolve(f.path))
+            w, h, _ = image_header(ctx.files.payload(f), f"frame {f.seq}")
             ok = (w, h) == size
-        except ValueError:
+        except (ValueError, OSError):
             ok = False
         (use if ok else skipped).append(f)
     if not use:
@@ -162,7 +162,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     if with_pose and px_per_m is not None:
         robot = np.array([[f.pose_x, f.pose_y, f.pose_yaw] for f in use], dtype=np.float64)
         guess = camera_poses(robot, T_rc, px_per_m)
-    source = ImageFiles([ctx.files.resolve(f.path) for f in use])
+    source = StoredImages(lambda k: ctx.files.payload(use[k]), len(use))
     layout, loaded = plan_mosaic(source, guess, px_per_m=px_per_m if with_pose and px_per_m else 1.0,
                                  progress=lambda f, m: ctx.progress(0.7 * f, m))
     out = ctx.results_dir()
@@ -189,7 +189,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     for i, c in enumerate(rows):
         meta = {"encoding": c.encoding, "width": c.width, "height": c.height, **c.intrinsics}
         try:
-            pts = decode_cloud(ctx.files.resolve(c.path).read_bytes(), meta)
+            pts = decode_cloud(ctx.files.payload(c), meta)
         except (OSError, ValueError):
             skipped.append(c.seq)
             continue
@@ -329,7 +329,10 @@ def _detect_frames(ctx: JobContext) -> list[Defect]:
         frames = list(db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)))
     rows: list[Defect] = []
     for i, f in enumerate(frames):
-        img = cv2.imread(str(ctx.files.resolve(f.path)), cv2.IMREAD_COLOR)
+        try:
+            img = cv2.imdecode(np.frombuffer(ctx.files.payload(f), np.uint8), cv2.IMREAD_COLOR)
+        except OSError:
+            img = None
         if img is None:
             continue
         _, _, found = _detect_in(img, 1000.0 / px_per_m if px_per_m else None)

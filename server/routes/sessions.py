@@ -106,13 +106,21 @@ def read_frames(db: SessionDep, session_id: str, skip: Annotated[int, Query(ge=0
     return FramesPublic(data=list(rows), count=_count(db, Frame, session_id))  # type: ignore[arg-type]
 
 
-@router.get("/{session_id}/frames/{seq}/image", response_class=FileResponse)
+def _payload(state: StateDep, row: Any, what: str) -> bytes:
+    try:
+        return state.files.payload(row)
+    except (OSError, ValueError) as exc:
+        raise NotFound(f"the data of {what} cannot be read: {exc}") from None
+
+
+@router.get("/{session_id}/frames/{seq}/image", response_class=Response)
 def read_frame_image(db: SessionDep, state: StateDep, session_id: str, seq: Seq) -> FileResponse:
     """The JPEG of one frame."""
     frame = db.scalar(select(Frame).where(Frame.session_id == session_id, Frame.seq == seq))
     if frame is None:
         raise NotFound(f"frame {seq} of session {session_id} not found")
-    return FileResponse(state.files.resolve(frame.path), media_type="image/jpeg")
+    return Response(_payload(state, frame, f"frame {seq} of session {session_id}"), media_type="image/jpeg",
+                    headers={"Cache-Control": "private, max-age=3600"})
 
 
 @router.get("/{session_id}/clouds", response_model=CloudsPublic)
@@ -130,12 +138,14 @@ def _cloud_or_404(db: SessionDep, session_id: str, seq: int) -> Cloud:
     return cloud
 
 
-@router.get("/{session_id}/clouds/{seq}/raw", response_class=FileResponse)
-def read_cloud_raw(db: SessionDep, state: StateDep, session_id: str, seq: Seq) -> FileResponse:
+@router.get("/{session_id}/clouds/{seq}/raw", response_class=Response)
+def read_cloud_raw(db: SessionDep, state: StateDep, session_id: str, seq: Seq) -> Response:
     """A cloud's payload as the robot sent it (16-bit depth PNG in mm, or float32 xyz)."""
     cloud = _cloud_or_404(db, session_id, seq)
-    media = "image/png" if cloud.encoding == "png16_depth_mm" else "application/octet-stream"
-    return FileResponse(state.files.resolve(cloud.path), media_type=media, filename=state.files.resolve(cloud.path).name)
+    png = cloud.encoding == "png16_depth_mm"
+    name = f"cloud-{seq:010d}.{'png' if png else 'xyz'}"
+    return Response(_payload(state, cloud, f"cloud {seq} of session {session_id}"), media_type="image/png" if png else "application/octet-stream",
+                    headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
 
 @router.get("/{session_id}/clouds/{seq}/points.ply", response_class=Response)
@@ -147,7 +157,7 @@ def read_cloud_ply(db: SessionDep, state: StateDep, session_id: str, seq: Seq) -
     cloud = _cloud_or_404(db, session_id, seq)
     meta = {"encoding": cloud.encoding, "width": cloud.width, "height": cloud.height, **cloud.intrinsics}
     try:
-        points = decode_cloud(state.files.resolve(cloud.path).read_bytes(), meta)
+        points = decode_cloud(state.files.payload(cloud), meta)
     except (OSError, ValueError) as exc:
         raise NotFound(f"cloud {seq} of session {session_id} cannot be read: {exc}") from None
     return Response(ply_bytes(points), media_type="application/octet-stream",
