@@ -17,7 +17,6 @@ class SessionFiles:
         self.data_dir = data_dir.resolve()
         self.fsync = fsync
         self.segment_bytes = segment_bytes
-        self._made: set[Path] = set()  # folders known to exist (the ingest path writes many files per folder)
         self._segments: dict[tuple[str, str], tuple[int, BinaryIO]] = {}  # (session, kind) -> (number, open file)
 
     def session_dir(self, session_id: str) -> Path:
@@ -32,6 +31,75 @@ class SessionFiles:
         """Relative path of a ToF cloud payload (depth PNG or raw xyz)."""
         ext = "png" if encoding == "png16_depth_mm" else "xyz"
         return f"sessions/{session_id}/clouds/{seq:010d}.{ext}"
+
+    def append(self, session_id: str, kind: str, data: bytes) -> tuple[str, int]:
+        """Append a payload (``kind``: frames or clouds) to the session's current segment file;
+        its relative path and byte offset. One file for many payloads: creating a file per
+        frame is what limits a disk's ingest rate. The row that points at it is committed
+        after it, so a torn append is never read, and a resend appends again. Called by the
+        one ingest writer thread."""
+        key = (session_id, kind)
+        number, fh = self._segments.get(key, (0, None))  # type: ignore[arg-type]
+        if fh is not None and fh.tell() + len(data) > self.segment_bytes:
+            fh.close()
+            number, fh = number + 1, None
+        if fh is None:
+            folder = self.session_dir(session_id) / kind
+            folder.mkdir(parents=True, exist_ok=True)
+            while (folder / f"segment-{number:05d}.bin").is_file() and \
+                    (folder / f"segment-{number:05d}.bin").stat().st_size + len(data) > self.segment_bytes:
+                number += 1
+            fh = open(folder / f"segment-{number:05d}.bin", "ab")  # noqa: SIM115 - kept open across appends
+            self._segments[key] = (number, fh)
+        offset = fh.seek(0, os.SEEK_END)
+        fh.write(data)
+        fh.flush()
+        if self.fsync:
+            os.fsync(fh.fileno())
+        return f"sessions/{session_id}/{kind}/segment-{number:05d}.bin", offset
+
+    def close_session(self, session_id: str) -> None:
+        """Close the session's open segment files (it ended)."""
+        for key in [k for k in self._segments if k[0] == session_id]:
+            self._segments.pop(key)[1].close()
+
+    def read(self, relpath: str, offset: int | None, size: int) -> bytes:
+        """A stored payload: ``size`` bytes at ``offset`` of a segment file, or a whole file
+        when ``offset`` is None. OSError when it is gone or short."""
+        path = self.resolve(relpath)
+        if offset is None:
+            return path.read_bytes()
+        with path.open("rb") as fh:
+            fh.seek(offset)
+            data = fh.read(size)
+        if len(data) != size:
+            raise OSError(f"{path.name} holds {len(data)} of the {size} bytes at {offset}")
+        return data
+
+    def payload(self, row: Any) -> bytes:
+        """The stored payload of a frame or cloud row."""
+        return self.read(row.path, row.data_offset, row.size_bytes)
+
+    def results_dir(self, session_id: str) -> Path:
+        """Folder of a session's processing results."""
+        return self.session_dir(session_id) / "results"
+
+    def resolve(self, relpath: str) -> Path:
+        """Absolute path of a stored relative path, refusing anything outside the data dir."""
+        path = (self.data_dir / relpath).resolve()
+        if not path.is_relative_to(self.data_dir):
+            raise ValueError(f"path {relpath!r} leaves the data directory")
+        return path
+
+    def write(self, relpath: str, data: bytes) -> Path:
+        """Write a file atomically (temp file + rename), fsync'd when configured. The path
+        is checked by its parts (no symlink resolution on this hot path: the relative paths
+        written are the station's own)."""
+        parts = Path(relpath).parts
+        if not parts or Path(relpath).is_absolute() or ".." in parts:
+            raise ValueError(f"path {relpath!r} leaves the data directory")
+        return write_atomic(self.data_dir / relpath, data, fsync=self.fsync)
+
 
     def append(self, session_id: str, kind: str, data: bytes) -> tuple[str, int]:
         """Append a payload (``kind``: frames or clouds) to the session's current segment file;
