@@ -19,11 +19,16 @@ def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 
 
+TOKEN_PREFIX = "ssr_"
+
+
 def create_robot(factory: sessionmaker[Session], name: str) -> str:
     """Register a robot and return its new token (shown once, never stored in clear)."""
     if not name.strip():
         raise ValueError("robot name must not be empty")
-    token = secrets.token_urlsafe(32)
+    # a prefix marks it as a steelscan robot token (for secret scanners) and keeps it from
+    # starting with "-", which a command line would read as an option
+    token = TOKEN_PREFIX + secrets.token_urlsafe(32)
     with factory() as db:
         db.add(Robot(name=name.strip(), token_hash=hash_token(token)))
         try:

@@ -36,7 +36,7 @@ def test_create_robot_prints_a_token_alone(tmp_path: Path) -> None:
 
 
 def test_sim_streams_one_route_and_reports_what_it_sent(live_server: LiveServer) -> None:
-    proc = steelscan("sim", "--server", live_server.url, "--token", live_server.token, "--exit-when-done", "--lanes", "1", "--time-scale", "0")
+    proc = steelscan("sim", "--server", live_server.url, f"--token={live_server.token}", "--exit-when-done", "--lanes", "1", "--time-scale", "0")
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     s = httpx.get(f"{live_server.url}/api/sessions/{summary['session_id']}").json()

@@ -50,7 +50,7 @@ def sim(live_server: LiveServer, *args: str, log: Path | None = None) -> subproc
     """``steelscan sim`` as a subprocess; a long-running one logs to a file (a pipe nobody
     reads would fill up and stall it)."""
     out = log.open("w") if log is not None else subprocess.PIPE
-    return subprocess.Popen([sys.executable, "-m", "server.cli", "sim", "--server", live_server.url, "--token", live_server.token, *args],
+    return subprocess.Popen([sys.executable, "-m", "server.cli", "sim", "--server", live_server.url, f"--token={live_server.token}", *args],
                             stdout=out, stderr=subprocess.STDOUT if log is not None else subprocess.PIPE, text=True)
 
 
