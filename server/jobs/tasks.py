@@ -389,7 +389,7 @@ def _detect_mosaic(out: Path, mm_per_px: float | None) -> list[Defect_]:
     coverage = cv2.imread(str(out / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     if coverage is None or coverage.shape != mosaic.shape[:2]:
         coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
-    seams = cv2.imread(str(out / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE)
+    seams = cv2.imread(str(out / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE) if (out / "mosaic_seams.png").is_file() else None
     seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
     cracks, rust, found = _detect_in(mosaic, mm_per_px, on_surface(mosaic, coverage), seams)
     _write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
