@@ -32,6 +32,61 @@ class Defect:
     area_mm2: float | None = None
 
 
+@dataclass(frozen=True)
+class Components:
+    """Labelled 8-connected components of a mask (``cv2.connectedComponentsWithStats``)
+    and which of them are defects (label 0, the background, never is)."""
+
+    labels: NDArray[np.int32]
+    stats: NDArray[np.int32]
+    centroids: NDArray[np.float64]
+    keep: NDArray[np.bool_]
+
+    @classmethod
+    def of(cls, mask: NDArray[np.bool_]) -> Components:
+        """Every component of ``mask``.
+
+        OpenCV's statistics pass costs twice the labelling on a large image; for a sparse
+        mask (a mosaic's defects) they come from the foreground pixels alone.
+        """
+        m8 = mask.astype(np.uint8)
+        if cv2.countNonZero(m8) > 0.05 * m8.size:
+            n, labels, stats, centroids = cv2.connectedComponentsWithStats(m8, connectivity=8)
+        else:
+            n, labels = cv2.connectedComponents(m8, connectivity=8)
+            stats, centroids = _sparse_stats(labels, n)
+        keep = np.ones(n, bool)
+        keep[0] = False
+        return cls(labels, stats, centroids, keep)
+
+
+def _sparse_stats(labels: NDArray[np.int32], n: int) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
+    """``cv2.connectedComponentsWithStats``'s stats and centroids from the labelled pixels
+    (the background's row holds its area and the image box, its centroid is left 0)."""
+    h, w = labels.shape
+    stats = np.zeros((n, 5), np.int32)
+    centroids = np.zeros((n, 2))
+    points = cv2.findNonZero((labels > 0).view(np.uint8))
+    count = 0 if points is None else len(points)
+    stats[0] = (0, 0, w, h, h * w - count)
+    if count == 0:
+        return stats, centroids
+    points = points.reshape(-1, 2)  # (N, 1, 2) or (N, 2) by OpenCV version
+    xs, ys = points[:, 0], points[:, 1]
+    lab = labels[ys, xs]
+    order = np.argsort(lab, kind="stable")
+    lab, xs, ys = lab[order], xs[order], ys[order]
+    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
+    ids = lab[starts]
+    area = np.diff(np.r_[starts, len(lab)])
+    x0, x1 = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)
+    y0, y1 = np.minimum.reduceat(ys, starts), np.maximum.reduceat(ys, starts)
+    stats[ids] = np.stack([x0, y0, x1 - x0 + 1, y1 - y0 + 1, area], axis=1)
+    centroids[ids, 0] = np.add.reduceat(xs.astype(np.float64), starts) / area
+    centroids[ids, 1] = np.add.reduceat(ys.astype(np.float64), starts) / area
+    return stats, centroids
+
+
 def measure_defects(
     mask: NDArray[np.bool_],
     defect_class: str,
@@ -39,6 +94,7 @@ def measure_defects(
     mm_per_px: float | None = None,
     first_id: int = 1,
     contrast: NDArray[np.floating] | None = None,
+    components: Components | None = None,
 ) -> list[Defect]:
     """Measure each connected component of ``mask`` as one defect.
 
@@ -47,27 +103,26 @@ def measure_defects(
     lines); orientation is the principal axis angle in degrees from the image x axis.
     With ``contrast`` (how much darker than its surroundings each pixel is), widths are
     taken at half the defect's peak contrast (full width at half maximum), so the blurred
-    rim a detector includes does not widen the crack.
+    rim a detector includes does not widen the crack. ``components`` of ``mask`` may be
+    given when already labelled (they must be exactly its components).
     """
-    m = mask.astype(np.uint8)
-    n, labels, stats, centroids = cv2.connectedComponentsWithStats(m, connectivity=8)
-    if contrast is not None:
-        if contrast.shape != mask.shape:
-            raise ValueError(f"contrast {contrast.shape} and mask {mask.shape} differ in shape")
-        peak = np.zeros(n)
-        inside = m.ravel() > 0  # only the defects' pixels: ufunc.at over a whole mosaic is slow
-        np.maximum.at(peak, labels.ravel()[inside], contrast.ravel()[inside])
-        peak[0] = 0.0
-        m = (m > 0) & (contrast >= 0.5 * peak[labels])
-        m = m.astype(np.uint8)
-    dist = cv2.distanceTransform(np.pad(m, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    if contrast is not None and contrast.shape != mask.shape:
+        raise ValueError(f"contrast {contrast.shape} and mask {mask.shape} differ in shape")
+    comps = components if components is not None else Components.of(mask)
+    labels, stats, centroids = comps.labels, comps.stats, comps.centroids
     defects = []
-    for i in range(1, n):
+    for i in np.flatnonzero(comps.keep).tolist():
         x, y, w, h, area = (int(v) for v in stats[i])
         comp = labels[y : y + h, x : x + w] == i
         skel = skeletonize(comp)
         length = _skeleton_length(skel)
-        d_skel = dist[y : y + h, x : x + w][skel]
+        core = comp
+        if contrast is not None:
+            c = contrast[y : y + h, x : x + w]
+            core = comp & (c >= 0.5 * float(c[comp].max()))
+        # each component on its own: widths never see a neighbour
+        dist = cv2.distanceTransform(np.pad(core.astype(np.uint8), 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+        d_skel = dist[skel]
         d_skel = d_skel[d_skel > 0] if (d_skel > 0).any() else d_skel
         widths = np.maximum(2.0 * d_skel - 1.0, 1.0) if d_skel.size else np.array([1.0])
         ys, xs = np.nonzero(comp)

@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from server.allocator import keep_arrays_on_heap
 from server.config import Settings
 from server.errors import CommandError
 
@@ -285,26 +286,26 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True)
     s.add_argument("--method", default="proposed", choices=["proposed", "paper", "otsu", "sauvola"])
     s.add_argument("--px-per-mm", type=float)
-    s.set_defaults(func=cmd_detect)
+    s.set_defaults(func=cmd_detect, image_work=True)
 
     s = sub.add_parser("stitch", help="stitch a folder of downward-camera frames")
     s.add_argument("frames_dir")
     s.add_argument("--out", required=True)
     s.add_argument("--odometry")
     s.add_argument("--px-per-m", type=float)
-    s.set_defaults(func=cmd_stitch)
+    s.set_defaults(func=cmd_stitch, image_work=True)
 
     s = sub.add_parser("map", help="register a folder of point clouds into a 3D map")
     s.add_argument("clouds_dir")
     s.add_argument("--out", required=True)
     s.add_argument("--odometry")
-    s.set_defaults(func=cmd_map)
+    s.set_defaults(func=cmd_map, image_work=True)
 
     s = sub.add_parser("bench", help="benchmarks against baselines measured in the same run")
     s.add_argument("names", nargs="*", help="benchmarks to run: detect, stitch, map, ingest, teleop (the default set), stitch-scale")
     s.add_argument("--dataset", help="crack dataset folder with images/ and masks/ (detect)")
     s.add_argument("--limit", type=int, help="use at most this many images")
-    s.set_defaults(func=cmd_bench)
+    s.set_defaults(func=cmd_bench, image_work=True)
 
     s = sub.add_parser("import", help="import a session's MCAP log (as exported) into a new session")
     s.add_argument("file")
@@ -345,6 +346,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     for noisy in ("alembic", "httpx", "pyvips"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     func: Callable[[argparse.Namespace], int] = args.func
+    if getattr(args, "image_work", False):
+        keep_arrays_on_heap()
     try:
         return func(args)
     except CommandError as exc:

@@ -138,20 +138,37 @@ def bench_detect(dataset: Path | None = None, limit: int | None = None) -> Itera
 
 
 def _mosaic_throughput() -> Iterator[Result]:
-    """Megapixels per second of tiled detection on a simulated 9-megapixel mosaic."""
+    """Megapixels per second of the detect job's whole mosaic pass on a simulated
+    9-megapixel mosaic (surface mask, crack and rust masks with seams, every defect
+    measured), against scikit-image's Sauvola on the same image; and the crack filter alone."""
     from skimage.filters import threshold_sauvola
 
-    from processing.detection import detect_cracks_tiled
+    from processing.detection import detect_cracks_tiled, on_surface
     from robot_link.sim.structure import make_structure
+    from server.jobs.tasks import _detect_in
 
     mosaic = make_structure(11).texture
-    mp = mosaic.shape[0] * mosaic.shape[1] / 1e6
+    h, w = mosaic.shape[:2]
+    mp = h * w / 1e6
+    coverage = np.full((h, w), 255, np.uint8)
+    seams = np.zeros((h, w), bool)
+    seams[::400, :] = seams[:, ::500] = True  # where frames would meet
+    _detect_in(mosaic[:512, :512], 0.25)  # warm-up: compiled kernels, thread pools
     t0 = time.perf_counter()
     gray = cv2.cvtColor(mosaic, cv2.COLOR_BGR2GRAY)
     _ = gray < threshold_sauvola(gray, window_size=25, k=0.2)
     base = mp / (time.perf_counter() - t0)
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        _, _, found = _detect_in(mosaic, 0.25, on_surface(mosaic, coverage), seams)
+        runs.append(time.perf_counter() - t0)
+    ours = mp / float(np.median(runs))
+    yield {"name": "detect.mosaic_throughput", "value": round(ours, 2), "unit": "MP/s", "baseline": round(base, 2),
+           "ratio": round(ours / base, 3), "megapixels": round(mp, 1), "defects": len(found), "target": 20.0,
+           "what": "surface mask + crack and rust masks (seams) + measurement, 2 threads"}
     t0 = time.perf_counter()
     detect_cracks_tiled(mosaic)
-    ours = mp / (time.perf_counter() - t0)
-    yield {"name": "detect.mosaic_throughput", "value": round(ours, 2), "unit": "MP/s", "baseline": round(base, 2),
-           "ratio": round(ours / base, 3), "megapixels": round(mp, 1)}
+    cracks = mp / (time.perf_counter() - t0)
+    yield {"name": "detect.crack_filter_throughput", "value": round(cracks, 2), "unit": "MP/s", "baseline": round(base, 2),
+           "ratio": round(cracks / base, 3), "megapixels": round(mp, 1)}

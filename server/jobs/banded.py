@@ -22,10 +22,10 @@ from numpy.typing import NDArray
 from scipy.cluster.hierarchy import DisjointSet
 
 from processing.defects import Defect, measure_defects, moved, seam_links
+from processing.detection import DefectMasks, on_surface
 
 CLASSES = ("crack", "corrosion")
-Masks = Callable[[NDArray[np.uint8], NDArray[np.bool_], NDArray[np.bool_] | None],
-                 tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.floating]]]
+Masks = Callable[[NDArray[np.uint8], NDArray[np.bool_], NDArray[np.bool_] | None], DefectMasks]
 
 
 @dataclass
@@ -75,8 +75,6 @@ def detect_banded(results: Path, masks: Masks, mm_per_px: float | None, level: f
                   overlap: int = 64, progress: Callable[[float, str], None] = lambda f, m: None) -> list[Defect]:
     """Cracks and corrosion of ``results/mosaic.png`` (with its coverage and seams), band by
     band; writes the two mask PNGs and returns the measured defects (mosaic pixels)."""
-    from server.jobs.tasks import on_surface
-
     header = pyvips.Image.new_from_file(str(results / "mosaic.png"))
     width, height = header.width, header.height
     rows = rows or band_rows(width, overlap)
@@ -106,7 +104,8 @@ def detect_banded(results: Path, masks: Masks, mm_per_px: float | None, level: f
             image, coverage = buffers[0], buffers[1]
             seams = buffers[2] > 0 if have_seams else None
             assert image is not None and coverage is not None
-            cracks, rust, contrast = masks(image, on_surface(image, coverage, level), seams)
+            found_in = masks(image, on_surface(image, coverage, level), seams)
+            cracks, rust, contrast = found_in.cracks, found_in.rust, found_in.contrast
             a, b = core_y0 - buf_y0, core_y1 - buf_y0
             maps["crack"][core_y0:core_y1] = cracks[a:b]
             maps["corrosion"][core_y0:core_y1] = rust[a:b]

@@ -12,6 +12,7 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.allocator import keep_arrays_on_heap
 from server.jobs.tasks import JOB_KINDS, PIPELINE, run_job
 from server.models import Job, JobState, utcnow
 
@@ -81,7 +82,7 @@ class JobRunner:
 
     def _new_pool(self) -> ProcessPoolExecutor:
         ctx = multiprocessing.get_context("spawn")
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx)
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=keep_arrays_on_heap)
 
     def _loop(self) -> None:
         while not self._stop.is_set():

@@ -11,7 +11,8 @@ import logging
 import traceback
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -27,10 +28,9 @@ from processing.defects import measure_defects
 from processing.detection import (
     CorrosionParams,
     CrackParams,
-    detect_corrosion,
-    detect_cracks_tiled,
-    drop_along,
-    estimate_background,
+    defect_masks,
+    on_surface,
+    surface_level,
 )
 from processing.mapping import MapParams, register_clouds
 from processing.poses import (
@@ -273,51 +273,16 @@ def _defect_row(ctx: JobContext, d: Defect_, source: str, mm: bool, world: tuple
     )
 
 
-def masks_in(image: np.ndarray, valid: np.ndarray | None = None,
-             seams: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Crack and rust masks of one image, and each pixel's contrast (how much darker than
-    its surroundings it is, grey levels) for the cracks' widths at half their contrast."""
-    cracks = detect_cracks_tiled(image)
-    rust = detect_corrosion(image)
-    if valid is not None:
-        cracks &= valid
-        rust &= valid
-    if seams is not None:  # an exposure step where frames meet is a straight dark edge, not a crack
-        cracks = drop_along(cracks, seams)
-    # a rust patch's rim reads as a dark line: cracks there are counted as corrosion
-    cracks &= cv2.dilate(rust.astype(np.uint8), np.ones((15, 15), np.uint8)) == 0
-    smooth, background = estimate_background(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), CrackParams().background_px)
-    return cracks, rust, background - smooth
-
-
 def _detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | None = None,
-               seams: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
+               seams: np.ndarray | None = None, workers: int = 2) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
     """Crack and rust masks of one image and its measured defects."""
-    cracks, rust, contrast = masks_in(image, valid, seams)
-    found = measure_defects(cracks, "crack", mm_per_px=mm_per_px, contrast=contrast)
-    found += measure_defects(rust, "corrosion", mm_per_px=mm_per_px, first_id=len(found) + 1)
-    return cracks, rust, found
-
-
-def surface_level(image: np.ndarray, coverage: np.ndarray) -> float:
-    """The surface's typical brightness: median of the grey background over covered pixels."""
-    background = cv2.morphologyEx(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), cv2.MORPH_CLOSE,
-                                  cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (45, 45)))
-    covered = coverage > 0
-    return float(np.median(background[covered])) if covered.any() else 0.0
-
-
-def on_surface(image: np.ndarray, coverage: np.ndarray, level: float | None = None) -> np.ndarray:
-    """Where the mosaic shows the steel surface: not far darker than the surface typically
-    is (``level``; beyond a plate's edge the camera sees the dark void below), and well
-    inside the covered area (its edge is a dark step, not a crack)."""
-    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    background = cv2.morphologyEx(gray, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (45, 45)))
-    covered = coverage > 0
-    if level is None:
-        level = float(np.median(background[covered])) if covered.any() else 0.0
-    surface = (background > 0.4 * level) & covered
-    return cv2.erode(surface.astype(np.uint8), np.ones((31, 31), np.uint8)) > 0
+    masks = defect_masks(image, valid, seams, workers=workers)
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # labelling and distances release the GIL
+        rust = pool.submit(measure_defects, masks.rust, "corrosion", mm_per_px=mm_per_px, components=masks.rust_components)
+        found = measure_defects(masks.cracks, "crack", mm_per_px=mm_per_px, contrast=masks.contrast,
+                                components=masks.crack_components)
+        found += [replace(d, id=len(found) + d.id) for d in rust.result()]
+    return masks.cracks, masks.rust, found
 
 
 def _detect_frames(ctx: JobContext) -> list[Defect]:
@@ -406,7 +371,7 @@ def _detect_mosaic_banded(ctx: JobContext, out: Path, mm_per_px: float | None) -
     if overview is None:
         raise ValueError("mosaic_overview.png cannot be read")
     level = surface_level(overview, np.any(overview > 0, axis=2))
-    return detect_banded(out, masks_in, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m))
+    return detect_banded(out, defect_masks, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m))
 
 
 def run_export(ctx: JobContext) -> dict[str, Any]:

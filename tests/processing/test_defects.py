@@ -39,3 +39,17 @@ def test_width_at_half_contrast_ignores_a_blurred_rim() -> None:
     assert loose.max_width_px > 8
     assert fwhm.max_width_px == pytest.approx(5, abs=2.0) and fwhm.max_width_px < loose.max_width_px - 2
     assert fwhm.length_px == pytest.approx(loose.length_px, rel=0.1)
+
+
+def test_components_of_a_sparse_mask_have_opencvs_statistics() -> None:
+    from processing.defects import Components
+
+    rng = np.random.default_rng(4)
+    mask = cv2.GaussianBlur(rng.random((400, 500)), (0, 0), 2) > 0.58  # a few % of pixels set
+    assert 0 < mask.mean() < 0.05
+    comps = Components.of(mask)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    assert np.array_equal(comps.labels, labels)
+    assert np.array_equal(comps.stats[1:], stats[1:]) and comps.stats[0, 4] == stats[0, 4]
+    assert np.allclose(comps.centroids[1:], centroids[1:])
+    assert comps.keep[1:].all() and not comps.keep[0]

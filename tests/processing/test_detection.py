@@ -94,3 +94,16 @@ def test_tiled_detection_matches_whole_image_detection_away_from_tile_seams() ->
     assert (whole ^ tiled).sum() < 0.02 * whole.sum()
     n, _ = cv2.connectedComponents(tiled.astype(np.uint8))
     assert n - 1 == 2  # each crack stays one object across tiles
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.02, 0.5, 0.98, 1.0])
+def test_select_components_equals_a_lookup_whatever_the_share_kept(fraction: float) -> None:
+    from processing.detection import select_components
+
+    rng = np.random.default_rng(3)
+    mask = cv2.GaussianBlur(rng.random((300, 400)), (0, 0), 3) > 0.52
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    assert n > 20
+    keep = rng.random(n) < fraction
+    expected = keep[labels] & (labels > 0)
+    assert np.array_equal(select_components(labels, stats, keep), expected)

@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.ridges import hessian_eigenvalues, line_emphasis, line_measure
+from processing.ridges import hessian_eigenvalues, line_emphasis, line_measure, line_response
 
 
 def test_eq12_line_measure_cases() -> None:
@@ -30,3 +30,12 @@ def test_hessian_eigenvalues_are_ordered() -> None:
     rng = np.random.default_rng(0)
     l1, l2 = hessian_eigenvalues(rng.normal(size=(32, 32)).astype(np.float32), 1.5)
     assert (l1 >= l2).all()
+
+
+@pytest.mark.parametrize("mu", [0.25, 0.5, 1.0])
+def test_fused_line_response_equals_eq12_from_eigenvalues(mu: float) -> None:
+    rng = np.random.default_rng(1)
+    img = cv2.GaussianBlur(rng.normal(size=(64, 64)).astype(np.float32), (5, 5), 1.0)
+    l1, l2 = hessian_eigenvalues(img, 1.4)
+    expected = 2.0 * line_measure(l1, l2, mu)
+    assert np.allclose(line_response(img, 1.4, mu, weight=2.0), expected, atol=1e-6)

@@ -270,8 +270,9 @@ def test_banded_detection_matches_the_one_pass_result(inspected: tuple[LiveServe
     same defects as the in-memory pass on the session's mosaic."""
     import shutil as sh
 
+    from processing.detection import defect_masks, on_surface, surface_level
     from server.jobs.banded import detect_banded
-    from server.jobs.tasks import _detect_mosaic, masks_in, on_surface, surface_level
+    from server.jobs.tasks import _detect_mosaic
 
     live, sid = inspected
     results = tmp_path / "results"
@@ -281,7 +282,7 @@ def test_banded_detection_matches_the_one_pass_result(inspected: tuple[LiveServe
     coverage = cv2.imread(str(results / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     level = surface_level(mosaic, coverage)
     assert on_surface(mosaic, coverage, level).any()
-    banded = detect_banded(results, masks_in, 0.25, level, rows=200)
+    banded = detect_banded(results, defect_masks, 0.25, level, rows=200)
     assert mosaic.shape[0] > 400  # several bands, so defects cross seams
     key = lambda d: (d.defect_class, d.bbox)
     assert sorted(map(key, banded)) == sorted(map(key, one))
