@@ -107,3 +107,14 @@ def test_select_components_equals_a_lookup_whatever_the_share_kept(fraction: flo
     keep = rng.random(n) < fraction
     expected = keep[labels] & (labels > 0)
     assert np.array_equal(select_components(labels, stats, keep), expected)
+
+
+def test_fused_sauvola_comparison_equals_the_threshold_map() -> None:
+    from processing.detection import below_sauvola, sauvola_threshold
+
+    rng = np.random.default_rng(6)
+    gray = cv2.GaussianBlur(rng.integers(0, 256, (120, 170)).astype(np.uint8), (5, 5), 2)
+    t = sauvola_threshold(gray, 25, 0.3)
+    fused = below_sauvola(gray, 25, 0.3)
+    near = np.abs(gray - t) < 1e-3  # float rounding may differ exactly at the threshold
+    assert np.array_equal(fused[~near], (gray < t)[~near])
