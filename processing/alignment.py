@@ -15,6 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import cv2
+import numba
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
@@ -191,30 +192,76 @@ def refine_euclidean(
     Tv = template.image[ys, xs].astype(np.float64)
     Tc = Tv - Tv.mean()
     t_var = float(Tc @ Tc)
-    P = np.vstack([xs, ys, np.ones_like(xs)]).astype(np.float64)
     W = np.vstack([W0, [0, 0, 1]]).astype(np.float64)
-    Iw = Tv
-    for _ in range(iterations):
-        q = (W[:2] @ P).astype(np.float32)
-        Iw = cv2.remap(image, q[0][:, None], q[1][:, None], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[:, 0].astype(np.float64)
-        Ic = Iw - Iw.mean()
-        alpha = float(Ic @ Tc) / t_var
-        if abs(alpha) < 1e-6:
-            break
-        dp = H_inv @ (SD.T @ (Ic / alpha - Tc))
-        ct, st = np.cos(dp[0]), np.sin(dp[0])
-        # W <- W o D^-1, D = rotation dp[0] about the centre then translation dp[1:]
-        D_inv_R = np.array([[ct, st], [-st, ct]])
-        D_inv = np.eye(3)
-        D_inv[:2, :2], D_inv[:2, 2] = D_inv_R, c - D_inv_R @ (c + dp[1:])
-        W = W @ D_inv
-        if abs(dp[0]) * max(w, h) + abs(dp[1]) + abs(dp[2]) < 2e-3:
-            break
+    Iw = np.empty(len(xs))
+    _lk_iterate(np.asarray(image, dtype=np.float32), xs.astype(np.float64), ys.astype(np.float64), SD, H_inv, Tc,
+                t_var, float(c[0]), float(c[1]), float(max(w, h)), W, Iw, iterations)
     Ic = Iw - Iw.mean()
     score = float(Ic @ Tc) / max(float(np.sqrt((Ic @ Ic) * t_var)), 1e-12)
     return W[:2], score, float(Tv.mean()), float(Iw.mean())
 
 
+@numba.njit(nogil=True, cache=True)
+def _lk_iterate(image: Gray, xs: NDArray[np.float64], ys: NDArray[np.float64], SD: NDArray[np.float64], H_inv: NDArray[np.float64],
+                Tc: NDArray[np.float64], t_var: float, cx: float, cy: float, extent: float, W: NDArray[np.float64],
+                Iw: NDArray[np.float64], iterations: int) -> None:  # pragma: no cover - compiled
+    """The Lucas–Kanade iterations of :func:`refine_euclidean`, compiled: sample the image
+    at the warped points (bilinear, edges replicated), estimate the gain, step, update
+    ``W`` in place (W ← W ∘ D⁻¹); ``Iw`` ends as the last samples."""
+    rows, cols = image.shape
+    n = len(xs)
+    for p in range(n):  # the template's own values stand in until the first sample
+        Iw[p] = Tc[p]
+    for _ in range(iterations):
+        total = 0.0
+        for p in range(n):
+            qx = W[0, 0] * xs[p] + W[0, 1] * ys[p] + W[0, 2]
+            qy = W[1, 0] * xs[p] + W[1, 1] * ys[p] + W[1, 2]
+            qx = min(max(qx, 0.0), cols - 1.0)
+            qy = min(max(qy, 0.0), rows - 1.0)
+            x0 = min(int(qx), cols - 2) if cols > 1 else 0
+            y0 = min(int(qy), rows - 2) if rows > 1 else 0
+            fx, fy = qx - x0, qy - y0
+            x1, y1 = min(x0 + 1, cols - 1), min(y0 + 1, rows - 1)
+            top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+            bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+            Iw[p] = top * (1 - fy) + bottom * fy
+            total += Iw[p]
+        mean = total / n
+        dot = 0.0
+        for p in range(n):
+            dot += (Iw[p] - mean) * Tc[p]
+        alpha = dot / t_var
+        if abs(alpha) < 1e-6:
+            break
+        b0 = b1 = b2 = 0.0
+        for p in range(n):
+            e = (Iw[p] - mean) / alpha - Tc[p]
+            b0 += SD[p, 0] * e
+            b1 += SD[p, 1] * e
+            b2 += SD[p, 2] * e
+        d0 = H_inv[0, 0] * b0 + H_inv[0, 1] * b1 + H_inv[0, 2] * b2
+        d1 = H_inv[1, 0] * b0 + H_inv[1, 1] * b1 + H_inv[1, 2] * b2
+        d2 = H_inv[2, 0] * b0 + H_inv[2, 1] * b1 + H_inv[2, 2] * b2
+        ct, st = np.cos(d0), np.sin(d0)
+        # W <- W o D^-1, D = rotation d0 about the centre then translation (d1, d2)
+        r00, r01, r10, r11 = ct, st, -st, ct
+        tx = cx - (r00 * (cx + d1) + r01 * (cy + d2))
+        ty = cy - (r10 * (cx + d1) + r11 * (cy + d2))
+        a00 = W[0, 0] * r00 + W[0, 1] * r10
+        a01 = W[0, 0] * r01 + W[0, 1] * r11
+        a02 = W[0, 0] * tx + W[0, 1] * ty + W[0, 2]
+        a10 = W[1, 0] * r00 + W[1, 1] * r10
+        a11 = W[1, 0] * r01 + W[1, 1] * r11
+        a12 = W[1, 0] * tx + W[1, 1] * ty + W[1, 2]
+        W[0, 0], W[0, 1], W[0, 2] = a00, a01, a02
+        W[1, 0], W[1, 1], W[1, 2] = a10, a11, a12
+        if abs(d0) * extent + abs(d1) + abs(d2) < 2e-3:
+            break
+
+
+FIRST_SEARCH_PX = 12  # the coarse search's first radius (full-resolution pixels)
+EARLY_OVERLAP = 0.9  # pairs guessed to overlap less than this share of ``min_overlap`` are not searched
 SIGMA = 1.0  # smoothing of both images before Lucas-Kanade (its convergence basin)
 
 
@@ -278,39 +325,21 @@ def register_pair(
     h, w = li.shape
     size = (w, h)
     M = frame_i_to_j(guess, size)
+    if overlap_rect(M, size, params.margin_px, EARLY_OVERLAP * params.min_overlap) is None:
+        return None  # too little overlap even allowing for the guess's error: not worth a search
     k = int(np.round(float(wrap_angle(guess[2])) / (np.pi / 2))) % 4
     j_full = lj.full.image if k == 0 else cv2.rotate(lj.full.image, _ROTATIONS[k])
     j_half = lj.half.image if k == 0 else cv2.rotate(lj.half.image, _ROTATIONS[k])
     Q = _quarter_turn(k, size)
-    # coarse: the overlap shrunk by the search radius, so it stays inside frame j for any
-    # guess error up to that radius; half resolution
-    coarse = 0.0
-    s = params.search_px // 2 * 2
-    rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
-    if rect is None:
-        s = params.search_px // 4 * 2
-        rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
-    if rect is not None:
-        hx0, hy0, hx1, hy1 = (v // 2 for v in rect)
-        template = li.half.image[hy0:hy1, hx0:hx1]
-        if float(template.std()) >= params.min_texture and hx1 - hx0 > 8 and hy1 - hy0 > 8:
-            hs = s // 2
-            best = -np.inf
-            centre = np.array([(rect[0] + rect[2]) / 2, (rect[1] + rect[3]) / 2])
-            for angle in angles:
-                # turn the guess by ``angle`` about the overlap's centre
-                R = _rot(angle)
-                turn = np.vstack([np.hstack([R, (centre - R @ centre)[:, None]]), [0, 0, 1]])
-                Ma = M @ turn
-                around = _scale_warp((Q @ Ma @ np.array([[1, 0, 2 * (hx0 - hs)], [0, 1, 2 * (hy0 - hs)], [0, 0, 1.0]]))[:2], 0.5)
-                seen = cv2.warpAffine(j_half, around, (hx1 - hx0 + 2 * hs, hy1 - hy0 + 2 * hs), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-                res = cv2.matchTemplate(seen, template, cv2.TM_CCOEFF_NORMED)
-                peak = float(res.max())
-                if peak > best:
-                    best = peak
-                    shift = 2 * (_parabola_peak(res) - hs)
-                    M_best = Ma @ np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]])
-            M, coarse = M_best, best
+    # coarse: a small search first (the guess is usually good); the full radius when its
+    # peak is weak or on the search window's edge
+    coarse, edge = 0.0, True
+    if len(angles) == 1 and params.search_px > FIRST_SEARCH_PX:
+        M_try, coarse, edge = _coarse_search(li, j_half, M, Q, size, FIRST_SEARCH_PX, params, angles)
+        if not edge and coarse >= params.half_stage_below:
+            M = M_try
+    if edge or coarse < params.half_stage_below:
+        M, coarse, _ = _coarse_search(li, j_half, M, Q, size, params.search_px, params, angles)
     # fine: the overlap as the coarse match places it
     rect = overlap_rect(M, size, params.margin_px, params.min_overlap)
     if rect is None:
@@ -342,6 +371,45 @@ def register_pair(
         return None  # the refinement ran away from the coarse match
     M_ij = np.linalg.inv(Q) @ np.vstack([W, [0, 0, 1]]) @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
     return _delta_of(M_ij, size), score, mean_i, mean_j
+
+
+def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[np.float64], size: tuple[int, int], search_px: int,
+                   params: RegistrationParams, angles: Sequence[float]) -> tuple[NDArray[np.float64], float, bool]:
+    """Normalised cross-correlation of frame i's overlap (shrunk by the search radius, so
+    it stays inside frame j for any guess error up to it) over ±``search_px`` of frame j
+    at half resolution, at each of ``angles`` added to the guessed rotation. Returns the
+    corrected i→j map, the peak correlation (0 when there is nothing to search) and
+    whether the peak lies on the window's edge (the true match may be further)."""
+    s = search_px // 2 * 2
+    rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
+    if rect is None:
+        s = search_px // 4 * 2
+        rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
+    if rect is None:
+        return M, 0.0, False
+    hx0, hy0, hx1, hy1 = (v // 2 for v in rect)
+    template = li.half.image[hy0:hy1, hx0:hx1]
+    if float(template.std()) < params.min_texture or hx1 - hx0 <= 8 or hy1 - hy0 <= 8:
+        return M, 0.0, False
+    hs = s // 2
+    best, M_best, edge = -np.inf, M, False
+    centre = np.array([(rect[0] + rect[2]) / 2, (rect[1] + rect[3]) / 2])
+    for angle in angles:
+        # turn the guess by ``angle`` about the overlap's centre
+        R = _rot(angle)
+        turn = np.vstack([np.hstack([R, (centre - R @ centre)[:, None]]), [0, 0, 1]])
+        Ma = M @ turn
+        around = _scale_warp((Q @ Ma @ np.array([[1, 0, 2 * (hx0 - hs)], [0, 1, 2 * (hy0 - hs)], [0, 0, 1.0]]))[:2], 0.5)
+        seen = cv2.warpAffine(j_half, around, (hx1 - hx0 + 2 * hs, hy1 - hy0 + 2 * hs), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        res = cv2.matchTemplate(seen, template, cv2.TM_CCOEFF_NORMED)
+        peak = float(res.max())
+        if peak > best:
+            best = peak
+            at = _parabola_peak(res)
+            edge = bool(min(at[0], at[1]) < 1 or max(at[0], at[1]) > 2 * hs - 1)
+            shift = 2 * (at - hs)
+            M_best = Ma @ np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]])
+    return M_best, best, edge
 
 
 def _shift_origin(W: NDArray[np.float64], dx: float, dy: float) -> NDArray[np.float64]:

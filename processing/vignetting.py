@@ -20,7 +20,6 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.sparse.linalg import lsqr
 
 
 @dataclass(frozen=True)
@@ -91,13 +90,14 @@ def solve_photometry(n: int, pairs: list[tuple[int, int, NDArray[np.float64], ND
     r = np.arange(m)
     A = sp.csr_matrix((np.concatenate([np.ones(m), -np.ones(m), si - sj, si * si - sj * sj]),
                        (np.concatenate([r, r, r, r]), np.concatenate([I, J, np.full(m, n), np.full(m, n + 1)]))), shape=(m, n + 2))
-    gauge = sp.csr_matrix((np.full(n, 1e-3), (np.arange(n), np.arange(n))), shape=(n, n + 2))  # log gains near 0
+    gauge = np.zeros(n + 2)
+    gauge[:n] = 1e-6  # (1e-3)²: log gains near 0
     weights = np.ones(m)
     x = np.zeros(n + 2)
     for _ in range(iterations):
-        root = np.sqrt(weights)
-        Aw = sp.vstack([sp.diags(root) @ A, gauge]).tocsr()
-        x = lsqr(Aw, np.concatenate([root * L, np.zeros(n)]), atol=1e-10, btol=1e-10)[0]
+        # the normal equations are only (n + 2) square: solved directly
+        normal = (A.T @ sp.diags(weights) @ A).toarray() + np.diag(gauge)
+        x = np.linalg.lstsq(normal, A.T @ (weights * L), rcond=None)[0]
         resid = np.abs(A @ x - L)
         scale = max(1.4826 * float(np.median(resid)), 1e-4)
         weights = np.minimum(1.0, 1.5 * scale / np.maximum(resid, 1e-12))  # Huber

@@ -187,3 +187,24 @@ def test_bad_inputs_raise_value_error() -> None:
         stitch_frames([f, f.astype(np.uint16)], None)
     with pytest.raises(ValueError, match="px_per_m"):
         stitch_frames([f], None, px_per_m=0)
+
+
+@pytest.mark.parametrize("grey", [False, True])
+def test_feathered_mosaic_reproduces_the_surface_in_colour_and_grey(grey: bool) -> None:
+    """Frames cut from one texture at known poses blend back into that texture (8-bit
+    warps and weights cost at most a grey level or so away from the frames' edges)."""
+    tex = texture(3)
+    centres = [(400.5 + 200 * i, 300.5 + 90 * (i % 2)) for i in range(5)]  # whole-pixel crops
+    frames = [cut(tex, cx, cy) for cx, cy in centres]
+    if grey:
+        frames = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames]
+    poses = np.array([[cx, cy, 0.0] for cx, cy in centres])
+    params = StitchParams(gain_compensation=False, vignetting=False)
+    layout, fr = plan_mosaic(frames, poses, params=params)
+    mosaic = np.vstack([b.image for b in render_bands(layout, fr, params)])
+    assert mosaic.ndim == (2 if grey else 3)
+    # the mosaic seen from frame 1 (it overlaps frames 0 and 2), away from the borders
+    to_mosaic = frame_to_mosaic(layout.poses_px[1], layout.frame_size)[:2]
+    seen = cv2.warpAffine(mosaic, to_mosaic, layout.frame_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    diff = np.abs(seen.astype(int) - frames[1].astype(int))[10:-10, 10:-10]
+    assert diff.mean() < 0.5, diff.mean()
