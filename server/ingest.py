@@ -204,13 +204,34 @@ class GroupCommit:
         self.ingest = ingest
         self.max_batch = max_batch
         self._queue: queue.SimpleQueue[tuple[Message, int | None, asyncio.Future[StoreResult], asyncio.AbstractEventLoop] | None] = queue.SimpleQueue()
+        self._storing = threading.Lock()  # one transaction at a time: the writer's or an inline one
+        self._count = threading.Lock()
+        self._pending = 0  # messages queued and not yet stored
         self._thread = threading.Thread(target=self._run, name="ingest-writer", daemon=True)
         self._thread.start()
 
     def store(self, message: Message, robot_id: int | None) -> asyncio.Future[StoreResult]:
-        """Queue one message; the future resolves when it is durably stored (or refused)."""
+        """Store one message; the future resolves when it is durably stored (or refused).
+
+        When nothing is waiting and no transaction is running, the message is stored at
+        once on the calling thread (two thread hand-offs saved: ~0.5 ms of a lone robot's
+        acknowledgement); otherwise it joins the writer's next group commit."""
         loop = asyncio.get_running_loop()
         future: asyncio.Future[StoreResult] = loop.create_future()
+        with self._count:
+            idle = self._pending == 0 and self._storing.acquire(blocking=False)
+            if not idle:
+                self._pending += 1
+        if idle:
+            try:
+                try:
+                    result: StoreResult | Exception = self.ingest.store_many([(message, robot_id)])[0]
+                except Exception as exc:  # the database itself failed  # noqa: BLE001
+                    result = exc
+            finally:
+                self._storing.release()
+            _settle(future, result)
+            return future
         self._queue.put((message, robot_id, future, loop))
         return future
 
@@ -234,10 +255,13 @@ class GroupCommit:
                     self._queue.put(None)
                     break
                 batch.append(item)
-            try:
-                results: list[StoreResult | Exception] = self.ingest.store_many([(m, r) for m, r, _, _ in batch])
-            except Exception as exc:  # the database itself failed: every message of the batch hears it  # noqa: BLE001
-                results = [exc] * len(batch)
+            with self._storing:
+                try:
+                    results: list[StoreResult | Exception] = self.ingest.store_many([(m, r) for m, r, _, _ in batch])
+                except Exception as exc:  # the database itself failed: every message of the batch hears it  # noqa: BLE001
+                    results = [exc] * len(batch)
+            with self._count:
+                self._pending -= len(batch)
             for (_, _, future, loop), result in zip(batch, results):
                 loop.call_soon_threadsafe(_settle, future, result)
 
