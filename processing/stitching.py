@@ -21,7 +21,7 @@ from collections import OrderedDict, deque
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from threading import Event, Lock
+from threading import Event, Lock, local
 from typing import Literal, Protocol
 
 import cv2
@@ -421,10 +421,15 @@ def render_bands(layout: MosaicLayout, frames: _Frames, params: StitchParams = S
         flat_c = cv2.merge([frames.inv_flat] * layout.channels) if layout.channels > 1 else frames.inv_flat
     starts = list(range(0, layout.height, rows))
 
+    scratch = local()  # each worker thread's accumulator, reused band after band (no fresh pages)
+
     def render(y0: int) -> Band:
         y1 = min(layout.height, y0 + rows)
         hits = np.nonzero((boxes[:, 1] < y1) & (boxes[:, 3] > y0))[0]
-        return _render_band(layout, frames, params, y0, y1, hits, weight, weight_c, flat_c)
+        if params.blend == "feather" and getattr(scratch, "acc", None) is None:
+            scratch.acc = np.empty((rows, layout.width, layout.channels + 1), np.float32)
+        acc = scratch.acc[: y1 - y0] if params.blend == "feather" else None
+        return _render_band(layout, frames, params, y0, y1, hits, weight, weight_c, flat_c, acc)
 
     with ThreadPoolExecutor(workers) as pool:
         pending: deque[Future[Band]] = deque()
@@ -458,10 +463,11 @@ def _band_source(layout: MosaicLayout, k: int, x0: int, y0: int, w: int, h: int)
 
 
 def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0: int, y1: int, hits: NDArray[np.int64],
-                 weight: NDArray[np.uint8], weight_c: NDArray[np.uint8], flat_c: NDArray[np.float32] | None) -> Band:
+                 weight: NDArray[np.uint8], weight_c: NDArray[np.uint8], flat_c: NDArray[np.float32] | None,
+                 acc: NDArray[np.float32] | None = None) -> Band:
     W, H, C = layout.width, y1 - y0, layout.channels
     if params.blend == "feather":
-        return _feather_band(layout, frames, y0, y1, hits, weight, weight_c, flat_c)
+        return _feather_band(layout, frames, y0, y1, hits, weight, weight_c, flat_c, acc)
     covered = np.zeros((H, W), bool)
     out = np.zeros((H, W) if C == 1 else (H, W, C), np.uint8)
     for k in hits:
@@ -488,13 +494,16 @@ def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0
 
 
 def _feather_band(layout: MosaicLayout, frames: _Frames, y0: int, y1: int, hits: NDArray[np.int64],
-                  weight: NDArray[np.uint8], weight_c: NDArray[np.uint8], flat_c: NDArray[np.float32] | None) -> Band:
+                  weight: NDArray[np.uint8], weight_c: NDArray[np.uint8], flat_c: NDArray[np.float32] | None,
+                  acc: NDArray[np.float32] | None = None) -> Band:
     """Rows y0..y1 of the feathered mosaic. Each frame, corrected (gain, flat field) and
     rounded to 8 bits, is warped with its weight as a fourth channel, and so is the
     multiplier (w, w, w, 255): four-channel 8-bit warps are OpenCV's fast path (three
     channels are ~4x slower, float ones need 4x the memory traffic)."""
     W, H, C = layout.width, y1 - y0, layout.channels
-    acc = np.zeros((H, W, C + 1), np.float32)  # Σ w·I per channel, then 255·Σ w
+    if acc is None or acc.shape != (H, W, C + 1):
+        acc = np.empty((H, W, C + 1), np.float32)
+    acc.fill(0.0)  # Σ w·I per channel, then 255·Σ w
     for k in hits:
         bx0, by0, bx1, by1 = layout.footprint(int(k))
         cx0, cy0, cx1, cy1 = max(bx0, 0), max(by0, y0), min(bx1, W), min(by1, y1)
