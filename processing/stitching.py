@@ -462,6 +462,22 @@ def _band_source(layout: MosaicLayout, k: int, x0: int, y0: int, w: int, h: int)
     return A[:2], (slice(sy0, max(sy1, sy0 + 1)), slice(sx0, max(sx1, sx0 + 1)))
 
 
+def _band_pieces(layout: MosaicLayout, y0: int, y1: int, hits: NDArray[np.int64]
+                 ) -> Iterator[tuple[int, float, NDArray[np.float64], tuple[slice, slice], tuple[slice, slice], tuple[int, int]]]:
+    """For each frame in ``hits`` that reaches rows y0..y1: its index, gain, the map from
+    its source part to the band region, that source part (slices of the frame), the region
+    (slices of the band) and the region's (w, h)."""
+    W = layout.width
+    for k in hits:
+        bx0, by0, bx1, by1 = layout.footprint(int(k))
+        cx0, cy0, cx1, cy1 = max(bx0, 0), max(by0, y0), min(bx1, W), min(by1, y1)
+        if cx1 <= cx0 or cy1 <= cy0:
+            continue
+        A, src = _band_source(layout, int(k), cx0, cy0, cx1 - cx0, cy1 - cy0)
+        region = (slice(cy0 - y0, cy1 - y0), slice(cx0, cx1))
+        yield int(k), float(layout.gains[k]), A, src, region, (cx1 - cx0, cy1 - cy0)
+
+
 def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0: int, y1: int, hits: NDArray[np.int64],
                  weight: NDArray[np.uint8], weight_c: NDArray[np.uint8], flat_c: NDArray[np.float32] | None,
                  acc: NDArray[np.float32] | None = None) -> Band:
@@ -470,16 +486,8 @@ def _render_band(layout: MosaicLayout, frames: _Frames, params: StitchParams, y0
         return _feather_band(layout, frames, y0, y1, hits, weight, weight_c, flat_c, acc)
     covered = np.zeros((H, W), bool)
     out = np.zeros((H, W) if C == 1 else (H, W, C), np.uint8)
-    for k in hits:
-        bx0, by0, bx1, by1 = layout.footprint(int(k))
-        cx0, cy0, cx1, cy1 = max(bx0, 0), max(by0, y0), min(bx1, W), min(by1, y1)
-        if cx1 <= cx0 or cy1 <= cy0:
-            continue
-        gain = float(layout.gains[k])
-        region = (slice(cy0 - y0, cy1 - y0), slice(cx0, cx1))
-        A, src = _band_source(layout, int(k), cx0, cy0, cx1 - cx0, cy1 - cy0)
-        size = (cx1 - cx0, cy1 - cy0)
-        img = frames.image(int(k))[src]
+    for k, gain, A, src, region, size in _band_pieces(layout, y0, y1, hits):
+        img = frames.image(k)[src]
         src8 = img if gain == 1.0 else cv2.convertScaleAbs(img, alpha=gain)
         warped = cv2.warpAffine(src8, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         inside = cv2.warpAffine(np.full(src8.shape[:2], 255, np.uint8), A, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
@@ -504,14 +512,8 @@ def _feather_band(layout: MosaicLayout, frames: _Frames, y0: int, y1: int, hits:
     if acc is None or acc.shape != (H, W, C + 1):
         acc = np.empty((H, W, C + 1), np.float32)
     acc.fill(0.0)  # Σ w·I per channel, then 255·Σ w
-    for k in hits:
-        bx0, by0, bx1, by1 = layout.footprint(int(k))
-        cx0, cy0, cx1, cy1 = max(bx0, 0), max(by0, y0), min(bx1, W), min(by1, y1)
-        if cx1 <= cx0 or cy1 <= cy0:
-            continue
-        gain = float(layout.gains[k])
-        A, src = _band_source(layout, int(k), cx0, cy0, cx1 - cx0, cy1 - cy0)
-        img = frames.raw(int(k))[src]
+    for k, gain, A, src, region, size in _band_pieces(layout, y0, y1, hits):
+        img = frames.raw(k)[src]
         if flat_c is not None:  # exposure gain and flat field, rounded and saturated to 8 bits
             img = cv2.multiply(img, flat_c[src], scale=gain, dtype=cv2.CV_8U)
         elif gain != 1.0:
@@ -519,11 +521,10 @@ def _feather_band(layout: MosaicLayout, frames: _Frames, y0: int, y1: int, hits:
         with_w = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA if C == 3 else cv2.COLOR_GRAY2BGRA)
         with_w = with_w if C == 3 else np.ascontiguousarray(with_w[..., :2])
         with_w[..., C] = weight[src]
-        size = (cx1 - cx0, cy1 - cy0)
         warped = cv2.warpAffine(with_w, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         mult = cv2.warpAffine(weight_c[src], A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         # a view of the band: OpenCV accumulates in place, row stride and all, without the GIL
-        cv2.accumulateProduct(warped, mult, acc[cy0 - y0 : cy1 - y0, cx0:cx1])
+        cv2.accumulateProduct(warped, mult, acc[region])
     out = np.empty((H, W, C), np.uint8)
     covered = np.empty((H, W), bool)
     _normalise(acc, out, covered)

@@ -215,3 +215,42 @@ def test_a_robot_over_its_rate_limit_is_slowed_not_lost(tmp_path) -> None:
         assert frames == 60  # ...and lost nothing
     finally:
         server.stop()
+
+
+def test_group_commit_stores_a_lone_message_at_once_and_batches_under_load(tmp_path) -> None:
+    """A quiet station stores a message on the caller's thread (acknowledged without a
+    hand-off); a burst goes to the writer's group commits; every message is stored once."""
+    from server.config import Settings
+    from server.db import make_engine, make_sessionmaker, upgrade
+    from server.ingest import QUIET_S, GroupCommit, Ingest
+    from server.robots import create_robot
+    from server.storage import SessionFiles
+
+    settings = Settings(data_dir=tmp_path / "data")
+    upgrade(settings.resolved_database_url())
+    factory = make_sessionmaker(make_engine(settings.resolved_database_url()))
+    create_robot(factory, "r")
+    writer = GroupCommit(Ingest(factory, SessionFiles(settings.data_dir)))
+    sid = uuid.uuid4()
+
+    async def run() -> tuple[bool, int, list[str]]:
+        first = writer.store(decode_message(start(sid)), 1)
+        at_once = first.done()
+        await first
+        time.sleep(2 * QUIET_S)
+        burst = [writer.store(decode_message(frame(sid, seq)), 1) for seq in range(2, 42)]
+        queued = sum(not f.done() for f in burst)
+        return at_once, queued, [r.status for r in await asyncio.gather(*burst)]
+
+    try:
+        at_once, queued, statuses = asyncio.run(run())
+    finally:
+        writer.close()
+    assert at_once
+    assert queued >= 38  # after the first, the burst joins group commits
+    assert statuses == ["stored"] * 40
+    from sqlalchemy import func, select
+
+    from server.models import Frame
+    with factory() as db:
+        assert db.scalar(select(func.count()).select_from(Frame).where(Frame.session_id == str(sid))) == 40
