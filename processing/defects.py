@@ -13,6 +13,8 @@ import numpy as np
 from numpy.typing import NDArray
 from skimage.morphology import skeletonize
 
+from processing.labels import component_stats
+
 
 @dataclass(frozen=True)
 class Defect:
@@ -44,47 +46,12 @@ class Components:
 
     @classmethod
     def of(cls, mask: NDArray[np.bool_]) -> Components:
-        """Every component of ``mask``.
-
-        OpenCV's statistics pass costs twice the labelling on a large image; for a sparse
-        mask (a mosaic's defects) they come from the foreground pixels alone.
-        """
-        m8 = mask.astype(np.uint8)
-        if cv2.countNonZero(m8) > 0.05 * m8.size:
-            n, labels, stats, centroids = cv2.connectedComponentsWithStats(m8, connectivity=8)
-        else:
-            n, labels = cv2.connectedComponents(m8, connectivity=8)
-            stats, centroids = _sparse_stats(labels, n)
+        """Every component of ``mask``: OpenCV's labelling, statistics in one compiled pass."""
+        n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+        stats, centroids = component_stats(labels, n)
         keep = np.ones(n, bool)
         keep[0] = False
         return cls(labels, stats, centroids, keep)
-
-
-def _sparse_stats(labels: NDArray[np.int32], n: int) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
-    """``cv2.connectedComponentsWithStats``'s stats and centroids from the labelled pixels
-    (the background's row holds its area and the image box, its centroid is left 0)."""
-    h, w = labels.shape
-    stats = np.zeros((n, 5), np.int32)
-    centroids = np.zeros((n, 2))
-    points = cv2.findNonZero((labels > 0).view(np.uint8))
-    count = 0 if points is None else len(points)
-    stats[0] = (0, 0, w, h, h * w - count)
-    if count == 0:
-        return stats, centroids
-    points = points.reshape(-1, 2)  # (N, 1, 2) or (N, 2) by OpenCV version
-    xs, ys = points[:, 0], points[:, 1]
-    lab = labels[ys, xs]
-    order = np.argsort(lab, kind="stable")
-    lab, xs, ys = lab[order], xs[order], ys[order]
-    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
-    ids = lab[starts]
-    area = np.diff(np.r_[starts, len(lab)])
-    x0, x1 = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)
-    y0, y1 = np.minimum.reduceat(ys, starts), np.maximum.reduceat(ys, starts)
-    stats[ids] = np.stack([x0, y0, x1 - x0 + 1, y1 - y0 + 1, area], axis=1)
-    centroids[ids, 0] = np.add.reduceat(xs.astype(np.float64), starts) / area
-    centroids[ids, 1] = np.add.reduceat(ys.astype(np.float64), starts) / area
-    return stats, centroids
 
 
 def measure_defects(
