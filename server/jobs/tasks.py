@@ -292,26 +292,40 @@ def _detect_frames(ctx: JobContext) -> list[Defect]:
     T_rc = np.array(calib.get("T_robot_camera", [0.0, 0.0, 0.0]))
     with ctx.factory() as db:
         frames = list(db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)))
-    rows: list[Defect] = []
-    for i, f in enumerate(frames):
+    mm_per_px = 1000.0 / px_per_m if px_per_m else None
+
+    def detect(f: Frame) -> tuple[tuple[int, int], list[Defect_]] | None:
         try:
             img = cv2.imdecode(np.frombuffer(ctx.files.payload(f), np.uint8), cv2.IMREAD_COLOR)
         except OSError:
-            img = None
+            return None
         if img is None:
-            continue
-        _, _, found = _detect_in(img, 1000.0 / px_per_m if px_per_m else None)
-        cam = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw]), T_rc) if px_per_m and f.pose_x is not None else None
-        for d in found:
-            world = None
-            if cam is not None:
-                x, y, w, h = d.bbox
-                corners = image_to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]]), cam, px_per_m, (img.shape[1], img.shape[0]))
-                lo, hi = corners.min(axis=0), corners.max(axis=0)
-                world = (float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1]))
-            rows.append(_defect_row(ctx, d, "frame", px_per_m is not None, world, frame_seq=f.seq))
-        if i % 10 == 0:
-            ctx.progress(0.5 * i / max(len(frames), 1), f"frames {i}/{len(frames)}")
+            return None
+        return (img.shape[1], img.shape[0]), _detect_in(img, mm_per_px, workers=1)[2]
+
+    rows: list[Defect] = []
+    with ThreadPoolExecutor(max_workers=2) as pool:  # a frame per core: decoding and detection release the GIL
+        for i, (f, done) in enumerate(zip(frames, pool.map(detect, frames))):
+            if i % 10 == 0:
+                ctx.progress(0.5 * i / max(len(frames), 1), f"frames {i}/{len(frames)}")
+            if done is not None:
+                rows += _frame_rows(ctx, f, done[1], done[0], px_per_m, T_rc)
+    return rows
+
+
+def _frame_rows(ctx: JobContext, f: Frame, found: list[Defect_], size: tuple[int, int], px_per_m: float | None,
+                T_rc: NDArray[np.float64]) -> list[Defect]:
+    """Rows of one frame's defects, placed on the structure through the frame's pose."""
+    rows: list[Defect] = []
+    cam = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw]), T_rc) if px_per_m and f.pose_x is not None else None
+    for d in found:
+        world = None
+        if cam is not None:
+            x, y, w, h = d.bbox
+            corners = image_to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]]), cam, px_per_m, size)
+            lo, hi = corners.min(axis=0), corners.max(axis=0)
+            world = (float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1]))
+        rows.append(_defect_row(ctx, d, "frame", px_per_m is not None, world, frame_seq=f.seq))
     return rows
 
 
