@@ -388,13 +388,6 @@ def estimate_background(gray: NDArray[np.uint8], background_px: int) -> tuple[ND
     return smooth.astype(np.float32), background.astype(np.float32)
 
 
-def normalise_illumination(gray: NDArray[np.uint8], background_px: int) -> NDArray[np.float32]:
-    """Image divided by its background: 1.0 is the local surface brightness whatever the
-    lighting, and a crack reads as < 1."""
-    smooth, background = estimate_background(gray, background_px)
-    return smooth / np.maximum(background, 1.0)
-
-
 def proposed_cracks(gray: NDArray[np.uint8], params: CrackParams = CrackParams()) -> NDArray[np.bool_]:
     """The improved pipeline: illumination normalisation, scale-normalised Hessian line
     emphasis (eq. 14 with σ_i²), then region growing from strong line seeds (the paper's
