@@ -18,18 +18,20 @@ with the paper's three stopping rules (:class:`MapParams`): the error stops chan
 (relative fitness and RMSE), an iteration cap, and a transform that leaves its bounds
 (then the odometry is used and the cloud is flagged).
 
-Beyond the paper: each cloud is aligned to a local map of the previous ones; then a pose
-graph (Open3D) ties every cloud to its next few neighbours and to earlier clouds of the
-same place (loop closures) and is optimised robustly, so the trajectory does not drift.
-Along directions the geometry does not constrain (a flat plate says nothing about sliding
-along it) ICP's correction is dropped and the odometry edge holds the pose; the result
-reports how many such directions each cloud had.
+Beyond the paper: each cloud is registered to the previous one from the odometry step
+(the chain that seeds the trajectory, kept only along directions the geometry observes);
+then a pose graph (Open3D) ties every cloud to its next few neighbours and to earlier
+clouds of the same place (loop closures, searched coarse to fine because the error
+accumulated by then can exceed ICP's reach) and is optimised robustly. Each ICP edge
+carries the point-to-plane information of its correspondences (:func:`plane_information`),
+so a flat plate says nothing about sliding along it and the odometry edges hold the
+trajectory there; the result reports how many such directions each cloud had.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -58,14 +60,13 @@ class MapParams:
     max_correspondence_m: float = 0.06
     tukey_m: float = 0.03
     # stopping rules: error constant, iteration cap, transform out of bounds
-    relative_fitness: float = 1e-6
-    relative_rmse: float = 1e-6
+    relative_fitness: float = 1e-4
+    relative_rmse: float = 1e-4
     max_iterations: int = 30
     max_correction_m: float = 0.10
     max_correction_deg: float = 10.0
     min_fitness: float = 0.3
     # local map, degeneracy
-    local_map_clouds: int = 6
     degenerate_ratio: float = 0.1
     # pose graph
     neighbours: int = 2  # edges from each cloud to the next few
@@ -73,7 +74,10 @@ class MapParams:
     loop_min_gap: int = 12  # ... and at least this many clouds back
     loop_min_fitness: float = 0.5
     loops_per_cloud: int = 2
-    icp_sigma_m: float = 0.1  # effective error of one ICP correspondence, for the ICP edges' information
+    loop_search_m: tuple[float, ...] = (0.3, 0.15)  # coarse correspondence distances tried before a loop's ICP
+    loop_max_correction_m: float = 0.3  # a loop closure may correct this much accumulated drift ...
+    loop_max_correction_deg: float = 15.0  # ... and this much heading
+    icp_sigma_m: float = 0.06  # effective error of one point-to-plane residual (neighbouring residuals are correlated: > the noise)
     odometry_sigma_frac: float = 0.05  # odometry error per step: this fraction of its length ...
     odometry_sigma_deg_per_m: float = 15.0  # ... and this heading error per metre driven
     odometry_sigma_floor_m: float = 0.002
@@ -98,24 +102,26 @@ class MapResult:
 
 def clean_cloud(points: NDArray[np.floating], max_range_m: float) -> NDArray[np.float64]:
     """Drop NaN/inf points and returns beyond ``max_range_m``; returns (K, 3) float64."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    ok = np.isfinite(pts).all(axis=1)
-    pts = pts[ok]
-    return pts[np.linalg.norm(pts, axis=1) <= max_range_m]
+    pts = np.asarray(points).reshape(-1, 3)
+    r2 = np.einsum("ij,ij->i", pts, pts)
+    with np.errstate(invalid="ignore"):
+        ok = r2 <= max_range_m**2  # NaN and inf compare False
+    return pts[ok].astype(np.float64)
 
 
-def filter_organised(points: NDArray[np.floating], shape: tuple[int, int], median_px: int) -> NDArray[np.float64]:
+def filter_organised(points: NDArray[np.floating], shape: tuple[int, int], median_px: int) -> NDArray[np.float32]:
     """Median-filter the depth of an organised cloud (H·W points, row-major), keeping each
     point on its pixel's ray: ToF noise is mostly along the ray."""
     h, w = shape
-    pts = np.asarray(points, dtype=np.float64).reshape(h, w, 3)
-    z = pts[..., 2].astype(np.float32)
+    pts = np.asarray(points, dtype=np.float32).reshape(h, w, 3)
+    z = pts[..., 2]
     valid = np.isfinite(z)
-    z_filled = np.where(valid, z, 0).astype(np.float32)
+    z_filled = np.where(valid, z, np.float32(0))
     med = cv2.medianBlur(z_filled, median_px) if median_px in (3, 5) else z_filled
     # where the neighbourhood is mostly invalid the median is 0: keep the raw value there
-    good = valid & (med > 0) & (np.abs(med - z) < 0.05)
-    scale = np.where(good, med / np.where(valid, z, 1), 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        good = valid & (med > 0) & (np.abs(med - z) < 0.05)
+        scale = np.where(good, med / z, np.float32(1))
     out = pts * scale[..., None]
     out[~valid] = np.nan
     return out.reshape(-1, 3)
@@ -197,158 +203,197 @@ def register_clouds(
             raise ValueError(f"initial_poses must be ({n}, 4, 4), one per cloud, got {initial_poses.shape}")
         if not np.isfinite(initial_poses).all():
             raise ValueError("initial_poses contain NaN or infinite values")
-    pcds = [select(c, params, shape) for c in clouds]
     if not params.refine:
         if initial_poses is None:
             raise ValueError("refine=False needs initial poses")
+        pcds = [select(c, params, shape) for c in clouds]
         zeros = np.zeros(n)
         return MapResult(initial_poses.copy(), fuse_map(pcds, initial_poses, params.map_voxel_m), zeros, zeros, np.ones(n, bool), np.zeros(n, int))
-    front = _front_end(pcds, initial_poses, params)
-    poses, loops, pruned = front.poses, 0, 0
-    if params.pose_graph and n > 2:
-        steps = _odometry_steps(initial_poses, front.poses)
-        poses, loops, pruned = _pose_graph(pcds, front.poses, steps, params)
-    points = fuse_map(pcds, poses, params.map_voxel_m)
-    return MapResult(poses, points, front.fitness, front.rmse, front.used_odometry, front.degenerate_dims, loops, pruned)
-
-
-def _front_end(pcds: list[o3d.geometry.PointCloud], initial: NDArray[np.float64] | None, params: MapParams) -> MapResult:
-    """Each cloud aligned to a local map of the previous ones, seeded by odometry."""
-    n = len(pcds)
-    guess = initial if initial is not None else np.repeat(np.eye(4)[None], n, axis=0)
-    poses = np.zeros((n, 4, 4))
-    fitness, rmse = np.zeros(n), np.zeros(n)
-    used_odo = np.zeros(n, bool)
-    degenerate = np.zeros(n, int)
-    poses[0], fitness[0] = guess[0], 1.0
-    for i in range(1, n):
-        if initial is not None:
-            delta = np.linalg.inv(guess[i - 1]) @ guess[i]
-        else:  # constant-velocity guess without odometry
-            delta = np.linalg.inv(poses[i - 2]) @ poses[i - 1] if i >= 2 else np.eye(4)
-        init = poses[i - 1] @ delta
-        target = _local_map(pcds, poses, i, params)
-        poses[i], fitness[i], rmse[i], used_odo[i], degenerate[i] = front_end_step(pcds[i], target, init, params)
-    return MapResult(poses, np.zeros((0, 3), np.float32), fitness, rmse, used_odo, degenerate)
-
-
-def front_end_step(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: NDArray[np.float64],
-                   params: MapParams) -> tuple[NDArray[np.float64], float, float, bool, int]:
-    """One cloud's pose: matching, then ICP against the local map ``target``, kept only
-    along observable directions and within the odometry's bounds. Returns (pose, fitness,
-    rmse, whether the odometry was used instead, degenerate directions)."""
-    if len(source.points) < 10 or len(target.points) < 10:
-        return init, 0.0, 0.0, True, 6
-    start = match(source, target, init, params)
-    result = align(source, target, start, params)
-    if result.fitness < params.min_fitness or not np.isfinite(result.transformation).all():
-        return init, float(result.fitness), float(result.inlier_rmse), True, 6
-    pose, degenerate = constrain_to_observable(init, result.transformation, source, target, params)
-    if not within_bounds(init, pose, params):
-        return init, float(result.fitness), float(result.inlier_rmse), True, degenerate
-    return pose, float(result.fitness), float(result.inlier_rmse), False, degenerate
+    graph_map = IncrementalMap(params)
+    for i, cloud in enumerate(clouds):
+        graph_map.add(cloud, None if initial_poses is None else initial_poses[i], shape)
+    return graph_map.result()
 
 
 class IncrementalMap:
-    """The map growing one cloud at a time, as the robot sends them (the live map): each
-    cloud is placed by :func:`front_end_step` against a local map of the previous ones,
-    seeded by its odometry, and fused into a voxel map. No pose graph: the job builds the
-    final map when the session ends."""
+    """The map as a pose graph growing one cloud at a time, as the robot sends them.
 
-    def __init__(self, params: MapParams = MapParams()) -> None:
+    Each new cloud is registered to the previous one from its odometry step (without
+    odometry: the previous step, a constant-velocity guess), which places it (ICP's
+    correction kept only along observable directions) and gives a graph edge (all of it,
+    with its point-to-plane information); then edges to the clouds a few steps back and
+    loop closures to earlier clouds of the same place are added. ``optimise_every`` > 0
+    optimises the graph every that many clouds (the live map), else only in
+    :meth:`result` (the batch job); both give the same kind of map.
+    """
+
+    def __init__(self, params: MapParams = MapParams(), optimise_every: int = 0) -> None:
         self.params = params
-        self.poses: list[NDArray[np.float64]] = []
-        self.used_odometry = 0
-        self._guesses: list[NDArray[np.float64]] = []
-        self._recent: list[tuple[o3d.geometry.PointCloud, NDArray[np.float64]]] = []  # the last clouds and poses
+        self.optimise_every = optimise_every
+        self.graph = reg.PoseGraph()
+        self.loop_closures = 0
+        self.pruned_edges = 0
+        self._pcds: list[o3d.geometry.PointCloud] = []
+        self._guesses: list[NDArray[np.float64] | None] = []
+        self._steps: list[NDArray[np.float64]] = []  # odometry (or seed) step into each cloud
+        self._facts: list[tuple[float, float, bool, int]] = []  # fitness, rmse, used odometry, degenerate dims
         self._fused = o3d.geometry.PointCloud()
+        self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
 
-    def add(self, points: NDArray[np.floating], guess: NDArray[np.floating], shape: tuple[int, int] | None = None) -> NDArray[np.float64]:
+    @property
+    def poses(self) -> NDArray[np.float64]:
+        """Current T_world_sensor of every cloud so far, (N, 4, 4)."""
+        return np.array([np.asarray(node.pose) for node in self.graph.nodes]).reshape(-1, 4, 4)
+
+    def add(self, points: NDArray[np.floating], guess: NDArray[np.floating] | None = None,
+            shape: tuple[int, int] | None = None) -> NDArray[np.float64]:
         """Place one cloud (sensor frame) given its odometry pose ``guess``; its pose."""
-        guess = np.asarray(guess, dtype=np.float64)
+        guess = None if guess is None else np.asarray(guess, dtype=np.float64)
         pcd = select(points, self.params, shape)
-        if not self.poses:
-            pose = guess
-        else:
-            init = self.poses[-1] @ np.linalg.inv(self._guesses[-1]) @ guess
-            recent = [p for p, _ in self._recent]
-            target = _local_map(recent, np.array([T for _, T in self._recent]), len(recent), self.params)
-            pose, _, _, odometry, _ = front_end_step(pcd, target, init, self.params)
-            self.used_odometry += int(odometry)
-        self._recent = [*self._recent, (pcd, pose)][-self.params.local_map_clouds:]
-        self._fused += o3d.geometry.PointCloud(pcd).transform(pose)
-        self._fused = self._fused.voxel_down_sample(self.params.map_voxel_m)
-        self.poses.append(pose)
+        i = len(self._pcds)
+        self._pcds.append(pcd)
         self._guesses.append(guess)
-        return pose
+        if i == 0:
+            pose = guess if guess is not None else np.eye(4)
+            self.graph.nodes.append(reg.PoseGraphNode(pose))
+            self._facts.append((1.0, 0.0, False, 0))
+            return pose
+        previous = self._guesses[i - 1]
+        if guess is not None and previous is not None:
+            step = np.linalg.inv(previous) @ guess
+        else:
+            step = self._steps[-1] if self._steps else np.eye(4)
+        result = _register(pcd, self._pcds[i - 1], step, self.params)
+        if result is None:
+            seed, facts = step, (0.0, 0.0, True, 6)
+        else:
+            seed, degenerate = constrain_to_observable(step, result.transformation, pcd, self._pcds[i - 1], self.params)
+            facts = (float(result.fitness), float(result.inlier_rmse), False, degenerate)
+        self._steps.append(step if guess is not None else seed)
+        self._facts.append(facts)
+        pose = np.asarray(self.graph.nodes[i - 1].pose) @ seed
+        self.graph.nodes.append(reg.PoseGraphNode(pose))
+        self._add_odometry_edge(i)
+        if self.params.pose_graph:
+            if result is not None:
+                self._add_edge(i, i - 1, result, uncertain=False)
+            for j in range(max(0, i - self.params.neighbours), i - 1):
+                self._add_edge(i, j, _register(pcd, self._pcds[j], self._relative(j, i), self.params), uncertain=False)
+            loops = self._close_loops(i)
+            if self.optimise_every and (loops or (i + 1) % self.optimise_every == 0):
+                self.optimise()
+        return np.asarray(self.graph.nodes[i].pose)
+
+    def _relative(self, t: int, s: int) -> NDArray[np.float64]:
+        """T_t_s from the current estimate."""
+        return np.linalg.inv(np.asarray(self.graph.nodes[t].pose)) @ np.asarray(self.graph.nodes[s].pose)
+
+    def _add_odometry_edge(self, i: int) -> None:
+        """Odometry edge into cloud i: holds what the geometry cannot; its error grows with the step."""
+        p = self.params
+        step = self._steps[i - 1]
+        d = float(np.linalg.norm(step[:3, 3]))
+        sigma_t = max(p.odometry_sigma_frac * d, p.odometry_sigma_floor_m)
+        sigma_r = np.radians(p.odometry_sigma_deg_per_m * d + 0.2)
+        info = np.diag([1 / sigma_r**2] * 3 + [1 / sigma_t**2] * 3)
+        self.graph.edges.append(reg.PoseGraphEdge(i, i - 1, step, info, uncertain=False))
+
+    def _add_edge(self, s: int, t: int, result: reg.RegistrationResult | None, *, uncertain: bool) -> int:
+        """An ICP edge from cloud s to cloud t with its point-to-plane information (1 if added)."""
+        if result is None:
+            return 0
+        info = plane_information(self._pcds[s], self._pcds[t], result, self.params)
+        self.graph.edges.append(reg.PoseGraphEdge(s, t, np.asarray(result.transformation), info, uncertain=uncertain))
+        return 1
+
+    def _close_loops(self, i: int) -> int:
+        """Loop closures from cloud i to the nearest earlier clouds of the same place,
+        searched coarse to fine (the drift accumulated by then can exceed ICP's reach)."""
+        p = self.params
+        if i <= p.loop_min_gap:
+            return 0
+        positions = self.poses[:, :3, 3]
+        dist = np.linalg.norm(positions[: i - p.loop_min_gap] - positions[i], axis=1)
+        added = 0
+        for j in np.argsort(dist)[: p.loops_per_cloud]:
+            if dist[j] > p.loop_radius_m:
+                break
+            result = _register(self._pcds[i], self._pcds[j], self._relative(int(j), i), p, coarse=p.loop_search_m,
+                               min_fitness=p.loop_min_fitness, bounds=(p.loop_max_correction_m, p.loop_max_correction_deg))
+            added += self._add_edge(i, int(j), result, uncertain=True)
+        self.loop_closures += added
+        return added
+
+    def optimise(self) -> None:
+        """Optimise the pose graph (robust: Open3D's line process prunes loop closures that disagree)."""
+        if len(self.graph.nodes) < 3:
+            return
+        before = len(self.graph.edges)
+        option = reg.GlobalOptimizationOption(max_correspondence_distance=self.params.max_correspondence_m,
+                                              edge_prune_threshold=0.25, preference_loop_closure=1.0, reference_node=0)
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            reg.global_optimization(self.graph, reg.GlobalOptimizationLevenbergMarquardt(),
+                                    reg.GlobalOptimizationConvergenceCriteria(), option)
+        self.pruned_edges += before - len(self.graph.edges)
+        self._fused_upto = 0  # every pose may have moved: fuse again
 
     @property
     def points(self) -> NDArray[np.float32]:
         """The fused map so far, (M, 3) world frame."""
+        poses = self.poses
+        if self._fused_upto == 0:
+            self._fused = o3d.geometry.PointCloud()
+        for k in range(self._fused_upto, len(self._pcds)):
+            self._fused += o3d.geometry.PointCloud(self._pcds[k]).transform(poses[k])
+        if self._fused_upto < len(self._pcds):
+            self._fused = self._fused.voxel_down_sample(self.params.map_voxel_m)
+            self._fused_upto = len(self._pcds)
         return np.asarray(self._fused.points, dtype=np.float32)
 
-
-def _odometry_steps(initial: NDArray[np.float64] | None, front: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Relative motion between consecutive clouds as odometry says (or the front end)."""
-    src = initial if initial is not None else front
-    return np.array([np.linalg.inv(src[k]) @ src[k + 1] for k in range(len(src) - 1)])
-
-
-def _information(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: NDArray[np.float64], params: MapParams) -> NDArray[np.float64]:
-    """Information matrix of an ICP edge: Open3D's per-correspondence sum (unit weights),
-    scaled by the correspondences' error so that it weighs right against odometry."""
-    info = np.asarray(reg.get_information_matrix_from_point_clouds(source, target, params.max_correspondence_m, T))
-    return info / params.icp_sigma_m**2
+    def result(self) -> MapResult:
+        """Optimise and return the poses, the fused map and the per-cloud facts."""
+        if self.params.pose_graph:
+            self.optimise()
+        fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
+        return MapResult(self.poses, fuse_map(self._pcds, self.poses, self.params.map_voxel_m), fitness.astype(float),
+                         rmse.astype(float), used.astype(bool), degenerate.astype(int), self.loop_closures, self.pruned_edges)
 
 
-def _pose_graph(pcds: list[o3d.geometry.PointCloud], poses: NDArray[np.float64], steps: NDArray[np.float64],
-                params: MapParams) -> tuple[NDArray[np.float64], int, int]:
-    """Optimise a pose graph of odometry edges, ICP edges to the next few clouds and loop
-    closures to earlier clouds of the same place (robust: Open3D's line process prunes
-    loop closures that disagree). Returns poses, loop closures added and edges pruned."""
-    n = len(pcds)
-    graph = reg.PoseGraph()
-    for T in poses:
-        graph.nodes.append(reg.PoseGraphNode(T))
-    for k in range(n - 1):  # odometry: holds what the geometry cannot; its error grows with the step
-        d = float(np.linalg.norm(steps[k][:3, 3]))
-        sigma_t = max(params.odometry_sigma_frac * d, params.odometry_sigma_floor_m)
-        sigma_r = np.radians(params.odometry_sigma_deg_per_m * d + 0.2)
-        info = np.diag([1 / sigma_r**2] * 3 + [1 / sigma_t**2] * 3)
-        graph.edges.append(reg.PoseGraphEdge(k + 1, k, steps[k], info, uncertain=False))
-    for i in range(n):
-        for j in range(i + 1, min(n, i + 1 + params.neighbours)):
-            _add_icp_edge(graph, pcds, poses, j, i, params, uncertain=False)
-    loops = 0
-    positions = poses[:, :3, 3]
-    tree = cKDTree(positions)
-    for j in range(n):
-        near = [i for i in tree.query_ball_point(positions[j], params.loop_radius_m) if i < j - params.loop_min_gap]
-        near = sorted(near, key=lambda i: np.linalg.norm(positions[i] - positions[j]))[: params.loops_per_cloud]
-        for i in near:
-            loops += _add_icp_edge(graph, pcds, poses, j, i, params, uncertain=True, min_fitness=params.loop_min_fitness)
-    edges_before = len(graph.edges)
-    option = reg.GlobalOptimizationOption(max_correspondence_distance=params.max_correspondence_m, edge_prune_threshold=0.25,
-                                          preference_loop_closure=1.0, reference_node=0)
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option)
-    out = np.array([np.asarray(node.pose) for node in graph.nodes])
-    return out, loops, edges_before - len(graph.edges)
+def _register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: NDArray[np.float64], params: MapParams,
+              *, coarse: Sequence[float] = (), bounds: tuple[float, float] | None = None,
+              min_fitness: float | None = None) -> reg.RegistrationResult | None:
+    """Matching, rejection and alignment of one pair, first at the ``coarse``
+    correspondence distances; None when too few points, too low a fitness or a
+    transform out of bounds (stopping rule 3)."""
+    if len(source.points) < 10 or len(target.points) < 10:
+        return None
+    start = match(source, target, init, params)
+    for dist in coarse:
+        start = align(source, target, start, replace(params, max_correspondence_m=dist, tukey_m=dist / 2)).transformation
+    result = align(source, target, start, params)
+    limits = replace(params, max_correction_m=bounds[0], max_correction_deg=bounds[1]) if bounds else params
+    if (result.fitness < (params.min_fitness if min_fitness is None else min_fitness)
+            or not np.isfinite(result.transformation).all() or not within_bounds(init, result.transformation, limits)):
+        return None
+    return result
 
 
-def _add_icp_edge(graph: reg.PoseGraph, pcds: list[o3d.geometry.PointCloud], poses: NDArray[np.float64], s: int, t: int,
-                  params: MapParams, *, uncertain: bool, min_fitness: float | None = None) -> int:
-    """Register cloud s to cloud t from the current estimate and add the edge (1 if added)."""
-    if len(pcds[s].points) < 10 or len(pcds[t].points) < 10:
-        return 0
-    init = np.linalg.inv(poses[t]) @ poses[s]  # T_t_s
-    result = align(pcds[s], pcds[t], init, params)
-    if result.fitness < (min_fitness or params.min_fitness) or not within_bounds(init, result.transformation, params):
-        return 0
-    T = constrain_to_observable(init, result.transformation, pcds[s], pcds[t], params)[0]
-    info = _information(pcds[s], pcds[t], T, params)
-    graph.edges.append(reg.PoseGraphEdge(s, t, T, info, uncertain=uncertain))
-    return 1
+def plane_information(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, result: reg.RegistrationResult,
+                      params: MapParams) -> NDArray[np.float64]:
+    """Information matrix of a point-to-plane ICP edge (Open3D's order: rotation, then
+    translation, in the target frame): the sum over the final correspondences of the
+    Tukey weight times Jᵀ J, J = [p × n, n] for target point p and normal n, over σ².
+    Along a direction no surface faces (sliding on a plate) it is zero."""
+    pairs = np.asarray(result.correspondence_set)
+    if len(pairs) == 0:
+        return np.zeros((6, 6))
+    T = np.asarray(result.transformation)
+    q = np.asarray(source.points)[pairs[:, 0]] @ T[:3, :3].T + T[:3, 3]
+    p, n = np.asarray(target.points)[pairs[:, 1]], np.asarray(target.normals)[pairs[:, 1]]
+    r = np.einsum("ij,ij->i", q - p, n)
+    w = np.clip(1 - (r / params.tukey_m) ** 2, 0, None) ** 2
+    J = np.hstack([np.cross(p, n), n])
+    return (J * w[:, None]).T @ J / params.icp_sigma_m**2
 
 
 def constrain_to_observable(
@@ -395,16 +440,6 @@ def _projector(A: NDArray[np.float64], ratio: float) -> tuple[NDArray[np.float64
     good = evals >= ratio * max(float(np.trace(A)), 1e-12)
     V = evecs[:, good]
     return V @ V.T, int((~good).sum())
-
-
-def _local_map(pcds: list[o3d.geometry.PointCloud], poses: NDArray[np.float64], i: int, params: MapParams) -> o3d.geometry.PointCloud:
-    target = o3d.geometry.PointCloud()
-    for j in range(max(0, i - params.local_map_clouds), i):
-        target += o3d.geometry.PointCloud(pcds[j]).transform(poses[j])
-    target = target.voxel_down_sample(params.voxel_m)
-    if not target.has_normals():
-        target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.voxel_m * 3, max_nn=30))
-    return target
 
 
 def fuse_map(pcds: Sequence[o3d.geometry.PointCloud], poses: NDArray[np.float64], voxel_m: float) -> NDArray[np.float32]:

@@ -154,7 +154,8 @@ def map_folder(clouds_dir: Path, out: Path, *, odometry: Path | None) -> None:
             raise CommandError(f"{p}: every point is NaN or infinite")
     init = _odometry(odometry, len(clouds), "clouds") if odometry else None
     try:
-        result = register_clouds(clouds, init)
+        shape = (int(sensor["height"]), int(sensor["width"])) if sensor else None
+        result = register_clouds(clouds, init, shape=shape)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     out.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,9 @@
 """The 3D map growing live while the robot inspects: every ToF cloud the station stores is
-also placed by :class:`processing.mapping.IncrementalMap` in a worker process (ICP would
-starve the viser server and the event loop in this one), and the map so far is shown in
-the 3D view. The final map is still the ``map`` job's, with its pose graph, after the session.
+also added to :class:`processing.mapping.IncrementalMap` (the same pose graph as the
+``map`` job's, optimised every ``OPTIMISE_EVERY`` clouds and at each loop closure) in a
+worker process (ICP would starve the viser server and the event loop in this one), and the
+map so far is shown in the 3D view. The ``map`` job still builds the final map from every
+cloud after the session (the live view skips clouds when its worker falls behind).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from numpy.typing import NDArray
 log = logging.getLogger(__name__)
 MAX_PENDING = 3  # clouds waiting for the worker; beyond, the live view skips (the job uses all)
 DISPLAY_POINTS = 150_000
+OPTIMISE_EVERY = 10
 
 _maps: dict[str, Any] = {}  # in the worker process: session id -> IncrementalMap
 
@@ -32,7 +35,7 @@ def _place(session_id: str, payload: bytes, meta: dict[str, Any], guess: NDArray
     live = _maps.get(session_id)
     if live is None:
         _maps.clear()  # one live session at a time: a new one replaces the old
-        live = _maps[session_id] = IncrementalMap(MapParams(pose_graph=False))
+        live = _maps[session_id] = IncrementalMap(MapParams(), optimise_every=OPTIMISE_EVERY)
     live.add(points, guess, shape=(meta["height"], meta["width"]))
     return len(live.poses), display_points(live.points, DISPLAY_POINTS)
 

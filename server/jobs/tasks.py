@@ -186,6 +186,10 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     if not rows:
         raise ValueError("the session has no ToF clouds")
     clouds, guesses, stamps, seqs, skipped = [], [], [], [], []
+    shapes = {(c.height, c.width) for c in rows}
+    shape = shapes.pop() if len(shapes) == 1 else None  # organised depth images: filtered as images
+    if shape is not None and min(shape) < 2:
+        shape = None
     for i, c in enumerate(rows):
         meta = {"encoding": c.encoding, "width": c.width, "height": c.height, **c.intrinsics}
         try:
@@ -213,7 +217,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         guesses = [se2_to_se3(*p) @ T_rt for p in robot]
         params = MapParams(refine=False)
     ctx.progress(0.3, "registering")
-    result = register_clouds(clouds, np.array(guesses) if len(guesses) == len(clouds) else None, params=params)
+    result = register_clouds(clouds, np.array(guesses) if len(guesses) == len(clouds) else None, params=params, shape=shape)
     out = ctx.results_dir()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
     tmp = out / ".map.tmp.ply"
