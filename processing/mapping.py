@@ -66,6 +66,7 @@ class MapParams:
     max_correction_m: float = 0.10
     max_correction_deg: float = 10.0
     min_fitness: float = 0.3
+    min_points: int = 10  # clouds with fewer points (after selection) are placed by odometry
     # local map, degeneracy
     degenerate_ratio: float = 0.1
     # pose graph
@@ -74,6 +75,10 @@ class MapParams:
     loop_min_gap: int = 12  # ... and at least this many clouds back
     loop_min_fitness: float = 0.5
     loops_per_cloud: int = 2
+    loop_min_structure_fitness: float = 0.8  # ... and its structure (not the plate) must match this well
+    loop_min_structure_points: int = 50
+    loop_preference: float = 1.0  # Open3D's line process: lower prunes disagreeing loop closures sooner
+    loop_max_view_angle_deg: float = 45.0  # ... whose optical axes are this close
     loop_search_m: tuple[float, ...] = (0.3, 0.15)  # coarse correspondence distances tried before a loop's ICP
     loop_max_correction_m: float = 0.3  # a loop closure may correct this much accumulated drift ...
     loop_max_correction_deg: float = 15.0  # ... and this much heading
@@ -312,14 +317,19 @@ class IncrementalMap:
         p = self.params
         if i <= p.loop_min_gap:
             return 0
-        positions = self.poses[:, :3, 3]
-        dist = np.linalg.norm(positions[: i - p.loop_min_gap] - positions[i], axis=1)
+        poses = self.poses
+        dist = np.linalg.norm(poses[: i - p.loop_min_gap, :3, 3] - poses[i, :3, 3], axis=1)
+        # clouds looking another way (the other lane, driven the other way) see other things
+        facing = poses[: i - p.loop_min_gap, :3, 2] @ poses[i, :3, 2] >= np.cos(np.radians(p.loop_max_view_angle_deg))
+        dist[~facing] = np.inf
         added = 0
         for j in np.argsort(dist)[: p.loops_per_cloud]:
             if dist[j] > p.loop_radius_m:
                 break
             result = _register(self._pcds[i], self._pcds[j], self._relative(int(j), i), p, coarse=p.loop_search_m,
                                min_fitness=p.loop_min_fitness, bounds=(p.loop_max_correction_m, p.loop_max_correction_deg))
+            if result is not None and structure_fitness(self._pcds[i], result, p.loop_min_structure_points) < p.loop_min_structure_fitness:
+                result = None
             added += self._add_edge(i, int(j), result, uncertain=True)
         self.loop_closures += added
         return added
@@ -330,7 +340,8 @@ class IncrementalMap:
             return
         before = len(self.graph.edges)
         option = reg.GlobalOptimizationOption(max_correspondence_distance=self.params.max_correspondence_m,
-                                              edge_prune_threshold=0.25, preference_loop_closure=1.0, reference_node=0)
+                                              edge_prune_threshold=0.25, preference_loop_closure=self.params.loop_preference,
+                                              reference_node=0)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             reg.global_optimization(self.graph, reg.GlobalOptimizationLevenbergMarquardt(),
                                     reg.GlobalOptimizationConvergenceCriteria(), option)
@@ -359,13 +370,30 @@ class IncrementalMap:
                          rmse.astype(float), used.astype(bool), degenerate.astype(int), self.loop_closures, self.pruned_edges)
 
 
+def structure_fitness(source: o3d.geometry.PointCloud, result: reg.RegistrationResult, min_points: int) -> float:
+    """Share of the source's structure points (normals more than 35° from the dominant one:
+    web, stiffeners, bolts, edges, not the plate) that found a correspondence; 0 with fewer
+    than ``min_points`` of them. A loop closure that only matched the plate, or a parallel
+    lane's different stretch of web, scores low (plain fitness, dominated by the plate, does not)."""
+    normals = np.asarray(source.normals)
+    if len(normals) == 0:
+        return 0.0
+    dominant = np.linalg.eigh(normals.T @ normals)[1][:, -1]
+    structure = np.abs(normals @ dominant) < np.cos(np.radians(35))
+    if structure.sum() < min_points:
+        return 0.0
+    matched = np.zeros(len(normals), bool)
+    matched[np.asarray(result.correspondence_set)[:, 0]] = True
+    return float((matched & structure).sum() / structure.sum())
+
+
 def _register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: NDArray[np.float64], params: MapParams,
               *, coarse: Sequence[float] = (), bounds: tuple[float, float] | None = None,
               min_fitness: float | None = None) -> reg.RegistrationResult | None:
     """Matching, rejection and alignment of one pair, first at the ``coarse``
     correspondence distances; None when too few points, too low a fitness or a
     transform out of bounds (stopping rule 3)."""
-    if len(source.points) < 10 or len(target.points) < 10:
+    if len(source.points) < params.min_points or len(target.points) < params.min_points:
         return None
     start = match(source, target, init, params)
     for dist in coarse:
