@@ -228,7 +228,8 @@ class IncrementalMap:
     correction kept only along observable directions) and gives a graph edge (all of it,
     with its point-to-plane information); then edges to the clouds a few steps back and
     loop closures to earlier clouds of the same place are added. ``optimise_every`` > 0
-    optimises the graph every that many clouds (the live map), else only in
+    optimises the graph every that many clouds (a tenth of the clouds so far once that is
+    more) and at each loop closure (the live map), else only in
     :meth:`result` (the batch job); both give the same kind of map.
     """
 
@@ -285,7 +286,9 @@ class IncrementalMap:
             for j in range(max(0, i - self.params.neighbours), i - 1):
                 self._add_edge(i, j, _register(pcd, self._pcds[j], self._relative(j, i), self.params), uncertain=False)
             loops = self._close_loops(i)
-            if self.optimise_every and (loops or (i + 1) % self.optimise_every == 0):
+            # every ``optimise_every`` clouds, and less often as the graph grows (each
+            # optimisation and re-fusion costs time in proportion to the clouds so far)
+            if self.optimise_every and (loops or (i + 1) % max(self.optimise_every, i // 10) == 0):
                 self.optimise()
         return np.asarray(self.graph.nodes[i].pose)
 
