@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 from dataclasses import asdict
 from pathlib import Path
 
@@ -22,6 +23,8 @@ from processing.stitching import plan_mosaic, render_bands
 from server.errors import CommandError
 from server.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
 from server.storage import write_atomic
+
+log = logging.getLogger(__name__)
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 CLOUD_EXTS = {".ply", ".pcd"}
@@ -149,9 +152,11 @@ def map_folder(clouds_dir: Path, out: Path, *, odometry: Path | None) -> None:
         except (ValueError, KeyError, TypeError) as exc:
             raise CommandError(f"{clouds_dir / 'sensor.json'}: {exc}") from None
     clouds = [_read_cloud(p, sensor) for p in files]
-    for p, c in zip(files, clouds):
-        if not np.isfinite(c).all(axis=1).any():
-            raise CommandError(f"{p}: every point is NaN or infinite")
+    empty = [p for p, c in zip(files, clouds) if not np.isfinite(c).all(axis=1).any()]
+    if len(empty) == len(clouds):
+        raise CommandError(f"{clouds_dir}: every point of every cloud is NaN or infinite")
+    for p in empty:  # the sensor saw nothing (looking past the structure): odometry places it
+        log.warning("%s: every point is NaN or infinite; placed by odometry", p)
     init = _odometry(odometry, len(clouds), "clouds") if odometry else None
     try:
         shape = (int(sensor["height"]), int(sensor["width"])) if sensor else None
