@@ -217,6 +217,9 @@ def register_clouds(
     graph_map = IncrementalMap(params)
     for i, cloud in enumerate(clouds):
         graph_map.add(cloud, None if initial_poses is None else initial_poses[i], shape)
+    if graph_map.usable_clouds == 0:  # e.g. clouds in millimetres: every point "beyond" range
+        raise ValueError(f"no cloud has {params.min_points} or more points within {params.max_range_m} m of the sensor "
+                         "(point clouds must be in metres)")
     return graph_map.result()
 
 
@@ -245,6 +248,11 @@ class IncrementalMap:
         self._facts: list[tuple[float, float, bool, int]] = []  # fitness, rmse, used odometry, degenerate dims
         self._fused = o3d.geometry.PointCloud()
         self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
+
+    @property
+    def usable_clouds(self) -> int:
+        """Clouds with enough points after selection to be registered."""
+        return sum(len(pcd.points) >= self.params.min_points for pcd in self._pcds)
 
     @property
     def poses(self) -> NDArray[np.float64]:

@@ -63,6 +63,12 @@ def test_clouds_without_points_fall_back_to_odometry() -> None:
     assert np.isfinite(result.poses).all()
 
 
+def test_clouds_in_millimetres_are_refused_not_mapped_empty() -> None:
+    sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.6,), x_range_m=(0.4, 0.6), revisit=False, seed=3))
+    with pytest.raises(ValueError, match="metres"):
+        register_clouds([c * 1000 for c in sweep.clouds], sweep.odometry, shape=(172, 224))
+
+
 def test_empty_input_and_wrong_pose_count_raise() -> None:
     with pytest.raises(ValueError, match="empty"):
         register_clouds([])
