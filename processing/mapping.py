@@ -52,6 +52,7 @@ class MapParams:
     voxel_m: float = 0.02
     max_range_m: float = 4.0
     depth_median_px: int = 5  # median filter of an organised depth image (0: off)
+    pixel_stride: int = 2  # ... then averaged in blocks of this many pixels squared
     # matching
     use_fpfh: bool = False  # FPFH refinement of the odometry guess (ambiguous on repeating beams)
     fpfh_radius_m: float = 0.1
@@ -114,9 +115,10 @@ def clean_cloud(points: NDArray[np.floating], max_range_m: float) -> NDArray[np.
     return pts[ok].astype(np.float64)
 
 
-def filter_organised(points: NDArray[np.floating], shape: tuple[int, int], median_px: int) -> NDArray[np.float32]:
+def filter_organised(points: NDArray[np.floating], shape: tuple[int, int], median_px: int, stride: int = 1) -> NDArray[np.float32]:
     """Median-filter the depth of an organised cloud (H·W points, row-major), keeping each
-    point on its pixel's ray: ToF noise is mostly along the ray."""
+    point on its pixel's ray (ToF noise is mostly along the ray), then average the
+    consistent pixels of ``stride`` x ``stride`` blocks (NaN where a block has none)."""
     h, w = shape
     pts = np.asarray(points, dtype=np.float32).reshape(h, w, 3)
     z = pts[..., 2]
@@ -129,13 +131,22 @@ def filter_organised(points: NDArray[np.floating], shape: tuple[int, int], media
         scale = np.where(good, med / z, np.float32(1))
     out = pts * scale[..., None]
     out[~valid] = np.nan
+    if stride > 1:  # stride x stride blocks averaged (the voxels average them anyway): fewer points, less noise
+        hb, wb = h // stride, w // stride
+        ok = (valid & good)[: hb * stride, : wb * stride]
+        summed = np.where(ok[..., None], out[: hb * stride, : wb * stride], np.float32(0))
+        summed = summed.reshape(hb, stride, wb, stride, 3).sum(axis=(1, 3))
+        count = ok.reshape(hb, stride, wb, stride).sum(axis=(1, 3))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = summed / count[..., None]
+        out[count == 0] = np.nan
     return out.reshape(-1, 3)
 
 
 def select(points: NDArray[np.floating], params: MapParams = MapParams(), shape: tuple[int, int] | None = None) -> o3d.geometry.PointCloud:
     """Selection step: (organised) depth filtering, cleaning, voxel downsampling, normals."""
     if shape is not None and params.depth_median_px and np.asarray(points).reshape(-1, 3).shape[0] == shape[0] * shape[1]:
-        points = filter_organised(points, shape, params.depth_median_px)
+        points = filter_organised(points, shape, params.depth_median_px, params.pixel_stride)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(clean_cloud(points, params.max_range_m)))
     pcd = pcd.voxel_down_sample(params.voxel_m)
     if len(pcd.points) >= 3:
