@@ -38,7 +38,6 @@ import cv2
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 reg = o3d.pipelines.registration
@@ -292,7 +291,7 @@ class IncrementalMap:
         if result is None:
             seed, facts = step, (0.0, 0.0, True, 6)
         else:
-            seed, degenerate = constrain_to_observable(step, result.transformation, pcd, self._pcds[i - 1], self.params)
+            seed, degenerate = constrain_to_observable(step, result, pcd, self._pcds[i - 1], self.params)
             facts = (float(result.fitness), float(result.inlier_rmse), False, degenerate)
         self._steps.append(step if guess is not None else seed)
         self._facts.append(facts)
@@ -448,26 +447,27 @@ def plane_information(source: o3d.geometry.PointCloud, target: o3d.geometry.Poin
 
 def constrain_to_observable(
     init: NDArray[np.float64],
-    T_icp: NDArray[np.float64],
+    result: reg.RegistrationResult,
     source: o3d.geometry.PointCloud,
     target: o3d.geometry.PointCloud,
     params: MapParams,
 ) -> tuple[NDArray[np.float64], int]:
-    """Keep ICP's correction only along directions the geometry constrains.
+    """Keep ICP's correction (``result``, from ``init``) only along directions the geometry
+    constrains.
 
     The point-to-plane Hessian's translational block (mean of n nᵀ) and rotational block
-    (mean of (q-c)×n outer products, scaled by the cloud's spread) are decomposed; along
-    eigen-directions weaker than ``degenerate_ratio`` (a flat plate gives no constraint in
-    its own plane, nor in rotation about its normal) the odometry's value is kept.
-    Returns the pose and the number of degenerate directions (0-6).
+    (mean of (q-c)×n outer products, scaled by the cloud's spread) over ICP's final
+    correspondences are decomposed; along eigen-directions weaker than
+    ``degenerate_ratio`` (a flat plate gives no constraint in its own plane, nor in
+    rotation about its normal) the odometry's value is kept. Returns the pose and the
+    number of degenerate directions (0-6).
     """
-    q = np.asarray(source.points) @ T_icp[:3, :3].T + T_icp[:3, 3]
-    tgt = np.asarray(target.points)
-    dist, idx = cKDTree(tgt).query(q, distance_upper_bound=params.max_correspondence_m)
-    ok = np.isfinite(dist)
-    if ok.sum() < 10:
+    T_icp = np.asarray(result.transformation)
+    pairs = np.asarray(result.correspondence_set)
+    if len(pairs) < 10:
         return init, 6
-    q, normals = q[ok], np.asarray(target.normals)[idx[ok]]
+    q = np.asarray(source.points)[pairs[:, 0]] @ T_icp[:3, :3].T + T_icp[:3, 3]
+    normals = np.asarray(target.normals)[pairs[:, 1]]
     c = q.mean(axis=0)
     spread = float(np.mean(np.sum((q - c) ** 2, axis=1))) or 1.0
     cross = np.cross(q - c, normals)
