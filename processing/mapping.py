@@ -62,7 +62,7 @@ class MapParams:
     # stopping rules: error constant, iteration cap, transform out of bounds
     relative_fitness: float = 1e-4
     relative_rmse: float = 1e-4
-    max_iterations: int = 30
+    max_iterations: int = 10  # from the odometry or the current estimate ICP converges in a few (more: no better, measured)
     max_correction_m: float = 0.10
     max_correction_deg: float = 10.0
     min_fitness: float = 0.3
