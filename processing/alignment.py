@@ -346,7 +346,7 @@ def register_pair(
         return None
     x0, y0, x1, y1 = rect
     template = li.full.crop(x0, y0, x1, y1)
-    if float(template.image[::2, ::2].std()) < params.min_texture:
+    if _std(template.image[::2, ::2]) < params.min_texture:
         return None
     W0 = (Q @ M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2]  # template pixel -> turned-j pixel
     # Lucas-Kanade on the half- and then the full-resolution image: wide basin, then precision
@@ -389,7 +389,7 @@ def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[n
         return M, 0.0, False
     hx0, hy0, hx1, hy1 = (v // 2 for v in rect)
     template = li.half.image[hy0:hy1, hx0:hx1]
-    if float(template.std()) < params.min_texture or hx1 - hx0 <= 8 or hy1 - hy0 <= 8:
+    if hx1 - hx0 <= 8 or hy1 - hy0 <= 8 or _std(template) < params.min_texture:
         return M, 0.0, False
     hs = s // 2
     best, M_best, edge = -np.inf, M, False
@@ -410,6 +410,11 @@ def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[n
             shift = 2 * (at - hs)
             M_best = Ma @ np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]])
     return M_best, best, edge
+
+
+def _std(image: Gray) -> float:
+    """Grey-level standard deviation (OpenCV's: NumPy's takes ~10x longer on a crop)."""
+    return float(cv2.meanStdDev(image)[1][0, 0])
 
 
 def _shift_origin(W: NDArray[np.float64], dx: float, dy: float) -> NDArray[np.float64]:
