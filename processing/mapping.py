@@ -3,7 +3,8 @@
 The paper's four steps, each a small function:
 
 1. **selection** (:func:`select`): invalid and far returns dropped, the organised depth
-   image median-filtered when the cloud is organised, voxel downsampling, normals;
+   image median-filtered and averaged in 2x2 blocks when the cloud is organised, voxel
+   downsampling, normals;
 2. **matching** (:func:`match`): the odometry gives the initial alignment; FPFH features on
    the roughly aligned clouds then propose a finer one, kept only when it stays within
    the odometry's error bounds (repeating stiffeners make features ambiguous);
@@ -21,11 +22,19 @@ with the paper's three stopping rules (:class:`MapParams`): the error stops chan
 Beyond the paper: each cloud is registered to the previous one from the odometry step
 (the chain that seeds the trajectory, kept only along directions the geometry observes);
 then a pose graph (Open3D) ties every cloud to its next few neighbours and to earlier
-clouds of the same place (loop closures, searched coarse to fine because the error
-accumulated by then can exceed ICP's reach) and is optimised robustly. Each ICP edge
+clouds of the same place, looking the same way (loop closures, searched coarse to fine
+because the error accumulated by then can exceed ICP's reach, and kept only when the
+structure, not just the plate, matches) and is optimised robustly. Each ICP edge
 carries the point-to-plane information of its correspondences (:func:`plane_information`),
 so a flat plate says nothing about sliding along it and the odometry edges hold the
 trajectory there; the result reports how many such directions each cloud had.
+:class:`IncrementalMap` builds that graph one cloud at a time: the batch job and the live
+map are the same code.
+
+Known limit (measured): pairwise point-to-plane ICP on this kind of view (mostly plate,
+a web seen obliquely) under-estimates the motion along the girder by ~8 % and is no
+better than wheel odometry in heading, so without a loop closure the map drifts about
+as the odometry does; loop closures remove most of it (see ``steelscan bench map``).
 """
 
 from __future__ import annotations
