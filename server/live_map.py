@@ -25,8 +25,10 @@ OPTIMISE_EVERY = 10
 _maps: dict[str, Any] = {}  # in the worker process: session id -> IncrementalMap
 
 
-def _place(session_id: str, payload: bytes, meta: dict[str, Any], guess: NDArray[np.float64]) -> tuple[int, NDArray[np.float32]]:
-    """In the worker: decode one cloud, add it to its session's map; (clouds, map points)."""
+def _place(session_id: str, payload: bytes, meta: dict[str, Any], guess: NDArray[np.float64]
+           ) -> tuple[int, NDArray[np.float32], NDArray[np.float32]]:
+    """In the worker: decode one cloud, add it to its session's map; (clouds, map points,
+    sensor positions)."""
     from processing.mapping import IncrementalMap, MapParams
     from robot_link.clouds import decode_cloud
     from server.scene3d import display_points
@@ -37,7 +39,8 @@ def _place(session_id: str, payload: bytes, meta: dict[str, Any], guess: NDArray
         _maps.clear()  # one live session at a time: a new one replaces the old
         live = _maps[session_id] = IncrementalMap(MapParams(), optimise_every=OPTIMISE_EVERY)
     live.add(points, guess, shape=(meta["height"], meta["width"]))
-    return len(live.poses), display_points(live.points, DISPLAY_POINTS)
+    poses = live.poses
+    return len(poses), display_points(live.points, DISPLAY_POINTS), poses[:, :3, 3].astype(np.float32)
 
 
 class LiveMap:
@@ -84,15 +87,15 @@ class LiveMap:
         future.add_done_callback(lambda f: self._show(session_id, f))
         return True
 
-    def _show(self, session_id: str, future: Future[tuple[int, NDArray[np.float32]]]) -> None:
+    def _show(self, session_id: str, future: Future[tuple[int, NDArray[np.float32], NDArray[np.float32]]]) -> None:
         with self._lock:
             self._pending -= 1
         try:
-            clouds, points = future.result()
+            clouds, points, trajectory = future.result()
         except Exception:  # the live view is a courtesy: the job builds the real map
             log.warning("live map: a cloud of session %s could not be placed", session_id, exc_info=True)
             return
-        self.scene.show_live_map(session_id, points, clouds)
+        self.scene.show_live_map(session_id, points, clouds, trajectory)
 
     def close(self) -> None:
         """Stop the worker."""

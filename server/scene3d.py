@@ -76,6 +76,7 @@ class Scene3D:
         self._trail: list[tuple[float, float]] = []
         self._last_pose_t = 0.0
         self.live_map_points = 0  # points of the live map last shown
+        self.live_trajectory_poses = 0  # poses of the live map's trajectory last shown
         self._closed = False
         self._info = self.server.gui.add_markdown("Click a defect marker to see it.")
         self._title = self.server.gui.add_markdown("**No session shown yet.**")
@@ -138,6 +139,7 @@ class Scene3D:
                 self.session_id = session_id
                 self._trail = []
                 self.live_map_points = 0
+                self.live_trajectory_poses = 0
                 self.server.scene.reset()
                 self._title.content = f"**Live: {session_id}**"
             q = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
@@ -150,13 +152,21 @@ class Scene3D:
                     pts = np.array([[px, py, -0.002] for px, py in self._trail], dtype=np.float32)
                     self.server.scene.add_line_segments("/live_trail", np.stack([pts[:-1], pts[1:]], axis=1), colors=(250, 200, 0), thickness=0.004)
 
-    def show_live_map(self, session_id: str, points: NDArray[np.floating], clouds: int) -> None:
-        """Show the map growing during a live session (when that session is on view)."""
+    def show_live_map(self, session_id: str, points: NDArray[np.floating], clouds: int,
+                      trajectory: NDArray[np.floating] | None = None) -> None:
+        """Show the map growing during a live session (when that session is on view), with
+        the ToF's trajectory as the map's pose graph places it (blue; the odometry's trail
+        is yellow)."""
         with self._lock:
             if self._closed or session_id != self.session_id or not len(points):
                 return
             pts = np.asarray(points, dtype=np.float32)
             self.server.scene.add_point_cloud("/live_map", pts, height_colours(pts), point_size=0.006, precision="float32")
+            if trajectory is not None and len(trajectory) > 1:
+                path = np.asarray(trajectory, dtype=np.float32)
+                self.server.scene.add_line_segments("/live_trajectory", np.stack([path[:-1], path[1:]], axis=1), colors=(30, 110, 240),
+                                                    thickness=0.004)
+                self.live_trajectory_poses = len(path)
             self._title.content = f"**Live: {session_id}** — map of {clouds} clouds, {len(pts)} points"
             if not self.live_map_points:
                 self._frame_view(pts)
