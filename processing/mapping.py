@@ -301,6 +301,8 @@ class IncrementalMap:
             seed, facts = step, (0.0, 0.0, True, 6)
         else:
             seed, degenerate = constrain_to_observable(step, result, pcd, self._pcds[i - 1], self.params)
+            if guess is None:  # no odometry to hold the weak directions: ICP's weak evidence beats a guess
+                seed = np.asarray(result.transformation)
             facts = (float(result.fitness), float(result.inlier_rmse), False, degenerate)
         self._steps.append(step if guess is not None else seed)
         self._facts.append(facts)
