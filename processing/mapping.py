@@ -76,21 +76,21 @@ class MapParams:
     max_correction_deg: float = 10.0
     min_fitness: float = 0.3
     min_points: int = 10  # clouds with fewer points (after selection) are placed by odometry
-    # local map, degeneracy
+    # degeneracy
     degenerate_ratio: float = 0.1
     # pose graph
     neighbours: int = 2  # edges from each cloud to the next few
-    loop_radius_m: float = 0.25  # earlier clouds this close (sensor positions) are loop candidates
-    loop_min_gap: int = 12  # ... and at least this many clouds back
-    loop_min_fitness: float = 0.5
-    loops_per_cloud: int = 2
-    loop_min_structure_fitness: float = 0.8  # ... and its structure (not the plate) must match this well
-    loop_min_structure_points: int = 50
-    loop_preference: float = 1.0  # Open3D's line process: lower prunes disagreeing loop closures sooner
+    loop_radius_m: float = 0.25  # earlier clouds this close (sensor positions) are loop candidates ...
+    loop_min_gap: int = 12  # ... at least this many clouds back ...
     loop_max_view_angle_deg: float = 45.0  # ... whose optical axes are this close
+    loops_per_cloud: int = 2
     loop_search_m: tuple[float, ...] = (0.3, 0.15)  # coarse correspondence distances tried before a loop's ICP
     loop_max_correction_m: float = 0.3  # a loop closure may correct this much accumulated drift ...
     loop_max_correction_deg: float = 15.0  # ... and this much heading
+    loop_min_fitness: float = 0.5  # it is kept when this share of its points matched ...
+    loop_min_structure_fitness: float = 0.8  # ... and this share of its structure (not the plate)
+    loop_min_structure_points: int = 50
+    loop_preference: float = 1.0  # Open3D's line process: lower prunes disagreeing loop closures sooner
     icp_sigma_m: float = 0.06  # effective error of one point-to-plane residual (neighbouring residuals are correlated: > the noise)
     odometry_sigma_frac: float = 0.05  # odometry error per step: this fraction of its length ...
     odometry_sigma_deg_per_m: float = 15.0  # ... and this heading error per metre driven
