@@ -228,6 +228,8 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     return {"map_path": str(out / "map.ply"), "trajectory_path": str(out / "trajectory.tum"), "points": len(result.points),
             "guided_by_mosaic": robot is not None, "loop_closures": result.loop_closures,
             "clouds": len(clouds), "skipped_clouds": skipped, "cloud_seqs": seqs, "odometry_fallbacks": int(result.used_odometry.sum()),
+            # clouds whose view left some directions to the odometry (a flat plate: sliding along it)
+            "clouds_with_unobservable_directions": int((result.degenerate_dims > 0).sum()),
             "mean_fitness": float(result.fitness.mean()), "params": params_record(params)}
 
 

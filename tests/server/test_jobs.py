@@ -81,3 +81,40 @@ def test_stitch_job_serves_a_deep_zoom_pyramid_of_the_session(live_server: LiveS
     assert httpx.get(f"{url}/mosaic_files/..%2F..%2Fmosaic/0_0.jpg").status_code in (404, 422)
     world = httpx.get(f"{url}/results/mosaic.json").json()
     assert [f["frame"] for f in world["frames"]] == list(range(2, 8))
+
+
+def test_map_job_on_tof_clouds_alone_beats_the_odometry(live_server: LiveServer) -> None:
+    """A session with ToF clouds and odometry but no camera frames: the map job registers
+    the organised depth images (pose graph, loop closure at the return) and its trajectory
+    is closer to the truth than the odometry it was given."""
+    from robot_link.clouds import encode_depth_png
+    from robot_link.sim.sensors import tof_mount
+    from robot_link.sim.tof_sweeps import TofSweepConfig, tof_sweep
+    from processing.metrics import absolute_trajectory_error
+    from processing.poses import parse_tum
+    from tests.server.test_ingest import msg
+
+    sweep = tof_sweep(TofSweepConfig(seed=23))
+    mount = tof_mount()
+    h, w = int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"])
+    sid = uuid.uuid4()
+    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}, max_size=2**22) as ws:
+        ws.send(msg(sid, 1, MessageType.SESSION_START, {"structure": "girder", "calibration": {"tof": {**sweep.intrinsics, "T_robot_tof": mount.tolist()}}}))
+        for k, (cloud, T) in enumerate(zip(sweep.clouds, sweep.odometry)):
+            robot = T @ np.linalg.inv(mount)
+            pose = {"x": float(robot[0, 3]), "y": float(robot[1, 3]), "yaw": float(np.arctan2(robot[1, 0], robot[0, 0]))}
+            ws.send(msg(sid, k + 2, MessageType.CLOUD, {"encoding": "png16_depth_mm", **sweep.intrinsics, "pose": pose},
+                        encode_depth_png(cloud[:, 2].reshape(h, w))))
+        for _ in range(len(sweep.clouds) + 1):
+            assert decode_message(ws.recv(timeout=10)).type is MessageType.ACK
+    url = live_server.url
+    job = wait_job(url, httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "map"}).json()["id"])
+    assert job["state"] == "done", job
+    result = job["result"]
+    assert result["clouds"] + len(result["skipped_clouds"]) == len(sweep.clouds)  # those that saw nothing: skipped, listed
+    assert not result["guided_by_mosaic"] and result["loop_closures"] >= 1
+    assert 0 < result["clouds_with_unobservable_directions"] <= result["clouds"]  # said, not hidden
+    _, poses = parse_tum(httpx.get(f"{url}/api/sessions/{sid}/results/trajectory.tum").raise_for_status().text)
+    kept = np.array(result["cloud_seqs"]) - 2
+    ate = absolute_trajectory_error(poses, sweep.truth[kept])
+    assert ate < 0.75 * absolute_trajectory_error(sweep.odometry[kept], sweep.truth[kept])
