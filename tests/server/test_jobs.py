@@ -87,11 +87,11 @@ def test_map_job_on_tof_clouds_alone_beats_the_odometry(live_server: LiveServer)
     """A session with ToF clouds and odometry but no camera frames: the map job registers
     the organised depth images (pose graph, loop closure at the return) and its trajectory
     is closer to the truth than the odometry it was given."""
+    from processing.metrics import absolute_trajectory_error
+    from processing.poses import parse_tum
     from robot_link.clouds import encode_depth_png
     from robot_link.sim.sensors import tof_mount
     from robot_link.sim.tof_sweeps import TofSweepConfig, tof_sweep
-    from processing.metrics import absolute_trajectory_error
-    from processing.poses import parse_tum
     from tests.server.test_ingest import msg
 
     sweep = tof_sweep(TofSweepConfig(seed=23))
