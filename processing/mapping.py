@@ -398,7 +398,8 @@ class IncrementalMap:
         if self.params.pose_graph:
             self.optimise()
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
-        return MapResult(self.poses, fuse_map(self._pcds, self.poses, self.params.map_voxel_m), fitness.astype(float),
+        poses = self.poses
+        return MapResult(poses, fuse_map(self._pcds, poses, self.params.map_voxel_m), fitness.astype(float),
                          rmse.astype(float), used.astype(bool), degenerate.astype(int), self.loop_closures, self.pruned_edges)
 
 
