@@ -608,6 +608,16 @@ def phase_candidates(gray_a: Gray, gray_b: Gray, *, turns: Sequence[int] = (0, 2
     return found[:keep]
 
 
+CONSECUTIVE_RUN = 8  # consecutive pairs registered by one thread in a row
+
+
+def _runs(count: int, workers: int) -> list[range]:
+    """0..count split into runs of about :data:`CONSECUTIVE_RUN`, as many per worker."""
+    pieces = max(1, workers) * max(1, -(-count // (max(1, workers) * CONSECUTIVE_RUN)))
+    edges = np.linspace(0, count, pieces + 1).round().astype(int)
+    return [range(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
 def chain(first: NDArray[np.float64], deltas: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
     """Poses from a first pose and the relative step to each next frame."""
     out = [np.asarray(first, float)]
@@ -666,15 +676,18 @@ def estimate_poses(
             return None, guesses[0][0] if guesses else np.zeros(3)
 
         report(0.05, "registering consecutive frames")
+        # each thread takes runs of consecutive pairs: the threads then prepare different
+        # frames instead of waiting in turn for the frame the other one is decoding
+        runs = _runs(n - 1, params.workers)
         if guess is None:
-            blind = list(pool.map(measure_blind, range(n - 1)))
+            blind = [r for run in pool.map(lambda ks: [measure_blind(k) for k in ks], runs) for r in run]
             consecutive = [m for m, _ in blind]
             priors = np.array([step for _, step in blind]).reshape(-1, 3)
             guess = chain(np.zeros(3), list(priors))
         else:
             guess = np.asarray(guess, dtype=np.float64)
             priors = np.array([relative_pose(guess[k], guess[k + 1]) for k in range(n - 1)]).reshape(-1, 3)
-            consecutive = list(pool.map(lambda k: measure((k, k + 1), priors[k]), range(n - 1)))
+            consecutive = [m for run in pool.map(lambda ks: [measure((k, k + 1), priors[k]) for k in ks], runs) for m in run]
             # where the odometry was too far off (wheel slip), the images alone decide
             lost = [k for k, m in enumerate(consecutive) if m is None]
             for k, (m, _) in zip(lost, pool.map(measure_blind, lost)):
