@@ -201,6 +201,32 @@ def refine_euclidean(
     return W[:2], score, float(Tv.mean()), float(Iw.mean())
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _cubic(t: float) -> tuple[float, float, float, float]:  # pragma: no cover - compiled
+    """Keys' cubic convolution weights (a = -0.5) of the samples at -1, 0, 1, 2 for offset t."""
+    t2 = t * t
+    t3 = t2 * t
+    return (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * t3 - 0.5 * t2)
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _sample(image: Gray, qx: float, qy: float, rows: int, cols: int) -> float:  # pragma: no cover - compiled
+    """The image at (qx, qy) by bicubic interpolation, edges replicated."""
+    qx = min(max(qx, 0.0), cols - 1.0)
+    qy = min(max(qy, 0.0), rows - 1.0)
+    x0, y0 = int(qx), int(qy)
+    wx = _cubic(qx - x0)
+    wy = _cubic(qy - y0)
+    out = 0.0
+    for a in range(4):
+        y = min(max(y0 - 1 + a, 0), rows - 1)
+        row = 0.0
+        for b in range(4):
+            row += wx[b] * image[y, min(max(x0 - 1 + b, 0), cols - 1)]
+        out += wy[a] * row
+    return out
+
+
 @numba.njit(nogil=True, cache=True)
 def _lk_iterate(image: Gray, xs: NDArray[np.float64], ys: NDArray[np.float64], SD: NDArray[np.float64], H_inv: NDArray[np.float64],
                 Tc: NDArray[np.float64], t_var: float, cx: float, cy: float, extent: float, W: NDArray[np.float64],
@@ -217,15 +243,7 @@ def _lk_iterate(image: Gray, xs: NDArray[np.float64], ys: NDArray[np.float64], S
         for p in range(n):
             qx = W[0, 0] * xs[p] + W[0, 1] * ys[p] + W[0, 2]
             qy = W[1, 0] * xs[p] + W[1, 1] * ys[p] + W[1, 2]
-            qx = min(max(qx, 0.0), cols - 1.0)
-            qy = min(max(qy, 0.0), rows - 1.0)
-            x0 = min(int(qx), cols - 2) if cols > 1 else 0
-            y0 = min(int(qy), rows - 2) if rows > 1 else 0
-            fx, fy = qx - x0, qy - y0
-            x1, y1 = min(x0 + 1, cols - 1), min(y0 + 1, rows - 1)
-            top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
-            bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
-            Iw[p] = top * (1 - fy) + bottom * fy
+            Iw[p] = _sample(image, qx, qy, rows, cols)
             total += Iw[p]
         mean = total / n
         dot = 0.0

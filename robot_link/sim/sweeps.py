@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from robot_link.sim.imaging import warp_affine_exact
 from robot_link.sim.structure import paint_texture
 
 Pattern = Literal["straight", "lawnmower"]
@@ -122,9 +123,9 @@ def render_frame(texture: NDArray[np.uint8], pose: NDArray[np.floating], cfg: Sw
     R = cfg.scale * np.array([[c, -s], [s, c]])
     centre = cfg.scale * np.asarray(pose[:2]) + _margin(cfg)
     M = np.hstack([R, (centre - R @ half)[:, None]])  # frame pixel -> texture pixel
-    img = cv2.warpAffine(texture, M, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
+    img = warp_affine_exact(texture, M, (w, h))  # not cv2.warpAffine: it rounds positions to 1/32 px
     gain = rng.uniform(*cfg.gain) if gain is None else gain
-    img = img.astype(np.float32) * gain + rng.normal(0, cfg.noise_sigma, img.shape).astype(np.float32)
+    img = img * np.float32(gain) + rng.normal(0, cfg.noise_sigma, img.shape).astype(np.float32)
     ok, buf = cv2.imencode(".jpg", np.clip(img + 0.5, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
     if not ok:
         raise RuntimeError("JPEG encoding failed")
