@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from itertools import pairwise
 
 import cv2
 import numba
@@ -632,8 +633,8 @@ CONSECUTIVE_RUN = 8  # consecutive pairs registered by one thread in a row
 def _runs(count: int, workers: int) -> list[range]:
     """0..count split into runs of about :data:`CONSECUTIVE_RUN`, as many per worker."""
     pieces = max(1, workers) * max(1, -(-count // (max(1, workers) * CONSECUTIVE_RUN)))
-    edges = np.linspace(0, count, pieces + 1).round().astype(int)
-    return [range(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    edges = [round(count * k / pieces) for k in range(pieces + 1)]
+    return [range(a, b) for a, b in pairwise(edges) if b > a]
 
 
 def chain(first: NDArray[np.float64], deltas: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
