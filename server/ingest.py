@@ -15,6 +15,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from robot_link.protocol import Message, MessageType
+from server.db import WalCheckpointer, is_sqlite
 from server.errors import IngestError
 from server.models import (
     Cloud,
@@ -49,8 +50,10 @@ class _Owner:
 class Ingest:
     """Stores each robot message exactly once per (session, seq).
 
-    The hot path uses SQLAlchemy Core on one connection (no ORM unit of work): per group
-    commit one duplicate query, one multi-row INSERT per table and one commit.
+    The hot path keeps one connection open and writes the rows of frames, clouds and
+    telemetry with the DB-API's ``executemany`` (SQLAlchemy Core for the rare session rows):
+    per group commit one INSERT per table and one commit (a duplicate query only after a
+    resend). One transaction at a time.
     """
 
     def __init__(self, factory: sessionmaker[Session], files: SessionFiles) -> None:
@@ -58,6 +61,11 @@ class Ingest:
         self.engine = factory.kw["bind"]
         self.files = files
         self._owners: dict[str, _Owner] = {}
+        self._inserts = {table: _RawInsert(table, self.engine.dialect) for table in (RECEIVED, FRAMES, CLOUDS, TELEMETRY)}
+        self._dbapi_integrity_error: type[Exception] = self.engine.dialect.dbapi.IntegrityError
+        self._conn: Connection | None = None
+        self._checkpointer: WalCheckpointer | None = None
+        self._lock = threading.RLock()  # one transaction at a time on the one connection
 
     def store(self, message: Message, robot_id: int | None) -> StoreResult:
         """Store one decoded message durably; raise IngestError if it cannot be stored."""
@@ -75,30 +83,58 @@ class Ingest:
         then the batch is stored again with that check (``check``), message by message if
         the commit still fails."""
         results: list[StoreResult | Exception] = []
-        try:
-            with self.engine.begin() as conn:
-                batch = _Batch(self._stored_already(conn, items) if check else set())
-                for message, robot_id in items:
-                    try:
-                        results.append(self._stage(conn, message, robot_id, batch))
-                    except (IngestError, OSError) as exc:
-                        results.append(exc)
-                for table, rows in batch.rows.items():
-                    if rows:
-                        conn.execute(table.insert(), rows)
-        except IntegrityError:
-            self._owners.clear()  # trust the database again
-            if not check:
-                return self.store_many(items, check=True)
-            if len(items) == 1:
-                return [StoreResult("duplicate")]
-            return [self.store_many([item], check=True)[0] for item in items]
-        except BaseException:
-            self._owners.clear()
-            raise
-        for sid, owner in batch.new_owners.items():
-            self._owners[sid] = owner
-        return results
+        with self._lock:
+            try:
+                conn = self._connection()
+                with conn.begin():
+                    batch = _Batch(self._stored_already(conn, items) if check else set())
+                    for message, robot_id in items:
+                        try:
+                            results.append(self._stage(conn, message, robot_id, batch))
+                        except (IngestError, OSError) as exc:
+                            results.append(exc)
+                    cursor = conn.connection.cursor()  # the hot rows as plain executemany: no statement compiling
+                    for table, rows in batch.rows.items():
+                        if rows:
+                            insert = self._inserts[table]
+                            cursor.executemany(insert.sql, insert.values(rows))
+            except (IntegrityError, self._dbapi_integrity_error):
+                self._owners.clear()  # trust the database again
+                if not check:
+                    return self.store_many(items, check=True)
+                if len(items) == 1:
+                    return [StoreResult("duplicate")]
+                return [self.store_many([item], check=True)[0] for item in items]
+            except BaseException:
+                self._owners.clear()
+                self.close()  # a fresh connection next time
+                raise
+            for sid, owner in batch.new_owners.items():
+                self._owners[sid] = owner
+            return results
+
+    def _connection(self) -> Connection:
+        """The connection ingest keeps open (checking one out of the pool per transaction
+        costs as much as the inserts)."""
+        if self._conn is None or self._conn.closed:
+            self._conn = self.engine.connect()
+            if is_sqlite(self.engine):  # the checkpointer's thread does them, not this one's commits
+                raw = self._conn.connection.driver_connection
+                raw.execute("PRAGMA wal_autocheckpoint=0")
+                raw.execute(f"PRAGMA journal_size_limit={WAL_SIZE_LIMIT}")  # the log's file is cut back to this after a checkpoint
+                if self._checkpointer is None:
+                    self._checkpointer = WalCheckpointer(self.engine)
+        return self._conn
+
+    def close(self) -> None:
+        """Give the connection back."""
+        with self._lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
+            if self._checkpointer is not None:
+                self._checkpointer.close()
+                self._checkpointer = None
 
     @staticmethod
     def _stored_already(conn: Connection, items: list[tuple[Message, int | None]]) -> set[tuple[str, int]]:
@@ -187,6 +223,24 @@ TELEMETRY = TelemetrySample.__table__
 STORED = select(RECEIVED.c.seq).where(RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.seq.in_(bindparam("seqs", expanding=True)))
 
 
+class _RawInsert:
+    """A table's INSERT of every column but the autoincrement key, for the DB-API's
+    ``executemany``: the values converted by each column's own SQLAlchemy type (JSON,
+    datetimes), so rows read back exactly as the ORM writes them, without compiling a
+    statement per transaction (~75 µs each: a third of storing a frame)."""
+
+    def __init__(self, table: Any, dialect: Any) -> None:
+        self.columns = [c.name for c in table.columns if c is not table.autoincrement_column]
+        marks = {"qmark": "?", "format": "%s", "pyformat": "%s"}[dialect.paramstyle]
+        self.sql = f"INSERT INTO {table.name} ({', '.join(self.columns)}) VALUES ({', '.join([marks] * len(self.columns))})"
+        self.convert = [table.c[name].type.dialect_impl(dialect).bind_processor(dialect) for name in self.columns]
+
+    def values(self, rows: list[dict[str, Any]]) -> list[tuple[Any, ...]]:
+        """Rows (dicts by column name; a missing column is NULL) as DB-API parameter tuples."""
+        pairs = list(zip(self.columns, self.convert))
+        return [tuple(row.get(name) if f is None else f(row.get(name)) for name, f in pairs) for row in rows]
+
+
 @dataclass
 class _Batch:
     """What one group commit has gathered: rows per table, sessions started, keys stored."""
@@ -196,6 +250,7 @@ class _Batch:
     rows: dict[Any, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
 
 
+WAL_SIZE_LIMIT = 64 * 2**20  # bytes of write-ahead log kept on disk once checkpointed
 QUIET_S = 0.002  # no transaction for this long: the station is not under load
 
 
@@ -248,6 +303,7 @@ class GroupCommit:
         """Store what is queued, then stop the writer."""
         self._queue.put(None)
         self._thread.join(timeout=30)
+        self.ingest.close()
 
     def _run(self) -> None:
         while True:

@@ -254,3 +254,74 @@ def test_group_commit_stores_a_lone_message_at_once_and_batches_under_load(tmp_p
     from server.models import Frame
     with factory() as db:
         assert db.scalar(select(func.count()).select_from(Frame).where(Frame.session_id == str(sid))) == 40
+
+
+def _ingest(tmp_path):  # type: ignore[no-untyped-def]
+    from server.config import Settings
+    from server.db import make_engine, make_sessionmaker, upgrade
+    from server.ingest import Ingest
+    from server.storage import SessionFiles
+
+    settings = Settings(data_dir=tmp_path / "data")
+    upgrade(settings.resolved_database_url())
+    factory = make_sessionmaker(make_engine(settings.resolved_database_url()))
+    return factory, Ingest(factory, SessionFiles(settings.data_dir)), settings.resolved_database_url().removeprefix("sqlite:///")
+
+
+def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from sqlalchemy import select
+
+    from server.models import Cloud, Frame, ReceivedMessage, TelemetrySample
+
+    factory, ingest, _ = _ingest(tmp_path)
+    sid = uuid.uuid4()
+    intrinsics = {"fx": 195.0, "fy": 196.5, "cx": 111.5, "cy": 85.5}
+    try:
+        for raw in (start(sid), frame(sid, 2),
+                    msg(sid, 3, MessageType.CLOUD, {"encoding": "png16_depth_mm", "width": 6, "height": 4, **intrinsics,
+                                                   "pose": {"x": 1.25, "y": -0.5, "yaw": 0.1}},
+                        encode_depth_png(np.full((4, 6), 1.5, np.float32))),
+                    msg(sid, 4, MessageType.TELEMETRY, {"battery_v": {"main": 12.2}, "ir_edge": [True, False, False, True]})):
+            assert ingest.store(decode_message(raw), None).status == "stored"
+        assert ingest.store(decode_message(frame(sid, 2)), None).status == "duplicate"  # the primary key still catches resends
+    finally:
+        ingest.close()
+    with factory() as db:
+        f = db.scalars(select(Frame).where(Frame.session_id == str(sid))).one()
+        c = db.scalars(select(Cloud).where(Cloud.session_id == str(sid))).one()
+        t = db.scalars(select(TelemetrySample).where(TelemetrySample.session_id == str(sid))).one()
+        received = db.scalars(select(ReceivedMessage).where(ReceivedMessage.session_id == str(sid)).order_by(ReceivedMessage.seq)).all()
+    assert (f.seq, f.width, f.height, f.pose_x, f.size_bytes) == (2, 640, 480, pytest.approx(0.2), len(JPEG) + 1)
+    assert c.intrinsics == intrinsics and (c.encoding, c.pose_x, c.pose_y) == ("png16_depth_mm", 1.25, -0.5)
+    assert t.data["battery_v"] == {"main": 12.2} and t.data["ir_edge"] == [True, False, False, True]
+    assert [r.type for r in received] == ["SESSION_START", "FRAME", "CLOUD", "TELEMETRY"]
+    assert all(abs((r.received_at - received[0].received_at).total_seconds()) < 60 for r in received)  # datetimes, not strings
+
+
+def test_the_write_ahead_log_is_checkpointed_off_the_ingest_path(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import sqlite3
+
+    _, ingest, db_path = _ingest(tmp_path)
+    sid = uuid.uuid4()
+
+    def frames_in_main_file() -> int:
+        # ``immutable`` reads the database file alone, not its write-ahead log: rows appear
+        # there only once a checkpoint has copied them
+        main = sqlite3.connect(f"file:{db_path}?immutable=1", uri=True)
+        try:
+            return int(main.execute("SELECT count(*) FROM frames").fetchone()[0])
+        finally:
+            main.close()
+
+    try:
+        ingest.store(decode_message(start(sid)), None)
+        for seq in range(2, 52):
+            ingest.store(decode_message(frame(sid, seq)), None)
+        conn = ingest._connection()
+        assert conn.connection.driver_connection.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 0  # not in its commits
+        deadline = time.monotonic() + 10
+        while frames_in_main_file() < 50 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert frames_in_main_file() == 50  # ... but by the checkpointer's thread
+    finally:
+        ingest.close()
