@@ -328,8 +328,16 @@ class GroupCommit:
                 self._last_store = time.monotonic()
             with self._count:
                 self._pending -= len(batch)
+            by_loop: dict[asyncio.AbstractEventLoop, list[tuple[asyncio.Future[StoreResult], StoreResult | Exception]]] = defaultdict(list)
             for (_, _, future, loop), result in zip(batch, results):
-                loop.call_soon_threadsafe(_settle, future, result)
+                by_loop[loop].append((future, result))
+            for loop, settled in by_loop.items():  # one wake-up of each loop per batch, not one per message
+                loop.call_soon_threadsafe(_settle_all, settled)
+
+
+def _settle_all(settled: list[tuple[asyncio.Future[StoreResult], StoreResult | Exception]]) -> None:
+    for future, result in settled:
+        _settle(future, result)
 
 
 def _settle(future: asyncio.Future[StoreResult], result: StoreResult | Exception) -> None:
