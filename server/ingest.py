@@ -127,9 +127,10 @@ class Ingest:
         return self._conn
 
     def close(self) -> None:
-        """Give the connection back."""
+        """Drop the connection (not back to the pool: it has automatic checkpoints off)."""
         with self._lock:
             if self._conn is not None:
+                self._conn.invalidate()
                 self._conn.close()
                 self._conn = None
             if self._checkpointer is not None:

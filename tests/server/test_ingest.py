@@ -301,7 +301,7 @@ def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(tmp_path)
 def test_the_write_ahead_log_is_checkpointed_off_the_ingest_path(tmp_path) -> None:  # type: ignore[no-untyped-def]
     import sqlite3
 
-    _, ingest, db_path = _ingest(tmp_path)
+    factory, ingest, db_path = _ingest(tmp_path)
     sid = uuid.uuid4()
 
     def frames_in_main_file() -> int:
@@ -325,3 +325,5 @@ def test_the_write_ahead_log_is_checkpointed_off_the_ingest_path(tmp_path) -> No
         assert frames_in_main_file() == 50  # ... but by the checkpointer's thread
     finally:
         ingest.close()
+    with factory.kw["bind"].connect() as other:  # the pool never hands out ingest's connection
+        assert other.connection.driver_connection.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 1000
