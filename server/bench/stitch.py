@@ -172,5 +172,4 @@ def bench_stitch(dataset: Path | None = None, limit: int | None = None) -> Itera
             sweep = make_sweep(texture, cfg)
             for result in _sequence(f"{surface}.{pattern}", sweep, opencv=pattern == "lawnmower"):
                 yield {**result, "texture": source} if result["name"].endswith("mean_overlap_error") else result
-            if pattern == "lawnmower":
-                yield from _sequence(f"{surface}.{pattern}.images_only", sweep, blind=True)
+            yield from _sequence(f"{surface}.{pattern}.images_only", sweep, blind=True)

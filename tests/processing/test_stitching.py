@@ -71,6 +71,29 @@ def test_frames_stitch_from_images_alone_even_when_lanes_turn_around() -> None:
     assert worst_pair_error(layout.poses_px, s.truth, (320, 240)) < 0.3
 
 
+def test_a_pair_phase_correlation_cannot_place_is_registered_from_its_neighbours_motion(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a straight run nothing else overlaps a pair: when no phase-correlation guess of
+    it verifies (here: they all point elsewhere), the neighbouring pairs' steps are tried."""
+    import processing.alignment as alignment
+
+    s = sweep(frames=8, pattern="straight")
+    frames = decoded(s)
+    genuine = alignment.phase_candidates
+    fourth = cv2.cvtColor(frames[3], cv2.COLOR_BGR2GRAY)[::8, ::8].ravel().astype(float)
+    misled = []
+
+    def misleading(gray_a, gray_b, **kw):  # type: ignore[no-untyped-def]
+        if np.corrcoef(np.asarray(gray_a)[::8, ::8].ravel(), fourth)[0, 1] > 0.8:  # pair 3-4 (others: < 0.5)
+            misled.append(True)
+            return [(np.array([40.0, 150.0, np.pi]), 0.3)]  # a turned-around guess far off
+        return genuine(gray_a, gray_b, **kw)
+
+    monkeypatch.setattr(alignment, "phase_candidates", misleading)
+    layout, _ = plan_mosaic(frames, None)
+    assert misled
+    assert worst_pair_error(layout.poses_px, s.truth, s.config.frame_size) < 0.5
+
+
 def test_exposure_gains_are_compensated() -> None:
     s = sweep(seed=9, gain=(0.7, 1.3))
     layout, _ = plan_mosaic(decoded(s), s.odometry)
