@@ -614,7 +614,23 @@ def _correlation(a: Gray, b: Gray) -> float:
     return float(covariance / max(std_a[0, 0] * std_b[0, 0], 1e-12))
 
 
-def phase_candidates(gray_a: Gray, gray_b: Gray, *, turns: Sequence[int] = (0, 2), keep: int = 4,
+@dataclass(frozen=True)
+class PhaseView:
+    """A frame prepared for :func:`phase_candidates`: half resolution, smoothed for scoring
+    candidate overlaps, and its spectrum (each frame is in two consecutive pairs: prepared once)."""
+
+    half: Gray
+    smooth: Gray
+    spectrum: NDArray[np.float32]
+
+    @classmethod
+    def of(cls, gray: Gray) -> PhaseView:
+        """Prepare a full-resolution grey image."""
+        half = cv2.pyrDown(np.asarray(gray, np.float32))
+        return cls(half, cv2.GaussianBlur(half, (0, 0), 2.0), _spectrum(half))
+
+
+def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turns: Sequence[int] = (0, 2), keep: int = 4,
                      sure: float = 0.8) -> list[tuple[NDArray[np.float64], float]]:
     """Image-only guesses of the relative pose (dx, dy, θ) of frame b in frame a, best
     first, with their overlap correlation.
@@ -629,18 +645,19 @@ def phase_candidates(gray_a: Gray, gray_b: Gray, *, turns: Sequence[int] = (0, 2
     correlation of the overlap it implies, on smoothed images so that a small rotation does
     not decorrelate fine texture. Works at half resolution.
     """
-    a = cv2.pyrDown(np.asarray(gray_a, np.float32))
-    h, w = a.shape
-    a_s = cv2.GaussianBlur(a, (0, 0), 2.0)
-    Fa = _spectrum(a)
-    b0 = cv2.pyrDown(np.asarray(gray_b, np.float32))
+    va = gray_a if isinstance(gray_a, PhaseView) else PhaseView.of(gray_a)
+    vb = gray_b if isinstance(gray_b, PhaseView) else PhaseView.of(gray_b)
+    h, w = va.half.shape
+    a_s = va.smooth
     found: list[tuple[NDArray[np.float64], float]] = []
     for k in turns:
         if k % 2 == 1 and w != h:
             continue
-        b = b0 if k == 0 else cv2.rotate(b0, _ROTATIONS[k])
-        b_s = cv2.GaussianBlur(b, (0, 0), 2.0)
-        for px, py in _correlation_peaks(Fa, _spectrum(b), 4):
+        if k == 0:
+            Fb, b_s = vb.spectrum, vb.smooth
+        else:  # turning commutes with the (isotropic, mirror-bordered) smoothing
+            Fb, b_s = _spectrum(cv2.rotate(vb.half, _ROTATIONS[k])), cv2.rotate(vb.smooth, _ROTATIONS[k])
+        for px, py in _correlation_peaks(va.spectrum, Fb, 4):
             for dx in (px, px - w):
                 for dy in (py, py - h):
                     ix, iy = int(round(dx)), int(round(dy))
@@ -716,9 +733,18 @@ def estimate_poses(
             delta, score, mi, mj = found
             return PairMeasurement(pair[0], pair[1], delta, score, mi, mj)
 
+        views: dict[int, PhaseView] = {}  # frames prepared for phase correlation, until their later pair is done
+
+        def phase_view(k: int) -> PhaseView:
+            view = views.get(k)
+            if view is None:
+                view = views[k] = PhaseView.of(load(k).full.image)
+            return view
+
         def measure_blind(k: int) -> tuple[PairMeasurement | None, NDArray[np.float64]]:
             # without odometry: every phase-correlation guess verified by registration
-            guesses = phase_candidates(load(k).full.image, load(k + 1).full.image)
+            guesses = phase_candidates(phase_view(k), phase_view(k + 1))
+            views.pop(k, None)
             tried = []
             for g, _ in guesses:
                 m = measure((k, k + 1), g, BLIND_ANGLES)
