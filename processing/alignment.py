@@ -733,7 +733,7 @@ def estimate_poses(
             delta, score, mi, mj = found
             return PairMeasurement(pair[0], pair[1], delta, score, mi, mj)
 
-        views: dict[int, PhaseView] = {}  # frames prepared for phase correlation, until their later pair is done
+        views: dict[int, PhaseView] = {}  # frames prepared for phase correlation, until their pairs are done
 
         def phase_view(k: int) -> PhaseView:
             view = views.get(k)
@@ -741,10 +741,13 @@ def estimate_poses(
                 view = views[k] = PhaseView.of(load(k).full.image)
             return view
 
-        def measure_blind(k: int) -> tuple[PairMeasurement | None, NDArray[np.float64]]:
-            # without odometry: every phase-correlation guess verified by registration
+        def measure_blind(k: int, next_too: bool = False) -> tuple[PairMeasurement | None, NDArray[np.float64]]:
+            # without odometry: every phase-correlation guess verified by registration;
+            # frame k+1's preparation is kept when the same thread measures pair k+1 next
             guesses = phase_candidates(phase_view(k), phase_view(k + 1))
             views.pop(k, None)
+            if not next_too:
+                views.pop(k + 1, None)
             tried = []
             for g, _ in guesses:
                 m = measure((k, k + 1), g, BLIND_ANGLES)
@@ -762,7 +765,7 @@ def estimate_poses(
         # frames instead of waiting in turn for the frame the other one is decoding
         runs = _runs(n - 1, params.workers)
         if guess is None:
-            blind = [r for run in pool.map(lambda ks: [measure_blind(k) for k in ks], runs) for r in run]
+            blind = [r for run in pool.map(lambda ks: [measure_blind(k, k + 1 in ks) for k in ks], runs) for r in run]
             consecutive = [m for m, _ in blind]
             steps = [step for _, step in blind]
             # a pair no phase-correlation guess could place (its overlap's texture drowned by
