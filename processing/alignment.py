@@ -687,8 +687,14 @@ def _runs(count: int, workers: int) -> list[range]:
 def _nearest_measured(measurements: Sequence[PairMeasurement | None], k: int, count: int = 2) -> list[int]:
     """Indices of the ``count`` measured entries nearest to entry k (the one before first
     when two are as near)."""
-    found = [j for j, m in enumerate(measurements) if m is not None and j != k]
-    return sorted(found, key=lambda j: (abs(j - k), j > k))[:count]
+    found: list[int] = []
+    for step in range(1, len(measurements)):  # outwards from k: no scan of a whole long session per pair
+        for j in (k - step, k + step):
+            if 0 <= j < len(measurements) and measurements[j] is not None:
+                found.append(j)
+                if len(found) == count:
+                    return found
+    return found
 
 
 def chain(first: NDArray[np.float64], deltas: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
