@@ -396,15 +396,17 @@ def register_pair(
 def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[np.float64], size: tuple[int, int], search_px: int,
                    params: RegistrationParams, angles: Sequence[float]) -> tuple[NDArray[np.float64], float, bool]:
     """Normalised cross-correlation of frame i's overlap (shrunk by the search radius, so
-    it stays inside frame j for any guess error up to it) over ±``search_px`` of frame j
+    it stays inside frame j for any guess error up to it; the radius is halved until a
+    template is left) over ±``search_px`` of frame j
     at half resolution, at each of ``angles`` added to the guessed rotation. Returns the
     corrected i→j map, the peak correlation (0 when there is nothing to search) and
     whether the peak lies on the window's edge (the true match may be further)."""
-    s = search_px // 2 * 2
-    rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
-    if rect is None:
-        s = search_px // 4 * 2
+    s, rect = search_px // 2 * 2, None
+    while s >= 4:  # the widest search that leaves a template (small frames, narrow overlaps)
         rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
+        if rect is not None:
+            break
+        s = s // 4 * 2
     if rect is None:
         return M, 0.0, False
     hx0, hy0, hx1, hy1 = (v // 2 for v in rect)
@@ -614,20 +616,28 @@ def _correlation(a: Gray, b: Gray) -> float:
     return float(covariance / max(std_a[0, 0] * std_b[0, 0], 1e-12))
 
 
+PHASE_SCALES = (4, 2)  # phase correlation at a quarter of the resolution, at half where that places nothing
+
+
 @dataclass(frozen=True)
 class PhaseView:
-    """A frame prepared for :func:`phase_candidates`: half resolution, smoothed for scoring
-    candidate overlaps, and its spectrum (each frame is in two consecutive pairs: prepared once)."""
+    """A frame prepared for :func:`phase_candidates`: reduced ``scale`` times, smoothed
+    for scoring candidate overlaps, and its spectrum (each frame is in two consecutive
+    pairs: prepared once)."""
 
-    half: Gray
+    small: Gray
     smooth: Gray
     spectrum: NDArray[np.float32]
+    scale: int
 
     @classmethod
-    def of(cls, gray: Gray) -> PhaseView:
-        """Prepare a full-resolution grey image."""
-        half = cv2.pyrDown(np.asarray(gray, np.float32))
-        return cls(half, cv2.GaussianBlur(half, (0, 0), 2.0), _spectrum(half))
+    def of(cls, gray: Gray, scale: int = 2, *, reduced: int = 1) -> PhaseView:
+        """Prepare a grey image (already ``reduced`` times smaller than full resolution)
+        at 1/``scale`` of full resolution (both powers of two)."""
+        small = np.asarray(gray, np.float32)
+        while reduced < scale:
+            small, reduced = cv2.pyrDown(small), 2 * reduced
+        return cls(small, cv2.GaussianBlur(small, (0, 0), 4.0 / scale), _spectrum(small), scale)
 
 
 def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turns: Sequence[int] = (0, 2), keep: int = 4,
@@ -643,11 +653,14 @@ def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turn
     overlap at the frame's edge still counts) are taken, each wrap-around reading of a peak
     (a 400 px shift of a 640 px frame reads as -240 px) is scored by the normalised
     correlation of the overlap it implies, on smoothed images so that a small rotation does
-    not decorrelate fine texture. Works at half resolution.
+    not decorrelate fine texture. Grey images are worked on at half resolution; prepared
+    views (of one scale) at theirs.
     """
     va = gray_a if isinstance(gray_a, PhaseView) else PhaseView.of(gray_a)
-    vb = gray_b if isinstance(gray_b, PhaseView) else PhaseView.of(gray_b)
-    h, w = va.half.shape
+    vb = gray_b if isinstance(gray_b, PhaseView) else PhaseView.of(gray_b, va.scale)
+    if va.scale != vb.scale:
+        raise ValueError(f"views of different scales: {va.scale} and {vb.scale}")
+    h, w = va.small.shape
     a_s = va.smooth
     found: list[tuple[NDArray[np.float64], float]] = []
     for k in turns:
@@ -656,7 +669,7 @@ def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turn
         if k == 0:
             Fb, b_s = vb.spectrum, vb.smooth
         else:  # turning commutes with the (isotropic, mirror-bordered) smoothing
-            Fb, b_s = _spectrum(cv2.rotate(vb.half, _ROTATIONS[k])), cv2.rotate(vb.smooth, _ROTATIONS[k])
+            Fb, b_s = _spectrum(cv2.rotate(vb.small, _ROTATIONS[k])), cv2.rotate(vb.smooth, _ROTATIONS[k])
         for px, py in _correlation_peaks(va.spectrum, Fb, 4):
             for dx in (px, px - w):
                 for dy in (py, py - h):
@@ -667,7 +680,7 @@ def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turn
                     pa = a_s[max(iy, 0) : max(iy, 0) + oh, max(ix, 0) : max(ix, 0) + ow]
                     pb = b_s[max(-iy, 0) : max(-iy, 0) + oh, max(-ix, 0) : max(-ix, 0) + ow]
                     # b turned by k quarter turns (clockwise on screen) sits at (dx, dy)
-                    found.append((np.array([2 * dx, 2 * dy, float(wrap_angle(-k * np.pi / 2))]), _correlation(pa, pb)))
+                    found.append((np.array([va.scale * dx, va.scale * dy, float(wrap_angle(-k * np.pi / 2))]), _correlation(pa, pb)))
         if found and max(c[1] for c in found) >= sure:
             break
     found.sort(key=lambda c: -c[1])
@@ -706,6 +719,7 @@ def chain(first: NDArray[np.float64], deltas: Sequence[NDArray[np.float64]]) -> 
 
 
 BLIND_ANGLES = tuple(np.radians([-4.0, -2.0, 0.0, 2.0, 4.0]))  # rotations tried when there is no odometry
+SURE_MATCH = 0.9  # a verified guess this good ends the search (true matches ≥ 0.98, false ones ≤ 0.88, measured)
 
 
 def estimate_poses(
@@ -739,32 +753,39 @@ def estimate_poses(
             delta, score, mi, mj = found
             return PairMeasurement(pair[0], pair[1], delta, score, mi, mj)
 
-        views: dict[int, PhaseView] = {}  # frames prepared for phase correlation, until their pairs are done
+        views: dict[tuple[int, int], PhaseView] = {}  # frames prepared for phase correlation, until their pairs are done
 
-        def phase_view(k: int) -> PhaseView:
-            view = views.get(k)
+        def phase_view(k: int, scale: int) -> PhaseView:
+            view = views.get((k, scale))
             if view is None:
-                view = views[k] = PhaseView.of(load(k).full.image)
+                view = views[k, scale] = PhaseView.of(load(k).half.image, scale, reduced=2)
             return view
 
         def measure_blind(k: int, next_too: bool = False) -> tuple[PairMeasurement | None, NDArray[np.float64]]:
-            # without odometry: every phase-correlation guess verified by registration;
-            # frame k+1's preparation is kept when the same thread measures pair k+1 next
-            guesses = phase_candidates(phase_view(k), phase_view(k + 1))
-            views.pop(k, None)
-            if not next_too:
-                views.pop(k + 1, None)
-            tried = []
-            for g, _ in guesses:
-                m = measure((k, k + 1), g, BLIND_ANGLES)
-                if m is not None:
-                    tried.append(m)
-                    if m.score > 0.9:
-                        break
+            # without odometry: phase-correlation guesses verified by registration, at a
+            # quarter of the resolution and, where none verifies surely, at half; frame k+1's
+            # preparations are kept when the same thread measures pair k+1 next
+            tried: list[PairMeasurement] = []
+            first_guess = None
+            for scale in PHASE_SCALES:
+                guesses = phase_candidates(phase_view(k, scale), phase_view(k + 1, scale))
+                first_guess = first_guess if first_guess is not None or not guesses else guesses[0][0]
+                for g, _ in guesses:
+                    m = measure((k, k + 1), g, BLIND_ANGLES)
+                    if m is not None:
+                        tried.append(m)
+                        if m.score > SURE_MATCH:
+                            break
+                if tried and tried[-1].score > SURE_MATCH:
+                    break
+            for scale in PHASE_SCALES:
+                views.pop((k, scale), None)
+                if not next_too:
+                    views.pop((k + 1, scale), None)
             if tried:
                 best = max(tried, key=lambda m: m.score)
                 return best, best.delta
-            return None, guesses[0][0] if guesses else np.zeros(3)
+            return None, first_guess if first_guess is not None else np.zeros(3)
 
         report(0.05, "registering consecutive frames")
         # each thread takes runs of consecutive pairs: the threads then prepare different

@@ -79,12 +79,15 @@ def test_a_pair_phase_correlation_cannot_place_is_registered_from_its_neighbours
     s = sweep(frames=8, pattern="straight")
     frames = decoded(s)
     genuine = alignment.phase_candidates
-    fourth = cv2.pyrDown(cv2.cvtColor(frames[3], cv2.COLOR_BGR2GRAY).astype(np.float32))[::4, ::4].ravel()
+    def thumbnail(gray: np.ndarray) -> np.ndarray:
+        return cv2.resize(np.asarray(gray, np.float32), (40, 30), interpolation=cv2.INTER_AREA).ravel()
+
+    fourth = thumbnail(cv2.cvtColor(frames[3], cv2.COLOR_BGR2GRAY))
     misled = []
 
     def misleading(gray_a, gray_b, **kw):  # type: ignore[no-untyped-def]
-        half = gray_a.half if isinstance(gray_a, alignment.PhaseView) else cv2.pyrDown(np.asarray(gray_a, np.float32))
-        if np.corrcoef(half[::4, ::4].ravel(), fourth)[0, 1] > 0.8:  # pair 3-4 (others: < 0.5)
+        seen = thumbnail(gray_a.small if isinstance(gray_a, alignment.PhaseView) else gray_a)
+        if np.corrcoef(seen, fourth)[0, 1] > 0.8:  # pair 3-4 (others: < 0.5)
             misled.append(True)
             return [(np.array([40.0, 150.0, np.pi]), 0.3)]  # a turned-around guess far off
         return genuine(gray_a, gray_b, **kw)
@@ -92,6 +95,40 @@ def test_a_pair_phase_correlation_cannot_place_is_registered_from_its_neighbours
     monkeypatch.setattr(alignment, "phase_candidates", misleading)
     layout, _ = plan_mosaic(frames, None)
     assert misled
+    assert worst_pair_error(layout.poses_px, s.truth, s.config.frame_size) < 0.5
+
+
+@pytest.mark.parametrize("seed", [4, 6])
+def test_images_only_small_frames_whose_overlap_cannot_hold_the_wide_search_are_placed(seed: int) -> None:
+    """320x240 frames overlap by ~110 px: the images-only search of ±80 px leaves no
+    template, so the search narrows instead of being skipped (frames turned by 3.7°
+    relative to each other were then refined from no rotation and lost)."""
+    s = sweep(seed=seed)
+    layout, _ = plan_mosaic(decoded(s), None)
+    assert layout.confident.all()
+    assert worst_pair_error(layout.poses_px, s.truth, s.config.frame_size) < 0.5
+
+
+def test_pairs_the_quarter_resolution_phase_correlation_misplaces_are_placed_at_half() -> None:
+    """Images only: phase correlation runs at a quarter of the resolution first; where none
+    of its guesses verifies surely, the half-resolution guesses are tried."""
+    import processing.alignment as alignment
+
+    s = sweep(frames=8, pattern="straight", seed=6)
+    genuine = alignment.phase_candidates
+    scales = []
+
+    def quarter_misleads(view_a, view_b, **kw):  # type: ignore[no-untyped-def]
+        scales.append(view_a.scale)
+        if view_a.scale == 4:
+            return [(np.array([40.0, 150.0, np.pi]), 0.9)]  # confidently wrong
+        return genuine(view_a, view_b, **kw)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(alignment, "phase_candidates", quarter_misleads)
+        layout, _ = plan_mosaic(decoded(s), None)
+    assert scales.count(4) == 7 and scales.count(2) == 7
+    assert layout.confident.all()
     assert worst_pair_error(layout.poses_px, s.truth, s.config.frame_size) < 0.5
 
 
