@@ -111,7 +111,9 @@ def test_images_only_small_frames_whose_overlap_cannot_hold_the_wide_search_are_
 
 def test_pairs_the_quarter_resolution_phase_correlation_misplaces_are_placed_at_half() -> None:
     """Images only: phase correlation runs at a quarter of the resolution first; where none
-    of its guesses verifies surely, the half-resolution guesses are tried."""
+    of its guesses verifies surely, the step of the pair before and then the
+    half-resolution guesses are tried (the first pair of each thread's run has no pair
+    before it)."""
     import processing.alignment as alignment
 
     s = sweep(frames=8, pattern="straight", seed=6)
@@ -127,7 +129,7 @@ def test_pairs_the_quarter_resolution_phase_correlation_misplaces_are_placed_at_
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(alignment, "phase_candidates", quarter_misleads)
         layout, _ = plan_mosaic(decoded(s), None)
-    assert scales.count(4) == 7 and scales.count(2) == 7
+    assert scales.count(4) == 7 and 1 <= scales.count(2) < 7
     assert layout.confident.all()
     assert worst_pair_error(layout.poses_px, s.truth, s.config.frame_size) < 0.5
 
