@@ -360,8 +360,8 @@ def _correct_vignetting(frames: _Frames, measurements: Sequence[PairMeasurement]
     photo = solve_photometry(len(frames.source), samples)
     if photo is None:
         return False
-    flat = photo.flat_field((w, h))
-    new = (1.0 / np.maximum(flat, 0.2)).astype(np.float32) if float(flat.min()) < 1.0 - params.flat_field_min_falloff else None
+    falls_off = float(photo.flat_field((w, h), step=8).min()) < 1.0 - params.flat_field_min_falloff  # the whole field only if so
+    new = (1.0 / np.maximum(photo.flat_field((w, h)), 0.2)).astype(np.float32) if falls_off else None
     old = frames.inv_flat
     if new is None and old is None:
         return False
