@@ -397,10 +397,11 @@ def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[n
                    params: RegistrationParams, angles: Sequence[float]) -> tuple[NDArray[np.float64], float, bool]:
     """Normalised cross-correlation of frame i's overlap (shrunk by the search radius, so
     it stays inside frame j for any guess error up to it; the radius is halved until a
-    template is left) over ±``search_px`` of frame j
-    at half resolution, at each of ``angles`` added to the guessed rotation. Returns the
-    corrected i→j map, the peak correlation (0 when there is nothing to search) and
-    whether the peak lies on the window's edge (the true match may be further)."""
+    template is left) over ±``search_px`` of frame j at half resolution, at the best of
+    ``angles`` added to the guessed rotation (chosen at a quarter of the resolution when
+    there are several). Returns the corrected i→j map, the peak correlation (0 when there
+    is nothing to search) and whether the peak lies on the window's edge (the true match
+    may be further)."""
     s, rect = search_px // 2 * 2, None
     while s >= 4:  # the widest search that leaves a template (small frames, narrow overlaps)
         rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
@@ -447,8 +448,8 @@ def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[n
 
 def _climb(angles: Sequence[float], score: Callable[[float], float]) -> float:
     """The angle of ``angles`` (sorted) scoring best, found by climbing from the one nearest
-    0 towards the rising score while it rises: the correlation is unimodal about the true
-    turn (3-4 of 5 angles tried, the same choice as trying all)."""
+    0 towards the rising score while it rises (the correlation is unimodal about the true
+    turn): 3-4 of 5 angles scored instead of 5."""
     scores: dict[int, float] = {}
 
     def at(i: int) -> float:
