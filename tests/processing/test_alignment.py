@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from processing.alignment import (
+    BLIND_ANGLES,
     Level,
     PairMeasurement,
     compose_pose,
@@ -36,6 +37,23 @@ def test_register_pair_recovers_rotation_and_translation_to_a_hundredth_of_a_pix
     assert score > 0.95
     assert np.abs(delta[:2] - true[:2]).max() < 0.05
     assert abs(float(wrap_angle(delta[2] - true[2]))) < 2e-4
+
+
+@pytest.mark.parametrize("turn_deg", [-3.6, -1.1, 2.9])
+def test_register_pair_finds_an_unknown_turn_among_the_search_angles(turn_deg: float) -> None:
+    """Images only: the guess (phase correlation) knows no rotation; the coarse search
+    picks the best of the search angles (climbing at a quarter of the resolution on
+    640x480 frames) and the refinement reaches the exact turn."""
+    tex = texture(8, (1200, 1800))
+    size = (640, 480)
+    a = np.array([600.0, 600.0, 0.0])
+    b = np.array([1010.0, 596.0, np.radians(turn_deg)])
+    true = relative_pose(a, b)
+    guess = np.array([true[0] + 6.0, true[1] - 5.0, 0.0])
+    found = register_pair(frame_at(tex, a, size), frame_at(tex, b, size), guess, angles=BLIND_ANGLES)
+    assert found is not None
+    assert np.abs(found[0][:2] - true[:2]).max() < 0.05
+    assert abs(float(wrap_angle(found[0][2] - true[2]))) < 2e-4
 
 
 def test_register_pair_refuses_frames_that_do_not_overlap_or_have_no_texture() -> None:
