@@ -673,51 +673,74 @@ class PhaseView:
         return cls(small, cv2.GaussianBlur(small, (0, 0), 4.0 / scale), _spectrum(small), scale)
 
 
+PHASE_TILTS = tuple(np.radians([0.0, 6.0, -6.0]))  # small turns tried where frame b, as it is, finds nothing sure
+SURE_OVERLAP = 0.15  # a candidate ends the search only if its overlap is this share of the frame (tiny ones correlate by chance)
+
+
 def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turns: Sequence[int] = (0, 2), keep: int = 4,
-                     sure: float = 0.8) -> list[tuple[NDArray[np.float64], float]]:
+                     sure: float = 0.8, tilts: Sequence[float] = PHASE_TILTS) -> list[tuple[NDArray[np.float64], float]]:
     """Image-only guesses of the relative pose (dx, dy, θ) of frame b in frame a, best
     first, with their overlap correlation.
 
     Frame b is tried as it is and turned by each of ``turns`` quarter turns (a robot
     driving lanes turns around at their ends; quarter turns of a non-square frame are
-    skipped), in that order, until one gives a candidate correlating at least ``sure`` (a
-    frame turned around correlates at most ~0.7 unturned, measured). The strongest peaks of
-    the phase correlation surface (tapered window, so an
-    overlap at the frame's edge still counts) are taken, each wrap-around reading of a peak
-    (a 400 px shift of a 640 px frame reads as -240 px) is scored by the normalised
-    correlation of the overlap it implies, on smoothed images so that a small rotation does
-    not decorrelate fine texture. Grey images are worked on at half resolution; prepared
-    views (of one scale) at theirs.
+    skipped), then all of that tilted by each of ``tilts`` (radians: phase correlation
+    loses frames turned more than a few degrees from each other), in that order, until
+    one gives a candidate correlating at least ``sure`` over at least
+    :data:`SURE_OVERLAP` of the frame (a frame turned around correlates at most ~0.7
+    unturned, measured; small overlaps correlate by chance). The strongest peaks of the phase correlation
+    surface (tapered window, so an overlap at the frame's edge still counts) are taken,
+    each wrap-around reading of a peak (a 400 px shift of a 640 px frame reads as -240 px)
+    is scored by the normalised correlation of the overlap it implies, on smoothed images
+    so that a small rotation does not decorrelate fine texture. Grey images are worked on
+    at half resolution; prepared views (of one scale) at theirs.
     """
     va = gray_a if isinstance(gray_a, PhaseView) else PhaseView.of(gray_a)
     vb = gray_b if isinstance(gray_b, PhaseView) else PhaseView.of(gray_b, va.scale)
     if va.scale != vb.scale:
         raise ValueError(f"views of different scales: {va.scale} and {vb.scale}")
     h, w = va.small.shape
-    a_s = va.smooth
-    found: list[tuple[NDArray[np.float64], float]] = []
-    for k in turns:
-        if k % 2 == 1 and w != h:
-            continue
-        if k == 0:
+    found: list[tuple[NDArray[np.float64], float, float]] = []
+    for tilt, k in [(tilt, k) for tilt in tilts for k in turns if k % 2 == 0 or w == h]:
+        if k == 0 and tilt == 0.0:
             Fb, b_s = vb.spectrum, vb.smooth
         else:  # turning commutes with the (isotropic, mirror-bordered) smoothing
-            Fb, b_s = _spectrum(cv2.rotate(vb.small, _ROTATIONS[k])), cv2.rotate(vb.smooth, _ROTATIONS[k])
-        for px, py in _correlation_peaks(va.spectrum, Fb, 4):
-            for dx in (px, px - w):
-                for dy in (py, py - h):
-                    ix, iy = int(round(dx)), int(round(dy))
-                    ow, oh = w - abs(ix), h - abs(iy)
-                    if ow < 8 or oh < 8 or ow * oh < 0.08 * w * h:
-                        continue
-                    pa = a_s[max(iy, 0) : max(iy, 0) + oh, max(ix, 0) : max(ix, 0) + ow]
-                    pb = b_s[max(-iy, 0) : max(-iy, 0) + oh, max(-ix, 0) : max(-ix, 0) + ow]
-                    # b turned by k quarter turns (clockwise on screen) sits at (dx, dy)
-                    found.append((np.array([va.scale * dx, va.scale * dy, float(wrap_angle(-k * np.pi / 2))]), _correlation(pa, pb)))
-        if found and max(c[1] for c in found) >= sure:
+            small, b_s = (vb.small, vb.smooth) if k == 0 else (cv2.rotate(vb.small, _ROTATIONS[k]), cv2.rotate(vb.smooth, _ROTATIONS[k]))
+            if tilt != 0.0:
+                small, b_s = _tilted(small, tilt), _tilted(b_s, tilt)
+            Fb = _spectrum(small)
+        found += _score_peaks(va, Fb, b_s, float(wrap_angle(-k * np.pi / 2 - tilt)))
+        if any(score >= sure and share >= SURE_OVERLAP for _, score, share in found):
             break
     found.sort(key=lambda c: -c[1])
-    return found[:keep]
+    return [(delta, score) for delta, score, _ in found[:keep]]
+
+
+def _tilted(image: Gray, angle: float) -> Gray:
+    """``image`` turned about its centre by ``angle`` (radians, counter-clockwise on
+    screen; borders mirrored): what a frame turned by -``angle`` relative to it sees."""
+    h, w = image.shape
+    R = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), float(np.degrees(angle)), 1.0)
+    return cv2.warpAffine(image, R, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def _score_peaks(va: PhaseView, Fb: NDArray[np.float32], b_s: Gray, theta: float) -> list[tuple[NDArray[np.float64], float, float]]:
+    """Candidates (dx, dy, ``theta``) from the phase correlation peaks of view a with a
+    prepared frame b (spectrum, smoothed image): each wrap-around reading with its score
+    and the share of the frame its overlap covers."""
+    h, w = va.small.shape
+    out = []
+    for px, py in _correlation_peaks(va.spectrum, Fb, 4):
+        for dx in (px, px - w):
+            for dy in (py, py - h):
+                ix, iy = int(round(dx)), int(round(dy))
+                ow, oh = w - abs(ix), h - abs(iy)
+                if ow < 8 or oh < 8 or ow * oh < 0.08 * w * h:
+                    continue
+                pa = va.smooth[max(iy, 0) : max(iy, 0) + oh, max(ix, 0) : max(ix, 0) + ow]
+                pb = b_s[max(-iy, 0) : max(-iy, 0) + oh, max(-ix, 0) : max(-ix, 0) + ow]
+                out.append((np.array([va.scale * dx, va.scale * dy, theta]), _correlation(pa, pb), ow * oh / (w * h)))
+    return out
 
 
 CONSECUTIVE_RUN = 8  # consecutive pairs registered by one thread in a row
@@ -751,7 +774,7 @@ def chain(first: NDArray[np.float64], deltas: Sequence[NDArray[np.float64]]) -> 
     return np.array(out)
 
 
-BLIND_ANGLES = tuple(np.radians([-4.0, -2.0, 0.0, 2.0, 4.0]))  # rotations tried when there is no odometry
+BLIND_ANGLES = tuple(np.radians([-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0]))  # turns searched when there is no odometry (climbed from 0)
 SURE_MATCH = 0.9  # a verified guess this good ends the search (true matches ≥ 0.98, false ones ≤ 0.88, measured)
 
 

@@ -84,6 +84,20 @@ def test_phase_candidates_find_the_shift_without_any_guess() -> None:
     assert np.abs(best[:2] - relative_pose(a, turned)[:2]).max() <= 2.5 and abs(abs(best[2]) - np.pi) < 1e-6
 
 
+@pytest.mark.parametrize("turn", [0.0, np.pi])
+@pytest.mark.parametrize("tilt_deg", [-7.5, 7.5])
+def test_phase_candidates_find_frames_turned_several_degrees(turn: float, tilt_deg: float) -> None:
+    """Phase correlation loses frames turned more than a few degrees from each other: b is
+    tried tilted too, and the guess says by how much it was turned."""
+    tex = texture(8, (1400, 1800))
+    size = (640, 480)
+    a, b = np.array([700.0, 700.0, 0.0]), np.array([1110.0, 690.0, turn + np.radians(tilt_deg)])
+    true = relative_pose(a, b)
+    best = phase_candidates(frame_at(tex, a, size), frame_at(tex, b, size))[0][0]
+    assert np.abs(best[:2] - true[:2]).max() <= 10
+    assert abs(float(wrap_angle(best[2] - true[2]))) < np.radians(2.5)
+
+
 def test_pose_graph_spreads_a_loop_closure_instead_of_drifting() -> None:
     rng = np.random.default_rng(0)
     truth = np.array([[200.0 * k, 0.0, 0.0] for k in range(6)] + [[200.0 * (5 - k), 150.0, np.pi] for k in range(6)])
