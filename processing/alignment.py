@@ -107,7 +107,7 @@ def frame_i_to_j(delta: NDArray[np.floating], size: tuple[int, int]) -> NDArray[
     return np.vstack([np.hstack([Rt, (c - Rt @ (c + np.asarray(delta[:2], float)))[:, None]]), [0, 0, 1.0]])
 
 
-def _delta_of(M: NDArray[np.float64], size: tuple[int, int]) -> NDArray[np.float64]:
+def delta_of_map(M: NDArray[np.float64], size: tuple[int, int]) -> NDArray[np.float64]:
     """Inverse of :func:`frame_i_to_j`: the relative pose of a frame-i → frame-j map."""
     w, h = size
     c = np.array([(w - 1) / 2, (h - 1) / 2])
@@ -390,7 +390,7 @@ def register_pair(
     if np.abs(W @ centre - W0 @ centre).max() > params.max_refine_px or turned_by > params.max_refine_rad:
         return None  # the refinement ran away from the coarse match
     M_ij = np.linalg.inv(Q) @ np.vstack([W, [0, 0, 1]]) @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
-    return _delta_of(M_ij, size), score, mean_i, mean_j
+    return delta_of_map(M_ij, size), score, mean_i, mean_j
 
 
 def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[np.float64], size: tuple[int, int], search_px: int,
