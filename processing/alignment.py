@@ -449,7 +449,7 @@ def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[n
 def _climb(angles: Sequence[float], score: Callable[[float], float]) -> float:
     """The angle of ``angles`` (sorted) scoring best, found by climbing from the one nearest
     0 towards the rising score while it rises (the correlation is unimodal about the true
-    turn): 3-4 of 5 angles scored instead of 5."""
+    turn): 3-4 angles scored for a small turn, whatever the range searched."""
     scores: dict[int, float] = {}
 
     def at(i: int) -> float:
@@ -688,8 +688,9 @@ def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turn
     loses frames turned more than a few degrees from each other), in that order, until
     one gives a candidate correlating at least ``sure`` over at least
     :data:`SURE_OVERLAP` of the frame (a frame turned around correlates at most ~0.7
-    unturned, measured; small overlaps correlate by chance). The strongest peaks of the phase correlation
-    surface (tapered window, so an overlap at the frame's edge still counts) are taken,
+    unturned, measured; small overlaps correlate by chance). The strongest peaks of the
+    phase correlation surface (tapered window, so an overlap at the frame's edge still
+    counts) are taken,
     each wrap-around reading of a peak (a 400 px shift of a 640 px frame reads as -240 px)
     is scored by the normalised correlation of the overlap it implies, on smoothed images
     so that a small rotation does not decorrelate fine texture. Grey images are worked on
@@ -733,7 +734,7 @@ def _score_peaks(va: PhaseView, Fb: NDArray[np.float32], b_s: Gray, theta: float
     for px, py in _correlation_peaks(va.spectrum, Fb, 4):
         for dx in (px, px - w):
             for dy in (py, py - h):
-                ix, iy = int(round(dx)), int(round(dy))
+                ix, iy = round(dx), round(dy)
                 ow, oh = w - abs(ix), h - abs(iy)
                 if ow < 8 or oh < 8 or ow * oh < 0.08 * w * h:
                     continue
