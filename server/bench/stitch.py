@@ -35,6 +35,7 @@ from server.bench.common import Result, rigid_align_2d, similarity_align_2d
 from server.bench.detect import DEFAULT_CRACK_DATASET
 
 SEEDS = (101, 202)
+DRIFT_SEEDS = tuple(range(301, 309))  # straight runs for the end drift's spread (photographs and painted steel in turn)
 
 
 class _Jpegs:
@@ -209,3 +210,26 @@ def bench_stitch(dataset: Path | None = None, limit: int | None = None) -> Itera
             for result in _sequence(f"{surface}.{pattern}", sweep, opencv=pattern == "lawnmower"):
                 yield {**result, "texture": source} if result["name"].endswith("mean_overlap_error") else result
             yield from _sequence(f"{surface}.{pattern}.images_only", sweep, blind=True)
+    yield _straight_drifts(dataset, frames)
+
+
+def _straight_drifts(dataset: Path | None, frames: int) -> Result:
+    """End drift of straight runs over :data:`DRIFT_SEEDS` (a random walk: one run says
+    little), ours and that of the same pairs refined by OpenCV's ECC."""
+    ours, ecc = [], []
+    for k, seed in enumerate(DRIFT_SEEDS):
+        cfg = SweepConfig(frames=frames, pattern="straight", seed=seed)
+        need = texture_size_for(cfg)
+        texture = real_texture(need, dataset)[0] if k % 2 == 0 else painted_steel((need[1], need[0]), seed=seed)
+        sweep = make_sweep(texture, cfg)
+        layout, _ = plan_mosaic(_Jpegs(sweep.frames), sweep.odometry)
+        ours.append(mosaic_overlap_errors(layout.poses_px, sweep.truth, cfg.frame_size)[1])
+        steps, _ = _ecc_steps(sweep, layout.poses_px)
+        ecc.append(mosaic_overlap_errors(chain(sweep.truth[0], steps), sweep.truth, cfg.frame_size)[1])
+    rms, rms_ecc = float(np.sqrt(np.mean(np.square(ours)))), float(np.sqrt(np.mean(np.square(ecc))))
+    return {"name": "stitch.straight_runs.end_drift_rms", "value": round(rms, 3), "unit": "px", "target": 1.0,
+            "baseline": round(rms_ecc, 3), "ratio": round(rms / max(rms_ecc, 1e-9), 3),
+            "baseline_is": "OpenCV ECC refinement of the same pairs, chained", "runs": len(DRIFT_SEEDS), "frames": frames,
+            "median": round(float(np.median(ours)), 3), "baseline_median": round(float(np.median(ecc)), 3),
+            "runs_within_target": int(np.sum(np.array(ours) <= 1.0)), "baseline_runs_within_target": int(np.sum(np.array(ecc) <= 1.0)),
+            "drifts": [round(float(d), 2) for d in ours], "baseline_drifts": [round(float(d), 2) for d in ecc]}

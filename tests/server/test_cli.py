@@ -205,6 +205,8 @@ def test_bench_stitch_and_map_measure_against_baselines() -> None:
         assert f"stitch.{surface}.lawnmower.images_only.end_drift" in results
         ecc = results[f"stitch.{surface}.straight.ecc_end_drift"]  # the suggested refinement on the same pairs
         assert ecc["mean_overlap_error"] < 0.5 and ecc["ms_per_pair"] > 0
+    spread = results["stitch.straight_runs.end_drift_rms"]
+    assert spread["runs"] == len(spread["drifts"]) == len(spread["baseline_drifts"]) >= 8
     assert {"map.sweep31.ate", "map.sweep31.drift", "map.sweep31.rpe", "map.sweep31.ms_per_cloud"} <= results.keys()
     assert results["map.sweep31.ate"]["value"] < 0.05
 
