@@ -11,6 +11,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -259,7 +260,7 @@ class InspectionSim:
         odom_pose = {"x": float(r.odom[0]), "y": float(r.odom[1]), "yaw": float(r.odom[2])}
         cam_true = self.camera.pose_in_world(r.pose)
         # rendered off the event loop: the link keeps reading commands meanwhile
-        image = await asyncio.to_thread(self.camera.render, self.structure, cam_true, self.rng)
+        image = await asyncio.to_thread(partial(self.camera.render, exact=True), self.structure, cam_true, self.rng)
         await self.link.send(MessageType.FRAME, {"encoding": "jpeg", "width": self.camera.width,
                                                   "height": self.camera.height, "pose": odom_pose}, self.camera.encode(image))
         self.result.frames_sent += 1

@@ -35,6 +35,15 @@ def test_integer_shifts_copy_pixels_and_reflect_at_the_edges() -> None:
     assert np.array_equal(edge, want.astype(np.float32))
 
 
+def test_beyond_the_edges_a_constant_border_reads_its_value() -> None:
+    texture = np.full((20, 30), 200, np.uint8)
+    out = warp_affine_exact(texture, _rotation(0.0, -10.0, 0.0), (30, 20), border=25.0)
+    assert np.allclose(out[:, :8], 25.0) and np.allclose(out[:, 12:], 200.0)  # within 2 px of the edge: blended
+    want = cv2.warpAffine(texture, _rotation(0.0, -10.0, 0.0), (30, 20), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=25)
+    assert np.array_equal(out, want.astype(np.float32))  # an integer shift: taps land on pixels, no blending
+
+
 def test_colour_channels_are_warped_alike() -> None:
     rng = np.random.default_rng(1)
     grey = rng.integers(0, 256, (30, 30), dtype=np.uint8)
