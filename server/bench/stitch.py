@@ -134,13 +134,13 @@ def _ecc_steps(sweep: Sweep, poses: NDArray[np.float64]) -> tuple[list[NDArray[n
             steps.append(start)
             continue
         x0, y0, x1, y1 = rect
-        W = (M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2].astype(np.float32)
+        W = W0 = (M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2].astype(np.float32)  # template pixel -> frame k+1
         t0 = time.perf_counter()
         try:
-            _, W = cv2.findTransformECC(grey[k][y0:y1, x0:x1], grey[k + 1], W, cv2.MOTION_EUCLIDEAN,
+            _, W = cv2.findTransformECC(grey[k][y0:y1, x0:x1], grey[k + 1], W0.copy(), cv2.MOTION_EUCLIDEAN,
                                         (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-7), None, 5)
         except cv2.error:  # did not converge: keep the start
-            W = (M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2].astype(np.float32)
+            W = W0
         seconds += time.perf_counter() - t0
         steps.append(delta_of_map(np.vstack([W, [0, 0, 1]]) @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]]), size))
     return steps, seconds / max(1, len(grey) - 1)
