@@ -2,7 +2,8 @@
 
 Every pair of frames that overlaps is registered (coarse normalised cross-correlation,
 then sub-pixel Lucas–Kanade with rotation), and all frame poses are solved together as a 2D pose
-graph (robust Gauss-Newton), so error does not accumulate along the robot's path.
+graph (robust Gauss-Newton), so error does not accumulate along the robot's path. Without
+odometry, the first guesses come from phase correlation (:mod:`processing.phase`).
 
 A pose is (x, y, θ): the frame centre in mosaic pixels and the angle from the mosaic's
 x axis to the frame's x axis (radians, positive from x towards y).
@@ -13,7 +14,6 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from functools import lru_cache
 from itertools import pairwise
 
 import cv2
@@ -23,7 +23,8 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.sparse.linalg import spsolve
 
-Gray = NDArray[np.float32]
+from processing.phase import PHASE_SCALES, QUARTER_TURNS, Gray, PhaseView, phase_candidates
+from processing.poses import wrap_angle
 
 
 @dataclass(frozen=True)
@@ -74,11 +75,6 @@ def _rot(theta: float) -> NDArray[np.float64]:
     return np.array([[c, -s], [s, c]])
 
 
-def wrap_angle(a: NDArray[np.floating] | float) -> NDArray[np.float64]:
-    """Angle(s) wrapped to (-π, π]."""
-    return np.asarray((np.asarray(a) + np.pi) % (2 * np.pi) - np.pi, dtype=np.float64)
-
-
 def relative_pose(pose_i: NDArray[np.floating], pose_j: NDArray[np.floating]) -> NDArray[np.float64]:
     """Pose of j in i's frame: (R_iᵀ (t_j - t_i), θ_j - θ_i)."""
     d = _rot(float(pose_i[2])).T @ (np.asarray(pose_j[:2], float) - np.asarray(pose_i[:2], float))
@@ -116,7 +112,6 @@ def delta_of_map(M: NDArray[np.float64], size: tuple[int, int]) -> NDArray[np.fl
     return np.array([d[0], d[1], phi])
 
 
-_ROTATIONS = (None, cv2.ROTATE_90_CLOCKWISE, cv2.ROTATE_180, cv2.ROTATE_90_COUNTERCLOCKWISE)
 
 
 def _quarter_turn(k: int, size: tuple[int, int]) -> NDArray[np.float64]:
@@ -348,8 +343,8 @@ def register_pair(
     if overlap_rect(M, size, params.margin_px, EARLY_OVERLAP * params.min_overlap) is None:
         return None  # too little overlap even allowing for the guess's error: not worth a search
     k = int(np.round(float(wrap_angle(guess[2])) / (np.pi / 2))) % 4
-    j_full = lj.full.image if k == 0 else cv2.rotate(lj.full.image, _ROTATIONS[k])
-    j_half = lj.half.image if k == 0 else cv2.rotate(lj.half.image, _ROTATIONS[k])
+    j_full = lj.full.image if k == 0 else cv2.rotate(lj.full.image, QUARTER_TURNS[k])
+    j_half = lj.half.image if k == 0 else cv2.rotate(lj.half.image, QUARTER_TURNS[k])
     Q = _quarter_turn(k, size)
     # coarse: a small search first (the guess is usually good); the full radius when its
     # peak is weak or on the search window's edge
@@ -597,151 +592,6 @@ def solve_gains(n: int, measurements: Sequence[PairMeasurement], *, sigma_n: flo
         A[m.i, m.j] -= a * c / sigma_n**2
         A[m.j, m.i] -= a * c / sigma_n**2
     return np.asarray(spsolve(A.tocsc(), b), dtype=np.float64)
-
-
-def _tukey(n: int, taper: float) -> NDArray[np.float32]:
-    """A window flat in the middle, with cosine tapers over ``taper`` of each end."""
-    x = np.arange(n, dtype=np.float64)
-    m = max(taper * n, 1.0)
-    w = np.ones(n)
-    w[x < m] = 0.5 - 0.5 * np.cos(np.pi * x[x < m] / m)
-    w[x >= n - m] = 0.5 - 0.5 * np.cos(np.pi * (n - 1 - x[x >= n - m]) / m)
-    return w.astype(np.float32)
-
-
-@lru_cache(maxsize=8)
-def _window(h: int, w: int) -> NDArray[np.float32]:
-    """The tapered window of phase correlation for an (h, w) image (read only)."""
-    win = np.outer(_tukey(h, 0.1), _tukey(w, 0.1))
-    win.flags.writeable = False
-    return win
-
-
-def _spectrum(image: Gray) -> NDArray[np.float32]:
-    """Fourier transform (OpenCV's two-channel complex layout) of the windowed image, its
-    mean removed: one side of a phase correlation."""
-    image = np.asarray(image, np.float32)
-    windowed = cv2.multiply(cv2.subtract(image, float(cv2.mean(image)[0])), _window(*image.shape))
-    return cv2.dft(windowed, flags=cv2.DFT_COMPLEX_OUTPUT)
-
-
-def _correlation_peaks(Fa: NDArray[np.float32], Fb: NDArray[np.float32], count: int) -> list[tuple[float, float]]:
-    """The ``count`` strongest peaks (shift of b's content relative to a's, modulo the image
-    size) of the phase correlation surface of two :func:`_spectrum`, by non-maximum suppression."""
-    cross = cv2.mulSpectrums(Fa, Fb, 0, conjB=True)
-    magnitude = cv2.magnitude(cross[..., 0], cross[..., 1])
-    np.maximum(magnitude, 1e-9, out=magnitude)
-    cross /= magnitude[..., None]
-    surface = cv2.idft(cross, flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
-    surface = cv2.GaussianBlur(surface, (0, 0), 1.0)  # rotation and noise spread the peak
-    local = surface == cv2.dilate(surface, np.ones((9, 9), np.uint8))
-    ys, xs = np.nonzero(local)
-    order = np.argsort(-surface[ys, xs])[:count]
-    return [(float(xs[i]), float(ys[i])) for i in order]
-
-
-def _correlation(a: Gray, b: Gray) -> float:
-    """Correlation coefficient of two images of one size (``cv2.TM_CCOEFF_NORMED`` of
-    equal sizes, 5x faster: no transform)."""
-    mean_a, std_a = cv2.meanStdDev(a)
-    mean_b, std_b = cv2.meanStdDev(b)
-    covariance = cv2.mean(cv2.multiply(a, b))[0] - mean_a[0, 0] * mean_b[0, 0]
-    return float(covariance / max(std_a[0, 0] * std_b[0, 0], 1e-12))
-
-
-PHASE_SCALES = (4, 2)  # phase correlation at a quarter of the resolution, at half where that places nothing
-
-
-@dataclass(frozen=True)
-class PhaseView:
-    """A frame prepared for :func:`phase_candidates`: reduced ``scale`` times, smoothed
-    for scoring candidate overlaps, and its spectrum (each frame is in two consecutive
-    pairs: prepared once)."""
-
-    small: Gray
-    smooth: Gray
-    spectrum: NDArray[np.float32]
-    scale: int
-
-    @classmethod
-    def of(cls, gray: Gray, scale: int = 2, *, reduced: int = 1) -> PhaseView:
-        """Prepare a grey image (already ``reduced`` times smaller than full resolution)
-        at 1/``scale`` of full resolution (both powers of two)."""
-        small = np.asarray(gray, np.float32)
-        while reduced < scale:
-            small, reduced = cv2.pyrDown(small), 2 * reduced
-        return cls(small, cv2.GaussianBlur(small, (0, 0), 4.0 / scale), _spectrum(small), scale)
-
-
-PHASE_TILTS = tuple(np.radians([0.0, 6.0, -6.0]))  # small turns tried where frame b, as it is, finds nothing sure
-SURE_OVERLAP = 0.15  # a candidate ends the search only if its overlap is this share of the frame (tiny ones correlate by chance)
-
-
-def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turns: Sequence[int] = (0, 2), keep: int = 4,
-                     sure: float = 0.8, tilts: Sequence[float] = PHASE_TILTS) -> list[tuple[NDArray[np.float64], float]]:
-    """Image-only guesses of the relative pose (dx, dy, θ) of frame b in frame a, best
-    first, with their overlap correlation.
-
-    Frame b is tried as it is and turned by each of ``turns`` quarter turns (a robot
-    driving lanes turns around at their ends; quarter turns of a non-square frame are
-    skipped), then all of that tilted by each of ``tilts`` (radians: phase correlation
-    loses frames turned more than a few degrees from each other), in that order, until
-    one gives a candidate correlating at least ``sure`` over at least
-    :data:`SURE_OVERLAP` of the frame (a frame turned around correlates at most ~0.7
-    unturned, measured; small overlaps correlate by chance). The strongest peaks of the
-    phase correlation surface (tapered window, so an overlap at the frame's edge still
-    counts) are taken,
-    each wrap-around reading of a peak (a 400 px shift of a 640 px frame reads as -240 px)
-    is scored by the normalised correlation of the overlap it implies, on smoothed images
-    so that a small rotation does not decorrelate fine texture. Grey images are worked on
-    at half resolution; prepared views (of one scale) at theirs.
-    """
-    va = gray_a if isinstance(gray_a, PhaseView) else PhaseView.of(gray_a)
-    vb = gray_b if isinstance(gray_b, PhaseView) else PhaseView.of(gray_b, va.scale)
-    if va.scale != vb.scale:
-        raise ValueError(f"views of different scales: {va.scale} and {vb.scale}")
-    h, w = va.small.shape
-    found: list[tuple[NDArray[np.float64], float, float]] = []
-    for tilt, k in [(tilt, k) for tilt in tilts for k in turns if k % 2 == 0 or w == h]:
-        if k == 0 and tilt == 0.0:
-            Fb, b_s = vb.spectrum, vb.smooth
-        else:  # turning commutes with the (isotropic, mirror-bordered) smoothing
-            small, b_s = (vb.small, vb.smooth) if k == 0 else (cv2.rotate(vb.small, _ROTATIONS[k]), cv2.rotate(vb.smooth, _ROTATIONS[k]))
-            if tilt != 0.0:
-                small, b_s = _tilted(small, tilt), _tilted(b_s, tilt)
-            Fb = _spectrum(small)
-        found += _score_peaks(va, Fb, b_s, float(wrap_angle(-k * np.pi / 2 - tilt)))
-        if any(score >= sure and share >= SURE_OVERLAP for _, score, share in found):
-            break
-    found.sort(key=lambda c: -c[1])
-    return [(delta, score) for delta, score, _ in found[:keep]]
-
-
-def _tilted(image: Gray, angle: float) -> Gray:
-    """``image`` turned about its centre by ``angle`` (radians, counter-clockwise on
-    screen; borders mirrored): what a frame turned by -``angle`` relative to it sees."""
-    h, w = image.shape
-    R = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), float(np.degrees(angle)), 1.0)
-    return cv2.warpAffine(image, R, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-
-
-def _score_peaks(va: PhaseView, Fb: NDArray[np.float32], b_s: Gray, theta: float) -> list[tuple[NDArray[np.float64], float, float]]:
-    """Candidates (dx, dy, ``theta``) from the phase correlation peaks of view a with a
-    prepared frame b (spectrum, smoothed image): each wrap-around reading with its score
-    and the share of the frame its overlap covers."""
-    h, w = va.small.shape
-    out = []
-    for px, py in _correlation_peaks(va.spectrum, Fb, 4):
-        for dx in (px, px - w):
-            for dy in (py, py - h):
-                ix, iy = round(dx), round(dy)
-                ow, oh = w - abs(ix), h - abs(iy)
-                if ow < 8 or oh < 8 or ow * oh < 0.08 * w * h:
-                    continue
-                pa = va.smooth[max(iy, 0) : max(iy, 0) + oh, max(ix, 0) : max(ix, 0) + ow]
-                pb = b_s[max(-iy, 0) : max(-iy, 0) + oh, max(-ix, 0) : max(-ix, 0) + ow]
-                out.append((np.array([va.scale * dx, va.scale * dy, theta]), _correlation(pa, pb), ow * oh / (w * h)))
-    return out
 
 
 CONSECUTIVE_RUN = 8  # consecutive pairs registered by one thread in a row

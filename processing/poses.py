@@ -7,6 +7,11 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 
+def wrap_angle(a: NDArray[np.floating] | float) -> NDArray[np.float64]:
+    """Angle(s) wrapped to (-π, π]."""
+    return np.asarray((np.asarray(a) + np.pi) % (2 * np.pi) - np.pi, dtype=np.float64)
+
+
 def se2_matrix(x: float, y: float, yaw: float) -> NDArray[np.float64]:
     """3x3 homogeneous matrix of a planar pose (x, y, yaw in radians)."""
     c, s = np.cos(yaw), np.sin(yaw)

@@ -8,13 +8,12 @@ from processing.alignment import (
     PairMeasurement,
     compose_pose,
     frame_to_mosaic,
-    phase_candidates,
     register_pair,
     relative_pose,
     solve_gains,
     solve_pose_graph,
-    wrap_angle,
 )
+from processing.poses import wrap_angle
 from tests.processing.test_stitching import texture
 
 
@@ -71,31 +70,6 @@ def test_levels_are_reusable_across_pairs() -> None:
     for i, j in ((0, 1), (1, 2)):
         found = register_pair(levels[i], levels[j], relative_pose(poses[i], poses[j]) + (3, 2, 0))
         assert found is not None and np.abs(found[0][:2] - relative_pose(poses[i], poses[j])[:2]).max() < 0.05
-
-
-def test_phase_candidates_find_the_shift_without_any_guess() -> None:
-    tex = texture(7)
-    a, b = np.array([400.0, 400.0, 0]), np.array([610.0, 377.0, 0])
-    cands = phase_candidates(frame_at(tex, a), frame_at(tex, b))
-    best = cands[0][0]
-    assert np.abs(best[:2] - relative_pose(a, b)[:2]).max() <= 2.5
-    turned = np.array([420.0, 560.0, np.pi])
-    best = phase_candidates(frame_at(tex, a), frame_at(tex, turned))[0][0]
-    assert np.abs(best[:2] - relative_pose(a, turned)[:2]).max() <= 2.5 and abs(abs(best[2]) - np.pi) < 1e-6
-
-
-@pytest.mark.parametrize("turn", [0.0, np.pi])
-@pytest.mark.parametrize("tilt_deg", [-7.5, 7.5])
-def test_phase_candidates_find_frames_turned_several_degrees(turn: float, tilt_deg: float) -> None:
-    """Phase correlation loses frames turned more than a few degrees from each other: b is
-    tried tilted too, and the guess says by how much it was turned."""
-    tex = texture(8, (1400, 1800))
-    size = (640, 480)
-    a, b = np.array([700.0, 700.0, 0.0]), np.array([1110.0, 690.0, turn + np.radians(tilt_deg)])
-    true = relative_pose(a, b)
-    best = phase_candidates(frame_at(tex, a, size), frame_at(tex, b, size))[0][0]
-    assert np.abs(best[:2] - true[:2]).max() <= 10
-    assert abs(float(wrap_angle(best[2] - true[2]))) < np.radians(2.5)
 
 
 def test_pose_graph_spreads_a_loop_closure_instead_of_drifting() -> None:
