@@ -123,8 +123,8 @@ def _ecc_steps(sweep: Sweep, poses: NDArray[np.float64]) -> tuple[list[NDArray[n
     """Each consecutive pair refined by OpenCV's ECC (Euclidean, every pixel of the
     overlap: the refinement the issue suggests) from our own step; and seconds per pair."""
     size = sweep.config.frame_size
-    grey = [cv2.cvtColor(cv2.imdecode(np.frombuffer(j, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2GRAY).astype(np.float32)
-            for j in sweep.frames]
+    frames = _Jpegs(sweep.frames)
+    grey = [cv2.cvtColor(frames[k], cv2.COLOR_BGR2GRAY).astype(np.float32) for k in range(len(frames))]
     steps, seconds = [], 0.0
     for k in range(len(grey) - 1):
         start = relative_pose(poses[k], poses[k + 1])
