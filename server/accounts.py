@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import secrets
+import threading
+import time
+from collections import deque
 from datetime import timedelta
 
 from argon2 import PasswordHasher
@@ -74,3 +77,44 @@ def user_for_token(db: Session, token: str | None) -> User | None:
 def has_role(user: User, role: Role) -> bool:
     """Whether the user's role is at least ``role``."""
     return ROLE_RANK[user.role] >= ROLE_RANK[role]
+
+
+class LoginThrottle:
+    """Refuses logins for a (client, user name) after ``max_failures`` wrong passwords within
+    ``window_s`` until the oldest of them is that old (password guessing, not typing slips).
+    Bounded: at most ``max_keys`` pairs are remembered."""
+
+    def __init__(self, max_failures: int = 5, window_s: float = 60.0, max_keys: int = 10_000) -> None:
+        self.max_failures = max_failures
+        self.window_s = window_s
+        self.max_keys = max_keys
+        self._failures: dict[tuple[str, str], deque[float]] = {}
+        self._lock = threading.Lock()
+
+    def retry_after(self, client: str, name: str) -> float:
+        """Seconds until this pair may try again (0: now)."""
+        now = time.monotonic()
+        with self._lock:
+            times = self._failures.get((client, name))
+            if times is None:
+                return 0.0
+            while times and now - times[0] > self.window_s:
+                times.popleft()
+            if len(times) < self.max_failures:
+                return 0.0
+            return self.window_s - (now - times[0])
+
+    def failed(self, client: str, name: str) -> None:
+        """Count a wrong password."""
+        now = time.monotonic()
+        with self._lock:
+            if len(self._failures) >= self.max_keys:  # forget the pairs whose failures are all old, then the oldest pairs
+                self._failures = {k: v for k, v in self._failures.items() if v and now - v[-1] <= self.window_s}
+                for key in list(self._failures)[: max(0, len(self._failures) - self.max_keys + 1)]:
+                    del self._failures[key]
+            self._failures.setdefault((client, name), deque(maxlen=self.max_failures)).append(now)
+
+    def succeeded(self, client: str, name: str) -> None:
+        """Forget this pair's failures."""
+        with self._lock:
+            self._failures.pop((client, name), None)

@@ -15,6 +15,7 @@ from typing import Any
 from server.allocator import keep_arrays_on_heap
 from server.config import Settings
 from server.errors import CommandError
+from server.logs import RedactSecrets, uvicorn_log_config
 
 
 def _settings(args: argparse.Namespace) -> Settings:
@@ -33,8 +34,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = _settings(args)
     host = args.host or settings.host
     port = args.port if args.port is not None else settings.port
-    uvicorn.run(create_app(settings), host=host, port=port, log_level="info", ws_max_size=settings.max_message_bytes + 1024,
-                ws_per_message_deflate=False)  # media does not deflate: compression would only cost CPU
+    uvicorn.run(create_app(settings), host=host, port=port, log_level="info", log_config=uvicorn_log_config(),
+                ws_max_size=settings.max_message_bytes + 1024, ws_per_message_deflate=False)  # media does not deflate: compression would only cost CPU
     return 0
 
 
@@ -341,7 +342,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``steelscan`` console script."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, stream=sys.stderr,
+    handler = logging.StreamHandler(sys.stderr)
+    handler.addFilter(RedactSecrets())
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, handlers=[handler],
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     for noisy in ("alembic", "httpx", "pyvips"):
         logging.getLogger(noisy).setLevel(logging.WARNING)

@@ -28,6 +28,7 @@ from robot_link.sim.inspection import InspectionSim, SimConfig, SimResult
 from server.accounts import create_user
 from server.config import Settings
 from server.db import make_engine, make_sessionmaker, upgrade
+from server.logs import uvicorn_log_config
 from server.main import create_app
 from server.models import Role
 from server.robots import create_robot
@@ -46,7 +47,7 @@ class BackgroundServer:
     """uvicorn serving the app in a thread, on loopback."""
 
     def __init__(self, settings: Settings, port: int) -> None:
-        config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning",
+        config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning", log_config=uvicorn_log_config(),
                                 ws_max_size=settings.max_message_bytes + 1024, ws_per_message_deflate=False, lifespan="on")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
@@ -67,15 +68,21 @@ class BackgroundServer:
         self.thread.join(timeout=20)
 
 
-def serve_process(data_dir: Path, port: int, **env: str) -> subprocess.Popen[bytes]:
+def serve_process(data_dir: Path, port: int, *, log: Path | None = None, **env: str) -> subprocess.Popen[bytes]:
     """``steelscan serve`` as a separate process on loopback (``env``: extra STEELSCAN_*
-    settings), returned once it answers its health check."""
-    proc = subprocess.Popen([sys.executable, "-m", "server.cli", "serve", "--data-dir", str(data_dir), "--port", str(port)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, **env})
+    settings; ``log``: a file for its output), returned once it answers its health check."""
+    out = subprocess.DEVNULL if log is None else log.open("ab")
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "server.cli", "serve", "--data-dir", str(data_dir), "--port", str(port)],
+                                stdout=out, stderr=subprocess.STDOUT if log is not None else subprocess.DEVNULL,
+                                env={**os.environ, **env})
+    finally:
+        if log is not None:
+            out.close()
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         try:
-            if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code == 200:
+            if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code in (200, 401):  # 401: up, with accounts
                 return proc
         except httpx.HTTPError:
             time.sleep(0.1)

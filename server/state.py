@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.accounts import LoginThrottle
 from server.config import Settings
 from server.ingest import GroupCommit, Ingest
 from server.jobs.runner import JobRunner
@@ -30,3 +31,4 @@ class AppState:
     writer: GroupCommit
     scene: Scene3D | None = None  # the 3D view, when switched on
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
+    logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per (client, user)

@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+import time
 import uuid
 
 import httpx
@@ -88,3 +89,31 @@ def test_create_user_reads_the_password_from_stdin(tmp_path) -> None:
     assert again.returncode != 0 and "already exists" in again.stderr and "Traceback" not in again.stderr
     short = subprocess.run(cmd[:5] + ["bo"] + cmd[6:], input="short\n", capture_output=True, text=True, timeout=120)
     assert short.returncode != 0 and "at least 8" in short.stderr
+
+
+def test_password_guessing_is_throttled_and_the_right_password_still_works_later(live_server: LiveServer) -> None:
+    add_user(live_server, "vera", Role.viewer)
+    url = f"{live_server.url}/api/auth/token"
+    for _ in range(5):
+        assert httpx.post(url, data={"username": "vera", "password": f"guess-{uuid.uuid4()}"}).status_code == 401
+    refused = httpx.post(url, data={"username": "vera", "password": "correct horse"})
+    assert refused.status_code == 429 and int(refused.headers["retry-after"]) > 0 and "try again" in refused.json()["detail"]
+    assert httpx.post(url, data={"username": "otto", "password": "whatever"}).status_code == 401  # other users unaffected
+    live_server.app.state.steelscan.logins.window_s = 0.2  # the window passes
+    time.sleep(0.3)
+    assert httpx.post(url, data={"username": "vera", "password": "correct horse"}).status_code == 200
+
+
+def test_login_throttle_forgets_on_success_and_stays_bounded() -> None:
+    from server.accounts import LoginThrottle
+
+    throttle = LoginThrottle(max_failures=2, window_s=60, max_keys=3)
+    throttle.failed("a", "u")
+    throttle.succeeded("a", "u")
+    throttle.failed("a", "u")
+    assert throttle.retry_after("a", "u") == 0
+    throttle.failed("a", "u")
+    assert 59 < throttle.retry_after("a", "u") <= 60 and throttle.retry_after("b", "u") == 0
+    for k in range(10):
+        throttle.failed(f"c{k}", "u")
+    assert len(throttle._failures) <= 3

@@ -6,6 +6,7 @@ import uuid
 import cv2
 import httpx
 import numpy as np
+from sqlalchemy import select
 from websockets.sync.client import connect
 
 from robot_link.protocol import MessageType, decode_message
@@ -118,3 +119,29 @@ def test_map_job_on_tof_clouds_alone_beats_the_odometry(live_server: LiveServer)
     kept = np.array(result["cloud_seqs"]) - 2
     ate = absolute_trajectory_error(poses, sweep.truth[kept])
     assert ate < 0.75 * absolute_trajectory_error(sweep.odometry[kept], sweep.truth[kept])
+
+
+def test_a_job_the_station_died_in_is_marked_failed_on_restart(settings) -> None:  # type: ignore[no-untyped-def]
+    from server.db import make_engine, make_sessionmaker
+    from server.demo import BackgroundServer, free_port
+    from server.models import InspectionSession, Job, JobState
+    from tests.conftest import make_token
+
+    make_token(settings)  # creates the database
+    engine = make_engine(settings.resolved_database_url())
+    with make_sessionmaker(engine)() as db:
+        db.add(InspectionSession(id=str(uuid.uuid4()), structure="killed mid-job"))
+        db.flush()
+        sid = db.scalars(select(InspectionSession.id)).one()
+        running = Job(session_id=sid, kind="stitch", state=JobState.running)
+        db.add(running)
+        db.commit()
+        job_id = running.id
+    engine.dispose()
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    try:
+        job = httpx.get(f"{server.url}/api/jobs/{job_id}").raise_for_status().json()
+        assert job["state"] == "failed" and "interrupted" in job["error"]
+    finally:
+        server.stop()
