@@ -28,6 +28,8 @@ class Settings(BaseSettings):
     auto_process: bool = Field(default=True, description="run jobs when a session ends")
     web_dir: Path = PROJECT_ROOT / "web"
     live_queue: int = Field(default=8, description="frames buffered per watching browser")
+    allowed_origins: list[str] = Field(default_factory=list, description="pages of other origins (scheme://host:port) "
+                                       "whose browser websockets are accepted; the station's own always are")
     view3d: bool = Field(default=True, description="serve the 3D view (viser, proxied under /viser/)")
     view3d_port: int = Field(default=0, description="loopback port of the viser server (0: any free one)")
     live_map: bool = Field(default=True, description="grow the 3D map during a session (ICP in a worker process) and show it")

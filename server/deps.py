@@ -5,7 +5,9 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Request, status
+from urllib.parse import urlsplit
+
+from fastapi import Depends, HTTPException, Request, WebSocket, status
 from fastapi.security import OAuth2PasswordBearer
 from sqlalchemy.orm import Session
 
@@ -26,6 +28,19 @@ def get_db(request: Request) -> Iterator[Session]:
     """A database session for one request."""
     with request.app.state.steelscan.factory() as db:
         yield db
+
+
+def same_origin(websocket: WebSocket, allowed: list[str]) -> bool:
+    """Whether a browser websocket comes from the station's own pages (its Origin names the
+    host it connected to) or an ``allowed`` origin; clients that send no Origin (robots,
+    scripts) are not browsers and pass. Refusing the rest stops another site's page, open
+    in the operator's browser, from driving the robot (cross-site websocket hijacking)."""
+    origin = websocket.headers.get("origin")
+    if origin is None:
+        return True
+    if origin.rstrip("/") in {a.rstrip("/") for a in allowed}:
+        return True
+    return urlsplit(origin).netloc.lower() == websocket.headers.get("host", "").lower()
 
 
 StateDep = Annotated[AppState, Depends(get_state)]

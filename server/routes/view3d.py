@@ -23,7 +23,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from server.accounts import accounts_exist, user_for_token
-from server.deps import SessionDep, StateDep, get_current_user
+from server.deps import SessionDep, StateDep, get_current_user, same_origin
 from server.errors import NotFound
 from server.models import Defect, InspectionSession
 from server.routes.sessions import get_session_or_404
@@ -69,6 +69,9 @@ async def view_socket(websocket: WebSocket) -> None:
     state: AppState = websocket.app.state.steelscan
     if state.scene is None:
         await websocket.close(code=1008, reason="the 3D view is switched off")
+        return
+    if not same_origin(websocket, state.settings.allowed_origins):
+        await websocket.close(code=1008, reason="cross-site websocket refused")
         return
     token = websocket.query_params.get("token") or websocket.cookies.get(COOKIE)
     if not await anyio.to_thread.run_sync(_allowed, state, token):

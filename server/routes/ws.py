@@ -24,6 +24,7 @@ from robot_link.protocol import (
     encode_message,
 )
 from server.accounts import accounts_exist, has_role, user_for_token
+from server.deps import same_origin
 from server.errors import IngestError
 from server.models import Role, User
 from server.robots import authenticate_robot
@@ -206,6 +207,9 @@ async def live_socket(websocket: WebSocket) -> None:
     """
     state = websocket.app.state.steelscan
     hub = state.hub
+    if not same_origin(websocket, state.settings.allowed_origins):
+        await websocket.close(code=1008, reason="cross-site websocket refused: open the dashboard from the station itself")
+        return
     user = await anyio.to_thread.run_sync(_browser_user, state.factory, websocket.query_params.get("token"))
     if user is None:
         await websocket.close(code=1008, reason="a valid token is required")

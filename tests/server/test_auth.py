@@ -1,5 +1,6 @@
 """Accounts, roles and tokens on the real server (contract: "Accounts and tokens")."""
 
+import json
 import subprocess
 import sys
 import time
@@ -117,3 +118,14 @@ def test_login_throttle_forgets_on_success_and_stays_bounded() -> None:
     for k in range(10):
         throttle.failed(f"c{k}", "u")
     assert len(throttle._failures) <= 3
+
+
+def test_another_sites_page_cannot_open_the_live_socket(live_server: LiveServer) -> None:
+    live = live_server.url.replace("http://", "ws://") + "/ws/live"
+    host = live_server.url.removeprefix("http://")
+    with pytest.raises(InvalidStatus), connect(live, origin="http://evil.example"):  # type: ignore[arg-type]
+        pass
+    with connect(live, origin=f"http://{host}") as ws:  # type: ignore[arg-type]  # the dashboard's own page
+        ws.send(json.dumps({"session_id": str(uuid.uuid4()), "cmd": "stop"}))
+    with connect(live) as ws:  # no Origin: not a browser
+        ws.send(json.dumps({"session_id": str(uuid.uuid4()), "cmd": "stop"}))
