@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from typing import Annotated
-
 from urllib.parse import urlsplit
 
 from fastapi import Depends, HTTPException, Request, WebSocket, status
