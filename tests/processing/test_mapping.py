@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -125,3 +127,19 @@ def test_without_pose_graph_live_and_batch_place_clouds_alike() -> None:
         live.add(cloud, guess, shape=(172, 224))
     batch = register_clouds(sweep.clouds[:12], sweep.odometry[:12], params=params, shape=(172, 224))
     assert np.allclose(live.poses, batch.poses, atol=1e-9)
+
+
+def test_organised_blocks_are_averaged_over_their_valid_pixels_only() -> None:
+    from processing.mapping import filter_organised
+
+    rng = np.random.default_rng(4)
+    h, w = 6, 8
+    pts = rng.uniform(0.5, 2.0, (h, w, 3)).astype(np.float32)
+    pts[0, 0] = pts[3, 2] = pts[3, 3] = pts[2, 3] = pts[2, 2] = np.nan  # a block with one hole, a block all holes
+    out = filter_organised(pts.reshape(-1, 3), (h, w), median_px=0, stride=2).reshape(h // 2, w // 2, 3)
+    blocks = pts.reshape(h // 2, 2, w // 2, 2, 3).transpose(0, 2, 1, 3, 4).reshape(h // 2, w // 2, 4, 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the all-NaN block's mean
+        expected = np.nanmean(blocks, axis=2)
+    assert np.isnan(out[1, 1]).all() and np.isnan(expected[1, 1]).all()
+    np.testing.assert_allclose(out, expected, rtol=1e-6, equal_nan=True)
