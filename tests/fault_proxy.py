@@ -23,6 +23,7 @@ class FaultProxy:
     connections: int = 0
     _rng: random.Random = field(init=False)
     _server: asyncio.AbstractServer | None = field(default=None, init=False)
+    _open: set[asyncio.Event] = field(default_factory=set, init=False)  # the cut switch of each open connection
 
     def __post_init__(self) -> None:
         self._rng = random.Random(self.seed)
@@ -38,6 +39,12 @@ class FaultProxy:
             self._server.close()
             await self._server.wait_closed()
 
+    def cut_all(self) -> None:
+        """Drop every open connection now, as a wireless link does (no close handshake)."""
+        self.cuts += len(self._open)
+        for cut in self._open:
+            cut.set()
+
     async def _serve(self, client_r: asyncio.StreamReader, client_w: asyncio.StreamWriter) -> None:
         self.connections += 1
         try:
@@ -46,9 +53,20 @@ class FaultProxy:
             client_w.close()
             return
         cut = asyncio.Event()
+        self._open.add(cut)
+        waiter = asyncio.ensure_future(self._cut_on(cut, client_w, server_w))
         await asyncio.gather(self._pipe(client_r, server_w, cut), self._pipe(server_r, client_w, cut), return_exceptions=True)
+        self._open.discard(cut)
+        waiter.cancel()
         for w in (client_w, server_w):
             w.transport.abort() if cut.is_set() else w.close()
+
+    @staticmethod
+    async def _cut_on(cut: asyncio.Event, *writers: asyncio.StreamWriter) -> None:
+        """Abort both sides as soon as ``cut`` is set (a pipe may be waiting in a read)."""
+        await cut.wait()
+        for w in writers:
+            w.transport.abort()
 
     async def _pipe(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, cut: asyncio.Event) -> None:
         while not cut.is_set():
