@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from processing.mapping import MapParams, register_clouds
+from processing.mapping import MapParams, filter_organised, register_clouds
 from processing.metrics import absolute_trajectory_error
 from robot_link.clouds import depth_to_points
 from robot_link.sim.sensors import TofCamera
@@ -130,8 +130,6 @@ def test_without_pose_graph_live_and_batch_place_clouds_alike() -> None:
 
 
 def test_organised_blocks_are_averaged_over_their_valid_pixels_only() -> None:
-    from processing.mapping import filter_organised
-
     rng = np.random.default_rng(4)
     h, w = 6, 8
     pts = rng.uniform(0.5, 2.0, (h, w, 3)).astype(np.float32)
