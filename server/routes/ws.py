@@ -226,9 +226,18 @@ async def live_socket(websocket: WebSocket) -> None:
                 await websocket.send_text(item)
 
     pump_task = asyncio.create_task(pump())
+    settings = state.settings
+    bucket = TokenBucket(settings.browser_messages_per_s, settings.browser_message_burst)
     try:
         while True:
             text = await websocket.receive_text()
+            if len(text) > settings.max_browser_message_bytes:
+                await _reply(websocket, ok=False, error=f"a message of {len(text)} bytes is refused: at most {settings.max_browser_message_bytes}")
+                continue
+            if not bucket.take() and not _is_stop(text):  # stopping the robot is never rate-limited
+                await _reply(websocket, ok=False, error=f"too many messages: at most {settings.browser_messages_per_s:g} a second "
+                                                        "(stop and e-stop always pass)")
+                continue
             if not has_role(user, Role.operator):
                 await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "error": f"commands need the operator role; you are {user.role.value}"}))
                 continue
@@ -248,6 +257,15 @@ def _browser_user(factory: Any, token: str | None) -> User | None:
         if not accounts_exist(db):
             return User(id=0, name="anonymous", password_hash="", role=Role.admin)
         return user_for_token(db, token)
+
+
+def _is_stop(text: str) -> bool:
+    """Whether a browser message is a stop or e-stop command."""
+    try:
+        request = json.loads(text)
+    except json.JSONDecodeError:
+        return False
+    return isinstance(request, dict) and request.get("cmd") in ("stop", "estop")
 
 
 async def _reply(websocket: WebSocket, **fields: Any) -> None:

@@ -129,3 +129,27 @@ def test_another_sites_page_cannot_open_the_live_socket(live_server: LiveServer)
         ws.send(json.dumps({"session_id": str(uuid.uuid4()), "cmd": "stop"}))
     with connect(live) as ws:  # no Origin: not a browser
         ws.send(json.dumps({"session_id": str(uuid.uuid4()), "cmd": "stop"}))
+
+
+def test_a_browser_flooding_or_sending_huge_messages_is_refused_but_can_always_stop(live_server: LiveServer) -> None:
+    live = live_server.url.replace("http://", "ws://") + "/ws/live"
+    sid = str(uuid.uuid4())
+
+    def results(ws, n: int) -> list[dict]:  # type: ignore[no-untyped-def]
+        out: list[dict] = []
+        while len(out) < n:
+            item = ws.recv(timeout=10)
+            if isinstance(item, str) and json.loads(item).get("type") == "command_result":
+                out.append(json.loads(item))
+        return out
+
+    with connect(live, max_size=2**22) as ws:
+        ws.send(json.dumps({"session_id": sid, "cmd": "drive", "args": {"pad": "x" * 20_000}}))
+        assert "bytes is refused" in results(ws, 1)[0]["error"]
+        for _ in range(200):
+            ws.send(json.dumps({"session_id": sid, "cmd": "drive", "args": {}}))
+        flood = results(ws, 200)
+        limited = [r for r in flood if "too many messages" in r.get("error", "")]
+        assert 50 <= len(limited) < 200
+        ws.send(json.dumps({"session_id": sid, "cmd": "estop"}))  # the bucket is empty: e-stop still goes through
+        assert "too many" not in results(ws, 1)[0].get("error", "")
