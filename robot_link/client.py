@@ -15,6 +15,7 @@ import websockets
 from websockets.asyncio.client import ClientConnection, connect
 
 from robot_link.protocol import (
+    STOP_COMMANDS,
     Message,
     MessageType,
     ProtocolError,
@@ -26,7 +27,6 @@ from robot_link.spool import Spool
 log = logging.getLogger(__name__)
 SEQ_BLOCK = 1024  # sequence numbers reserved on disk at a time by a spooling link
 RETRY_S = 0.2  # wait before sending again a message the station could not store yet
-ALWAYS_OBEYED = frozenset({"stop", "estop"})  # commands that are safe to act on whatever their seq
 
 CommandHandler = Callable[[Message], Awaitable[None] | None]
 
@@ -351,7 +351,7 @@ class RobotLink:
                 self._space.notify_all()
         elif message.type is MessageType.COMMAND and self.on_command is not None:
             cmd = message.meta.get("cmd")
-            if message.seq <= self._last_command_seq and cmd not in ALWAYS_OBEYED:
+            if message.seq <= self._last_command_seq and cmd not in STOP_COMMANDS:
                 # an old command delivered again (a replay): never act on it twice; stopping is always safe
                 log.warning("link: ignoring command %r with stale seq %d (last %d)", cmd, message.seq, self._last_command_seq)
                 await self.notify(MessageType.COMMAND_ACK, {"cmd": str(cmd), "accepted": False}, seq=message.seq)

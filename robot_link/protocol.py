@@ -113,6 +113,7 @@ class VideoMeta(_Meta):
 
 
 COMMANDS = ("drive", "stop", "estop", "resume", "capture", "lift", "auto_capture", "end_session")
+STOP_COMMANDS = frozenset({"stop", "estop"})  # always safe: never refused, rate-limited or ignored as a replay
 DRIVE_HOLD_S = 0.2  # a drive command holds this long; the robot stops unless a newer one arrives
 
 

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from robot_link.client import RobotLink
 from robot_link.clouds import encode_depth_png
-from robot_link.protocol import Message, MessageType
+from robot_link.protocol import STOP_COMMANDS, Message, MessageType
 from robot_link.sim.robot import (
     IR_NAMES,
     EdgeAction,
@@ -121,7 +121,7 @@ class InspectionSim:
     async def on_command(self, message: Message) -> None:
         """Obey the operator: stop/estop pause the route, resume continues, capture shoots."""
         cmd = message.meta.get("cmd")
-        if cmd in ("stop", "estop"):
+        if cmd in STOP_COMMANDS:
             self.paused = True
         elif cmd == "resume":
             self.paused = False

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from robot_link.client import RobotLink
-from robot_link.protocol import DRIVE_HOLD_S, Message, MessageType
+from robot_link.protocol import DRIVE_HOLD_S, STOP_COMMANDS, Message, MessageType
 from robot_link.sim.inspection import InspectionSim, SimConfig
 from robot_link.sim.robot import edge_avoidance
 
@@ -100,7 +100,7 @@ class TeleopSim(InspectionSim):
             self.w = float(np.clip(w, -self.teleop.max_turn_radps, self.teleop.max_turn_radps))
             self.last_drive = time.monotonic()
             self.log.drive_commands += 1
-        elif cmd in ("stop", "estop"):
+        elif cmd in STOP_COMMANDS:
             self.v = self.w = 0.0
             self.estopped = self.estopped or cmd == "estop"
         elif cmd == "resume":

@@ -17,6 +17,7 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from robot_link.protocol import (
     HEADER,
+    STOP_COMMANDS,
     Message,
     MessageType,
     ProtocolError,
@@ -231,8 +232,9 @@ async def live_socket(websocket: WebSocket) -> None:
     try:
         while True:
             text = await websocket.receive_text()
-            if len(text) > settings.max_browser_message_bytes:
-                await _reply(websocket, ok=False, error=f"a message of {len(text)} bytes is refused: at most {settings.max_browser_message_bytes}")
+            size = len(text.encode())
+            if size > settings.max_browser_message_bytes:
+                await _reply(websocket, ok=False, error=f"a message of {size} bytes is refused: at most {settings.max_browser_message_bytes}")
                 continue
             if not bucket.take() and not _is_stop(text):  # stopping the robot is never rate-limited
                 await _reply(websocket, ok=False, error=f"too many messages: at most {settings.browser_messages_per_s:g} a second "
@@ -265,7 +267,7 @@ def _is_stop(text: str) -> bool:
         request = json.loads(text)
     except json.JSONDecodeError:
         return False
-    return isinstance(request, dict) and request.get("cmd") in ("stop", "estop")
+    return isinstance(request, dict) and request.get("cmd") in STOP_COMMANDS
 
 
 async def _reply(websocket: WebSocket, **fields: Any) -> None:
@@ -305,7 +307,7 @@ async def _handle_browser_message(websocket: WebSocket, hub: Any, watcher: Any, 
     if sid not in hub.robots:
         await _reply(websocket, ok=False, cmd=cmd, error="no robot is connected for that session")
         return
-    if cmd not in ("stop", "estop"):
+    if cmd not in STOP_COMMANDS:
         refused = hub.take_control(sid, watcher) if hub.controller(sid) in (None, watcher) else \
             f"the robot is driven by {hub.controller(sid).user or 'another operator'}; you can watch, stop or e-stop it"
         if refused:
