@@ -58,6 +58,7 @@ class MapParams:
 
     # selection
     voxel_m: float = 0.02
+    normal_radius_m: float = 0.06  # neighbourhood of the normals' plane fits
     max_range_m: float = 4.0
     depth_median_px: int = 5  # median filter of an organised depth image (0: off)
     pixel_stride: int = 2  # ... then averaged in blocks of this many pixels squared
@@ -74,7 +75,7 @@ class MapParams:
     max_iterations: int = 10  # from the odometry or the current estimate ICP converges in a few (more: no better, measured)
     max_correction_m: float = 0.10
     max_correction_deg: float = 10.0
-    min_fitness: float = 0.3
+    min_fitness: float = 0.6  # below it (mid-turn views that barely overlap) ICP lands centimetres off: odometry instead
     min_points: int = 10  # clouds with fewer points (after selection) are placed by odometry
     # degeneracy
     degenerate_ratio: float = 0.1
@@ -90,6 +91,8 @@ class MapParams:
     loop_min_fitness: float = 0.5  # it is kept when this share of its points matched ...
     loop_min_structure_fitness: float = 0.8  # ... and this share of its structure (not the plate)
     loop_min_structure_points: int = 50
+    loop_min_overlap: float = 0.6  # ... and this share of each cloud lies within loop_overlap_m of the other (both ways)
+    loop_overlap_m: float = 0.02
     loop_preference: float = 1.0  # Open3D's line process: lower prunes disagreeing loop closures sooner
     icp_sigma_m: float = 0.06  # effective error of one point-to-plane residual (neighbouring residuals are correlated: > the noise)
     odometry_sigma_frac: float = 0.05  # odometry error per step: this fraction of its length ...
@@ -162,7 +165,7 @@ def select(points: NDArray[np.floating], params: MapParams = MapParams(), shape:
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(clean_cloud(points, params.max_range_m)))
     pcd = pcd.voxel_down_sample(params.voxel_m)
     if len(pcd.points) >= 3:
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.voxel_m * 3, max_nn=30))
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.normal_radius_m, max_nn=30))
         pcd.orient_normals_towards_camera_location(np.zeros(3))
     return pcd
 
@@ -366,6 +369,8 @@ class IncrementalMap:
                                min_fitness=p.loop_min_fitness, bounds=(p.loop_max_correction_m, p.loop_max_correction_deg))
             if result is not None and structure_fitness(self._pcds[i], result, p.loop_min_structure_points) < p.loop_min_structure_fitness:
                 result = None
+            if result is not None and p.loop_min_overlap > 0 and mutual_overlap(self._pcds[i], self._pcds[int(j)], np.asarray(result.transformation), p.loop_overlap_m) < p.loop_min_overlap:
+                result = None
             added += self._add_edge(i, int(j), result, uncertain=True)
         self.loop_closures += added
         return added
@@ -422,6 +427,15 @@ def structure_fitness(source: o3d.geometry.PointCloud, result: reg.RegistrationR
     matched = np.zeros(len(normals), bool)
     matched[np.asarray(result.correspondence_set)[:, 0]] = True
     return float((matched & structure).sum() / structure.sum())
+
+
+def mutual_overlap(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: NDArray[np.float64], distance_m: float) -> float:
+    """The smaller of the shares of source and of target points within ``distance_m`` of
+    the other cloud once ``T`` (target <- source) is applied: near-identical views score high,
+    views from another lane or mid-turn, which share only part of what they see, low."""
+    forward = reg.evaluate_registration(source, target, distance_m, T).fitness
+    backward = reg.evaluate_registration(target, source, distance_m, np.linalg.inv(T)).fitness
+    return float(min(forward, backward))
 
 
 def _register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: NDArray[np.float64], params: MapParams,

@@ -3,6 +3,10 @@
 World frame: x along the girder, y across the plate, z into the plate (the robot drives
 on the plate's surface z = 0 from the z < 0 side), metres. The surface texture is an image
 with ``m_per_px`` metres per pixel whose pixel (0, 0) is world (0, 0).
+
+The plate is the inspected panel (its edges are what the IR sensors detect); the girder
+beside it runs on beyond both of its ends, as a bridge girder does, with transverse
+stiffeners repeating along it: the forward-looking ToF camera sees that structure ahead.
 """
 
 from __future__ import annotations
@@ -116,15 +120,19 @@ def _box(x0: float, x1: float, y0: float, y1: float, z0: float, z1: float) -> o3
     return box.translate((x0, y0, z0))
 
 
-def _geometry(plate_w: float, plate_h: float) -> o3d.geometry.TriangleMesh:
-    """Plate, I-girder (web, top flange, stiffeners, bolts) and an edge angle, as one mesh."""
+def _geometry(plate_w: float, plate_h: float, girder_overhang_m: float = 0.0, stiffener_spacing_m: float = 0.5) -> o3d.geometry.TriangleMesh:
+    """Plate, I-girder (web, top flange, stiffeners, bolts) and an edge angle, as one mesh;
+    the girder extends ``girder_overhang_m`` beyond both ends of the plate, a stiffener every
+    ``stiffener_spacing_m`` (one at x = 0.55)."""
+    x0, x1 = -girder_overhang_m, plate_w + girder_overhang_m
     mesh = _box(0, plate_w, 0, plate_h, 0, 0.012)  # deck plate, top face at z = 0
-    mesh += _box(0, plate_w, plate_h, plate_h + 0.012, -0.5, 0.0)  # girder web
-    mesh += _box(0, plate_w, plate_h - 0.09, plate_h + 0.1, -0.512, -0.5)  # top flange
-    for sx in (0.55, 1.05):  # transverse stiffeners welded to the web
+    mesh += _box(x0, x1, plate_h, plate_h + 0.012, -0.5, 0.0)  # girder web
+    mesh += _box(x0, x1, plate_h - 0.09, plate_h + 0.1, -0.512, -0.5)  # top flange
+    first = 0.55 - stiffener_spacing_m * np.floor((0.55 - x0) / stiffener_spacing_m)
+    for sx in np.arange(first, x1 - 0.006, stiffener_spacing_m):  # transverse stiffeners welded to the web
         mesh += _box(sx - 0.006, sx + 0.006, plate_h - 0.12, plate_h, -0.45, 0.0)
     mesh += _box(0, plate_w, -0.01, 0.0, -0.08, 0.0)  # edge angle along y = 0
-    for bx in np.arange(0.08, plate_w, 0.16):  # bolt heads on the web
+    for bx in np.arange(x0 + 0.08, x1, 0.16):  # bolt heads on the web
         for bz in (-0.12, -0.3):
             bolt = o3d.geometry.TriangleMesh.create_cylinder(radius=0.012, height=0.02, resolution=10)
             bolt.rotate(o3d.geometry.get_rotation_matrix_from_xyz((np.pi / 2, 0, 0)), center=(0, 0, 0))
@@ -141,8 +149,14 @@ def make_structure(
     n_cracks: int = 6,
     n_corrosion: int = 3,
     defect_region_m: tuple[float, float, float, float] = (0.25, 0.14, 1.35, 0.54),
+    girder_overhang_m: float = 1.6,
+    stiffener_spacing_m: float = 0.5,
 ) -> SteelStructure:
     """Build a structure with ``n_cracks`` cracks and ``n_corrosion`` rust patches.
+
+    The girder runs ``girder_overhang_m`` beyond each end of the plate (0: it ends with the
+    plate, and a forward-looking ToF sees mostly bare plate and then nothing), with a
+    transverse stiffener every ``stiffener_spacing_m``.
 
     Defects are placed at random (from ``seed``) inside ``defect_region_m`` (x0, y0, x1, y1),
     apart from one another, so the route's camera footprint covers each of them.
@@ -176,7 +190,8 @@ def make_structure(
         mine = _draw_crack(rng, img, crack, c / m_per_px, length / m_per_px, width / m_per_px)
         defects.append(_true_defect(len(defects) + 1, "crack", mine, m_per_px, length, width))
     texture = np.clip(img, 0, 255).astype(np.uint8)
-    return SteelStructure(plate_size_m, m_per_px, texture, crack > 0, rust > 0, defects, _geometry(*plate_size_m))
+    return SteelStructure(plate_size_m, m_per_px, texture, crack > 0, rust > 0, defects,
+                          _geometry(*plate_size_m, girder_overhang_m, stiffener_spacing_m))
 
 
 def _true_defect(i: int, cls: str, pixels: NDArray[np.bool_], m_per_px: float, length: float, width: float) -> TrueDefect:

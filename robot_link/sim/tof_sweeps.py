@@ -30,6 +30,7 @@ class TofSweepConfig:
     noise_sigma_m: float = 0.01
     odometry_distance_sigma: float = 0.03  # relative error of each step's distance
     odometry_yaw_sigma_deg: float = 0.6  # heading error per step
+    girder_overhang_m: float = 1.6  # the girder beyond the plate's ends (0: it ends with the plate)
     seed: int = 0
 
 
@@ -96,7 +97,8 @@ def drifting_odometry(robot: NDArray[np.float64], cfg: TofSweepConfig, rng: np.r
 def tof_sweep(cfg: TofSweepConfig = TofSweepConfig(), structure: SteelStructure | None = None) -> TofSweep:
     """Drive the route and record what the ToF camera sees."""
     rng = np.random.default_rng(cfg.seed)
-    tof = TofCamera(structure or make_structure(cfg.seed, n_cracks=1, n_corrosion=1), noise_sigma_m=cfg.noise_sigma_m)
+    structure = structure or make_structure(cfg.seed, n_cracks=1, n_corrosion=1, girder_overhang_m=cfg.girder_overhang_m)
+    tof = TofCamera(structure, noise_sigma_m=cfg.noise_sigma_m)
     robot = route(cfg)
     odo = drifting_odometry(robot, cfg, rng)
     truth = np.array([tof.T_world_tof(p) for p in robot])

@@ -89,3 +89,19 @@ def test_tof_depth_matches_the_plate_geometry(structure) -> None:
     ray = np.array([(u - tof.cx) / tof.fx, (v - tof.cy) / tof.fy, 1.0]) * depth[v, u]
     world = T[:3, :3] @ ray + T[:3, 3]
     assert world[2] == pytest.approx(0.0, abs=0.003)
+
+
+def test_the_girder_runs_on_beyond_the_plate_with_repeating_stiffeners(structure) -> None:
+    """From the plate's far end the ToF sees the girder's web and stiffeners beyond it."""
+    tof = TofCamera(structure, noise_sigma_m=0.0)
+    T = tof.T_world_tof(np.array([1.5, 0.7, 0.0]))
+    depth = tof.render(T, np.random.default_rng(0))
+    v, u = np.nonzero(np.isfinite(depth))
+    rays = np.column_stack([(u - tof.cx) / tof.fx, (v - tof.cy) / tof.fy, np.ones(len(u))]) * depth[v, u][:, None]
+    world = rays @ T[:3, :3].T + T[:3, 3]
+    beyond = world[world[:, 0] > structure.plate_size_m[0] + 0.05]
+    assert len(beyond) > 500 and (beyond[:, 1] > structure.plate_size_m[1] - 0.125).all()  # no plate there: girder only
+    stiffener_faces = beyond[np.abs(beyond[:, 1] - (structure.plate_size_m[1] - 0.06)) < 0.05]
+    assert len(np.unique(np.round(stiffener_faces[:, 0] / 0.5))) >= 2  # more than one stiffener ahead
+    bare = make_structure(3, girder_overhang_m=0.0)
+    assert bare.mesh.get_axis_aligned_bounding_box().get_max_bound()[0] == pytest.approx(structure.plate_size_m[0])
