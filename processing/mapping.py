@@ -98,6 +98,8 @@ class MapParams:
     odometry_sigma_frac: float = 0.05  # odometry error per step: this fraction of its length ...
     odometry_sigma_deg_per_m: float = 15.0  # ... and this heading error per metre driven
     odometry_sigma_floor_m: float = 0.002
+    calibrate_odometry: bool = True  # raise the odometry's error to the heading error measured against ICP
+    calibrate_odometry_translation: bool = True  # ... and its distance error in proportion
     pose_graph: bool = True
     refine: bool = True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
     map_voxel_m: float = 0.01
@@ -267,11 +269,14 @@ class IncrementalMap:
         self.optimise_every = optimise_every
         self.graph = reg.PoseGraph()
         self.loop_closures = 0
+        self._looped: set[tuple[int, int]] = set()  # (i, j) pairs tied by a loop closure
         self.pruned_edges = 0
         self._pcds: list[o3d.geometry.PointCloud] = []
         self._guesses: list[NDArray[np.float64] | None] = []
         self._steps: list[NDArray[np.float64]] = []  # odometry (or seed) step into each cloud
         self._facts: list[tuple[float, float, bool, int]] = []  # fitness, rmse, used odometry, degenerate dims
+        self._odometry_sigmas: dict[int, tuple[float, float]] = {}  # cloud -> configured (rotation rad, translation m) of its odometry edge
+        self._heading_gaps: list[float] = []  # ICP's heading step minus the odometry's, where the structure fixes it, over its configured error
         self._fused = o3d.geometry.PointCloud()
         self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
 
@@ -311,6 +316,8 @@ class IncrementalMap:
             if guess is None:  # no odometry to hold the weak directions: ICP's weak evidence beats a guess
                 seed = np.asarray(result.transformation)
             facts = (float(result.fitness), float(result.inlier_rmse), False, degenerate)
+            if guess is not None:
+                self._record_heading_gap(i, step, result)
         self._steps.append(step if guess is not None else seed)
         self._facts.append(facts)
         pose = np.asarray(self.graph.nodes[i - 1].pose) @ seed
@@ -334,13 +341,48 @@ class IncrementalMap:
 
     def _add_odometry_edge(self, i: int) -> None:
         """Odometry edge into cloud i: holds what the geometry cannot; its error grows with the step."""
-        p = self.params
         step = self._steps[i - 1]
-        d = float(np.linalg.norm(step[:3, 3]))
-        sigma_t = max(p.odometry_sigma_frac * d, p.odometry_sigma_floor_m)
-        sigma_r = np.radians(p.odometry_sigma_deg_per_m * d + 0.2)
+        sigma_r, sigma_t = self._odometry_sigmas[i] = self._odometry_sigma(step)
         info = np.diag([1 / sigma_r**2] * 3 + [1 / sigma_t**2] * 3)
         self.graph.edges.append(reg.PoseGraphEdge(i, i - 1, step, info, uncertain=False))
+
+    def _odometry_sigma(self, step: NDArray[np.float64]) -> tuple[float, float]:
+        """Configured error of an odometry step: rotation (rad) and translation (m)."""
+        p = self.params
+        d = float(np.linalg.norm(step[:3, 3]))
+        return float(np.radians(p.odometry_sigma_deg_per_m * d + 0.2)), max(p.odometry_sigma_frac * d, p.odometry_sigma_floor_m)
+
+    def _record_heading_gap(self, i: int, step: NDArray[np.float64], result: reg.RegistrationResult) -> None:
+        """Heading difference between the odometry's step into cloud i and ICP's, kept when
+        ICP's is trustworthy (a close match whose structure, not only the plate, fixes it)."""
+        if result.fitness < 0.9 or structure_share(self._pcds[i]) < 0.15:
+            return
+        gap = Rotation.from_matrix(np.asarray(result.transformation)[:3, :3] @ step[:3, :3].T).as_rotvec()
+        up = np.asarray(self.graph.nodes[i - 1].pose)[2, :3]  # the world's z axis in cloud i-1's frame
+        self._heading_gaps.append(float(gap @ up) / self._odometry_sigma(step)[0])
+
+    def odometry_error_scale(self) -> float:
+        """How much larger the odometry's heading error is than configured (>= 1): the robust
+        spread (1.4826 MAD) of its heading steps against ICP's, where the structure fixes
+        them, each over its configured error; 1 until 10 such steps were seen. ICP's own
+        error is in the spread, so odometry as good as configured stays at 1."""
+        if not self.params.calibrate_odometry or len(self._heading_gaps) < 10:
+            return 1.0
+        return max(1.0, 1.4826 * float(np.median(np.abs(self._heading_gaps))))
+
+    def _calibrate_odometry_edges(self) -> None:
+        """Set every odometry edge's information for :meth:`odometry_error_scale` (each cloud's
+        first certain edge to its predecessor is its odometry edge: it is added first)."""
+        scale = self.odometry_error_scale()
+        t_scale = scale if self.params.calibrate_odometry_translation else 1.0
+        seen: set[int] = set()
+        for edge in self.graph.edges:
+            s, t = edge.source_node_id, edge.target_node_id
+            if edge.uncertain or t != s - 1 or s in seen or s not in self._odometry_sigmas:
+                continue
+            seen.add(s)
+            sigma_r, sigma_t = self._odometry_sigmas[s]
+            edge.information = np.diag([1 / (scale * sigma_r) ** 2] * 3 + [1 / (t_scale * sigma_t) ** 2] * 3)
 
     def _add_edge(self, s: int, t: int, result: reg.RegistrationResult | None, *, uncertain: bool) -> int:
         """An ICP edge from cloud s to cloud t with its point-to-plane information (1 if added)."""
@@ -365,13 +407,17 @@ class IncrementalMap:
         for j in np.argsort(dist)[: p.loops_per_cloud]:
             if dist[j] > p.loop_radius_m:
                 break
+            if (i, int(j)) in self._looped:
+                continue
             result = _register(self._pcds[i], self._pcds[j], self._relative(int(j), i), p, coarse=p.loop_search_m,
                                min_fitness=p.loop_min_fitness, bounds=(p.loop_max_correction_m, p.loop_max_correction_deg))
             if result is not None and structure_fitness(self._pcds[i], result, p.loop_min_structure_points) < p.loop_min_structure_fitness:
                 result = None
             if result is not None and p.loop_min_overlap > 0 and mutual_overlap(self._pcds[i], self._pcds[int(j)], np.asarray(result.transformation), p.loop_overlap_m) < p.loop_min_overlap:
                 result = None
-            added += self._add_edge(i, int(j), result, uncertain=True)
+            if self._add_edge(i, int(j), result, uncertain=True):
+                self._looped.add((i, int(j)))
+                added += 1
         self.loop_closures += added
         return added
 
@@ -380,6 +426,7 @@ class IncrementalMap:
         if len(self.graph.nodes) < 3:
             return
         before = len(self.graph.edges)
+        self._calibrate_odometry_edges()
         option = reg.GlobalOptimizationOption(max_correspondence_distance=self.params.max_correspondence_m,
                                               edge_prune_threshold=0.25, preference_loop_closure=self.params.loop_preference,
                                               reference_node=0)
@@ -403,13 +450,30 @@ class IncrementalMap:
         return np.asarray(self._fused.points, dtype=np.float32)
 
     def result(self) -> MapResult:
-        """Optimise and return the poses, the fused map and the per-cloud facts."""
+        """Optimise, search loop closures again from the optimised poses (cloud by cloud the
+        search only had the estimate so far, which can be decimetres off with poor odometry)
+        and optimise once more if any were found; the poses, the fused map and the per-cloud facts."""
         if self.params.pose_graph:
             self.optimise()
+            if sum(self._close_loops(i) for i in range(len(self._pcds))):
+                self.optimise()
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
         poses = self.poses
         return MapResult(poses, fuse_map(self._pcds, poses, self.params.map_voxel_m), fitness.astype(float),
                          rmse.astype(float), used.astype(bool), degenerate.astype(int), self.loop_closures, self.pruned_edges)
+
+
+def _structure_mask(normals: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Points whose normal is more than 35° from the dominant one (web, stiffeners, bolts,
+    edges: not the plate)."""
+    dominant = np.linalg.eigh(normals.T @ normals)[1][:, -1]
+    return np.abs(normals @ dominant) < np.cos(np.radians(35))
+
+
+def structure_share(pcd: o3d.geometry.PointCloud) -> float:
+    """Share of a cloud's points that are structure (:func:`_structure_mask`), 0 without normals."""
+    normals = np.asarray(pcd.normals)
+    return float(_structure_mask(normals).mean()) if len(normals) else 0.0
 
 
 def structure_fitness(source: o3d.geometry.PointCloud, result: reg.RegistrationResult, min_points: int) -> float:
@@ -420,8 +484,7 @@ def structure_fitness(source: o3d.geometry.PointCloud, result: reg.RegistrationR
     normals = np.asarray(source.normals)
     if len(normals) == 0:
         return 0.0
-    dominant = np.linalg.eigh(normals.T @ normals)[1][:, -1]
-    structure = np.abs(normals @ dominant) < np.cos(np.radians(35))
+    structure = _structure_mask(normals)
     if structure.sum() < min_points:
         return 0.0
     matched = np.zeros(len(normals), bool)
@@ -485,12 +548,14 @@ def constrain_to_observable(
     """Keep ICP's correction (``result``, from ``init``) only along directions the geometry
     constrains.
 
-    The point-to-plane Hessian's translational block (mean of n nᵀ) and rotational block
-    (mean of (q-c)×n outer products, scaled by the cloud's spread) over ICP's final
-    correspondences are decomposed; along eigen-directions weaker than
-    ``degenerate_ratio`` (a flat plate gives no constraint in its own plane, nor in
-    rotation about its normal) the odometry's value is kept. Returns the pose and the
-    number of degenerate directions (0-6).
+    The point-to-plane Hessian over ICP's final correspondences (rows [(q-c)×n / s, n],
+    about their centroid c, rotations scaled by the cloud's spread s so both are in metres)
+    is decomposed as one 6x6 matrix; along eigen-directions weaker than
+    ``degenerate_ratio`` of half its trace (a flat plate gives no constraint in its own
+    plane, nor in rotation about its normal) the odometry's value is kept. Rotation and
+    translation are projected together: a turn about points a metre ahead moves the sensor
+    sideways, and keeping the one without the other would move it by centimetres.
+    Returns the pose and the number of degenerate directions (0-6).
     """
     T_icp = np.asarray(result.transformation)
     pairs = np.asarray(result.correspondence_set)
@@ -499,25 +564,24 @@ def constrain_to_observable(
     q = np.asarray(source.points)[pairs[:, 0]] @ T_icp[:3, :3].T + T_icp[:3, 3]
     normals = np.asarray(target.normals)[pairs[:, 1]]
     c = q.mean(axis=0)
-    spread = float(np.mean(np.sum((q - c) ** 2, axis=1))) or 1.0
-    cross = np.cross(q - c, normals)
-    P_t, dt = _projector(normals.T @ normals / len(q), params.degenerate_ratio)
-    P_r, dr = _projector(cross.T @ cross / (len(q) * spread), params.degenerate_ratio)
+    scale = float(np.sqrt(np.mean(np.sum((q - c) ** 2, axis=1)))) or 1.0
+    J = np.hstack([np.cross(q - c, normals) / scale, normals])
+    P, degenerate = _projector(J.T @ J / len(q), params.degenerate_ratio)
     dT = T_icp @ np.linalg.inv(init)
     R = dT[:3, :3]
-    omega = Rotation.from_matrix(R).as_rotvec()
-    tau = dT[:3, 3] + R @ c - c
-    R2 = Rotation.from_rotvec(P_r @ omega).as_matrix()
+    x = np.concatenate([Rotation.from_matrix(R).as_rotvec() * scale, dT[:3, 3] + R @ c - c])
+    x = P @ x
+    R2 = Rotation.from_rotvec(x[:3] / scale).as_matrix()
     out = np.eye(4)
     out[:3, :3] = R2
-    out[:3, 3] = c - R2 @ c + P_t @ tau
-    return out @ init, dt + dr
+    out[:3, 3] = c - R2 @ c + x[3:]
+    return out @ init, degenerate
 
 
 def _projector(A: NDArray[np.float64], ratio: float) -> tuple[NDArray[np.float64], int]:
-    """Projector onto eigen-directions of A whose eigenvalue is at least ``ratio``·trace."""
+    """Projector onto eigen-directions of A whose eigenvalue is at least ``ratio``·trace/2."""
     evals, evecs = np.linalg.eigh(A)
-    good = evals >= ratio * max(float(np.trace(A)), 1e-12)
+    good = evals >= ratio * max(float(np.trace(A)) / 2, 1e-12)
     V = evecs[:, good]
     return V @ V.T, int((~good).sum())
 

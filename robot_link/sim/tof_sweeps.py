@@ -2,9 +2,10 @@
 
 The robot drives lanes along the simulated girder (its web and repeating stiffeners in
 view), turns around on a half circle at each lane end and, when asked, comes back to its
-start so that the sequence revisits a place. Every ``step_m`` the ToF camera takes a depth
-image (ray cast, with noise); the odometry integrates each true step with distance and
-heading errors, as slipping wheels do.
+start so that the sequence revisits a place. Every ``step_m`` of travel, and in turns every
+``turn_step_deg`` of heading (a ToF camera streams: the robot keeps a cloud whenever it
+moved or turned enough), the ToF camera takes a depth image (ray cast, with noise); the
+odometry integrates each true step with distance and heading errors, as slipping wheels do.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ class TofSweepConfig:
     odometry_distance_sigma: float = 0.03  # relative error of each step's distance
     odometry_yaw_sigma_deg: float = 0.6  # heading error per step
     girder_overhang_m: float = 1.6  # the girder beyond the plate's ends (0: it ends with the plate)
+    turn_step_deg: float = 5.0  # in turns, a cloud every this many degrees of heading too (0: by distance only)
     seed: int = 0
 
 
@@ -61,7 +63,8 @@ def route(cfg: TofSweepConfig) -> NDArray[np.float64]:
         if k + 1 < len(ys):
             y_next = ys[k + 1]
             r = abs(y_next - y) / 2
-            arc = np.arange(0, np.pi * r, cfg.step_m) / r
+            arc_step = cfg.step_m if cfg.turn_step_deg <= 0 else min(cfg.step_m, r * np.radians(cfg.turn_step_deg))
+            arc = np.arange(0, np.pi * r, arc_step) / r
             side = 1.0 if y_next > y else -1.0
             turn = side if forward else -side  # turn towards the next lane
             cx, cy = end, (y + y_next) / 2
@@ -81,13 +84,16 @@ def _planar(p: NDArray[np.floating]) -> NDArray[np.float64]:
 
 
 def drifting_odometry(robot: NDArray[np.float64], cfg: TofSweepConfig, rng: np.random.Generator) -> NDArray[np.float64]:
-    """Wheel odometry: each true step (in the robot's frame) with errors, integrated."""
+    """Wheel odometry: each true step (in the robot's frame) with errors, integrated. The
+    errors are random walks in the distance driven (a step of ``step_m`` gets the configured
+    sigmas), so sampling the route more finely does not add odometry error."""
     out = [robot[0].copy()]
     T = _planar(robot[0])
     for k in range(1, len(robot)):
         step = np.linalg.inv(_planar(robot[k - 1])) @ _planar(robot[k])
-        d = step[:2, 2] * (1 + rng.normal(0, cfg.odometry_distance_sigma))
-        dyaw = np.arctan2(step[1, 0], step[0, 0]) + rng.normal(0, np.radians(cfg.odometry_yaw_sigma_deg))
+        share = max(float(np.linalg.norm(step[:2, 2])), 1e-9) / cfg.step_m
+        d = step[:2, 2] * (1 + rng.normal(0, cfg.odometry_distance_sigma) / np.sqrt(share))
+        dyaw = np.arctan2(step[1, 0], step[0, 0]) + rng.normal(0, np.radians(cfg.odometry_yaw_sigma_deg)) * np.sqrt(share)
         noisy = _planar(np.array([d[0], d[1], dyaw]))
         T = T @ noisy
         out.append(np.array([T[0, 2], T[1, 2], np.arctan2(T[1, 0], T[0, 0])]))
