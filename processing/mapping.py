@@ -23,18 +23,23 @@ Beyond the paper: each cloud is registered to the previous one from the odometry
 (the chain that seeds the trajectory, kept only along directions the geometry observes);
 then a pose graph (Open3D) ties every cloud to its next few neighbours and to earlier
 clouds of the same place, looking the same way (loop closures, searched coarse to fine
-because the error accumulated by then can exceed ICP's reach, and kept only when the
-structure, not just the plate, matches) and is optimised robustly. Each ICP edge
-carries the point-to-plane information of its correspondences (:func:`plane_information`),
-so a flat plate says nothing about sliding along it and the odometry edges hold the
-trajectory there; the result reports how many such directions each cloud had.
+because the error accumulated by then can exceed ICP's reach, kept only when the
+structure, not just the plate, matches and the two views share most of what they see,
+and searched again from the optimised poses at the end) and is optimised robustly. Each
+ICP edge carries the point-to-plane information of its correspondences
+(:func:`plane_information`), so a flat plate says nothing about sliding along it and the
+odometry edges hold the trajectory there; the result reports how many such directions
+each cloud had. The odometry edges' errors are raised to what the data show
+(:meth:`IncrementalMap.odometry_error_scale`: its heading steps against ICP's where the
+structure fixes them), so odometry worse than configured does not pull the map off.
 :class:`IncrementalMap` builds that graph one cloud at a time: the batch job and the live
 map are the same code.
 
-Known limit (measured): pairwise point-to-plane ICP on this kind of view (mostly plate,
-a web seen obliquely) under-estimates the motion along the girder by ~8 % and is no
-better than wheel odometry in heading, so without a loop closure the map drifts about
-as the odometry does; loop closures remove most of it (see ``steelscan bench map``).
+Known limits (measured, ``steelscan bench map`` and README): views 24 cm apart (the next
+lane) or from mid-turn share too little for ICP to align them (it lands centimetres off
+even from a 3 cm start), so only returns to the same lane close loops; where the ToF sees
+only bare plate (a girder that ends with the plate, turns sampled coarsely) the heading
+comes from the odometry alone.
 """
 
 from __future__ import annotations
@@ -117,6 +122,7 @@ class MapResult:
     degenerate_dims: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, int))
     loop_closures: int = 0
     pruned_edges: int = 0
+    odometry_error_scale: float = 1.0  # the odometry's error measured against ICP, over the configured one (>= 1)
 
 
 def clean_cloud(points: NDArray[np.floating], max_range_m: float) -> NDArray[np.float64]:
@@ -460,7 +466,8 @@ class IncrementalMap:
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
         poses = self.poses
         return MapResult(poses, fuse_map(self._pcds, poses, self.params.map_voxel_m), fitness.astype(float),
-                         rmse.astype(float), used.astype(bool), degenerate.astype(int), self.loop_closures, self.pruned_edges)
+                         rmse.astype(float), used.astype(bool), degenerate.astype(int), self.loop_closures, self.pruned_edges,
+                         self.odometry_error_scale())
 
 
 def _structure_mask(normals: NDArray[np.float64]) -> NDArray[np.bool_]:
