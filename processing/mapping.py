@@ -63,7 +63,6 @@ class MapParams:
 
     # selection
     voxel_m: float = 0.02
-    normal_radius_m: float = 0.06  # neighbourhood of the normals' plane fits
     max_range_m: float = 4.0
     depth_median_px: int = 5  # median filter of an organised depth image (0: off)
     pixel_stride: int = 2  # ... then averaged in blocks of this many pixels squared
@@ -103,8 +102,7 @@ class MapParams:
     odometry_sigma_frac: float = 0.05  # odometry error per step: this fraction of its length ...
     odometry_sigma_deg_per_m: float = 15.0  # ... and this heading error per metre driven
     odometry_sigma_floor_m: float = 0.002
-    calibrate_odometry: bool = True  # raise the odometry's error to the heading error measured against ICP
-    calibrate_odometry_translation: bool = True  # ... and its distance error in proportion
+    calibrate_odometry: bool = True  # raise the odometry's errors (heading and distance) to the heading error measured against ICP
     pose_graph: bool = True
     refine: bool = True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
     map_voxel_m: float = 0.01
@@ -173,7 +171,7 @@ def select(points: NDArray[np.floating], params: MapParams = MapParams(), shape:
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(clean_cloud(points, params.max_range_m)))
     pcd = pcd.voxel_down_sample(params.voxel_m)
     if len(pcd.points) >= 3:
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.normal_radius_m, max_nn=30))
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.voxel_m * 3, max_nn=30))
         pcd.orient_normals_towards_camera_location(np.zeros(3))
     return pcd
 
@@ -380,7 +378,6 @@ class IncrementalMap:
         """Set every odometry edge's information for :meth:`odometry_error_scale` (each cloud's
         first certain edge to its predecessor is its odometry edge: it is added first)."""
         scale = self.odometry_error_scale()
-        t_scale = scale if self.params.calibrate_odometry_translation else 1.0
         seen: set[int] = set()
         for edge in self.graph.edges:
             s, t = edge.source_node_id, edge.target_node_id
@@ -388,7 +385,7 @@ class IncrementalMap:
                 continue
             seen.add(s)
             sigma_r, sigma_t = self._odometry_sigmas[s]
-            edge.information = np.diag([1 / (scale * sigma_r) ** 2] * 3 + [1 / (t_scale * sigma_t) ** 2] * 3)
+            edge.information = np.diag([1 / (scale * sigma_r) ** 2] * 3 + [1 / (scale * sigma_t) ** 2] * 3)
 
     def _add_edge(self, s: int, t: int, result: reg.RegistrationResult | None, *, uncertain: bool) -> int:
         """An ICP edge from cloud s to cloud t with its point-to-plane information (1 if added)."""
