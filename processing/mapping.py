@@ -54,6 +54,8 @@ import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from processing.planes import Plane, extract_planes, plane_edge, plane_frame, same_plane, to_frame
+
 reg = o3d.pipelines.registration
 
 
@@ -104,6 +106,13 @@ class MapParams:
     odometry_sigma_floor_m: float = 0.002
     calibrate_odometry: bool = True  # raise the odometry's errors (heading and distance) to the heading error measured against ICP
     pose_graph: bool = True
+    plane_landmarks: bool = True  # large planes (deck plate, web) as landmarks of the pose graph
+    plane_max_angle_deg: float = 5.0  # a cloud's plane is a landmark's when this close in angle ...
+    plane_max_offset_m: float = 0.03  # ... and in distance (current estimate)
+    plane_sigma_m: float = 0.06  # effective error of one inlier's distance to its landmark
+    plane_min_sightings: int = 3  # a landmark seen fewer times ties nothing
+    plane_prior: float = 1.0
+    plane_uncertain: bool = True
     refine: bool = True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
     map_voxel_m: float = 0.01
 
@@ -121,6 +130,7 @@ class MapResult:
     loop_closures: int = 0
     pruned_edges: int = 0
     odometry_error_scale: float = 1.0  # the odometry's error measured against ICP, over the configured one (>= 1)
+    plane_landmarks: int = 0  # large planes (deck plate, web) that tied the clouds seeing them
 
 
 def clean_cloud(points: NDArray[np.floating], max_range_m: float) -> NDArray[np.float64]:
@@ -281,6 +291,9 @@ class IncrementalMap:
         self._facts: list[tuple[float, float, bool, int]] = []  # fitness, rmse, used odometry, degenerate dims
         self._odometry_sigmas: dict[int, tuple[float, float]] = {}  # cloud -> configured (rotation rad, translation m) of its odometry edge
         self._heading_gaps: list[float] = []  # ICP's heading step minus the odometry's, where the structure fixes it, over its configured error
+        self._planes: list[list[Plane]] = []  # large planes of each cloud (sensor frame)
+        self._landmarks: list[list[tuple[int, int]]] = []  # each landmark's sightings (cloud, plane index)
+        self._landmark_poses: list[NDArray[np.float64]] = []  # T_world_landmark: a frame on the plane, z along its normal
         self._fused = o3d.geometry.PointCloud()
         self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
 
@@ -302,10 +315,13 @@ class IncrementalMap:
         i = len(self._pcds)
         self._pcds.append(pcd)
         self._guesses.append(guess)
+        self._planes.append(extract_planes(np.asarray(pcd.points), np.asarray(pcd.normals))
+                            if self.params.plane_landmarks and pcd.has_normals() else [])
         if i == 0:
             pose = guess if guess is not None else np.eye(4)
             self.graph.nodes.append(reg.PoseGraphNode(pose))
             self._facts.append((1.0, 0.0, False, 0))
+            self._associate_planes(0)
             return pose
         previous = self._guesses[i - 1]
         if guess is not None and previous is not None:
@@ -332,6 +348,7 @@ class IncrementalMap:
                 self._add_edge(i, i - 1, result, uncertain=False)
             for j in range(max(0, i - self.params.neighbours), i - 1):
                 self._add_edge(i, j, _register(pcd, self._pcds[j], self._relative(j, i), self.params), uncertain=False)
+            self._associate_planes(i)
             loops = self._close_loops(i)
             # every ``optimise_every`` clouds, and less often as the graph grows (each
             # optimisation and re-fusion costs time in proportion to the clouds so far)
@@ -395,6 +412,63 @@ class IncrementalMap:
         self.graph.edges.append(reg.PoseGraphEdge(s, t, np.asarray(result.transformation), info, uncertain=uncertain))
         return 1
 
+    @property
+    def plane_landmarks(self) -> int:
+        """Landmarks seen often enough to tie the clouds that see them."""
+        return sum(len(s) >= self.params.plane_min_sightings for s in self._landmarks)
+
+    def _landmark_plane(self, m: int) -> Plane:
+        """Landmark m as a plane in the world (its node's z axis and origin)."""
+        T = self._landmark_poses[m]
+        return Plane(T[:3, 2].copy(), float(-T[:3, 2] @ T[:3, 3]), T[None, :3, 3].copy())
+
+    def _associate_planes(self, i: int) -> None:
+        """Match cloud i's large planes to the landmarks (current estimate); an unmatched one
+        becomes a landmark, its node a frame on the plane (z along its normal)."""
+        p = self.params
+        pose = np.asarray(self.graph.nodes[i].pose)
+        for k, plane in enumerate(self._planes[i]):
+            world = to_frame(plane, pose)
+            m = next((m for m in range(len(self._landmarks))
+                      if same_plane(world, self._landmark_plane(m), p.plane_max_angle_deg, p.plane_max_offset_m)), None)
+            if m is None:
+                self._landmarks.append([(i, k)])
+                self._landmark_poses.append(plane_frame(world))
+            else:
+                self._landmarks[m].append((i, k))
+
+    def _merge_landmarks(self) -> None:
+        """Merge landmarks that the optimised poses show to be one plane (seen apart before)."""
+        p = self.params
+        m = 0
+        while m < len(self._landmarks):
+            other = next((o for o in range(m + 1, len(self._landmarks))
+                          if same_plane(self._landmark_plane(m), self._landmark_plane(o), p.plane_max_angle_deg, p.plane_max_offset_m)), None)
+            if other is None:
+                m += 1
+                continue
+            self._landmarks[m] += self._landmarks.pop(other)
+            self._landmark_poses.pop(other)
+
+    def _landmark_edges(self, first_node: int) -> tuple[list[int], list[reg.PoseGraphEdge]]:
+        """The landmarks seen often enough to tie clouds (their nodes numbered from
+        ``first_node`` in that order) and the edges from each sighting to its landmark's
+        node: :func:`plane_edge` against the plane z = 0 of the landmark's frame, uncertain
+        (the robust optimisation can drop a sighting that disagrees), and a weak prior tying
+        each landmark to its first sighting along what planes leave free."""
+        p = self.params
+        active = [m for m, sightings in enumerate(self._landmarks) if len(sightings) >= p.plane_min_sightings]
+        edges = []
+        on_plane = Plane(np.array([0.0, 0.0, 1.0]), 0.0, np.zeros((1, 3)))
+        for node, m in enumerate(active, start=first_node):
+            T_L = np.linalg.inv(self._landmark_poses[m])
+            for i, k in self._landmarks[m]:
+                measurement, info = plane_edge(self._planes[i][k], on_plane, T_L @ np.asarray(self.graph.nodes[i].pose), p.plane_sigma_m)
+                edges.append(reg.PoseGraphEdge(i, node, measurement, info, uncertain=p.plane_uncertain))
+            anchor = self._landmarks[m][0][0]
+            edges.append(reg.PoseGraphEdge(anchor, node, T_L @ np.asarray(self.graph.nodes[anchor].pose), np.eye(6) * p.plane_prior, uncertain=False))
+        return active, edges
+
     def _close_loops(self, i: int) -> int:
         """Loop closures from cloud i to the nearest earlier clouds of the same place,
         searched coarse to fine (the drift accumulated by then can exceed ICP's reach)."""
@@ -425,18 +499,36 @@ class IncrementalMap:
         return added
 
     def optimise(self) -> None:
-        """Optimise the pose graph (robust: Open3D's line process prunes loop closures that disagree)."""
+        """Optimise the pose graph with the plane landmarks' nodes (robust: Open3D's line
+        process prunes loop closures and plane sightings that disagree)."""
         if len(self.graph.nodes) < 3:
             return
-        before = len(self.graph.edges)
         self._calibrate_odometry_edges()
+        n = len(self.graph.nodes)
+        graph = reg.PoseGraph()
+        for node in self.graph.nodes:
+            graph.nodes.append(node)
+        active, landmark_edges = self._landmark_edges(n)
+        for m in active:
+            graph.nodes.append(reg.PoseGraphNode(self._landmark_poses[m]))
+        for edge in list(self.graph.edges) + landmark_edges:
+            graph.edges.append(edge)
         option = reg.GlobalOptimizationOption(max_correspondence_distance=self.params.max_correspondence_m,
                                               edge_prune_threshold=0.25, preference_loop_closure=self.params.loop_preference,
                                               reference_node=0)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            reg.global_optimization(self.graph, reg.GlobalOptimizationLevenbergMarquardt(),
+            reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
                                     reg.GlobalOptimizationConvergenceCriteria(), option)
-        self.pruned_edges += before - len(self.graph.edges)
+        kept = reg.PoseGraph()
+        for k in range(n):
+            kept.nodes.append(graph.nodes[k])
+        for edge in graph.edges:
+            if edge.target_node_id < n:
+                kept.edges.append(edge)
+        self.pruned_edges += len(self.graph.edges) - len(kept.edges)
+        self.graph = kept
+        for node, m in enumerate(active, start=n):
+            self._landmark_poses[m] = np.asarray(graph.nodes[node].pose).copy()
         self._fused_upto = 0  # every pose may have moved: fuse again
 
     @property
@@ -458,13 +550,15 @@ class IncrementalMap:
         and optimise once more if any were found; the poses, the fused map and the per-cloud facts."""
         if self.params.pose_graph:
             self.optimise()
-            if sum(self._close_loops(i) for i in range(len(self._pcds))):
+            landmarks = len(self._landmarks)
+            self._merge_landmarks()
+            if sum(self._close_loops(i) for i in range(len(self._pcds))) or len(self._landmarks) < landmarks:
                 self.optimise()
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
         poses = self.poses
         return MapResult(poses, fuse_map(self._pcds, poses, self.params.map_voxel_m), fitness.astype(float),
                          rmse.astype(float), used.astype(bool), degenerate.astype(int), self.loop_closures, self.pruned_edges,
-                         self.odometry_error_scale())
+                         self.odometry_error_scale(), self.plane_landmarks)
 
 
 def _structure_mask(normals: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -526,19 +620,23 @@ def _register(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, 
 
 def plane_information(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, result: reg.RegistrationResult,
                       params: MapParams) -> NDArray[np.float64]:
-    """Information matrix of a point-to-plane ICP edge (Open3D's order: rotation, then
-    translation, in the target frame): the sum over the final correspondences of the
-    Tukey weight times Jᵀ J, J = [p × n, n] for target point p and normal n, over σ².
-    Along a direction no surface faces (sliding on a plate) it is zero."""
+    """Information matrix of a point-to-plane ICP edge: the sum over the final
+    correspondences of the Tukey weight times Jᵀ J over σ², J = [q × n, n] for the source
+    point q and the target's normal n both in the SOURCE frame. Open3D's pose graph measures
+    an edge's error in its source frame (rotation, then translation: ``X⁻¹ Tt⁻¹ Ts``,
+    checked), so the information must be there too; in the target frame (as Open3D's
+    ``get_information_matrix_from_point_clouds``) it is off by the edge's own rotation,
+    tens of degrees in a turn. Along a direction no surface faces (sliding on a plate) it is zero."""
     pairs = np.asarray(result.correspondence_set)
     if len(pairs) == 0:
         return np.zeros((6, 6))
     T = np.asarray(result.transformation)
-    q = np.asarray(source.points)[pairs[:, 0]] @ T[:3, :3].T + T[:3, 3]
+    q = np.asarray(source.points)[pairs[:, 0]]
     p, n = np.asarray(target.points)[pairs[:, 1]], np.asarray(target.normals)[pairs[:, 1]]
-    r = np.einsum("ij,ij->i", q - p, n)
+    r = np.einsum("ij,ij->i", q @ T[:3, :3].T + T[:3, 3] - p, n)
     w = np.clip(1 - (r / params.tukey_m) ** 2, 0, None) ** 2
-    J = np.hstack([np.cross(p, n), n])
+    n_source = n @ T[:3, :3]  # rows Rᵀ n
+    J = np.hstack([np.cross(q, n_source), n_source])
     return (J * w[:, None]).T @ J / params.icp_sigma_m**2
 
 

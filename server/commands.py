@@ -171,5 +171,6 @@ def map_folder(clouds_dir: Path, out: Path, *, odometry: Path | None) -> None:
     tmp.replace(out / "map.ply")
     write_atomic(out / "poses.tum", format_tum(np.arange(len(clouds), dtype=float), result.poses).encode())
     log.info("%d clouds mapped: %d loop closures, %d placed by odometry alone, %d with directions only the odometry "
-             "fixed (a flat view), odometry error %.1fx the configured one", len(clouds), result.loop_closures,
-             int(result.used_odometry.sum()), int((result.degenerate_dims > 0).sum()), result.odometry_error_scale)
+             "fixed (a flat view), odometry error %.1fx the configured one, %d plane landmarks", len(clouds), result.loop_closures,
+             int(result.used_odometry.sum()), int((result.degenerate_dims > 0).sum()), result.odometry_error_scale,
+             result.plane_landmarks)

@@ -67,7 +67,7 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
                "ratio": round(ate["ours"] / max(ate["tutorial"], 1e-9), 3), "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
                "odometry": round(ate["odometry"], 4), "clouds": n, "path_m": round(length, 2),
                "loop_closures": ours.loop_closures, "odometry_fallbacks": int(ours.used_odometry.sum()),
-               "odometry_error_scale": round(ours.odometry_error_scale, 2)}
+               "odometry_error_scale": round(ours.odometry_error_scale, 2), "plane_landmarks": ours.plane_landmarks}
         seen = sees_structure([select(c, MapParams(), shape) for c in clouds], truth)
         oracle = absolute_trajectory_error(oracle_poses(truth, odo, seen), truth)
         yield {"name": f"{name}.drift", "value": round(100 * ate["ours"] / length, 3), "unit": "% of path", "target": 0.25,

@@ -1,6 +1,7 @@
 import warnings
 
 import numpy as np
+import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
@@ -212,3 +213,21 @@ def test_a_loop_missed_while_the_estimate_drifted_is_found_from_the_optimised_po
     result = graph_map.result()
     assert result.loop_closures > 0
     assert absolute_trajectory_error(result.poses, sweep.truth) < 0.35 * absolute_trajectory_error(sweep.odometry, sweep.truth)
+
+
+def test_an_icp_edge_carries_its_information_in_the_source_frame() -> None:
+    """Open3D's pose graph measures an edge's error in the edge's source frame, so a wall
+    seen by the source cloud facing its z axis constrains the source's z, whatever the
+    target frame's axes are (here turned 90° about x: in the target frame it would say y)."""
+    from processing.mapping import plane_information
+
+    rng = np.random.default_rng(0)
+    wall = np.column_stack([rng.uniform(-0.5, 0.5, (400, 2)), np.full(400, 1.0)])  # z = 1 in the source frame
+    T_target_source = np.eye(4)
+    T_target_source[:3, :3] = Rotation.from_euler("x", 90, degrees=True).as_matrix()
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(wall))
+    target = o3d.geometry.PointCloud(source).transform(T_target_source)
+    target.normals = o3d.utility.Vector3dVector(np.tile(T_target_source[:3, :3] @ [0.0, 0.0, 1.0], (400, 1)))
+    result = o3d.pipelines.registration.evaluate_registration(source, target, 0.01, T_target_source)
+    translation = plane_information(source, target, result, MapParams())[3:, 3:]
+    assert translation[2, 2] > 0 and np.allclose(translation[:2, :], 0) and np.allclose(translation[:, :2], 0)

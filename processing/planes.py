@@ -1,0 +1,190 @@
+"""Large planes of a steel structure (deck plate, girder web) as landmarks of the 3D map.
+
+A girder's web and the deck plate are planes metres across that the ToF camera sees from
+every pose of a lane. Consecutive ICP registrations each carry a small heading error and
+those errors add up; the angle and distance of a cloud to a plane it shares with a much
+earlier cloud do not. :func:`extract_planes` finds such planes in one cloud (RANSAC from a
+fixed seed, then least-squares refits), :func:`to_frame` moves a
+plane between frames, :func:`same_plane` associates them and :func:`plane_edge` turns one
+shared plane into a pose-graph constraint on the three directions it fixes (two tilts and
+the distance along its normal), leaving the three it does not (sliding along it, turning
+about its normal) to ICP and the odometry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A plane n·x + d = 0 (unit normal towards the sensor) and its inlier points (K, 3)."""
+
+    normal: NDArray[np.float64]
+    offset: float
+    points: NDArray[np.float64]
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        """Standard deviations of the inliers along the plane's two principal directions (m)."""
+        centred = self.points - self.points.mean(axis=0)
+        s = np.sqrt(np.clip(np.linalg.eigvalsh(centred.T @ centred / len(centred)), 0, None))
+        return float(s[2]), float(s[1])
+
+
+def _fit(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+    """Least-squares plane through points: unit normal (smallest principal axis) and offset."""
+    c = points.mean(axis=0)
+    normal = np.linalg.eigh((points - c).T @ (points - c))[1][:, 0]
+    return normal, float(-normal @ c)
+
+
+def extract_planes(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None = None,
+    *,
+    max_planes: int = 3,
+    min_points: int = 40,
+    min_extent_m: tuple[float, float] = (0.08, 0.03),
+    distance_m: float = 0.006,
+    max_normal_deg: float = 45.0,
+    hypotheses: int = 300,
+    score_points: int = 400,
+    max_split_deg: float = 2.0,
+) -> list[Plane]:
+    """The largest planes of a cloud (sensor frame), biggest first, normals towards the sensor.
+
+    Repeatedly: RANSAC over the remaining points (``hypotheses`` planes through three of
+    them, drawn from a fixed seed: the same cloud gives the same planes), the one with most
+    of ~``score_points`` of them within ``distance_m``, refitted by least squares twice;
+    with ``normals``, points whose normal is more than ``max_normal_deg`` off do not count
+    (a face crossing the plane).
+    A plane is kept with ``min_points`` inliers spread at least ``min_extent_m`` (standard
+    deviations along its two axes: a bolt or a strip of an edge is not a landmark) whose two
+    halves (split along its longer axis) fit planes within ``max_split_deg`` of it: a plane
+    through a stretch of web and a stiffener's edge metres away, tilted by a few degrees,
+    is refused.
+    Normals only veto (at a wide angle): on far surfaces seen at a grazing angle the ToF's
+    samples are centimetres apart and their estimated normals too rough to cluster by.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    cos_max = np.cos(np.radians(max_normal_deg))
+    rng = np.random.default_rng(0)
+    remaining = np.arange(len(points))
+    planes: list[Plane] = []
+    for _ in range(max_planes * 2):  # a rejected plane's points are removed too: a few more tries
+        if len(planes) == max_planes or len(remaining) < max(min_points, 3):
+            break
+        pts = points[remaining]
+        a, b, c = (pts[rng.integers(0, len(pts), hypotheses)] for _ in range(3))
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n, axis=1)
+        good = norm > 1e-9
+        n, a = n[good] / norm[good, None], a[good]
+        if not len(n):
+            break
+        own = None if normals is None else np.asarray(normals)[remaining]
+        stride = max(1, len(pts) // score_points)
+        scores = _support(pts[::stride], None if own is None else own[::stride], n, a, distance_m, cos_max).sum(axis=0)
+        best = int(np.argmax(scores))
+        normal = n[best]
+        inliers = _support(pts, own, n[best : best + 1], a[best : best + 1], distance_m, cos_max)[:, 0]
+        offset = 0.0
+        for _ in range(2):
+            if inliers.sum() < 3:
+                break
+            normal, offset = _fit(pts[inliers])
+            inliers = _support(pts, own, normal[None], -offset * normal[None], distance_m, cos_max)[:, 0]
+        taken = remaining[inliers]
+        remaining = remaining[~inliers]
+        if len(taken) < min_points:
+            continue
+        if normal @ points[taken].mean(axis=0) > 0:  # towards the sensor at the origin
+            normal, offset = -normal, -offset
+        plane = Plane(normal, float(offset), points[taken])
+        major, minor = plane.extent
+        if major >= min_extent_m[0] and minor >= min_extent_m[1] and _halves_agree(plane, max_split_deg):
+            planes.append(plane)
+    return planes
+
+
+def _support(points: NDArray[np.float64], normals: NDArray[np.float64] | None, n: NDArray[np.float64],
+             a: NDArray[np.float64], distance_m: float, cos_max: float) -> NDArray[np.bool_]:
+    """(K, H): whether each point lies within ``distance_m`` of each plane (normal n through
+    a), with its own normal within the angle whose cosine is ``cos_max``, when given."""
+    close = np.abs(points @ n.T - np.einsum("ij,ij->i", n, a)) < distance_m
+    if normals is not None:
+        close &= np.abs(normals @ n.T) > cos_max
+    return close
+
+
+def _halves_agree(plane: Plane, max_deg: float) -> bool:
+    """Whether least-squares planes through each half of the inliers (split at the median
+    along the longer axis) are within ``max_deg`` of the whole one."""
+    centred = plane.points - plane.points.mean(axis=0)
+    along = centred @ np.linalg.eigh(centred.T @ centred)[1][:, -1]
+    cos_max = np.cos(np.radians(max_deg))
+    for half in (along <= np.median(along), along > np.median(along)):
+        if half.sum() < 3 or abs(_fit(plane.points[half])[0] @ plane.normal) < cos_max:
+            return False
+    return True
+
+
+def to_frame(plane: Plane, T: NDArray[np.float64]) -> Plane:
+    """The plane in another frame, ``T`` mapping its frame into that one."""
+    R, t = T[:3, :3], T[:3, 3]
+    normal = R @ plane.normal
+    return Plane(normal, float(plane.offset - normal @ t), plane.points @ R.T + t)
+
+
+def plane_frame(plane: Plane) -> NDArray[np.float64]:
+    """A frame on the plane: origin at its inliers' centroid, z along its normal."""
+    z = plane.normal / np.linalg.norm(plane.normal)
+    x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    c = plane.points.mean(axis=0)
+    T[:3, 3] = c - (z @ c + plane.offset) * z
+    return T
+
+
+def same_plane(a: Plane, b: Plane, max_angle_deg: float, max_offset_m: float) -> bool:
+    """Whether two planes in one frame are the same: normals within ``max_angle_deg`` and
+    each one's inlier centroid within ``max_offset_m`` of the other plane."""
+    if a.normal @ b.normal < np.cos(np.radians(max_angle_deg)):
+        return False
+    return bool(abs(b.normal @ a.points.mean(axis=0) + b.offset) < max_offset_m
+                and abs(a.normal @ b.points.mean(axis=0) + a.offset) < max_offset_m)
+
+
+def plane_edge(source: Plane, target: Plane, T_target_source: NDArray[np.float64], sigma_m: float,
+               max_points: int = 300) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A pose-graph edge saying that ``source`` (seen in the source cloud) is ``target``
+    (seen in the target cloud), from the current estimate ``T_target_source``: the estimate
+    corrected as little as possible so the planes coincide, and its information (Open3D's
+    order, rotation then translation, in the source frame where Open3D measures an edge's
+    error) as for point-to-plane residuals of the source's inliers against the target
+    plane, σ = ``sigma_m``: rank 3, nothing along the plane or about its normal."""
+    moved = to_frame(source, T_target_source)
+    axis = np.cross(moved.normal, target.normal)
+    s, c = np.linalg.norm(axis), float(moved.normal @ target.normal)
+    correction = np.eye(4)
+    centre = moved.points.mean(axis=0)
+    if s > 1e-12:  # rotate the source's plane onto the target's, about its inliers' centre
+        k = axis / s
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        R = np.eye(3) + s * K + (1 - c) * K @ K
+        correction[:3, :3] = R
+        correction[:3, 3] = centre - R @ centre
+    gap = target.normal @ (correction[:3, :3] @ centre + correction[:3, 3]) + target.offset
+    correction[:3, 3] -= gap * target.normal
+    measurement = correction @ T_target_source
+    step = max(1, len(source.points) // max_points)
+    q = source.points[::step]  # the error of an Open3D pose-graph edge is in its source frame: so is the information
+    n = np.broadcast_to(measurement[:3, :3].T @ target.normal, q.shape)
+    J = np.hstack([np.cross(q, n), n])
+    return measurement, step * J.T @ J / sigma_m**2
