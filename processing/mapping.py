@@ -27,9 +27,13 @@ because the error accumulated by then can exceed ICP's reach, kept only when the
 structure, not just the plate, matches and the two views share most of what they see,
 and searched again from the optimised poses at the end) and is optimised robustly. Each
 ICP edge carries the point-to-plane information of its correspondences
-(:func:`plane_information`), so a flat plate says nothing about sliding along it and the
-odometry edges hold the trajectory there; the result reports how many such directions
-each cloud had. The odometry edges' errors are raised to what the data show
+(:func:`plane_information`, in the edge's source frame, where Open3D measures its error),
+so a flat plate says nothing about sliding along it and the odometry edges hold the
+trajectory there; the result reports how many such directions each cloud had. The large
+planes each cloud sees (the deck plate, the girder's web: :mod:`processing.planes`) are
+landmarks with their own graph nodes: every cloud that sees one is tied to it in the
+three directions a plane fixes, so heading, tilt and height do not drift along a lane the
+way a chain of pairwise registrations does. The odometry edges' errors are raised to what the data show
 (:meth:`IncrementalMap.odometry_error_scale`: its heading steps against ICP's where the
 structure fixes them), so odometry worse than configured does not pull the map off.
 :class:`IncrementalMap` builds that graph one cloud at a time: the batch job and the live
@@ -112,6 +116,7 @@ class MapParams:
     plane_sigma_m: float = 0.06  # effective error of one inlier's distance to its landmark
     plane_min_sightings: int = 3  # a landmark seen fewer times ties nothing
     plane_prior: float = 1.0
+    plane_merge: bool = True
     plane_uncertain: bool = True
     refine: bool = True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
     map_voxel_m: float = 0.01
@@ -551,7 +556,8 @@ class IncrementalMap:
         if self.params.pose_graph:
             self.optimise()
             landmarks = len(self._landmarks)
-            self._merge_landmarks()
+            if self.params.plane_merge:
+                self._merge_landmarks()
             if sum(self._close_loops(i) for i in range(len(self._pcds))) or len(self._landmarks) < landmarks:
                 self.optimise()
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))

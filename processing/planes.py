@@ -46,13 +46,13 @@ def extract_planes(
     points: NDArray[np.float64],
     normals: NDArray[np.float64] | None = None,
     *,
-    max_planes: int = 3,
+    max_planes: int = 2,
     min_points: int = 40,
-    min_extent_m: tuple[float, float] = (0.08, 0.03),
+    min_extent_m: tuple[float, float] = (0.05, 0.03),
     distance_m: float = 0.006,
     max_normal_deg: float = 45.0,
-    hypotheses: int = 300,
-    score_points: int = 400,
+    hypotheses: int = 150,
+    score_points: int = 250,
     max_split_deg: float = 2.0,
 ) -> list[Plane]:
     """The largest planes of a cloud (sensor frame), biggest first, normals towards the sensor.
