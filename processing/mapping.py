@@ -115,9 +115,6 @@ class MapParams:
     plane_max_offset_m: float = 0.03  # ... and in distance (current estimate)
     plane_sigma_m: float = 0.06  # effective error of one inlier's distance to its landmark
     plane_min_sightings: int = 3  # a landmark seen fewer times ties nothing
-    plane_prior: float = 1.0
-    plane_merge: bool = True
-    plane_uncertain: bool = True
     refine: bool = True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
     map_voxel_m: float = 0.01
 
@@ -277,7 +274,9 @@ class IncrementalMap:
     odometry: the previous step, a constant-velocity guess), which places it (ICP's
     correction kept only along observable directions) and gives a graph edge (all of it,
     with its point-to-plane information); then edges to the clouds a few steps back and
-    loop closures to earlier clouds of the same place are added. ``optimise_every`` > 0
+    loop closures to earlier clouds of the same place are added, and its large planes are
+    matched to the plane landmarks seen so far (or start new ones; the landmarks' nodes and
+    sighting edges join the graph when it is optimised). ``optimise_every`` > 0
     optimises the graph every that many clouds (a tenth of the clouds so far once that is
     more) and at each loop closure (the live map), else only in
     :meth:`result` (the batch job); both give the same kind of map.
@@ -469,9 +468,9 @@ class IncrementalMap:
             T_L = np.linalg.inv(self._landmark_poses[m])
             for i, k in self._landmarks[m]:
                 measurement, info = plane_edge(self._planes[i][k], on_plane, T_L @ np.asarray(self.graph.nodes[i].pose), p.plane_sigma_m)
-                edges.append(reg.PoseGraphEdge(i, node, measurement, info, uncertain=p.plane_uncertain))
+                edges.append(reg.PoseGraphEdge(i, node, measurement, info, uncertain=True))
             anchor = self._landmarks[m][0][0]
-            edges.append(reg.PoseGraphEdge(anchor, node, T_L @ np.asarray(self.graph.nodes[anchor].pose), np.eye(6) * p.plane_prior, uncertain=False))
+            edges.append(reg.PoseGraphEdge(anchor, node, T_L @ np.asarray(self.graph.nodes[anchor].pose), np.eye(6), uncertain=False))
         return active, edges
 
     def _close_loops(self, i: int) -> int:
@@ -556,8 +555,7 @@ class IncrementalMap:
         if self.params.pose_graph:
             self.optimise()
             landmarks = len(self._landmarks)
-            if self.params.plane_merge:
-                self._merge_landmarks()
+            self._merge_landmarks()
             if sum(self._close_loops(i) for i in range(len(self._pcds))) or len(self._landmarks) < landmarks:
                 self.optimise()
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))

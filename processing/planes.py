@@ -46,9 +46,9 @@ def extract_planes(
     points: NDArray[np.float64],
     normals: NDArray[np.float64] | None = None,
     *,
-    max_planes: int = 2,
+    max_planes: int = 3,
     min_points: int = 40,
-    min_extent_m: tuple[float, float] = (0.05, 0.03),
+    min_extent_m: tuple[float, float] = (0.035, 0.025),
     distance_m: float = 0.006,
     max_normal_deg: float = 45.0,
     hypotheses: int = 150,
@@ -63,7 +63,7 @@ def extract_planes(
     with ``normals``, points whose normal is more than ``max_normal_deg`` off do not count
     (a face crossing the plane).
     A plane is kept with ``min_points`` inliers spread at least ``min_extent_m`` (standard
-    deviations along its two axes: a bolt or a strip of an edge is not a landmark) whose two
+    deviations along its two axes: a stiffener's face is a landmark, a bolt head is not) whose two
     halves (split along its longer axis) fit planes within ``max_split_deg`` of it: a plane
     through a stretch of web and a stiffener's edge metres away, tilted by a few degrees,
     is refused.

@@ -231,3 +231,17 @@ def test_an_icp_edge_carries_its_information_in_the_source_frame() -> None:
     result = o3d.pipelines.registration.evaluate_registration(source, target, 0.01, T_target_source)
     translation = plane_information(source, target, result, MapParams())[3:, 3:]
     assert translation[2, 2] > 0 and np.allclose(translation[:2, :], 0) and np.allclose(translation[:, :2], 0)
+
+
+def test_the_deck_plate_and_the_web_as_landmarks_keep_lanes_without_return_from_drifting() -> None:
+    """Three lanes along the girder, no return: pairwise registrations add up their small
+    heading errors lane after lane; tied to the plate and the web they see all along, the
+    lanes keep their heading and the drift stays within the issue's 0.25 % (measured on
+    this route: 0.09 % with the landmarks, 0.26 % without)."""
+    sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.5, 0.62, 0.74), revisit=False, seed=49))
+    with_planes = register_clouds(sweep.clouds, sweep.odometry, shape=(172, 224))
+    without = register_clouds(sweep.clouds, sweep.odometry, params=MapParams(plane_landmarks=False), shape=(172, 224))
+    assert with_planes.plane_landmarks >= 2 and without.plane_landmarks == 0
+    drift = absolute_trajectory_error(with_planes.poses, sweep.truth) / sweep.path_length_m
+    assert drift < 0.002
+    assert drift < 0.6 * absolute_trajectory_error(without.poses, sweep.truth) / sweep.path_length_m
