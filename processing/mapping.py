@@ -103,6 +103,7 @@ class MapParams:
     loop_min_structure_points: int = 50
     loop_min_overlap: float = 0.6  # ... and this share of each cloud lies within loop_overlap_m of the other (both ways)
     loop_overlap_m: float = 0.02
+    loop_prefilter_m: float = 0.05  # from optimised poses a candidate must overlap this well before it is searched
     loop_preference: float = 1.0  # Open3D's line process: lower prunes disagreeing loop closures sooner
     icp_sigma_m: float = 0.06  # effective error of one point-to-plane residual (neighbouring residuals are correlated: > the noise)
     odometry_sigma_frac: float = 0.05  # odometry error per step: this fraction of its length ...
@@ -164,14 +165,13 @@ def filter_organised(points: NDArray[np.floating], shape: tuple[int, int], media
         hb, wb = h // stride, w // stride
         ok = valid & good
         masked = np.where(ok[..., None], out, np.float32(0))
-        summed = np.zeros((hb, wb, 3), np.float32)
-        count = np.zeros((hb, wb), np.float32)
-        for dy in range(stride):  # strided slices: a reshaped sum over two axes took twice as long
-            for dx in range(stride):
-                summed += masked[dy : hb * stride : stride, dx : wb * stride : stride]
-                count += ok[dy : hb * stride : stride, dx : wb * stride : stride]
+        crop = (slice(0, hb * stride), slice(0, wb * stride))
+        # block means by OpenCV's area resampling (exact for a whole factor), of the
+        # values with holes as 0 and of the valid mask: their ratio averages valid pixels only
+        mean = cv2.resize(masked[crop], (wb, hb), interpolation=cv2.INTER_AREA)
+        count = cv2.resize(ok[crop].astype(np.float32), (wb, hb), interpolation=cv2.INTER_AREA)
         with np.errstate(invalid="ignore", divide="ignore"):
-            out = summed / count[..., None]
+            out = mean / count[..., None]
         out[count == 0] = np.nan
     return out.reshape(-1, 3)
 
@@ -286,6 +286,7 @@ class IncrementalMap:
         self.params = params
         self.optimise_every = optimise_every
         self.graph = reg.PoseGraph()
+        self._pose_buffer = np.zeros((64, 4, 4))  # the nodes' poses (the first len(graph.nodes) rows)
         self.loop_closures = 0
         self._looped: set[tuple[int, int]] = set()  # (i, j) pairs tied by a loop closure
         self.pruned_edges = 0
@@ -309,7 +310,16 @@ class IncrementalMap:
     @property
     def poses(self) -> NDArray[np.float64]:
         """Current T_world_sensor of every cloud so far, (N, 4, 4)."""
-        return np.array([np.asarray(node.pose) for node in self.graph.nodes]).reshape(-1, 4, 4)
+        return self._pose_buffer[: len(self.graph.nodes)].copy()
+
+    def _append_node(self, pose: NDArray[np.float64]) -> None:
+        """A graph node for the next cloud, its pose also kept in an array (reading every
+        node's pose back from Open3D for each loop search made a long session quadratic)."""
+        self.graph.nodes.append(reg.PoseGraphNode(pose))
+        n = len(self.graph.nodes)
+        if n > len(self._pose_buffer):
+            self._pose_buffer = np.concatenate([self._pose_buffer, np.zeros_like(self._pose_buffer)])
+        self._pose_buffer[n - 1] = pose
 
     def add(self, points: NDArray[np.floating], guess: NDArray[np.floating] | None = None,
             shape: tuple[int, int] | None = None) -> NDArray[np.float64]:
@@ -323,7 +333,7 @@ class IncrementalMap:
                             if self.params.plane_landmarks and pcd.has_normals() else [])
         if i == 0:
             pose = guess if guess is not None else np.eye(4)
-            self.graph.nodes.append(reg.PoseGraphNode(pose))
+            self._append_node(pose)
             self._facts.append((1.0, 0.0, False, 0))
             self._associate_planes(0)
             return pose
@@ -345,7 +355,7 @@ class IncrementalMap:
         self._steps.append(step if guess is not None else seed)
         self._facts.append(facts)
         pose = np.asarray(self.graph.nodes[i - 1].pose) @ seed
-        self.graph.nodes.append(reg.PoseGraphNode(pose))
+        self._append_node(pose)
         self._add_odometry_edge(i)
         if self.params.pose_graph:
             if result is not None:
@@ -473,9 +483,12 @@ class IncrementalMap:
             edges.append(reg.PoseGraphEdge(anchor, node, T_L @ np.asarray(self.graph.nodes[anchor].pose), np.eye(6), uncertain=False))
         return active, edges
 
-    def _close_loops(self, i: int) -> int:
+    def _close_loops(self, i: int, *, optimised: bool = False) -> int:
         """Loop closures from cloud i to the nearest earlier clouds of the same place,
-        searched coarse to fine (the drift accumulated by then can exceed ICP's reach)."""
+        searched coarse to fine (the drift accumulated by then can exceed ICP's reach).
+        From ``optimised`` poses, a candidate whose views do not already overlap within
+        ``loop_prefilter_m`` (the optimised error is centimetres at most) is not searched:
+        the neighbouring lanes' views, which ICP cannot tie, cost nothing."""
         p = self.params
         if i <= p.loop_min_gap:
             return 0
@@ -489,6 +502,10 @@ class IncrementalMap:
             if dist[j] > p.loop_radius_m:
                 break
             if (i, int(j)) in self._looped:
+                continue
+            if optimised and min(len(self._pcds[i].points), len(self._pcds[int(j)].points)) < p.min_points:
+                continue
+            if optimised and mutual_overlap(self._pcds[i], self._pcds[int(j)], self._relative(int(j), i), p.loop_prefilter_m) < p.loop_min_overlap:
                 continue
             result = _register(self._pcds[i], self._pcds[j], self._relative(int(j), i), p, coarse=p.loop_search_m,
                                min_fitness=p.loop_min_fitness, bounds=(p.loop_max_correction_m, p.loop_max_correction_deg))
@@ -531,6 +548,7 @@ class IncrementalMap:
                 kept.edges.append(edge)
         self.pruned_edges += len(self.graph.edges) - len(kept.edges)
         self.graph = kept
+        self._pose_buffer[:n] = [np.asarray(node.pose) for node in kept.nodes]
         for node, m in enumerate(active, start=n):
             self._landmark_poses[m] = np.asarray(graph.nodes[node].pose).copy()
         self._fused_upto = 0  # every pose may have moved: fuse again
@@ -556,7 +574,7 @@ class IncrementalMap:
             self.optimise()
             landmarks = len(self._landmarks)
             self._merge_landmarks()
-            if sum(self._close_loops(i) for i in range(len(self._pcds))) or len(self._landmarks) < landmarks:
+            if sum(self._close_loops(i, optimised=True) for i in range(len(self._pcds))) or len(self._landmarks) < landmarks:
                 self.optimise()
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
         poses = self.poses

@@ -1,19 +1,23 @@
-"""Large planes of a steel structure (deck plate, girder web) as landmarks of the 3D map.
+"""Planes of a steel structure (deck plate, girder web, stiffener faces) as landmarks of the 3D map.
 
-A girder's web and the deck plate are planes metres across that the ToF camera sees from
-every pose of a lane. Consecutive ICP registrations each carry a small heading error and
-those errors add up; the angle and distance of a cloud to a plane it shares with a much
-earlier cloud do not. :func:`extract_planes` finds such planes in one cloud (RANSAC from a
-fixed seed, then least-squares refits), :func:`to_frame` moves a
-plane between frames, :func:`same_plane` associates them and :func:`plane_edge` turns one
-shared plane into a pose-graph constraint on the three directions it fixes (two tilts and
-the distance along its normal), leaving the three it does not (sliding along it, turning
-about its normal) to ICP and the odometry.
+The deck plate and a girder's web are planes metres across that the ToF camera sees from
+every pose of a lane, and a transverse stiffener's face is seen for a metre or two of
+travel. Consecutive ICP registrations each carry a small heading error and those errors
+add up; the angle and distance of a cloud to a plane it shares with much earlier clouds
+do not. :func:`extract_planes` finds such planes in one cloud (RANSAC from a fixed seed,
+then least-squares refits), :func:`to_frame` moves a plane between frames,
+:func:`same_plane` associates them, :func:`plane_frame` gives a landmark its pose-graph
+node and :func:`plane_edge` turns one sighting into a pose-graph constraint on the three
+directions a plane fixes (two tilts and the distance along its normal), leaving the three
+it does not (sliding along it, turning about its normal) to ICP and the odometry. The
+plate holds height, roll and pitch; the web heading and the distance across; the
+stiffeners' faces the distance along the girder.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,6 +30,16 @@ class Plane:
     normal: NDArray[np.float64]
     offset: float
     points: NDArray[np.float64]
+
+    @cached_property
+    def centroid(self) -> NDArray[np.float64]:
+        """Mean of the inliers."""
+        return self.points.mean(axis=0)
+
+    @cached_property
+    def second_moment(self) -> NDArray[np.float64]:
+        """Σ p pᵀ over the inliers (3x3)."""
+        return self.points.T @ self.points
 
     @property
     def extent(self) -> tuple[float, float]:
@@ -75,7 +89,7 @@ def extract_planes(
     rng = np.random.default_rng(0)
     remaining = np.arange(len(points))
     planes: list[Plane] = []
-    for _ in range(max_planes * 2):  # a rejected plane's points are removed too: a few more tries
+    for _ in range(max_planes * 2):  # a plane refused for its shape is removed too: a few more tries
         if len(planes) == max_planes or len(remaining) < max(min_points, 3):
             break
         pts = points[remaining]
@@ -100,8 +114,8 @@ def extract_planes(
             inliers = _support(pts, own, normal[None], -offset * normal[None], distance_m, cos_max)[:, 0]
         taken = remaining[inliers]
         remaining = remaining[~inliers]
-        if len(taken) < min_points:
-            continue
+        if len(taken) < min_points:  # the best of the rest is too small: nothing bigger is left
+            break
         if normal @ points[taken].mean(axis=0) > 0:  # towards the sensor at the origin
             normal, offset = -normal, -offset
         plane = Plane(normal, float(offset), points[taken])
@@ -147,7 +161,7 @@ def plane_frame(plane: Plane) -> NDArray[np.float64]:
     x /= np.linalg.norm(x)
     T = np.eye(4)
     T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-    c = plane.points.mean(axis=0)
+    c = plane.centroid
     T[:3, 3] = c - (z @ c + plane.offset) * z
     return T
 
@@ -157,23 +171,22 @@ def same_plane(a: Plane, b: Plane, max_angle_deg: float, max_offset_m: float) ->
     each one's inlier centroid within ``max_offset_m`` of the other plane."""
     if a.normal @ b.normal < np.cos(np.radians(max_angle_deg)):
         return False
-    return bool(abs(b.normal @ a.points.mean(axis=0) + b.offset) < max_offset_m
-                and abs(a.normal @ b.points.mean(axis=0) + a.offset) < max_offset_m)
+    return bool(abs(b.normal @ a.centroid + b.offset) < max_offset_m and abs(a.normal @ b.centroid + a.offset) < max_offset_m)
 
 
-def plane_edge(source: Plane, target: Plane, T_target_source: NDArray[np.float64], sigma_m: float,
-               max_points: int = 300) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def plane_edge(source: Plane, target: Plane, T_target_source: NDArray[np.float64],
+               sigma_m: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """A pose-graph edge saying that ``source`` (seen in the source cloud) is ``target``
     (seen in the target cloud), from the current estimate ``T_target_source``: the estimate
     corrected as little as possible so the planes coincide, and its information (Open3D's
     order, rotation then translation, in the source frame where Open3D measures an edge's
     error) as for point-to-plane residuals of the source's inliers against the target
     plane, σ = ``sigma_m``: rank 3, nothing along the plane or about its normal."""
-    moved = to_frame(source, T_target_source)
-    axis = np.cross(moved.normal, target.normal)
-    s, c = np.linalg.norm(axis), float(moved.normal @ target.normal)
+    normal = T_target_source[:3, :3] @ source.normal
+    axis = np.cross(normal, target.normal)
+    s, c = np.linalg.norm(axis), float(normal @ target.normal)
     correction = np.eye(4)
-    centre = moved.points.mean(axis=0)
+    centre = T_target_source[:3, :3] @ source.centroid + T_target_source[:3, 3]
     if s > 1e-12:  # rotate the source's plane onto the target's, about its inliers' centre
         k = axis / s
         K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
@@ -183,8 +196,14 @@ def plane_edge(source: Plane, target: Plane, T_target_source: NDArray[np.float64
     gap = target.normal @ (correction[:3, :3] @ centre + correction[:3, 3]) + target.offset
     correction[:3, 3] -= gap * target.normal
     measurement = correction @ T_target_source
-    step = max(1, len(source.points) // max_points)
-    q = source.points[::step]  # the error of an Open3D pose-graph edge is in its source frame: so is the information
-    n = np.broadcast_to(measurement[:3, :3].T @ target.normal, q.shape)
-    J = np.hstack([np.cross(q, n), n])
-    return measurement, step * J.T @ J / sigma_m**2
+    # J = [q × n, n] per inlier q (source frame, where Open3D measures an edge's error) and
+    # the target's normal n in that frame; q × n = Mᵀ q, so Σ JᵀJ needs only Σ q and Σ q qᵀ
+    n = measurement[:3, :3].T @ target.normal
+    M = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
+    count = len(source.points)
+    info = np.empty((6, 6))
+    info[:3, :3] = M.T @ source.second_moment @ M
+    info[:3, 3:] = np.outer(M.T @ (count * source.centroid), n)
+    info[3:, :3] = info[:3, 3:].T
+    info[3:, 3:] = count * np.outer(n, n)
+    return measurement, info / sigma_m**2
