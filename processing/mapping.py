@@ -30,20 +30,22 @@ ICP edge carries the point-to-plane information of its correspondences
 (:func:`plane_information`, in the edge's source frame, where Open3D measures its error),
 so a flat plate says nothing about sliding along it and the odometry edges hold the
 trajectory there; the result reports how many such directions each cloud had. The large
-planes each cloud sees (the deck plate, the girder's web: :mod:`processing.planes`) are
-landmarks with their own graph nodes: every cloud that sees one is tied to it in the
-three directions a plane fixes, so heading, tilt and height do not drift along a lane the
-way a chain of pairwise registrations does. The odometry edges' errors are raised to what the data show
-(:meth:`IncrementalMap.odometry_error_scale`: its heading steps against ICP's where the
-structure fixes them), so odometry worse than configured does not pull the map off.
+planes each cloud sees (the deck plate, the girder's web, the stiffeners' faces:
+:mod:`processing.planes`) are landmarks with their own graph nodes: every cloud that sees
+one is tied to it in the three directions a plane fixes, so heading, tilt and height do
+not drift along a lane the way a chain of pairwise registrations does. The odometry
+edges' errors are raised to what the data show (:meth:`IncrementalMap.odometry_error_scale`:
+its heading steps against ICP's where the structure fixes them), so odometry worse than
+configured does not pull the map off.
 :class:`IncrementalMap` builds that graph one cloud at a time: the batch job and the live
 map are the same code.
 
 Known limits (measured, ``steelscan bench map`` and README): views 24 cm apart (the next
 lane) or from mid-turn share too little for ICP to align them (it lands centimetres off
-even from a 3 cm start), so only returns to the same lane close loops; where the ToF sees
-only bare plate (a girder that ends with the plate, turns sampled coarsely) the heading
-comes from the odometry alone.
+even from a 3 cm start), so only returns to the same lane close loops (the plane landmarks
+tie lanes together); where the ToF sees only bare plate (a girder that ends with the
+plate, turns sampled coarsely) the heading comes from the odometry until the web is in
+view again; nothing but the stiffeners and the odometry fixes the distance along the girder.
 """
 
 from __future__ import annotations
@@ -111,7 +113,7 @@ class MapParams:
     odometry_sigma_floor_m: float = 0.002
     calibrate_odometry: bool = True  # raise the odometry's errors (heading and distance) to the heading error measured against ICP
     pose_graph: bool = True
-    plane_landmarks: bool = True  # large planes (deck plate, web) as landmarks of the pose graph
+    plane_landmarks: bool = True  # large planes (deck plate, web, stiffener faces) as landmarks of the pose graph
     plane_max_angle_deg: float = 5.0  # a cloud's plane is a landmark's when this close in angle ...
     plane_max_offset_m: float = 0.03  # ... and in distance (current estimate)
     plane_sigma_m: float = 0.06  # effective error of one inlier's distance to its landmark
@@ -133,7 +135,7 @@ class MapResult:
     loop_closures: int = 0
     pruned_edges: int = 0
     odometry_error_scale: float = 1.0  # the odometry's error measured against ICP, over the configured one (>= 1)
-    plane_landmarks: int = 0  # large planes (deck plate, web) that tied the clouds seeing them
+    plane_landmarks: int = 0  # large planes (deck plate, web, stiffener faces) that tied the clouds seeing them
 
 
 def clean_cloud(points: NDArray[np.floating], max_range_m: float) -> NDArray[np.float64]:
@@ -567,9 +569,10 @@ class IncrementalMap:
         return np.asarray(self._fused.points, dtype=np.float32)
 
     def result(self) -> MapResult:
-        """Optimise, search loop closures again from the optimised poses (cloud by cloud the
-        search only had the estimate so far, which can be decimetres off with poor odometry)
-        and optimise once more if any were found; the poses, the fused map and the per-cloud facts."""
+        """Optimise, merge landmarks the optimised poses show to be one plane, search loop
+        closures again from the optimised poses (cloud by cloud the search only had the
+        estimate so far, which can be decimetres off with poor odometry) and optimise once
+        more if either changed the graph; the poses, the fused map and the per-cloud facts."""
         if self.params.pose_graph:
             self.optimise()
             landmarks = len(self._landmarks)
