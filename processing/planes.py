@@ -44,7 +44,7 @@ class Plane:
     @property
     def extent(self) -> tuple[float, float]:
         """Standard deviations of the inliers along the plane's two principal directions (m)."""
-        centred = self.points - self.points.mean(axis=0)
+        centred = self.points - self.centroid
         s = np.sqrt(np.clip(np.linalg.eigvalsh(centred.T @ centred / len(centred)), 0, None))
         return float(s[2]), float(s[1])
 
@@ -138,13 +138,18 @@ def _support(points: NDArray[np.float64], normals: NDArray[np.float64] | None, n
 def _halves_agree(plane: Plane, max_deg: float) -> bool:
     """Whether least-squares planes through each half of the inliers (split at the median
     along the longer axis) are within ``max_deg`` of the whole one."""
-    centred = plane.points - plane.points.mean(axis=0)
+    centred = plane.points - plane.centroid
     along = centred @ np.linalg.eigh(centred.T @ centred)[1][:, -1]
     cos_max = np.cos(np.radians(max_deg))
     for half in (along <= np.median(along), along > np.median(along)):
         if half.sum() < 3 or abs(_fit(plane.points[half])[0] @ plane.normal) < cos_max:
             return False
     return True
+
+
+def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The cross-product matrix [v]×: [v]× w = v × w."""
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
 def to_frame(plane: Plane, T: NDArray[np.float64]) -> Plane:
@@ -188,9 +193,8 @@ def plane_edge(source: Plane, target: Plane, T_target_source: NDArray[np.float64
     correction = np.eye(4)
     centre = T_target_source[:3, :3] @ source.centroid + T_target_source[:3, 3]
     if s > 1e-12:  # rotate the source's plane onto the target's, about its inliers' centre
-        k = axis / s
-        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        R = np.eye(3) + s * K + (1 - c) * K @ K
+        K = _skew(axis / s)
+        R = np.eye(3) + s * K + (1 - c) * K @ K  # Rodrigues
         correction[:3, :3] = R
         correction[:3, 3] = centre - R @ centre
     gap = target.normal @ (correction[:3, :3] @ centre + correction[:3, 3]) + target.offset
@@ -199,7 +203,7 @@ def plane_edge(source: Plane, target: Plane, T_target_source: NDArray[np.float64
     # J = [q × n, n] per inlier q (source frame, where Open3D measures an edge's error) and
     # the target's normal n in that frame; q × n = Mᵀ q, so Σ JᵀJ needs only Σ q and Σ q qᵀ
     n = measurement[:3, :3].T @ target.normal
-    M = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
+    M = _skew(n)
     count = len(source.points)
     info = np.empty((6, 6))
     info[:3, :3] = M.T @ source.second_moment @ M
