@@ -6,7 +6,7 @@ from alembic import context
 from sqlalchemy import engine_from_config, pool
 
 from server.config import Settings
-from server.models import Base
+from server.storage.models import Base
 
 config = context.config
 target_metadata = Base.metadata

@@ -103,7 +103,7 @@ def mosaic_overlap_errors(est: NDArray[np.floating], truth: NDArray[np.floating]
     ``est`` and ``truth`` are (N, 3) frame poses (centre x, y in pixels, rotation in
     radians) in any two frames of reference: only relative placements are compared.
     """
-    from processing.alignment import frame_to_mosaic
+    from processing.poses import frame_to_mosaic
 
     w, h = size
     corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T

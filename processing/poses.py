@@ -1,6 +1,13 @@
-"""Rigid transforms (2D and 3D) and the TUM trajectory text format."""
+"""All pose algebra: planar poses (SE(2)), rigid transforms (SE(3)), frame-pixel maps, TUM text.
+
+A planar pose is a row (x, y, θ): a position and the angle from the reference frame's x axis
+to the pose's x axis (radians, positive from x towards y). 3D poses are 4×4 matrices named
+``T_a_b`` (b's frame in a's), composed as ``T_a_c = T_a_b @ T_b_c``.
+"""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,10 +33,62 @@ def se2_to_se3(x: float, y: float, yaw: float, z: float = 0.0) -> NDArray[np.flo
     return T
 
 
+def rot2(theta: float) -> NDArray[np.float64]:
+    """2×2 rotation by ``theta`` radians."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
 def compose_se2(a: NDArray[np.floating], b: NDArray[np.floating]) -> NDArray[np.float64]:
-    """Compose planar poses given as (x, y, yaw) rows: a ∘ b."""
-    m = se2_matrix(*a) @ se2_matrix(*b)
-    return np.array([m[0, 2], m[1, 2], np.arctan2(m[1, 0], m[0, 0])])
+    """Compose planar poses given as (x, y, θ) rows: a ∘ b, the pose b given in a's frame
+    placed in a's reference frame (inverse of :func:`relative_se2`)."""
+    t = np.asarray(a[:2], float) + rot2(float(a[2])) @ np.asarray(b[:2], float)
+    return np.array([t[0], t[1], float(wrap_angle(a[2] + b[2]))])
+
+
+def relative_se2(a: NDArray[np.floating], b: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Pose b in pose a's frame: (R_aᵀ (t_b − t_a), θ_b − θ_a)."""
+    d = rot2(float(a[2])).T @ (np.asarray(b[:2], float) - np.asarray(a[:2], float))
+    return np.array([d[0], d[1], float(wrap_angle(b[2] - a[2]))])
+
+
+def se2_of_matrix(M: NDArray[np.floating]) -> NDArray[np.float64]:
+    """(x, y, θ) of a 3×3 planar (or 4×4, rotated about z) homogeneous matrix."""
+    n = M.shape[0] - 1
+    return np.array([M[0, n], M[1, n], np.arctan2(M[1, 0], M[0, 0])])
+
+
+def chain_se2(first: NDArray[np.floating], steps: Sequence[NDArray[np.floating]]) -> NDArray[np.float64]:
+    """Poses (N+1, 3) from a first pose and the relative step to each next one."""
+    out = [np.asarray(first, float)]
+    for d in steps:
+        out.append(compose_se2(out[-1], d))
+    return np.array(out)
+
+
+def frame_to_mosaic(pose: NDArray[np.floating], size: tuple[int, int]) -> NDArray[np.float64]:
+    """3×3 map from the pixels of a frame of ``size`` (w, h) centred at ``pose`` to mosaic pixels."""
+    w, h = size
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    R = rot2(float(pose[2]))
+    return np.vstack([np.hstack([R, (np.asarray(pose[:2], float) - R @ c)[:, None]]), [0, 0, 1.0]])
+
+
+def frame_i_to_j(delta: NDArray[np.floating], size: tuple[int, int]) -> NDArray[np.float64]:
+    """3×3 map from frame-i pixels to frame-j pixels for j's relative pose ``delta``."""
+    w, h = size
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    Rt = rot2(float(delta[2])).T
+    return np.vstack([np.hstack([Rt, (c - Rt @ (c + np.asarray(delta[:2], float)))[:, None]]), [0, 0, 1.0]])
+
+
+def delta_of_map(M: NDArray[np.float64], size: tuple[int, int]) -> NDArray[np.float64]:
+    """Inverse of :func:`frame_i_to_j`: the relative pose of a frame-i → frame-j map."""
+    w, h = size
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    phi = -np.arctan2(M[1, 0], M[0, 0])
+    d = rot2(phi) @ (c - M[:2, 2]) - c
+    return np.array([d[0], d[1], phi])
 
 
 def format_tum(timestamps: NDArray[np.floating], poses: NDArray[np.floating]) -> str:
@@ -88,10 +147,6 @@ def image_to_world(
     return offset @ np.array([[c, s], [-s, c]]) + camera_pose[:2]
 
 
-def _se2_of(M: NDArray[np.floating]) -> NDArray[np.float64]:
-    return np.array([M[0, 2], M[1, 2], np.arctan2(M[1, 0], M[0, 0])])
-
-
 def transfer_correction(
     ref_times: NDArray[np.floating], ref_odometry: NDArray[np.floating], ref_truth: NDArray[np.floating],
     times: NDArray[np.floating], odometry: NDArray[np.floating],
@@ -103,10 +158,27 @@ def transfer_correction(
     Used to carry the mosaic's camera motion over to the ToF clouds."""
     order = np.argsort(ref_times)
     rt = np.asarray(ref_times, dtype=np.float64)[order]
-    corr = np.array([_se2_of(se2_matrix(*ref_truth[k]) @ np.linalg.inv(se2_matrix(*ref_odometry[k]))) for k in order])
+    corr = np.array([se2_of_matrix(se2_matrix(*ref_truth[k]) @ np.linalg.inv(se2_matrix(*ref_odometry[k]))) for k in order])
     corr[:, 2] = np.unwrap(corr[:, 2])
     out = []
     for t, o in zip(np.asarray(times, dtype=np.float64), np.asarray(odometry, dtype=np.float64)):
         c = np.array([np.interp(t, rt, corr[:, d]) for d in range(3)])
-        out.append(_se2_of(se2_matrix(*c) @ se2_matrix(*o)))
+        out.append(se2_of_matrix(se2_matrix(*c) @ se2_matrix(*o)))
     return np.array(out)
+
+
+def robot_poses_from_camera(camera_poses: NDArray[np.floating], T_robot_camera: Sequence[float]) -> NDArray[np.float64]:
+    """Robot poses (N, 3) from the poses of a camera mounted at ``T_robot_camera`` (x, y, θ
+    of the camera in the robot's frame): T_world_robot = T_world_camera · T_robot_camera⁻¹."""
+    mount_inv = np.linalg.inv(se2_matrix(*T_robot_camera))
+    return np.array([se2_of_matrix(se2_matrix(*p) @ mount_inv) for p in np.asarray(camera_poses, float)]).reshape(-1, 3)
+
+
+def world_box(bbox: tuple[int, int, int, int], camera_pose: NDArray[np.floating], px_per_m: float,
+              size: tuple[int, int]) -> tuple[float, float, float, float]:
+    """World (x, y, w, h) in metres of the axis-aligned box around a pixel box (x, y, w, h) of
+    a downward-camera image of ``size`` (w, h) taken at ``camera_pose``."""
+    x, y, w, h = bbox
+    corners = image_to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]]), camera_pose, px_per_m, size)
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    return float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])

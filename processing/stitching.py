@@ -29,15 +29,10 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.alignment import (
-    Level,
-    PairMeasurement,
-    RegistrationParams,
-    estimate_poses,
-    frame_i_to_j,
-    frame_to_mosaic,
-    solve_gains,
-)
+from processing.alignment import estimate_poses
+from processing.exposure import solve_gains
+from processing.poses import frame_i_to_j, frame_to_mosaic
+from processing.registration import Level, PairMeasurement, RegistrationParams
 from processing.vignetting import overlap_samples, solve_photometry
 
 Blend = Literal["feather", "paper", "newest"]

@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from server.allocator import keep_arrays_on_heap
+from server.jobs.allocator import keep_arrays_on_heap
 from server.config import Settings
 from server.errors import CommandError
 from server.logs import RedactSecrets, uvicorn_log_config
@@ -90,9 +90,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_create_robot(args: argparse.Namespace) -> int:
     """Register a robot and print its token."""
-    from server.db import make_engine, make_sessionmaker, upgrade
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.errors import Conflict
-    from server.robots import create_robot
+    from server.link.robots import create_robot
 
     settings = _settings(args)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -120,10 +120,10 @@ def _read_password() -> str:
 
 def cmd_create_user(args: argparse.Namespace) -> int:
     """Create an operator account; the password comes from stdin."""
-    from server.accounts import create_user
-    from server.db import make_engine, make_sessionmaker, upgrade
+    from server.api.accounts import create_user
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.errors import Conflict
-    from server.models import Role
+    from server.storage.models import Role
 
     settings = _settings(args)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -164,8 +164,8 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 def _database(args: argparse.Namespace) -> tuple[Any, Any]:
     """(sessionmaker, SessionFiles) of the data directory, migrated to head."""
-    from server.db import make_engine, make_sessionmaker, upgrade
-    from server.storage import SessionFiles
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
+    from server.storage.files import SessionFiles
 
     settings = _settings(args)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -176,7 +176,7 @@ def _database(args: argparse.Namespace) -> tuple[Any, Any]:
 
 def cmd_import(args: argparse.Namespace) -> int:
     """Import an MCAP session log into a new session; prints its id and counts as JSON."""
-    from server.session_mcap import McapImportError, import_session
+    from server.reports.mcap_import import McapImportError, import_session
 
     path = Path(args.file)
     if not path.is_file():
@@ -192,7 +192,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def _session_id(factory: Any, session_id: str) -> str:
-    from server.models import InspectionSession
+    from server.storage.models import InspectionSession
 
     with factory() as db:
         if db.get(InspectionSession, session_id) is None:
@@ -202,7 +202,7 @@ def _session_id(factory: Any, session_id: str) -> str:
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Write a session as an MCAP file."""
-    from server.session_mcap import export_session
+    from server.reports.mcap_export import export_session
 
     factory, files = _database(args)
     sid = _session_id(factory, args.session_id)
@@ -222,9 +222,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Write a session's report.pdf, report.json and defects.csv into a folder."""
-    from server.exports import defects_csv
-    from server.report import build_report, write_pdf
-    from server.storage import write_atomic
+    from server.reports.tables import defects_csv
+    from server.reports.content import build_report
+    from server.reports.pdf import write_pdf
+    from server.storage.files import write_atomic
 
     factory, files = _database(args)
     sid = _session_id(factory, args.session_id)
@@ -241,7 +242,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """Run benchmarks; one JSON line per result."""
-    from server.bench import run_benchmarks
+    from bench import run_benchmarks
 
     run_benchmarks(args.names, dataset=Path(args.dataset) if args.dataset else None, limit=args.limit)
     return 0

@@ -25,13 +25,13 @@ from processing.metrics import Box, absolute_trajectory_error, match_defects, mo
 from processing.poses import parse_tum
 from robot_link.client import RobotLink
 from robot_link.sim.inspection import InspectionSim, SimConfig, SimResult
-from server.accounts import create_user
+from server.api.accounts import create_user
 from server.config import Settings
-from server.db import make_engine, make_sessionmaker, upgrade
+from server.storage.db import make_engine, make_sessionmaker, upgrade
 from server.logs import uvicorn_log_config
 from server.main import create_app
-from server.models import Role
-from server.robots import create_robot
+from server.storage.models import Role
+from server.link.robots import create_robot
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ MASK = "***"
 def _secrets() -> re.Pattern[str]:
     """The pattern of a secret (built on first use: the robot tokens' prefix lives with the
     database code, which a CLI command that never logs need not import)."""
-    from server.robots import TOKEN_PREFIX
+    from server.link.robots import TOKEN_PREFIX
 
     return re.compile(
         r"(?P<query>(?<![\w-])(?:token|access_token|password)=)[^&\s\"']+"

@@ -11,19 +11,20 @@ from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
-from server import db
-from server.accounts import accounts_exist
+from server.api.accounts import accounts_exist
 from server.config import Settings
-from server.deps import get_current_user
+from server.api.deps import get_current_user
 from server.errors import Conflict, NotFound
-from server.ingest import GroupCommit, Ingest
+from server.link.ingest import GroupCommit, Ingest
 from server.jobs.runner import JobRunner
-from server.live import LiveHub
-from server.live_map import LiveMap
-from server.routes import auth, jobs, reports, sessions, view3d, ws
-from server.scene3d import Scene3D
+from server.live.hub import LiveHub
+from server.live.live_map import LiveMap
+from server.api.routes import ROUTERS
+from server.link.connection import router as robot_router
+from server.live.scene3d import Scene3D
 from server.state import AppState
-from server.storage import SessionFiles
+from server.storage import db
+from server.storage.files import SessionFiles
 
 log = logging.getLogger(__name__)
 
@@ -82,12 +83,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         """Liveness check."""
         return {"status": "ok"}
 
-    app.include_router(auth.router)
-    app.include_router(sessions.router)
-    app.include_router(reports.router)
-    app.include_router(jobs.router)
-    app.include_router(ws.router)
-    app.include_router(view3d.router)
+    app.include_router(robot_router)
+    for router in ROUTERS:
+        app.include_router(router)
     web_dir = settings.web_dir
 
     @app.get("/", include_in_schema=False)

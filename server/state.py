@@ -7,14 +7,14 @@ from dataclasses import dataclass, field
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.accounts import LoginThrottle
+from server.api.accounts import LoginThrottle
 from server.config import Settings
-from server.ingest import GroupCommit, Ingest
+from server.link.ingest import GroupCommit, Ingest
 from server.jobs.runner import JobRunner
-from server.live import LiveHub
-from server.live_map import LiveMap
-from server.scene3d import Scene3D
-from server.storage import SessionFiles
+from server.live.hub import LiveHub
+from server.live.live_map import LiveMap
+from server.live.scene3d import Scene3D
+from server.storage.files import SessionFiles
 
 
 @dataclass

@@ -101,15 +101,15 @@ def sweep_poses(cfg: SweepConfig, rng: np.random.Generator) -> NDArray[np.float6
 def drifting_odometry(truth: NDArray[np.float64], cfg: SweepConfig, rng: np.random.Generator) -> NDArray[np.float64]:
     """Odometry guess: each true step (in the robot's frame) with a random error, integrated
     from the first pose, so heading errors accumulate into position drift as on a robot."""
-    from processing.alignment import compose_pose, relative_pose
+    from processing.poses import compose_se2, relative_se2
 
     odo = [truth[0].copy()]
     for k in range(len(truth) - 1):
-        step = relative_pose(truth[k], truth[k + 1])
+        step = relative_se2(truth[k], truth[k + 1])
         length = float(np.hypot(step[0], step[1]))
         step[:2] += rng.normal(0, cfg.odometry_drift * length, 2)
         step[2] += rng.normal(0, np.radians(cfg.odometry_yaw_deg))
-        odo.append(compose_pose(odo[-1], step))
+        odo.append(compose_se2(odo[-1], step))
     return np.array(odo)
 
 

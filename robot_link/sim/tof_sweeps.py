@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.poses import se2_matrix, se2_of_matrix
 from robot_link.clouds import depth_to_points
 from robot_link.sim.sensors import TofCamera
 from robot_link.sim.structure import SteelStructure, make_structure
@@ -78,25 +79,20 @@ def route(cfg: TofSweepConfig) -> NDArray[np.float64]:
     return poses
 
 
-def _planar(p: NDArray[np.floating]) -> NDArray[np.float64]:
-    c, s = np.cos(p[2]), np.sin(p[2])
-    return np.array([[c, -s, p[0]], [s, c, p[1]], [0, 0, 1.0]])
-
-
 def drifting_odometry(robot: NDArray[np.float64], cfg: TofSweepConfig, rng: np.random.Generator) -> NDArray[np.float64]:
     """Wheel odometry: each true step (in the robot's frame) with errors, integrated. The
     errors are random walks in the distance driven (a step of ``step_m`` gets the configured
     sigmas), so sampling the route more finely does not add odometry error."""
     out = [robot[0].copy()]
-    T = _planar(robot[0])
+    T = se2_matrix(*robot[0])
     for k in range(1, len(robot)):
-        step = np.linalg.inv(_planar(robot[k - 1])) @ _planar(robot[k])
+        step = np.linalg.inv(se2_matrix(*robot[k - 1])) @ se2_matrix(*robot[k])
         share = max(float(np.linalg.norm(step[:2, 2])), 1e-9) / cfg.step_m
         d = step[:2, 2] * (1 + rng.normal(0, cfg.odometry_distance_sigma) / np.sqrt(share))
         dyaw = np.arctan2(step[1, 0], step[0, 0]) + rng.normal(0, np.radians(cfg.odometry_yaw_sigma_deg)) * np.sqrt(share)
-        noisy = _planar(np.array([d[0], d[1], dyaw]))
+        noisy = se2_matrix(d[0], d[1], dyaw)
         T = T @ noisy
-        out.append(np.array([T[0, 2], T[1, 2], np.arctan2(T[1, 0], T[0, 0])]))
+        out.append(se2_of_matrix(T))
     return np.array(out)
 
 

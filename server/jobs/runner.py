@@ -12,9 +12,9 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.allocator import keep_arrays_on_heap
+from server.jobs.allocator import keep_arrays_on_heap
 from server.jobs.tasks import JOB_KINDS, PIPELINE, run_job
-from server.models import Job, JobState, utcnow
+from server.storage.models import Job, JobState, utcnow
 
 log = logging.getLogger(__name__)
 

@@ -43,9 +43,9 @@ from processing.poses import (
 )
 from processing.stitching import StitchParams, camera_poses, plan_mosaic, render_bands
 from robot_link.clouds import decode_cloud
-from server.models import Cloud, Defect, Frame, InspectionSession, Job, JobState, utcnow
-from server.mosaic_files import StoredImages, frame_records, image_header, write_mosaic
-from server.storage import SessionFiles, write_atomic
+from server.storage.models import Cloud, Defect, Frame, InspectionSession, Job, JobState, utcnow
+from server.storage.mosaic_files import StoredImages, frame_records, image_header, write_mosaic
+from server.storage.files import SessionFiles, write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ class JobContext:
 
 @lru_cache(maxsize=4)
 def _factory(database_url: str) -> sessionmaker[Session]:
-    from server.db import make_engine, make_sessionmaker
+    from server.storage.db import make_engine, make_sessionmaker
 
     return make_sessionmaker(make_engine(database_url))
 
@@ -400,7 +400,7 @@ def _detect_mosaic_banded(ctx: JobContext, out: Path, mm_per_px: float | None) -
 def run_export(ctx: JobContext) -> dict[str, Any]:
     """The whole session as an MCAP file (``results/session.mcap``), written under a temporary
     name and renamed when complete."""
-    from server.session_mcap import export_session
+    from server.reports.mcap_export import export_session
 
     out = ctx.results_dir()
     tmp = out / f".session.mcap.{ctx.job_id}.tmp"

@@ -150,7 +150,7 @@ def test_repeating_stiffeners_and_turns_do_not_break_a_route_without_return() ->
     to the odometry, and views from the neighbouring lanes are not taken for loop closures,
     so no step jumps (the issue's 2 cm) and the map ends better than odometry (before:
     13 mm jumps and twice the odometry's error)."""
-    from server.bench.map import relative_pose_error
+    from bench.map import relative_pose_error
 
     sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.5, 0.62, 0.74), revisit=False, turn_step_deg=0, seed=41))
     result = register_clouds(sweep.clouds, sweep.odometry, shape=(172, 224))

@@ -2,8 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.alignment import frame_to_mosaic, relative_pose
-from processing.poses import compose_se2
+from processing.poses import compose_se2, frame_to_mosaic, relative_se2
 from processing.stitching import (
     StitchParams,
     camera_poses,
@@ -231,8 +230,8 @@ def test_textureless_frames_fall_back_to_odometry_and_are_flagged() -> None:
     frames[3] = np.full_like(frames[3], 120)  # lens cap on: nothing to match
     layout, _ = plan_mosaic(frames, s.odometry)
     assert not layout.confident[3] and layout.confident[[0, 1, 5]].all()
-    step = relative_pose(layout.poses_px[2], layout.poses_px[3])
-    odo = relative_pose(s.odometry[2], s.odometry[3])
+    step = relative_se2(layout.poses_px[2], layout.poses_px[3])
+    odo = relative_se2(s.odometry[2], s.odometry[3])
     assert np.abs(step[:2] - odo[:2]).max() < 5  # held where the odometry put it
 
 

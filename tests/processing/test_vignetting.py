@@ -1,6 +1,6 @@
 import numpy as np
 
-from processing.alignment import frame_i_to_j, relative_pose
+from processing.poses import frame_i_to_j, relative_se2
 from processing.stitching import plan_mosaic
 from processing.vignetting import overlap_samples, radius2, solve_photometry
 from tests.processing.test_stitching import decoded, sweep, worst_pair_error
@@ -19,7 +19,7 @@ def test_falloff_and_gains_come_out_of_registered_overlaps() -> None:
     grey = [f.mean(axis=2).astype(np.float32) for f in frames]
     pairs = []
     for k in range(11):
-        delta = relative_pose(s.truth[k], s.truth[k + 1])
+        delta = relative_se2(s.truth[k], s.truth[k + 1])
         ri, rj, lr = overlap_samples(grey[k], grey[k + 1], frame_i_to_j(delta, (320, 240)))
         pairs.append((k, k + 1, ri, rj, lr))
     photo = solve_photometry(12, pairs)

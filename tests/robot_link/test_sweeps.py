@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.alignment import relative_pose
+from processing.poses import relative_se2
 from robot_link.sim.sweeps import (
     LazySweep,
     SweepConfig,
@@ -19,7 +19,7 @@ def test_lawnmower_sweep_overlaps_as_configured_and_turns_at_lane_ends() -> None
     need = texture_size_for(cfg)
     s = make_sweep(painted_steel((need[1], need[0])), cfg)
     assert len(s.frames) == 9 and s.truth.shape == s.odometry.shape == (9, 3)
-    step = relative_pose(s.truth[0], s.truth[1])
+    step = relative_se2(s.truth[0], s.truth[1])
     assert step[0] == pytest.approx(0.65 * 160, abs=6)
     assert abs(abs(s.truth[3, 2]) - np.pi) < np.radians(3)  # second lane driven turned around
     assert cv2.imdecode(np.frombuffer(s.frames[0], np.uint8), cv2.IMREAD_COLOR).shape == (120, 160, 3)
@@ -30,7 +30,7 @@ def test_odometry_drifts_but_each_step_stays_close() -> None:
     cfg = SweepConfig(frames=30, pattern="straight", frame_size=(160, 120), seed=2)
     need = texture_size_for(cfg)
     s = make_sweep(painted_steel((need[1], need[0])), cfg)
-    steps = np.array([relative_pose(s.odometry[k], s.odometry[k + 1]) - relative_pose(s.truth[k], s.truth[k + 1]) for k in range(29)])
+    steps = np.array([relative_se2(s.odometry[k], s.odometry[k + 1]) - relative_se2(s.truth[k], s.truth[k + 1]) for k in range(29)])
     assert np.abs(steps[:, :2]).max() < 0.1 * 104  # a step is off by a few percent
     assert np.linalg.norm(s.odometry[-1, :2] - s.truth[-1, :2]) > 5  # ... but errors add up
 

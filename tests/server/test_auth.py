@@ -11,9 +11,9 @@ import pytest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
-from server.accounts import create_user
-from server.db import make_engine, make_sessionmaker
-from server.models import Role
+from server.api.accounts import create_user
+from server.storage.db import make_engine, make_sessionmaker
+from server.storage.models import Role
 from tests.conftest import LiveServer
 from tests.server.test_ingest import start, ws_url
 
@@ -106,7 +106,7 @@ def test_password_guessing_is_throttled_and_the_right_password_still_works_later
 
 
 def test_login_throttle_forgets_on_success_and_stays_bounded() -> None:
-    from server.accounts import LoginThrottle
+    from server.api.accounts import LoginThrottle
 
     throttle = LoginThrottle(max_failures=2, window_s=60, max_keys=3)
     throttle.failed("a", "u")

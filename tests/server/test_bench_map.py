@@ -2,7 +2,7 @@ import numpy as np
 import open3d as o3d
 
 from processing.metrics import absolute_trajectory_error
-from server.bench.map import oracle_poses, sees_structure
+from bench.map import oracle_poses, sees_structure
 
 
 def _pose(x: float, yaw: float) -> np.ndarray:

@@ -83,7 +83,7 @@ def test_bad_inputs_give_one_line_errors_and_no_output(tmp_path: Path) -> None:
 
 
 def test_stitch_folder_with_odometry_writes_mosaic_pyramid_and_poses(tmp_path: Path) -> None:
-    from processing.alignment import relative_pose
+    from processing.poses import relative_se2
     from processing.poses import format_tum, se2_to_se3
     from tests.processing.test_stitching import sweep
 
@@ -102,7 +102,7 @@ def test_stitch_folder_with_odometry_writes_mosaic_pyramid_and_poses(tmp_path: P
     est = np.array([[float(v) for v in r.split(",")[1:]] for r in rows[1:]])
     est[:, 2] = np.radians(est[:, 2])
     for k in range(7):  # consecutive frames placed as they truly are, rotation included
-        assert np.abs(relative_pose(est[k], est[k + 1]) - relative_pose(s.truth[k], s.truth[k + 1]))[:2].max() < 0.2
+        assert np.abs(relative_se2(est[k], est[k + 1]) - relative_se2(s.truth[k], s.truth[k + 1]))[:2].max() < 0.2
     mosaic = cv2.imread(str(out / "mosaic.png"))
     assert mosaic.shape[0] > 240 and mosaic.shape[1] > 320
     world = json.loads((out / "mosaic.json").read_text())

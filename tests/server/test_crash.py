@@ -60,7 +60,7 @@ def test_sigkill_mid_session_loses_nothing(tmp_path: Path) -> None:
     assert rows == (frames, frames)
     # every row's payload is where the row says: a JPEG of the stored size in its segment file
     # (bytes of an append the crash cut short may follow, but no row points at them)
-    from server.storage import SessionFiles
+    from server.storage.files import SessionFiles
 
     store = SessionFiles(data)
     for path, offset, size in db.execute("SELECT path, data_offset, size_bytes FROM frames WHERE session_id = ?", (sid,)):

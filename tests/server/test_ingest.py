@@ -221,10 +221,10 @@ def test_group_commit_stores_a_lone_message_at_once_and_batches_under_load(tmp_p
     """A quiet station stores a message on the caller's thread (acknowledged without a
     hand-off); a burst goes to the writer's group commits; every message is stored once."""
     from server.config import Settings
-    from server.db import make_engine, make_sessionmaker, upgrade
-    from server.ingest import QUIET_S, GroupCommit, Ingest
-    from server.robots import create_robot
-    from server.storage import SessionFiles
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
+    from server.link.ingest import QUIET_S, GroupCommit, Ingest
+    from server.link.robots import create_robot
+    from server.storage.files import SessionFiles
 
     settings = Settings(data_dir=tmp_path / "data")
     upgrade(settings.resolved_database_url())
@@ -251,16 +251,16 @@ def test_group_commit_stores_a_lone_message_at_once_and_batches_under_load(tmp_p
     assert statuses == ["stored"] * 40
     from sqlalchemy import func, select
 
-    from server.models import Frame
+    from server.storage.models import Frame
     with factory() as db:
         assert db.scalar(select(func.count()).select_from(Frame).where(Frame.session_id == str(sid))) == 40
 
 
 def _ingest(tmp_path):  # type: ignore[no-untyped-def]
     from server.config import Settings
-    from server.db import make_engine, make_sessionmaker, upgrade
-    from server.ingest import Ingest
-    from server.storage import SessionFiles
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
+    from server.link.ingest import Ingest
+    from server.storage.files import SessionFiles
 
     settings = Settings(data_dir=tmp_path / "data")
     upgrade(settings.resolved_database_url())
@@ -271,7 +271,7 @@ def _ingest(tmp_path):  # type: ignore[no-untyped-def]
 def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(tmp_path) -> None:  # type: ignore[no-untyped-def]
     from sqlalchemy import select
 
-    from server.models import Cloud, Frame, ReceivedMessage, TelemetrySample
+    from server.storage.models import Cloud, Frame, ReceivedMessage, TelemetrySample
 
     factory, ingest, _ = _ingest(tmp_path)
     sid = uuid.uuid4()

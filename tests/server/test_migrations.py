@@ -2,8 +2,8 @@ from pathlib import Path
 
 from sqlalchemy import create_engine, inspect, text
 
-from server.db import downgrade, make_engine, upgrade
-from server.models import Base
+from server.storage.db import downgrade, make_engine, upgrade
+from server.storage.models import Base
 
 TABLES = {"robots", "users", "auth_tokens", "inspection_sessions", "received_messages", "frames", "clouds", "telemetry", "jobs", "defects"}
 

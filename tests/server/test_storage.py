@@ -8,7 +8,7 @@ import httpx
 import pytest
 from websockets.sync.client import connect
 
-from server.storage import SessionFiles
+from server.storage.files import SessionFiles
 from tests.conftest import LiveServer
 from tests.server.test_ingest import frame, start, ws_url
 

@@ -9,9 +9,9 @@ from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from robot_link.protocol import MessageType, decode_message
-from server.accounts import create_user
-from server.db import make_engine, make_sessionmaker
-from server.models import Role
+from server.api.accounts import create_user
+from server.storage.db import make_engine, make_sessionmaker
+from server.storage.models import Role
 from tests.conftest import LiveServer
 from tests.server.test_ingest import msg, start, ws_url
 

@@ -253,7 +253,7 @@ def test_a_gamepad_drives_and_its_b_button_stops(live_server: LiveServer, teleop
 def test_sign_in_when_accounts_exist(live_server: LiveServer) -> None:
     from playwright.sync_api import sync_playwright
 
-    from server.models import Role
+    from server.storage.models import Role
     from tests.server.test_auth import add_user
 
     add_user(live_server, "otto", Role.operator)

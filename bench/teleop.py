@@ -1,0 +1,112 @@
+"""``steelscan bench teleop``: teleoperation latency in the real browser against the real
+server and the teleoperated simulator on loopback, over a minute of driving (``--limit``
+seconds; 60 by default).
+
+- video: frame taken at the robot (before its image is rendered) → drawn in the page's canvas;
+- command: key pressed in the page (the key event's time) → its drive command received by the
+  robot, and every repeated drive command sent → received;
+- dead-man: the page stops sending mid-drive (a hung tab or a lost link) → the robot at a
+  standstill, measured from the last drive command the robot received.
+
+The targets of the issue (p99 video ≤ 150 ms, p99 command ≤ 20 ms, dead-man ≤ 300 ms) are the
+baselines; ``ratio`` = measured / target (≤ 1 meets it).
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from robot_link.sim.teleop import start_teleop_robot
+from bench.common import Result
+
+TARGETS_MS = {"video_p99": 150.0, "command_p99": 20.0, "deadman_max": 300.0}
+PATTERN = [("ArrowUp", 1.0), (None, 0.4), ("ArrowLeft", 0.5), (None, 0.3), ("ArrowDown", 1.0), (None, 0.4), ("ArrowRight", 0.5), (None, 0.3)]
+DEADMAN_TRIALS = 10
+
+
+def _pct(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if values else float("nan")
+
+
+def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
+    """Drive the simulated robot from the browser for a minute; latencies p50/p99 and the dead-man stop."""
+    from playwright.sync_api import sync_playwright
+
+    from server.config import Settings
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
+    from server.demo import BackgroundServer, free_port
+    from server.link.robots import create_robot
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        yield {"name": "teleop", "value": None, "unit": "", "error": "Debian's chromium is not installed (scripts/setup.sh installs it)"}
+        return
+    seconds = float(limit or 60)
+    scratch = Path(tempfile.mkdtemp(prefix="steelscan-bench-teleop-"))
+    settings = Settings(data_dir=scratch, auto_process=False, view3d=False, job_workers=1)
+    upgrade(settings.resolved_database_url())
+    engine = make_engine(settings.resolved_database_url())
+    token = create_robot(make_sessionmaker(engine), "bench-teleop")
+    engine.dispose()
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    robot = start_teleop_robot(server.url, token, duration_s=seconds + 30 + DEADMAN_TRIALS * 2)
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=chromium, headless=True,
+                                         args=["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-sync"])
+            page = browser.new_page(viewport={"width": 1280, "height": 900})
+            page.goto(server.url + "/")
+            page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000)
+            page.evaluate("window.steelscanStats.video.length = 0")
+            sim = robot.sim
+            sim.log.command_latency_ms.clear()
+            sim.log.key_latency_ms.clear()
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                for key, hold in PATTERN:
+                    if key:
+                        page.keyboard.down(key)
+                    time.sleep(hold)
+                    if key:
+                        page.keyboard.up(key)
+            video = list(page.evaluate("window.steelscanStats.video"))
+            frames = len(video)
+            # dead-man: the page stops sending while a key is held, the robot must stop by itself
+            sim.log.deadman_stops_ms.clear()
+            for _ in range(DEADMAN_TRIALS):
+                page.keyboard.down("ArrowUp")
+                time.sleep(0.5)
+                page.evaluate("window.steelscanStats.mute = true")
+                time.sleep(0.6)
+                page.keyboard.up("ArrowUp")
+                page.evaluate("window.steelscanStats.mute = false")
+                page.keyboard.down("ArrowDown")
+                time.sleep(0.5)
+                page.keyboard.up("ArrowDown")
+                time.sleep(0.3)
+            browser.close()
+        commands, keys, deadman = list(sim.log.command_latency_ms), list(sim.log.key_latency_ms), list(sim.log.deadman_stops_ms)
+    finally:
+        robot.stop()
+        server.stop()
+        shutil.rmtree(scratch, ignore_errors=True)
+    base = {"seconds": seconds}
+    for name, values, target in (("teleop_video_latency", video, TARGETS_MS["video_p99"]),
+                                 ("teleop_key_to_robot_latency", keys, TARGETS_MS["command_p99"]),
+                                 ("teleop_command_latency", commands, TARGETS_MS["command_p99"])):
+        p99 = _pct(values, 99)
+        yield {"name": f"{name}_p50", "value": round(_pct(values, 50), 2), "unit": "ms", "samples": len(values), **base}
+        yield {"name": f"{name}_p99", "value": round(p99, 2), "unit": "ms", "baseline": target, "baseline_is": "target",
+               "ratio": round(p99 / target, 3), "samples": len(values), **base}
+    yield {"name": "teleop_video_fps", "value": round(frames / seconds, 1), "unit": "frames/s", **base}
+    worst = max(deadman) if deadman else float("nan")
+    yield {"name": "teleop_deadman_stop_max", "value": round(worst, 1), "unit": "ms", "baseline": TARGETS_MS["deadman_max"],
+           "baseline_is": "target", "ratio": round(worst / TARGETS_MS["deadman_max"], 3), "trials": len(deadman),
+           "p50": round(_pct(deadman, 50), 1)}

@@ -1,0 +1,120 @@
+"""Operator accounts: argon2-hashed passwords, roles, and bearer tokens (hashed at rest)."""
+
+from __future__ import annotations
+
+import secrets
+import threading
+import time
+from collections import deque
+from datetime import timedelta
+
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError
+from sqlalchemy import delete, func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.errors import Conflict
+from server.link.robots import hash_token
+from server.storage.models import AuthToken, Role, User, utcnow
+
+ROLE_RANK = {Role.viewer: 0, Role.operator: 1, Role.admin: 2}
+TOKEN_LIFETIME = timedelta(hours=12)
+_hasher = PasswordHasher()
+
+
+def create_user(factory: sessionmaker[Session], name: str, password: str, role: Role) -> None:
+    """Add an account; raise ValueError for an empty name or a short password."""
+    if not name.strip():
+        raise ValueError("user name must not be empty")
+    if len(password) < 8:
+        raise ValueError("password must have at least 8 characters")
+    with factory() as db:
+        db.add(User(name=name.strip(), password_hash=_hasher.hash(password), role=role))
+        try:
+            db.commit()
+        except IntegrityError:
+            raise Conflict(f"a user named {name!r} already exists") from None
+
+
+def accounts_exist(db: Session) -> bool:
+    """Whether any operator account exists (without one the station is open, as on a bench)."""
+    return (db.scalar(select(func.count()).select_from(User)) or 0) > 0
+
+
+def issue_token(factory: sessionmaker[Session], name: str, password: str) -> tuple[str, User] | None:
+    """A new bearer token for a correct name and password, else None."""
+    with factory() as db:
+        user = db.scalar(select(User).where(User.name == name))
+        if user is None:
+            _hasher.hash(password)  # spend the same time as a real check
+            return None
+        try:
+            _hasher.verify(user.password_hash, password)
+        except (VerificationError, InvalidHashError):
+            return None
+        token = secrets.token_urlsafe(32)
+        now = utcnow()
+        db.execute(delete(AuthToken).where(AuthToken.expires_at < now))
+        db.add(AuthToken(token_hash=hash_token(token), user_id=user.id, expires_at=now + TOKEN_LIFETIME))
+        db.commit()
+        return token, user
+
+
+def user_for_token(db: Session, token: str | None) -> User | None:
+    """The account a bearer token belongs to, if the token is valid and unexpired."""
+    if not token:
+        return None
+    row = db.get(AuthToken, hash_token(token))
+    if row is None:
+        return None
+    expires = row.expires_at if row.expires_at.tzinfo else row.expires_at.replace(tzinfo=utcnow().tzinfo)
+    if expires < utcnow():
+        return None
+    return db.get(User, row.user_id)
+
+
+def has_role(user: User, role: Role) -> bool:
+    """Whether the user's role is at least ``role``."""
+    return ROLE_RANK[user.role] >= ROLE_RANK[role]
+
+
+class LoginThrottle:
+    """Refuses logins for a (client, user name) after ``max_failures`` wrong passwords within
+    ``window_s`` until the oldest of them is that old (password guessing, not typing slips).
+    Bounded: at most ``max_keys`` pairs are remembered."""
+
+    def __init__(self, max_failures: int = 5, window_s: float = 60.0, max_keys: int = 10_000) -> None:
+        self.max_failures = max_failures
+        self.window_s = window_s
+        self.max_keys = max_keys
+        self._failures: dict[tuple[str, str], deque[float]] = {}
+        self._lock = threading.Lock()
+
+    def retry_after(self, client: str, name: str) -> float:
+        """Seconds until this pair may try again (0: now)."""
+        now = time.monotonic()
+        with self._lock:
+            times = self._failures.get((client, name))
+            if times is None:
+                return 0.0
+            while times and now - times[0] > self.window_s:
+                times.popleft()
+            if len(times) < self.max_failures:
+                return 0.0
+            return self.window_s - (now - times[0])
+
+    def failed(self, client: str, name: str) -> None:
+        """Count a wrong password."""
+        now = time.monotonic()
+        with self._lock:
+            if len(self._failures) >= self.max_keys:  # forget the pairs whose failures are all old, then the oldest pairs
+                self._failures = {k: v for k, v in self._failures.items() if v and now - v[-1] <= self.window_s}
+                for key in list(self._failures)[: max(0, len(self._failures) - self.max_keys + 1)]:
+                    del self._failures[key]
+            self._failures.setdefault((client, name), deque(maxlen=self.max_failures)).append(now)
+
+    def succeeded(self, client: str, name: str) -> None:
+        """Forget this pair's failures."""
+        with self._lock:
+            self._failures.pop((client, name), None)

@@ -1,0 +1,17 @@
+"""One router per resource of the REST API, and the browsers' websockets."""
+
+from server.api.routes import (
+    auth,
+    clouds,
+    defects,
+    frames,
+    jobs,
+    live,
+    reports,
+    results,
+    sessions,
+    telemetry,
+    view3d,
+)
+
+ROUTERS = [r.router for r in (auth, sessions, frames, clouds, telemetry, defects, results, reports, jobs, live, view3d)]

@@ -1,0 +1,81 @@
+"""A session's defects: list with filters, read, review, thumbnail."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import Response
+
+from server.api.deps import OperatorUser, SessionDep, StateDep, get_current_user
+from server.api.queries import (
+    DEFECT_SORT_KEYS,
+    MAX_INT,
+    DefectId,
+    count_query,
+    defects_query,
+    get_defect_or_404,
+    get_session_or_404,
+)
+from server.api.schemas import (
+    ConditionState,
+    DefectPublic,
+    DefectReview,
+    DefectsPublic,
+    ReviewStatus,
+)
+from server.storage.models import Defect, utcnow
+from server.storage.thumbnails import defect_image, encode_jpeg
+
+router = APIRouter(prefix="/api/sessions", tags=["defects"], dependencies=[Depends(get_current_user)])
+DEFECT_SORT = "^-?(" + "|".join(DEFECT_SORT_KEYS) + ")$"
+
+
+@router.get("/{session_id}/defects", response_model=DefectsPublic)
+def read_defects(db: SessionDep, session_id: str, defect_class: str | None = None,
+                 source: Annotated[str | None, Query(pattern="^(mosaic|frame)$")] = None,
+                 review_status: ReviewStatus | None = None, condition_state: ConditionState | None = None,
+                 sort: Annotated[str, Query(pattern=DEFECT_SORT, description="a column, '-' before it for descending")] = "id",
+                 skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0,
+                 limit: Annotated[int, Query(ge=1, le=5000)] = 1000) -> DefectsPublic:
+    """Defects found in a session, filtered by class, source (mosaic or frame), review status
+    or condition state, sorted by a column."""
+    get_session_or_404(db, session_id)
+    q = defects_query(session_id, defect_class=defect_class, source=source, review_status=review_status,
+                      condition_state=condition_state, sort=sort)
+    rows = db.scalars(q.offset(skip).limit(limit))
+    return DefectsPublic(data=list(rows), count=count_query(db, q))  # type: ignore[arg-type]
+
+
+@router.get("/{session_id}/defects/{defect_id}", response_model=DefectPublic)
+def read_defect(db: SessionDep, session_id: str, defect_id: DefectId) -> Defect:
+    """One defect."""
+    return get_defect_or_404(db, session_id, defect_id)
+
+
+@router.patch("/{session_id}/defects/{defect_id}", response_model=DefectPublic)
+def review_defect(db: SessionDep, session_id: str, defect_id: DefectId, body: DefectReview, user: OperatorUser) -> Defect:
+    """Record an inspector's review of a defect: confirm or reject, condition state CS1–CS4,
+    comment (operator role). Who and when is kept for the report."""
+    defect = get_defect_or_404(db, session_id, defect_id)
+    if body.review_status is not None:
+        defect.review_status = body.review_status
+    if body.condition_state is not None:
+        defect.condition_state = body.condition_state
+    elif body.clear_condition_state:
+        defect.condition_state = None
+    if body.comment is not None:
+        defect.comment = body.comment
+    defect.reviewed_by, defect.reviewed_at = user.name, utcnow()
+    db.commit()
+    return defect
+
+
+@router.get("/{session_id}/defects/{defect_id}/thumbnail.jpg", response_class=Response)
+async def read_defect_thumbnail(db: SessionDep, state: StateDep, session_id: str, defect_id: DefectId,
+                                size: Annotated[int, Query(ge=32, le=1024)] = 256) -> Response:
+    """The defect's neighbourhood (from its frame or the mosaic) with its box drawn, as JPEG."""
+    defect = get_defect_or_404(db, session_id, defect_id)
+    image = await run_in_threadpool(defect_image, db, state.files, defect, size)
+    return Response(encode_jpeg(image), media_type="image/jpeg", headers={"Cache-Control": "private, max-age=60"})

@@ -1,0 +1,176 @@
+"""A robot's websocket, ``/ws/robot``: decode, store, acknowledge, relay, forward commands."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import struct
+import time
+import uuid
+from typing import Any
+
+import anyio
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from sqlalchemy.exc import SQLAlchemyError
+
+from robot_link.protocol import (
+    HEADER,
+    Message,
+    MessageType,
+    ProtocolError,
+    decode_message,
+    encode_message,
+)
+from server.errors import IngestError
+from server.link.limits import TokenBucket
+from server.link.robots import authenticate_robot
+
+log = logging.getLogger(__name__)
+router = APIRouter()
+IN_FLIGHT = 64
+
+
+def _bearer(websocket: WebSocket) -> str | None:
+    auth = websocket.headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip()
+    return websocket.query_params.get("token")
+
+
+def _seq_of(data: bytes) -> int:
+    """Best-effort seq of an unreadable message, so the robot can drop it; 0 if unknown."""
+    try:
+        return int(HEADER.unpack_from(data)[5])
+    except struct.error:
+        return 0
+
+
+class RobotConnection:
+    """One robot's websocket: decodes, stores, acknowledges, relays, forwards commands."""
+
+    def __init__(self, websocket: WebSocket, robot_id: int, robot_name: str) -> None:
+        self.ws = websocket
+        self.robot_id = robot_id
+        self.robot_name = robot_name
+        self.state = websocket.app.state.steelscan
+        self.send_lock = asyncio.Lock()
+        self.session_ids: set[str] = set()
+        settings = self.state.settings
+        self.bucket = TokenBucket(settings.robot_messages_per_s, settings.robot_message_burst)
+
+    async def send(self, message: Message) -> None:
+        """Send one protocol message to the robot."""
+        data = encode_message(message)
+        async with self.send_lock:
+            await self.ws.send_bytes(data)
+
+    async def send_error(self, sid: uuid.UUID, seq: int, error: str, *, retry: bool = False) -> None:
+        """Tell the robot a message was rejected (``retry``: for now only)."""
+        await self.send(Message(MessageType.ERROR, sid, seq, time.time(), {"error": error[:500], "retry": retry}))
+
+    def command_sender(self, sid: uuid.UUID):  # type: ignore[no-untyped-def]
+        """A coroutine function the hub calls to forward an operator's command."""
+        hub = self.state.hub
+
+        async def send_command(cmd: str, args: dict[str, Any]) -> int:
+            seq = hub.next_command_seq(str(sid))
+            await self.send(Message(MessageType.COMMAND, sid, seq, time.time(), {"cmd": cmd, "args": args}))
+            return seq
+
+        return send_command
+
+    async def run(self) -> None:
+        """Serve the robot until it disconnects."""
+        senders: dict[str, Any] = {}
+        in_flight: set[asyncio.Task[None]] = set()
+        room = asyncio.Semaphore(IN_FLIGHT)  # messages of this robot being stored at once
+        try:
+            while True:
+                event = await self.ws.receive()
+                if event["type"] == "websocket.disconnect":
+                    break
+                data = event.get("bytes")
+                if data is None:
+                    await self.send_error(uuid.UUID(int=0), 0, "text messages are not part of the protocol; send binary")
+                    continue
+                await room.acquire()
+                # handled concurrently (stored by the group-commit writer in arrival order),
+                # so the next message is read while this one is being stored
+                task = asyncio.create_task(self.handle(data, senders))
+                in_flight.add(task)
+                task.add_done_callback(lambda t: (in_flight.discard(t), room.release()))
+        except WebSocketDisconnect:
+            pass
+        finally:
+            if in_flight:
+                await asyncio.gather(*in_flight, return_exceptions=True)
+            for sid, sender in senders.items():
+                self.state.hub.detach_robot(sid, sender)
+
+    async def handle(self, data: bytes, senders: dict[str, Any]) -> None:
+        """Decode, store, acknowledge and relay one message."""
+        try:
+            message = decode_message(data, max_bytes=self.state.settings.max_message_bytes)
+        except ProtocolError as exc:
+            await self.send_error(uuid.UUID(int=0), _seq_of(data), f"malformed message: {exc}")
+            return
+        if message.type in (MessageType.ACK, MessageType.ERROR, MessageType.COMMAND):
+            await self.send_error(message.session_id, message.seq, f"{message.type.name} is not sent by robots")
+            return
+        if message.type is MessageType.VIDEO:  # live preview: relayed, never stored or acknowledged
+            if self.bucket.take():
+                self.state.hub.publish_frame({"session_id": str(message.session_id), "seq": message.seq, "t": message.timestamp,
+                                              "video": True}, message.payload)
+            return
+        if message.type is MessageType.COMMAND_ACK:
+            self.state.hub.publish_json({"type": "command_ack", "session_id": str(message.session_id), "seq": message.seq, **message.meta})
+            return
+        if not self.bucket.take():
+            await self.send_error(message.session_id, message.seq, "rate limit: too many messages, send it again shortly", retry=True)
+            return
+        try:
+            result = await self.state.writer.store(message, self.robot_id)
+        except IngestError as exc:
+            await self.send_error(message.session_id, message.seq, str(exc), retry=exc.retry)
+            return
+        except (OSError, SQLAlchemyError) as exc:
+            log.exception("ingest: could not store seq %d", message.seq)
+            await self.send_error(message.session_id, message.seq, f"ground station could not store it: {type(exc).__name__}")
+            return
+        await self.send(Message(MessageType.ACK, message.session_id, message.seq, time.time(), {"status": result.status, "of": message.type.name}))
+        sid = str(message.session_id)
+        if sid not in senders:
+            senders[sid] = self.command_sender(message.session_id)
+            self.state.hub.attach_robot(sid, senders[sid])
+        self.relay(message)
+        live_map = self.state.live_map
+        if live_map is not None and message.type is MessageType.CLOUD and result.status == "stored":
+            live_map.offer(sid, message.payload, message.meta)
+        if result.session_ended and self.state.settings.auto_process:
+            await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, sid)
+
+    def relay(self, message: Message) -> None:
+        """Show the message to watching browsers."""
+        hub = self.state.hub
+        sid = str(message.session_id)
+        pose = message.meta.get("pose")
+        if self.state.scene is not None and isinstance(pose, dict) and message.type in (MessageType.FRAME, MessageType.TELEMETRY):
+            self.state.scene.show_pose(sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"]))
+        if message.type is MessageType.FRAME:
+            hub.publish_frame({"session_id": sid, "seq": message.seq, "t": message.timestamp, "pose": message.meta.get("pose")}, message.payload)
+        elif message.type is MessageType.TELEMETRY:
+            hub.publish_json({"type": "telemetry", "session_id": sid, "data": {**message.meta, "t": message.timestamp}})
+        elif message.type in (MessageType.SESSION_START, MessageType.SESSION_END):
+            hub.publish_json({"type": "session", "session_id": sid, "event": message.type.name.lower(), "robot": self.robot_name})
+
+
+@router.websocket("/ws/robot")
+async def robot_socket(websocket: WebSocket) -> None:
+    """Robot link: binary protocol messages in, ACK/ERROR/COMMAND out (see PROTOCOL.md)."""
+    state = websocket.app.state.steelscan
+    robot = await anyio.to_thread.run_sync(authenticate_robot, state.factory, _bearer(websocket))
+    if robot is None:
+        await websocket.close(code=1008, reason="invalid robot token")
+        return
+    await websocket.accept()
+    await RobotConnection(websocket, robot.id, robot.name).run()

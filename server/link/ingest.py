@@ -1,0 +1,353 @@
+"""Durable storage of robot messages: file first, then the database row, then the ACK."""
+
+from __future__ import annotations
+
+import asyncio
+import queue
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from sqlalchemy import Connection, bindparam, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from robot_link.protocol import Message, MessageType
+from server.errors import IngestError
+from server.storage.db import WalCheckpointer, is_sqlite
+from server.storage.files import SessionFiles
+from server.storage.models import (
+    Cloud,
+    Frame,
+    InspectionSession,
+    ReceivedMessage,
+    SessionStatus,
+    TelemetrySample,
+    utcnow,
+)
+
+StoreStatus = Literal["stored", "duplicate"]
+
+
+@dataclass(frozen=True)
+class StoreResult:
+    """What storing one message did."""
+
+    status: StoreStatus
+    session_ended: bool = False
+
+
+@dataclass
+class _Owner:
+    """What ingest needs to know of a stored session (cached: only ingest changes it)."""
+
+    robot_id: int | None
+    ended: bool
+
+
+class Ingest:
+    """Stores each robot message exactly once per (session, seq).
+
+    The hot path keeps one connection open and writes the rows of frames, clouds and
+    telemetry with the DB-API's ``executemany`` (SQLAlchemy Core for the rare session rows):
+    per group commit one INSERT per table and one commit (a duplicate query only after a
+    resend). One transaction at a time.
+    """
+
+    def __init__(self, factory: sessionmaker[Session], files: SessionFiles) -> None:
+        self.factory = factory
+        self.engine = factory.kw["bind"]
+        self.files = files
+        self._owners: dict[str, _Owner] = {}
+        self._inserts = {table: _RawInsert(table, self.engine.dialect) for table in (RECEIVED, FRAMES, CLOUDS, TELEMETRY)}
+        self._dbapi_integrity_error: type[Exception] = self.engine.dialect.dbapi.IntegrityError
+        self._conn: Connection | None = None
+        self._checkpointer: WalCheckpointer | None = None
+        self._lock = threading.RLock()  # one transaction at a time on the one connection
+
+    def store(self, message: Message, robot_id: int | None) -> StoreResult:
+        """Store one decoded message durably; raise IngestError if it cannot be stored."""
+        result = self.store_many([(message, robot_id)])[0]
+        if isinstance(result, Exception):
+            raise result
+        return result
+
+    def store_many(self, items: list[tuple[Message, int | None]], *, check: bool = False) -> list[StoreResult | Exception]:
+        """Store several messages in one transaction (group commit), in order; each gets its
+        result, or the IngestError/OSError that refused it alone.
+
+        Optimistic first: resends are rare, so the batch goes in without asking which of it
+        is stored already; the primary key of ``received_messages`` refuses a duplicate, and
+        then the batch is stored again with that check (``check``), message by message if
+        the commit still fails."""
+        results: list[StoreResult | Exception] = []
+        with self._lock:
+            try:
+                conn = self._connection()
+                with conn.begin():
+                    batch = _Batch(self._stored_already(conn, items) if check else set())
+                    for message, robot_id in items:
+                        try:
+                            results.append(self._stage(conn, message, robot_id, batch))
+                        except (IngestError, OSError) as exc:
+                            results.append(exc)
+                    for table, rows in batch.rows.items():  # the hot rows as plain executemany: no statement compiling
+                        if rows:
+                            self._inserts[table].execute(conn, rows)
+            except (IntegrityError, self._dbapi_integrity_error):
+                self._owners.clear()  # trust the database again
+                if not check:
+                    return self.store_many(items, check=True)
+                if len(items) == 1:
+                    return [StoreResult("duplicate")]
+                return [self.store_many([item], check=True)[0] for item in items]
+            except BaseException:
+                self._owners.clear()
+                self.close()  # a fresh connection next time
+                raise
+            for sid, owner in batch.new_owners.items():
+                self._owners[sid] = owner
+            return results
+
+    def _connection(self) -> Connection:
+        """The connection ingest keeps open (checking one out of the pool per transaction
+        costs as much as the inserts)."""
+        if self._conn is None or self._conn.closed:
+            self._conn = self.engine.connect()
+            if is_sqlite(self.engine):  # the checkpointer's thread does them, not this one's commits
+                raw = self._conn.connection.driver_connection
+                raw.execute("PRAGMA wal_autocheckpoint=0")
+                raw.execute(f"PRAGMA journal_size_limit={WAL_SIZE_LIMIT}")  # the log's file is cut back to this after a checkpoint
+                if self._checkpointer is None:
+                    self._checkpointer = WalCheckpointer(self.engine)
+        return self._conn
+
+    def close(self) -> None:
+        """Drop the connection (not back to the pool: it has automatic checkpoints off)."""
+        with self._lock:
+            if self._conn is not None:
+                self._conn.invalidate()
+                self._conn.close()
+                self._conn = None
+            if self._checkpointer is not None:
+                self._checkpointer.close()
+                self._checkpointer = None
+
+    @staticmethod
+    def _stored_already(conn: Connection, items: list[tuple[Message, int | None]]) -> set[tuple[str, int]]:
+        """Which (session, seq) of a batch are stored: one primary-key range query per session
+        (a row-value IN over both columns does not use the index in SQLite: 0.7 ms)."""
+        by_session: dict[str, list[int]] = defaultdict(list)
+        for m, _ in items:
+            by_session[str(m.session_id)].append(m.seq)
+        seen: set[tuple[str, int]] = set()
+        for sid, seqs in by_session.items():
+            rows = conn.execute(STORED, {"sid": sid, "seqs": seqs})
+            seen.update((sid, r[0]) for r in rows)
+        return seen
+
+    def _owner(self, conn: Connection, sid: str, batch: _Batch) -> _Owner | None:
+        owner = batch.new_owners.get(sid) or self._owners.get(sid)
+        if owner is None:
+            row = conn.execute(select(SESSIONS.c.robot_id, SESSIONS.c.status).where(SESSIONS.c.id == sid)).first()
+            if row is not None:
+                owner = _Owner(row[0], row[1] == SessionStatus.ended)
+                self._owners[sid] = owner
+        return owner
+
+    def _stage(self, conn: Connection, message: Message, robot_id: int | None, batch: _Batch) -> StoreResult:
+        """Write one message's file and add its rows to the batch."""
+        sid = str(message.session_id)
+        owner = self._owner(conn, sid, batch)
+        if message.type is MessageType.SESSION_START:
+            if owner is not None:
+                self._check_owner(sid, owner, robot_id)
+                return StoreResult("duplicate")
+        elif owner is None:
+            raise IngestError(f"session {sid} is unknown: send SESSION_START first", retry=True)
+        else:
+            self._check_owner(sid, owner, robot_id)
+        if (sid, message.seq) in batch.seen:
+            return StoreResult("duplicate")
+        ended = self._add_rows(conn, message, sid, robot_id, batch)  # the file first: a failed write adds no row
+        batch.seen.add((sid, message.seq))
+        return StoreResult("stored", session_ended=ended)
+
+    @staticmethod
+    def _check_owner(sid: str, owner: _Owner, robot_id: int | None) -> None:
+        if owner.robot_id is not None and robot_id is not None and owner.robot_id != robot_id:
+            raise IngestError(f"session {sid} belongs to another robot")
+
+    def _add_rows(self, conn: Connection, message: Message, sid: str, robot_id: int | None, batch: _Batch) -> bool:
+        meta = message.meta
+        pose = meta.get("pose") or {}
+        mtype = message.type
+        rel, offset = None, None
+        if mtype in (MessageType.FRAME, MessageType.CLOUD):  # the payload before the row: a failed write adds nothing
+            rel, offset = self.files.append(sid, "frames" if mtype is MessageType.FRAME else "clouds", message.payload)
+        if mtype is MessageType.SESSION_START:  # at once: the batch's other rows refer to it
+            conn.execute(SESSIONS.insert().values(id=sid, robot_id=robot_id, structure=meta["structure"],
+                                                  operator=meta.get("operator", ""), location=meta.get("location", ""),
+                                                  calibration=meta.get("calibration", {})))
+            batch.new_owners[sid] = _Owner(robot_id, False)
+        batch.rows[RECEIVED].append({"session_id": sid, "seq": message.seq, "type": mtype.name, "received_at": utcnow()})
+        poses = {"pose_x": pose.get("x"), "pose_y": pose.get("y"), "pose_yaw": pose.get("yaw")}
+        if mtype is MessageType.FRAME:
+            batch.rows[FRAMES].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "width": meta["width"],
+                                       "height": meta["height"], "path": rel, "data_offset": offset, "size_bytes": len(message.payload),
+                                       **poses})
+        elif mtype is MessageType.CLOUD:
+            intrinsics = {k: meta[k] for k in ("fx", "fy", "cx", "cy") if k in meta}
+            batch.rows[CLOUDS].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp,
+                                       "encoding": meta["encoding"], "width": meta["width"], "height": meta["height"],
+                                       "intrinsics": intrinsics, "path": rel, "data_offset": offset,
+                                       "size_bytes": len(message.payload), **poses})
+        elif mtype is MessageType.TELEMETRY:
+            batch.rows[TELEMETRY].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "data": meta})
+        elif mtype is MessageType.SESSION_END:
+            conn.execute(SESSIONS.update().where(SESSIONS.c.id == sid).values(
+                status=SessionStatus.ended, ended_at=utcnow(), end_reason=meta.get("reason", "completed")))
+            self.files.close_session(sid)
+            return True
+        return False
+
+
+SESSIONS = InspectionSession.__table__
+RECEIVED = ReceivedMessage.__table__
+FRAMES = Frame.__table__
+CLOUDS = Cloud.__table__
+TELEMETRY = TelemetrySample.__table__
+STORED = select(RECEIVED.c.seq).where(RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.seq.in_(bindparam("seqs", expanding=True)))
+
+
+class _RawInsert:
+    """A table's INSERT of every column but the autoincrement key, for the DB-API's
+    ``executemany``: the values converted by each column's own SQLAlchemy type (JSON,
+    datetimes), so rows read back exactly as the ORM writes them, without compiling a
+    statement per transaction (~75 µs each: a third of storing a frame)."""
+
+    def __init__(self, table: Any, dialect: Any) -> None:
+        self.table = table
+        columns = [c.name for c in table.columns if c is not table.autoincrement_column]
+        marks = {"qmark": "?", "format": "%s", "pyformat": "%s"}.get(dialect.paramstyle)
+        self.sql = None if marks is None else f"INSERT INTO {table.name} ({', '.join(columns)}) VALUES ({', '.join([marks] * len(columns))})"
+        self._convert = [(name, table.c[name].type.dialect_impl(dialect).bind_processor(dialect)) for name in columns]
+
+    def execute(self, conn: Connection, rows: list[dict[str, Any]]) -> None:
+        """Insert rows (dicts by column name; a missing column is NULL) in ``conn``'s
+        transaction; through SQLAlchemy Core for a driver whose parameter style it does not know."""
+        if self.sql is None:
+            conn.execute(self.table.insert(), rows)
+            return
+        values = [tuple(row.get(name) if f is None else f(row.get(name)) for name, f in self._convert) for row in rows]
+        conn.connection.cursor().executemany(self.sql, values)
+
+
+@dataclass
+class _Batch:
+    """What one group commit has gathered: rows per table, sessions started, keys stored."""
+
+    seen: set[tuple[str, int]]
+    new_owners: dict[str, _Owner] = field(default_factory=dict)
+    rows: dict[Any, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
+
+
+WAL_SIZE_LIMIT = 64 * 2**20  # bytes of write-ahead log kept on disk once checkpointed
+QUIET_S = 0.002  # no transaction for this long: the station is not under load
+
+
+class GroupCommit:
+    """Stores the messages of every robot connection on one writer thread, as many per
+    transaction as have arrived meanwhile (up to ``max_batch``): one SQLite commit for many
+    frames, each acknowledged only once its transaction is committed."""
+
+    def __init__(self, ingest: Ingest, max_batch: int = 128) -> None:
+        self.ingest = ingest
+        self.max_batch = max_batch
+        self._queue: queue.SimpleQueue[tuple[Message, int | None, asyncio.Future[StoreResult], asyncio.AbstractEventLoop] | None] = queue.SimpleQueue()
+        self._storing = threading.Lock()  # one transaction at a time: the writer's or an inline one
+        self._count = threading.Lock()
+        self._pending = 0  # messages queued and not yet stored
+        self._last_store = 0.0  # time.monotonic() when the last transaction ended
+        self._thread = threading.Thread(target=self._run, name="ingest-writer", daemon=True)
+        self._thread.start()
+
+    def store(self, message: Message, robot_id: int | None) -> asyncio.Future[StoreResult]:
+        """Store one message; the future resolves when it is durably stored (or refused).
+
+        When the station is quiet (nothing waiting, no transaction running, none for
+        ``QUIET_S``), the message is stored at once on the calling thread: two thread
+        hand-offs saved, ~0.5 ms of a lone frame's acknowledgement. Under load it joins the
+        writer's next group commit (storing inline then would cost a commit per message:
+        half the throughput, measured)."""
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[StoreResult] = loop.create_future()
+        with self._count:
+            idle = (self._pending == 0 and time.monotonic() - self._last_store > QUIET_S
+                    and self._storing.acquire(blocking=False))
+            if not idle:
+                self._pending += 1
+        if idle:
+            try:
+                try:
+                    result: StoreResult | Exception = self.ingest.store_many([(message, robot_id)])[0]
+                except Exception as exc:  # the database itself failed  # noqa: BLE001
+                    result = exc
+            finally:
+                self._last_store = time.monotonic()
+                self._storing.release()
+            _settle(future, result)
+            return future
+        self._queue.put((message, robot_id, future, loop))
+        return future
+
+    def close(self) -> None:
+        """Store what is queued, then stop the writer."""
+        self._queue.put(None)
+        self._thread.join(timeout=30)
+        self.ingest.close()
+
+    def _run(self) -> None:
+        while True:
+            first = self._queue.get()
+            if first is None:
+                return
+            batch = [first]
+            while len(batch) < self.max_batch:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is None:
+                    self._queue.put(None)
+                    break
+                batch.append(item)
+            with self._storing:
+                try:
+                    results: list[StoreResult | Exception] = self.ingest.store_many([(m, r) for m, r, _, _ in batch])
+                except Exception as exc:  # the database itself failed: every message of the batch hears it  # noqa: BLE001
+                    results = [exc] * len(batch)
+                self._last_store = time.monotonic()
+            with self._count:
+                self._pending -= len(batch)
+            by_loop: dict[asyncio.AbstractEventLoop, list[tuple[asyncio.Future[StoreResult], StoreResult | Exception]]] = defaultdict(list)
+            for (_, _, future, loop), result in zip(batch, results):
+                by_loop[loop].append((future, result))
+            for loop, settled in by_loop.items():  # one wake-up of each loop per batch, not one per message
+                loop.call_soon_threadsafe(_settle_all, settled)
+
+
+def _settle_all(settled: list[tuple[asyncio.Future[StoreResult], StoreResult | Exception]]) -> None:
+    for future, result in settled:
+        _settle(future, result)
+
+
+def _settle(future: asyncio.Future[StoreResult], result: StoreResult | Exception) -> None:
+    if future.done():
+        return
+    if isinstance(result, Exception):
+        future.set_exception(result)
+    else:
+        future.set_result(result)

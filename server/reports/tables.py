@@ -1,0 +1,38 @@
+"""Defects as a CSV table that spreadsheets open safely."""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Iterable, Iterator
+from typing import Any
+
+from server.reports.fields import DEFECT_FIELDS
+
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def _cell(value: Any) -> Any:
+    """A CSV cell; text that a spreadsheet would run as a formula is quoted with a leading
+    apostrophe (CSV injection), numbers and empty values pass as they are."""
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, str) and value.startswith(FORMULA_START):
+        return "'" + value
+    return value
+
+
+def defects_csv(records: Iterable[dict[str, Any]]) -> Iterator[str]:
+    """``defects.csv`` line by line: a UTF-8 byte-order mark (so spreadsheets read accents),
+    a header, one row per defect record of :func:`server.reports.content.build_report`."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\r\n")
+    writer.writerow(DEFECT_FIELDS)
+    yield "\ufeff" + buf.getvalue()
+    for rec in records:
+        buf.seek(0)
+        buf.truncate()
+        writer.writerow([_cell(rec.get(k)) for k in DEFECT_FIELDS])
+        yield buf.getvalue()
