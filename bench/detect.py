@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from bench.common import Result
 from processing.detection import detect_cracks
 from processing.peaks import dominant_peaks
-from bench.common import Result
 from server.config import PROJECT_ROOT
 from server.errors import CommandError
 
@@ -145,7 +145,7 @@ def _mosaic_throughput() -> Iterator[Result]:
 
     from processing.detection import detect_cracks_tiled, on_surface
     from robot_link.sim.structure import make_structure
-    from server.jobs.tasks import _detect_in
+    from server.jobs.detect import detect_in
 
     mosaic = make_structure(11).texture
     h, w = mosaic.shape[:2]
@@ -153,7 +153,7 @@ def _mosaic_throughput() -> Iterator[Result]:
     coverage = np.full((h, w), 255, np.uint8)
     seams = np.zeros((h, w), bool)
     seams[::400, :] = seams[:, ::500] = True  # where frames would meet
-    _detect_in(mosaic[:512, :512], 0.25)  # warm-up: compiled kernels, thread pools
+    detect_in(mosaic[:512, :512], 0.25)  # warm-up: compiled kernels, thread pools
     t0 = time.perf_counter()
     gray = cv2.cvtColor(mosaic, cv2.COLOR_BGR2GRAY)
     _ = gray < threshold_sauvola(gray, window_size=25, k=0.2)
@@ -161,7 +161,7 @@ def _mosaic_throughput() -> Iterator[Result]:
     runs = []
     for _ in range(3):
         t0 = time.perf_counter()
-        _, _, found = _detect_in(mosaic, 0.25, on_surface(mosaic, coverage), seams)
+        _, _, found = detect_in(mosaic, 0.25, on_surface(mosaic, coverage), seams)
         runs.append(time.perf_counter() - t0)
     ours = mp / float(np.median(runs))
     yield {"name": "detect.mosaic_throughput", "value": round(ours, 2), "unit": "MP/s", "baseline": round(base, 2),

@@ -32,8 +32,8 @@ import websockets
 from websockets.asyncio.client import connect
 from websockets.asyncio.server import serve
 
-from robot_link.protocol import Message, MessageType, decode_message, encode_message
 from bench.common import Result
+from robot_link.protocol import Message, MessageType, decode_message, encode_message
 
 FRAME_BYTES = 68 * 1024
 ROBOTS = 4
@@ -139,9 +139,9 @@ def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Itera
     """Most frames per second stored durably (flood) against the echo ceiling, then the
     sustained rate, ACK latency and losses of several robots at a camera's 30 frames/s."""
     from server.config import Settings
-    from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.demo import free_port, serve_process
     from server.link.robots import create_robot
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
 
     field_seconds = float(limit or 60)
     root = Path(tempfile.mkdtemp(prefix="steelscan-ingest-"))

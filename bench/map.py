@@ -44,7 +44,7 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
     """Trajectory error (ATE, RPE, drift as a share of the path) and time per cloud on
     simulated ToF sweeps along the girder (:func:`_sweeps`), for this pipeline,
     odometry alone and Open3D's tutorial pipeline (FPFH + RANSAC + ICP, cloud to cloud)."""
-    from processing.mapping import MapParams, register_clouds, select
+    from processing.mapping import SelectParams, register_clouds, select
     from processing.metrics import absolute_trajectory_error
     from robot_link.sim.tof_sweeps import tof_sweep
 
@@ -58,7 +58,7 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
         ours = register_clouds(clouds, odo, shape=shape)
         ours_ms = 1000 * (time.perf_counter() - t0) / n
         t0 = time.perf_counter()
-        tutorial = _open3d_tutorial_poses([select(c, MapParams()) for c in clouds], odo)
+        tutorial = _open3d_tutorial_poses([select(c, SelectParams()) for c in clouds], odo)
         base_ms = 1000 * (time.perf_counter() - t0) / n
         name = f"map.{label}"
         ate = {k: absolute_trajectory_error(p, truth) for k, p in (("ours", ours.poses), ("odometry", odo), ("tutorial", tutorial))}
@@ -68,7 +68,7 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
                "odometry": round(ate["odometry"], 4), "clouds": n, "path_m": round(length, 2),
                "loop_closures": ours.loop_closures, "odometry_fallbacks": int(ours.used_odometry.sum()),
                "odometry_error_scale": round(ours.odometry_error_scale, 2), "plane_landmarks": ours.plane_landmarks}
-        seen = sees_structure([select(c, MapParams(), shape) for c in clouds], truth)
+        seen = sees_structure([select(c, SelectParams(), shape) for c in clouds], truth)
         oracle = absolute_trajectory_error(oracle_poses(truth, odo, seen), truth)
         yield {"name": f"{name}.drift", "value": round(100 * ate["ours"] / length, 3), "unit": "% of path", "target": 0.25,
                "baseline": round(100 * ate["odometry"] / length, 3), "ratio": round(ate["ours"] / max(ate["odometry"], 1e-9), 3),

@@ -20,9 +20,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from bench.common import Result, rigid_align_2d, similarity_align_2d
+from bench.detect import DEFAULT_CRACK_DATASET
+from processing.metrics import mosaic_overlap_errors
 from processing.poses import chain_se2, delta_of_map, frame_i_to_j, relative_se2
 from processing.registration import overlap_rect
-from processing.metrics import mosaic_overlap_errors
 from processing.stitching import plan_mosaic, render_bands
 from robot_link.sim.sweeps import (
     Sweep,
@@ -32,8 +34,6 @@ from robot_link.sim.sweeps import (
     texture_from_images,
     texture_size_for,
 )
-from bench.common import Result, rigid_align_2d, similarity_align_2d
-from bench.detect import DEFAULT_CRACK_DATASET
 
 SEEDS = (101, 202)
 DRIFT_SEEDS = tuple(range(301, 309))  # straight runs for the end drift's spread (photographs and painted steel in turn)

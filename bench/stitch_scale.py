@@ -19,9 +19,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bench.common import Result
 from processing.poses import format_tum, se2_to_se3
 from robot_link.sim.sweeps import LazySweep, SweepConfig
-from bench.common import Result
 
 PX_PER_M = 1000.0
 

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from robot_link.sim.teleop import start_teleop_robot
 from bench.common import Result
+from robot_link.sim.teleop import start_teleop_robot
 
 TARGETS_MS = {"video_p99": 150.0, "command_p99": 20.0, "deadman_max": 300.0}
 PATTERN = [("ArrowUp", 1.0), (None, 0.4), ("ArrowLeft", 0.5), (None, 0.3), ("ArrowDown", 1.0), (None, 0.4), ("ArrowRight", 0.5), (None, 0.3)]
@@ -39,9 +39,9 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
     from playwright.sync_api import sync_playwright
 
     from server.config import Settings
-    from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.demo import BackgroundServer, free_port
     from server.link.robots import create_robot
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
 
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:

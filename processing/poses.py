@@ -43,7 +43,8 @@ def compose_se2(a: NDArray[np.floating], b: NDArray[np.floating]) -> NDArray[np.
     """Compose planar poses given as (x, y, θ) rows: a ∘ b, the pose b given in a's frame
     placed in a's reference frame (inverse of :func:`relative_se2`)."""
     t = np.asarray(a[:2], float) + rot2(float(a[2])) @ np.asarray(b[:2], float)
-    return np.array([t[0], t[1], float(wrap_angle(a[2] + b[2]))])
+    yaw = float(a[2]) + float(b[2])
+    return np.array([t[0], t[1], np.arctan2(np.sin(yaw), np.cos(yaw))])  # in (-π, π]
 
 
 def relative_se2(a: NDArray[np.floating], b: NDArray[np.floating]) -> NDArray[np.float64]:

@@ -12,9 +12,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from server.jobs.allocator import keep_arrays_on_heap
 from server.config import Settings
 from server.errors import CommandError
+from server.jobs.allocator import keep_arrays_on_heap
 from server.logs import RedactSecrets, uvicorn_log_config
 
 
@@ -90,9 +90,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_create_robot(args: argparse.Namespace) -> int:
     """Register a robot and print its token."""
-    from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.errors import Conflict
     from server.link.robots import create_robot
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
 
     settings = _settings(args)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -121,8 +121,8 @@ def _read_password() -> str:
 def cmd_create_user(args: argparse.Namespace) -> int:
     """Create an operator account; the password comes from stdin."""
     from server.api.accounts import create_user
-    from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.errors import Conflict
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.storage.models import Role
 
     settings = _settings(args)
@@ -222,9 +222,9 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Write a session's report.pdf, report.json and defects.csv into a folder."""
-    from server.reports.tables import defects_csv
     from server.reports.content import build_report
     from server.reports.pdf import write_pdf
+    from server.reports.tables import defects_csv
     from server.storage.files import write_atomic
 
     factory, files = _database(args)

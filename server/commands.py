@@ -21,8 +21,8 @@ from processing.mapping import register_clouds
 from processing.poses import format_tum, parse_tum, yaw_of
 from processing.stitching import plan_mosaic, render_bands
 from server.errors import CommandError
-from server.storage.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
 from server.storage.files import write_atomic
+from server.storage.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
 
 log = logging.getLogger(__name__)
 

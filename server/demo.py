@@ -27,11 +27,11 @@ from robot_link.client import RobotLink
 from robot_link.sim.inspection import InspectionSim, SimConfig, SimResult
 from server.api.accounts import create_user
 from server.config import Settings
-from server.storage.db import make_engine, make_sessionmaker, upgrade
+from server.link.robots import create_robot
 from server.logs import uvicorn_log_config
 from server.main import create_app
+from server.storage.db import make_engine, make_sessionmaker, upgrade
 from server.storage.models import Role
-from server.link.robots import create_robot
 
 log = logging.getLogger(__name__)
 

@@ -12,15 +12,15 @@ from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
 from server.api.accounts import accounts_exist
-from server.config import Settings
 from server.api.deps import get_current_user
+from server.api.routes import ROUTERS
+from server.config import Settings
 from server.errors import Conflict, NotFound
-from server.link.ingest import GroupCommit, Ingest
 from server.jobs.runner import JobRunner
+from server.link.connection import router as robot_router
+from server.link.ingest import GroupCommit, Ingest
 from server.live.hub import LiveHub
 from server.live.live_map import LiveMap
-from server.api.routes import ROUTERS
-from server.link.connection import router as robot_router
 from server.live.scene3d import Scene3D
 from server.state import AppState
 from server.storage import db

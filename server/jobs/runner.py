@@ -13,7 +13,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.jobs.allocator import keep_arrays_on_heap
-from server.jobs.tasks import JOB_KINDS, PIPELINE, run_job
+from server.jobs.worker import JOB_KINDS, PIPELINE, run_job
 from server.storage.models import Job, JobState, utcnow
 
 log = logging.getLogger(__name__)

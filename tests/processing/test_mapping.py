@@ -5,7 +5,7 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-from processing.mapping import MapParams, filter_organised, register_clouds
+from processing.mapping import IcpParams, MapParams, OdometryParams, PlaneParams, filter_organised, register_clouds
 from processing.metrics import absolute_trajectory_error
 from robot_link.clouds import depth_to_points
 from robot_link.sim.sensors import TofCamera
@@ -172,10 +172,10 @@ def test_loop_closures_need_views_that_share_most_of_what_they_see(tof: TofCamer
     pcd = {k: select(depth_to_points(tof.render(T[k], rng), tof.fx, tof.fy, tof.cx, tof.cy), params, (172, 224)) for k in poses}
 
     def overlap(k: str) -> float:
-        return mutual_overlap(pcd[k], pcd["here"], np.linalg.inv(T["here"]) @ T[k], params.loop_overlap_m)
+        return mutual_overlap(pcd[k], pcd["here"], np.linalg.inv(T["here"]) @ T[k], params.loops.overlap_m)
 
-    assert overlap("again") > 0.8 > params.loop_min_overlap
-    assert overlap("next_lane") < params.loop_min_overlap and overlap("mid_turn") < params.loop_min_overlap
+    assert overlap("again") > 0.8 > params.loops.min_overlap
+    assert overlap("next_lane") < params.loops.min_overlap and overlap("mid_turn") < params.loops.min_overlap
 
 
 def test_odometry_worse_than_configured_is_weighted_by_what_the_data_show() -> None:
@@ -190,7 +190,7 @@ def test_odometry_worse_than_configured_is_weighted_by_what_the_data_show() -> N
     for cloud, guess in zip(poor.clouds, poor.odometry):
         calibrated.add(cloud, guess, shape=(172, 224))
     assert 1.7 < calibrated.odometry_error_scale() < 4
-    fixed = register_clouds(poor.clouds, poor.odometry, params=MapParams(calibrate_odometry=False), shape=(172, 224))
+    fixed = register_clouds(poor.clouds, poor.odometry, params=MapParams(odometry=OdometryParams(calibrate=False)), shape=(172, 224))
     assert absolute_trajectory_error(calibrated.result().poses, poor.truth) < 0.9 * absolute_trajectory_error(fixed.poses, poor.truth)
     good = tof_sweep(TofSweepConfig(seed=43))
     as_configured = IncrementalMap(MapParams())
@@ -229,7 +229,7 @@ def test_an_icp_edge_carries_its_information_in_the_source_frame() -> None:
     target = o3d.geometry.PointCloud(source).transform(T_target_source)
     target.normals = o3d.utility.Vector3dVector(np.tile(T_target_source[:3, :3] @ [0.0, 0.0, 1.0], (400, 1)))
     result = o3d.pipelines.registration.evaluate_registration(source, target, 0.01, T_target_source)
-    translation = plane_information(source, target, result, MapParams())[3:, 3:]
+    translation = plane_information(source, target, result, IcpParams())[3:, 3:]
     assert translation[2, 2] > 0 and np.allclose(translation[:2, :], 0) and np.allclose(translation[:, :2], 0)
 
 
@@ -240,7 +240,7 @@ def test_the_deck_plate_and_the_web_as_landmarks_keep_lanes_without_return_from_
     this route: 0.09 % with the landmarks, 0.26 % without)."""
     sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.5, 0.62, 0.74), revisit=False, seed=49))
     with_planes = register_clouds(sweep.clouds, sweep.odometry, shape=(172, 224))
-    without = register_clouds(sweep.clouds, sweep.odometry, params=MapParams(plane_landmarks=False), shape=(172, 224))
+    without = register_clouds(sweep.clouds, sweep.odometry, params=MapParams(planes=PlaneParams(enabled=False)), shape=(172, 224))
     assert with_planes.plane_landmarks >= 2 and without.plane_landmarks == 0
     drift = absolute_trajectory_error(with_planes.poses, sweep.truth) / sweep.path_length_m
     assert drift < 0.002

@@ -3,7 +3,7 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-from processing.mapping import MapParams, select
+from processing.mapping import SelectParams, select
 from processing.planes import Plane, extract_planes, plane_edge, plane_frame, same_plane, to_frame
 from robot_link.clouds import depth_to_points
 from robot_link.sim.sensors import TofCamera
@@ -18,7 +18,7 @@ def view() -> tuple[o3d.geometry.PointCloud, np.ndarray]:
     tof = TofCamera(make_structure(3, n_cracks=1, n_corrosion=1), noise_sigma_m=0.01)
     T = tof.T_world_tof(np.array([0.6, 0.6, 0.3]))  # heading a little towards the web
     cloud = depth_to_points(tof.render(T, np.random.default_rng(3)), tof.fx, tof.fy, tof.cx, tof.cy)
-    return select(cloud, MapParams(), (172, 224)), T
+    return select(cloud, SelectParams(), (172, 224)), T
 
 
 def _transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:

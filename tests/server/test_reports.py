@@ -272,7 +272,7 @@ def test_banded_detection_matches_the_one_pass_result(inspected: tuple[LiveServe
 
     from processing.detection import defect_masks, on_surface, surface_level
     from server.jobs.banded import detect_banded
-    from server.jobs.tasks import _detect_mosaic
+    from server.jobs.detect import _detect_mosaic
 
     live, sid = inspected
     results = tmp_path / "results"

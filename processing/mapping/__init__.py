@@ -1,0 +1,115 @@
+"""3D map of the structure from ToF clouds by ICP (paper §3.2), drift-free by a pose graph.
+
+The paper's four steps, each a small function:
+
+1. **selection** (:func:`select`): invalid and far returns dropped, the organised depth
+   image median-filtered and averaged in 2x2 blocks when the cloud is organised, voxel
+   downsampling, normals;
+2. **matching** (:func:`match`): the odometry gives the initial alignment; FPFH features on
+   the roughly aligned clouds then propose a finer one, kept only when it stays within
+   the odometry's error bounds (repeating stiffeners make features ambiguous);
+3. **rejection**: correspondences farther than ``max_correspondence_m`` are dropped and the
+   rest weighted by a robust Tukey loss, so outliers and duplicates carry no weight;
+4. **alignment** (:func:`align`): point-to-plane (default), point-to-point or generalized
+   ICP (plane-to-plane). On a small patch of flat plate point-to-plane's normal equations
+   are singular and it can run away: the fitness and bounds checks catch that and the
+   odometry is used (generalized ICP stays well-posed there but slides along the plate);
+
+with the paper's three stopping rules (:class:`MapParams`): the error stops changing
+(relative fitness and RMSE), an iteration cap, and a transform that leaves its bounds
+(then the odometry is used and the cloud is flagged).
+
+Beyond the paper: each cloud is registered to the previous one from the odometry step
+(the chain that seeds the trajectory, kept only along directions the geometry observes);
+then a pose graph (Open3D) ties every cloud to its next few neighbours and to earlier
+clouds of the same place, looking the same way (loop closures, searched coarse to fine
+because the error accumulated by then can exceed ICP's reach, kept only when the
+structure, not just the plate, matches and the two views share most of what they see,
+and searched again from the optimised poses at the end) and is optimised robustly. Each
+ICP edge carries the point-to-plane information of its correspondences
+(:func:`plane_information`, in the edge's source frame, where Open3D measures its error),
+so a flat plate says nothing about sliding along it and the odometry edges hold the
+trajectory there; the result reports how many such directions each cloud had. The large
+planes each cloud sees (the deck plate, the girder's web, the stiffeners' faces:
+:mod:`processing.planes`) are landmarks with their own graph nodes: every cloud that sees
+one is tied to it in the three directions a plane fixes, so heading, tilt and height do
+not drift along a lane the way a chain of pairwise registrations does. The odometry
+edges' errors are raised to what the data show (:meth:`IncrementalMap.odometry_error_scale`:
+its heading steps against ICP's where the structure fixes them), so odometry worse than
+configured does not pull the map off.
+:class:`IncrementalMap` builds that graph one cloud at a time: the batch job and the live
+map are the same code.
+
+Known limits (measured, ``steelscan bench map`` and README): views 24 cm apart (the next
+lane) or from mid-turn share too little for ICP to align them (it lands centimetres off
+even from a 3 cm start), so only returns to the same lane close loops (the plane landmarks
+tie lanes together); where the ToF sees only bare plate (a girder that ends with the
+plate, turns sampled coarsely) the heading comes from the odometry until the web is in
+view again; nothing but the stiffeners and the odometry fixes the distance along the girder.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from processing.mapping.icp import (
+    align,
+    constrain_to_observable,
+    match,
+    mutual_overlap,
+    plane_information,
+    structure_fitness,
+    within_bounds,
+)
+from processing.mapping.incremental import IncrementalMap, MapResult
+from processing.mapping.params import IcpParams, LoopParams, MapParams, OdometryParams, PlaneParams, SelectParams
+from processing.mapping.selection import clean_cloud, filter_organised, fuse_map, select
+
+__all__ = [
+    "IcpParams", "IncrementalMap", "LoopParams", "MapParams", "MapResult", "OdometryParams", "PlaneParams", "SelectParams",
+    "align", "clean_cloud", "constrain_to_observable", "filter_organised", "fuse_map", "match", "mutual_overlap",
+    "plane_information", "register_clouds", "select", "structure_fitness", "within_bounds",
+]
+
+
+def register_clouds(
+    clouds: Sequence[NDArray[np.floating]],
+    initial_poses: NDArray[np.floating] | None = None,
+    *,
+    params: MapParams = MapParams(),
+    shape: tuple[int, int] | None = None,
+) -> MapResult:
+    """Register clouds (each (K, 3), sensor frame) into one world map.
+
+    Parameters
+    ----------
+    clouds : sequence of (K, 3) arrays; NaN rows are ignored.
+    initial_poses : (N, 4, 4) odometry guesses of T_world_sensor, or None (the first cloud
+        is the world frame and motion is estimated from geometry alone).
+    shape : (H, W) when the clouds are organised depth images (enables depth filtering).
+    """
+    n = len(clouds)
+    if n == 0:
+        raise ValueError("clouds must not be empty")
+    if initial_poses is not None:
+        initial_poses = np.asarray(initial_poses, dtype=np.float64)
+        if initial_poses.shape != (n, 4, 4):
+            raise ValueError(f"initial_poses must be ({n}, 4, 4), one per cloud, got {initial_poses.shape}")
+        if not np.isfinite(initial_poses).all():
+            raise ValueError("initial_poses contain NaN or infinite values")
+    if not params.refine:
+        if initial_poses is None:
+            raise ValueError("refine=False needs initial poses")
+        pcds = [select(c, params.select, shape) for c in clouds]
+        zeros = np.zeros(n)
+        return MapResult(initial_poses.copy(), fuse_map(pcds, initial_poses, params.map_voxel_m), zeros, zeros, np.ones(n, bool), np.zeros(n, int))
+    graph_map = IncrementalMap(params)
+    for i, cloud in enumerate(clouds):
+        graph_map.add(cloud, None if initial_poses is None else initial_poses[i], shape)
+    if graph_map.usable_clouds == 0:  # e.g. clouds in millimetres: every point "beyond" range
+        raise ValueError(f"no cloud has {params.icp.min_points} or more points within {params.select.max_range_m} m of the sensor "
+                         "(point clouds must be in metres)")
+    return graph_map.result()

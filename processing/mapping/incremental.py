@@ -1,0 +1,359 @@
+"""The map as a pose graph that grows one cloud at a time (the batch job and the live map)."""
+
+from __future__ import annotations
+
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+
+from scipy.spatial.transform import Rotation
+
+from processing.mapping.icp import (
+    register_pair,
+    constrain_to_observable,
+    mutual_overlap,
+    plane_information,
+    structure_fitness,
+    structure_share,
+)
+from processing.mapping.params import MapParams
+from processing.mapping.selection import fuse_map, select
+from processing.planes import Plane, extract_planes, plane_edge, plane_frame, same_plane, to_frame
+
+reg = o3d.pipelines.registration
+
+
+@dataclass
+class MapResult:
+    """Registered poses T_world_sensor (N, 4, 4), the fused map (M, 3) and per-cloud facts."""
+
+    poses: NDArray[np.float64]
+    points: NDArray[np.float32]
+    fitness: NDArray[np.float64]
+    rmse: NDArray[np.float64]
+    used_odometry: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    degenerate_dims: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, int))
+    loop_closures: int = 0
+    pruned_edges: int = 0
+    odometry_error_scale: float = 1.0  # the odometry's error measured against ICP, over the configured one (>= 1)
+    plane_landmarks: int = 0  # large planes (deck plate, web, stiffener faces) that tied the clouds seeing them
+
+
+class IncrementalMap:
+    """The map as a pose graph growing one cloud at a time, as the robot sends them.
+
+    Each new cloud is registered to the previous one from its odometry step (without
+    odometry: the previous step, a constant-velocity guess), which places it (ICP's
+    correction kept only along observable directions) and gives a graph edge (all of it,
+    with its point-to-plane information); then edges to the clouds a few steps back and
+    loop closures to earlier clouds of the same place are added, and its large planes are
+    matched to the plane landmarks seen so far (or start new ones; the landmarks' nodes and
+    sighting edges join the graph when it is optimised). ``optimise_every`` > 0
+    optimises the graph every that many clouds (a tenth of the clouds so far once that is
+    more) and at each loop closure (the live map), else only in
+    :meth:`result` (the batch job); both give the same kind of map.
+    """
+
+    def __init__(self, params: MapParams = MapParams(), optimise_every: int = 0) -> None:
+        self.params = params
+        self.optimise_every = optimise_every
+        self.graph = reg.PoseGraph()
+        self._pose_buffer = np.zeros((64, 4, 4))  # the nodes' poses (the first len(graph.nodes) rows)
+        self.loop_closures = 0
+        self._looped: set[tuple[int, int]] = set()  # (i, j) pairs tied by a loop closure
+        self.pruned_edges = 0
+        self._pcds: list[o3d.geometry.PointCloud] = []
+        self._guesses: list[NDArray[np.float64] | None] = []
+        self._steps: list[NDArray[np.float64]] = []  # odometry (or seed) step into each cloud
+        self._facts: list[tuple[float, float, bool, int]] = []  # fitness, rmse, used odometry, degenerate dims
+        self._odometry_sigmas: dict[int, tuple[float, float]] = {}  # cloud -> configured (rotation rad, translation m) of its odometry edge
+        self._heading_gaps: list[float] = []  # ICP's heading step minus the odometry's, where the structure fixes it, over its configured error
+        self._planes: list[list[Plane]] = []  # large planes of each cloud (sensor frame)
+        self._landmarks: list[list[tuple[int, int]]] = []  # each landmark's sightings (cloud, plane index)
+        self._landmark_poses: list[NDArray[np.float64]] = []  # T_world_landmark: a frame on the plane, z along its normal
+        self._fused = o3d.geometry.PointCloud()
+        self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
+
+    @property
+    def usable_clouds(self) -> int:
+        """Clouds with enough points after selection to be registered."""
+        return sum(len(pcd.points) >= self.params.icp.min_points for pcd in self._pcds)
+
+    @property
+    def poses(self) -> NDArray[np.float64]:
+        """Current T_world_sensor of every cloud so far, (N, 4, 4)."""
+        return self._pose_buffer[: len(self.graph.nodes)].copy()
+
+    def _append_node(self, pose: NDArray[np.float64]) -> None:
+        """A graph node for the next cloud, its pose also kept in an array (reading every
+        node's pose back from Open3D for each loop search made a long session quadratic)."""
+        self.graph.nodes.append(reg.PoseGraphNode(pose))
+        n = len(self.graph.nodes)
+        if n > len(self._pose_buffer):
+            self._pose_buffer = np.concatenate([self._pose_buffer, np.zeros_like(self._pose_buffer)])
+        self._pose_buffer[n - 1] = pose
+
+    def add(self, points: NDArray[np.floating], guess: NDArray[np.floating] | None = None,
+            shape: tuple[int, int] | None = None) -> NDArray[np.float64]:
+        """Place one cloud (sensor frame) given its odometry pose ``guess``; its pose."""
+        guess = None if guess is None else np.asarray(guess, dtype=np.float64)
+        pcd = select(points, self.params.select, shape)
+        i = len(self._pcds)
+        self._pcds.append(pcd)
+        self._guesses.append(guess)
+        self._planes.append(extract_planes(np.asarray(pcd.points), np.asarray(pcd.normals))
+                            if self.params.planes.enabled and pcd.has_normals() else [])
+        if i == 0:
+            pose = guess if guess is not None else np.eye(4)
+            self._append_node(pose)
+            self._facts.append((1.0, 0.0, False, 0))
+            self._associate_planes(0)
+            return pose
+        previous = self._guesses[i - 1]
+        if guess is not None and previous is not None:
+            step = np.linalg.inv(previous) @ guess
+        else:
+            step = self._steps[-1] if self._steps else np.eye(4)
+        result = register_pair(pcd, self._pcds[i - 1], step, self.params.icp)
+        if result is None:
+            seed, facts = step, (0.0, 0.0, True, 6)
+        else:
+            seed, degenerate = constrain_to_observable(step, result, pcd, self._pcds[i - 1], self.params.icp)
+            if guess is None:  # no odometry to hold the weak directions: ICP's weak evidence beats a guess
+                seed = np.asarray(result.transformation)
+            facts = (float(result.fitness), float(result.inlier_rmse), False, degenerate)
+            if guess is not None:
+                self._record_heading_gap(i, step, result)
+        self._steps.append(step if guess is not None else seed)
+        self._facts.append(facts)
+        pose = np.asarray(self.graph.nodes[i - 1].pose) @ seed
+        self._append_node(pose)
+        self._add_odometry_edge(i)
+        if self.params.pose_graph:
+            if result is not None:
+                self._add_edge(i, i - 1, result, uncertain=False)
+            for j in range(max(0, i - self.params.neighbours), i - 1):
+                self._add_edge(i, j, register_pair(pcd, self._pcds[j], self._relative(j, i), self.params.icp), uncertain=False)
+            self._associate_planes(i)
+            loops = self._close_loops(i)
+            # every ``optimise_every`` clouds, and less often as the graph grows (each
+            # optimisation and re-fusion costs time in proportion to the clouds so far)
+            if self.optimise_every and (loops or (i + 1) % max(self.optimise_every, i // 10) == 0):
+                self.optimise()
+        return np.asarray(self.graph.nodes[i].pose)
+
+    def _relative(self, t: int, s: int) -> NDArray[np.float64]:
+        """T_t_s from the current estimate."""
+        return np.linalg.inv(np.asarray(self.graph.nodes[t].pose)) @ np.asarray(self.graph.nodes[s].pose)
+
+    def _add_odometry_edge(self, i: int) -> None:
+        """Odometry edge into cloud i: holds what the geometry cannot; its error grows with the step."""
+        step = self._steps[i - 1]
+        sigma_r, sigma_t = self._odometry_sigmas[i] = self._odometry_sigma(step)
+        info = np.diag([1 / sigma_r**2] * 3 + [1 / sigma_t**2] * 3)
+        self.graph.edges.append(reg.PoseGraphEdge(i, i - 1, step, info, uncertain=False))
+
+    def _odometry_sigma(self, step: NDArray[np.float64]) -> tuple[float, float]:
+        """Configured error of an odometry step: rotation (rad) and translation (m)."""
+        p = self.params
+        d = float(np.linalg.norm(step[:3, 3]))
+        return float(np.radians(p.odometry.sigma_deg_per_m * d + 0.2)), max(p.odometry.sigma_frac * d, p.odometry.sigma_floor_m)
+
+    def _record_heading_gap(self, i: int, step: NDArray[np.float64], result: reg.RegistrationResult) -> None:
+        """Heading difference between the odometry's step into cloud i and ICP's, kept when
+        ICP's is trustworthy (a close match whose structure, not only the plate, fixes it)."""
+        if result.fitness < 0.9 or structure_share(self._pcds[i]) < 0.15:
+            return
+        gap = Rotation.from_matrix(np.asarray(result.transformation)[:3, :3] @ step[:3, :3].T).as_rotvec()
+        up = np.asarray(self.graph.nodes[i - 1].pose)[2, :3]  # the world's z axis in cloud i-1's frame
+        self._heading_gaps.append(float(gap @ up) / self._odometry_sigma(step)[0])
+
+    def odometry_error_scale(self) -> float:
+        """How much larger the odometry's heading error is than configured (>= 1): the robust
+        spread (1.4826 MAD) of its heading steps against ICP's, where the structure fixes
+        them, each over its configured error; 1 until 10 such steps were seen. ICP's own
+        error is in the spread, so odometry as good as configured stays at 1."""
+        if not self.params.odometry.calibrate or len(self._heading_gaps) < 10:
+            return 1.0
+        return max(1.0, 1.4826 * float(np.median(np.abs(self._heading_gaps))))
+
+    def _calibrate_odometry_edges(self) -> None:
+        """Set every odometry edge's information for :meth:`odometry_error_scale` (each cloud's
+        first certain edge to its predecessor is its odometry edge: it is added first)."""
+        scale = self.odometry_error_scale()
+        seen: set[int] = set()
+        for edge in self.graph.edges:
+            s, t = edge.source_node_id, edge.target_node_id
+            if edge.uncertain or t != s - 1 or s in seen or s not in self._odometry_sigmas:
+                continue
+            seen.add(s)
+            sigma_r, sigma_t = self._odometry_sigmas[s]
+            edge.information = np.diag([1 / (scale * sigma_r) ** 2] * 3 + [1 / (scale * sigma_t) ** 2] * 3)
+
+    def _add_edge(self, s: int, t: int, result: reg.RegistrationResult | None, *, uncertain: bool) -> int:
+        """An ICP edge from cloud s to cloud t with its point-to-plane information (1 if added)."""
+        if result is None:
+            return 0
+        info = plane_information(self._pcds[s], self._pcds[t], result, self.params.icp)
+        self.graph.edges.append(reg.PoseGraphEdge(s, t, np.asarray(result.transformation), info, uncertain=uncertain))
+        return 1
+
+    @property
+    def plane_landmarks(self) -> int:
+        """Landmarks seen often enough to tie the clouds that see them."""
+        return sum(len(s) >= self.params.planes.min_sightings for s in self._landmarks)
+
+    def _landmark_plane(self, m: int) -> Plane:
+        """Landmark m as a plane in the world (its node's z axis and origin)."""
+        T = self._landmark_poses[m]
+        return Plane(T[:3, 2].copy(), float(-T[:3, 2] @ T[:3, 3]), T[None, :3, 3].copy())
+
+    def _associate_planes(self, i: int) -> None:
+        """Match cloud i's large planes to the landmarks (current estimate); an unmatched one
+        becomes a landmark, its node a frame on the plane (z along its normal)."""
+        p = self.params
+        pose = np.asarray(self.graph.nodes[i].pose)
+        for k, plane in enumerate(self._planes[i]):
+            world = to_frame(plane, pose)
+            m = next((m for m in range(len(self._landmarks))
+                      if same_plane(world, self._landmark_plane(m), p.planes.max_angle_deg, p.planes.max_offset_m)), None)
+            if m is None:
+                self._landmarks.append([(i, k)])
+                self._landmark_poses.append(plane_frame(world))
+            else:
+                self._landmarks[m].append((i, k))
+
+    def _merge_landmarks(self) -> None:
+        """Merge landmarks that the optimised poses show to be one plane (seen apart before)."""
+        p = self.params
+        m = 0
+        while m < len(self._landmarks):
+            other = next((o for o in range(m + 1, len(self._landmarks))
+                          if same_plane(self._landmark_plane(m), self._landmark_plane(o), p.planes.max_angle_deg, p.planes.max_offset_m)), None)
+            if other is None:
+                m += 1
+                continue
+            self._landmarks[m] += self._landmarks.pop(other)
+            self._landmark_poses.pop(other)
+
+    def _landmark_edges(self, first_node: int) -> tuple[list[int], list[reg.PoseGraphEdge]]:
+        """The landmarks seen often enough to tie clouds (their nodes numbered from
+        ``first_node`` in that order) and the edges from each sighting to its landmark's
+        node: :func:`plane_edge` against the plane z = 0 of the landmark's frame, uncertain
+        (the robust optimisation can drop a sighting that disagrees), and a weak prior tying
+        each landmark to its first sighting along what planes leave free."""
+        p = self.params
+        active = [m for m, sightings in enumerate(self._landmarks) if len(sightings) >= p.planes.min_sightings]
+        edges = []
+        on_plane = Plane(np.array([0.0, 0.0, 1.0]), 0.0, np.zeros((1, 3)))
+        for node, m in enumerate(active, start=first_node):
+            T_L = np.linalg.inv(self._landmark_poses[m])
+            for i, k in self._landmarks[m]:
+                measurement, info = plane_edge(self._planes[i][k], on_plane, T_L @ np.asarray(self.graph.nodes[i].pose), p.planes.sigma_m)
+                edges.append(reg.PoseGraphEdge(i, node, measurement, info, uncertain=True))
+            anchor = self._landmarks[m][0][0]
+            edges.append(reg.PoseGraphEdge(anchor, node, T_L @ np.asarray(self.graph.nodes[anchor].pose), np.eye(6), uncertain=False))
+        return active, edges
+
+    def _close_loops(self, i: int, *, optimised: bool = False) -> int:
+        """Loop closures from cloud i to the nearest earlier clouds of the same place,
+        searched coarse to fine (the drift accumulated by then can exceed ICP's reach).
+        From ``optimised`` poses, a candidate whose views do not already overlap within
+        ``loop_prefilter_m`` (the optimised error is centimetres at most) is not searched:
+        the neighbouring lanes' views, which ICP cannot tie, cost nothing."""
+        p = self.params
+        if i <= p.loops.min_gap:
+            return 0
+        poses = self.poses
+        dist = np.linalg.norm(poses[: i - p.loops.min_gap, :3, 3] - poses[i, :3, 3], axis=1)
+        # clouds looking another way (the other lane, driven the other way) see other things
+        facing = poses[: i - p.loops.min_gap, :3, 2] @ poses[i, :3, 2] >= np.cos(np.radians(p.loops.max_view_angle_deg))
+        dist[~facing] = np.inf
+        added = 0
+        for j in np.argsort(dist)[: p.loops.per_cloud]:
+            if dist[j] > p.loops.radius_m:
+                break
+            if (i, int(j)) in self._looped:
+                continue
+            if optimised and min(len(self._pcds[i].points), len(self._pcds[int(j)].points)) < p.icp.min_points:
+                continue
+            if optimised and mutual_overlap(self._pcds[i], self._pcds[int(j)], self._relative(int(j), i), p.loops.prefilter_m) < p.loops.min_overlap:
+                continue
+            result = register_pair(self._pcds[i], self._pcds[j], self._relative(int(j), i), p.icp, coarse=p.loops.search_m,
+                               min_fitness=p.loops.min_fitness, bounds=(p.loops.max_correction_m, p.loops.max_correction_deg))
+            if result is not None and structure_fitness(self._pcds[i], result, p.loops.min_structure_points) < p.loops.min_structure_fitness:
+                result = None
+            if result is not None and p.loops.min_overlap > 0 and mutual_overlap(self._pcds[i], self._pcds[int(j)], np.asarray(result.transformation), p.loops.overlap_m) < p.loops.min_overlap:
+                result = None
+            if self._add_edge(i, int(j), result, uncertain=True):
+                self._looped.add((i, int(j)))
+                added += 1
+        self.loop_closures += added
+        return added
+
+    def optimise(self) -> None:
+        """Optimise the pose graph with the plane landmarks' nodes (robust: Open3D's line
+        process prunes loop closures and plane sightings that disagree)."""
+        if len(self.graph.nodes) < 3:
+            return
+        self._calibrate_odometry_edges()
+        n = len(self.graph.nodes)
+        graph = reg.PoseGraph()
+        for node in self.graph.nodes:
+            graph.nodes.append(node)
+        active, landmark_edges = self._landmark_edges(n)
+        for m in active:
+            graph.nodes.append(reg.PoseGraphNode(self._landmark_poses[m]))
+        for edge in list(self.graph.edges) + landmark_edges:
+            graph.edges.append(edge)
+        option = reg.GlobalOptimizationOption(max_correspondence_distance=self.params.icp.max_correspondence_m,
+                                              edge_prune_threshold=0.25, preference_loop_closure=self.params.loops.preference,
+                                              reference_node=0)
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
+                                    reg.GlobalOptimizationConvergenceCriteria(), option)
+        kept = reg.PoseGraph()
+        for k in range(n):
+            kept.nodes.append(graph.nodes[k])
+        for edge in graph.edges:
+            if edge.target_node_id < n:
+                kept.edges.append(edge)
+        self.pruned_edges += len(self.graph.edges) - len(kept.edges)
+        self.graph = kept
+        self._pose_buffer[:n] = [np.asarray(node.pose) for node in kept.nodes]
+        for node, m in enumerate(active, start=n):
+            self._landmark_poses[m] = np.asarray(graph.nodes[node].pose).copy()
+        self._fused_upto = 0  # every pose may have moved: fuse again
+
+    @property
+    def points(self) -> NDArray[np.float32]:
+        """The fused map so far, (M, 3) world frame."""
+        poses = self.poses
+        if self._fused_upto == 0:
+            self._fused = o3d.geometry.PointCloud()
+        for k in range(self._fused_upto, len(self._pcds)):
+            self._fused += o3d.geometry.PointCloud(self._pcds[k]).transform(poses[k])
+        if self._fused_upto < len(self._pcds):
+            self._fused = self._fused.voxel_down_sample(self.params.map_voxel_m)
+            self._fused_upto = len(self._pcds)
+        return np.asarray(self._fused.points, dtype=np.float32)
+
+    def result(self) -> MapResult:
+        """Optimise, merge landmarks the optimised poses show to be one plane, search loop
+        closures again from the optimised poses (cloud by cloud the search only had the
+        estimate so far, which can be decimetres off with poor odometry) and optimise once
+        more if either changed the graph; the poses, the fused map and the per-cloud facts."""
+        if self.params.pose_graph:
+            self.optimise()
+            landmarks = len(self._landmarks)
+            self._merge_landmarks()
+            if sum(self._close_loops(i, optimised=True) for i in range(len(self._pcds))) or len(self._landmarks) < landmarks:
+                self.optimise()
+        fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
+        poses = self.poses
+        return MapResult(poses, fuse_map(self._pcds, poses, self.params.map_voxel_m), fitness.astype(float),
+                         rmse.astype(float), used.astype(bool), degenerate.astype(int), self.loop_closures, self.pruned_edges,
+                         self.odometry_error_scale(), self.plane_landmarks)

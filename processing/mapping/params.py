@@ -1,0 +1,92 @@
+"""Parameters of the map pipeline, one class per stage (:class:`MapParams` holds them all)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class SelectParams:
+    """Selection: which returns are kept, how the depth image is filtered, voxel size."""
+
+    voxel_m: float = 0.02
+    max_range_m: float = 4.0
+    depth_median_px: int = 5  # median filter of an organised depth image (0: off)
+    pixel_stride: int = 2  # ... then averaged in blocks of this many pixels squared
+
+
+@dataclass(frozen=True)
+class IcpParams:
+    """Matching, rejection and alignment of one pair of clouds, and the stopping rules."""
+
+    use_fpfh: bool = False  # FPFH refinement of the odometry guess (ambiguous on repeating beams)
+    fpfh_radius_m: float = 0.1
+    metric: Literal["point_to_plane", "point_to_point", "generalized"] = "point_to_plane"
+    max_correspondence_m: float = 0.06
+    tukey_m: float = 0.03
+    relative_fitness: float = 1e-4
+    relative_rmse: float = 1e-4
+    max_iterations: int = 10  # from the odometry or the current estimate ICP converges in a few (more: no better, measured)
+    max_correction_m: float = 0.10
+    max_correction_deg: float = 10.0
+    min_fitness: float = 0.6  # below it (mid-turn views that barely overlap) ICP lands centimetres off: odometry instead
+    min_points: int = 10  # clouds with fewer points (after selection) are placed by odometry
+    degenerate_ratio: float = 0.1
+    icp_sigma_m: float = 0.06  # effective error of one point-to-plane residual (neighbouring residuals are correlated: > the noise)
+
+
+@dataclass(frozen=True)
+class LoopParams:
+    """Loop closures: which earlier clouds are candidates and when a closure is kept."""
+
+    radius_m: float = 0.25  # earlier clouds this close (sensor positions) are loop candidates ...
+    min_gap: int = 12  # ... at least this many clouds back ...
+    max_view_angle_deg: float = 45.0  # ... whose optical axes are this close
+    per_cloud: int = 2
+    search_m: tuple[float, ...] = (0.3, 0.15)  # coarse correspondence distances tried before a loop's ICP
+    max_correction_m: float = 0.3  # a loop closure may correct this much accumulated drift ...
+    max_correction_deg: float = 15.0  # ... and this much heading
+    min_fitness: float = 0.5  # it is kept when this share of its points matched ...
+    min_structure_fitness: float = 0.8  # ... and this share of its structure (not the plate)
+    min_structure_points: int = 50
+    min_overlap: float = 0.6  # ... and this share of each cloud lies within loop_overlap_m of the other (both ways)
+    overlap_m: float = 0.02
+    prefilter_m: float = 0.05  # from optimised poses a candidate must overlap this well before it is searched
+    preference: float = 1.0  # Open3D's line process: lower prunes disagreeing loop closures sooner
+
+
+@dataclass(frozen=True)
+class OdometryParams:
+    """The odometry edges' errors (per step, random walks in distance) and their calibration."""
+
+    sigma_frac: float = 0.05  # odometry error per step: this fraction of its length ...
+    sigma_deg_per_m: float = 15.0  # ... and this heading error per metre driven
+    sigma_floor_m: float = 0.002
+    calibrate: bool = True  # raise the odometry's errors (heading and distance) to the heading error measured against ICP
+
+
+@dataclass(frozen=True)
+class PlaneParams:
+    """Plane landmarks: association of a cloud's planes to landmarks and their weight."""
+
+    enabled: bool = True  # large planes (deck plate, web, stiffener faces) as landmarks of the pose graph
+    max_angle_deg: float = 5.0  # a cloud's plane is a landmark's when this close in angle ...
+    max_offset_m: float = 0.03  # ... and in distance (current estimate)
+    sigma_m: float = 0.06  # effective error of one inlier's distance to its landmark
+    min_sightings: int = 3  # a landmark seen fewer times ties nothing
+
+
+@dataclass(frozen=True)
+class MapParams:
+    """Options of the whole pipeline: each stage's parameters and the pose graph's own."""
+
+    select: SelectParams = field(default_factory=SelectParams)
+    icp: IcpParams = field(default_factory=IcpParams)
+    loops: LoopParams = field(default_factory=LoopParams)
+    odometry: OdometryParams = field(default_factory=OdometryParams)
+    planes: PlaneParams = field(default_factory=PlaneParams)
+    neighbours: int = 2  # edges from each cloud to the next few
+    pose_graph: bool = True
+    refine: bool = True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
+    map_voxel_m: float = 0.01

@@ -1,0 +1,175 @@
+"""The ``detect`` job: cracks and corrosion in every frame and on the mosaic, measured,
+placed on the structure, stored as defects (reviews carried over from an earlier run)."""
+
+from __future__ import annotations
+
+import json
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from sqlalchemy import delete, select
+
+from processing.defects import Defect as Defect_
+from processing.defects import measure_defects
+from processing.detection import (
+    CorrosionParams,
+    CrackParams,
+    defect_masks,
+    on_surface,
+    surface_level,
+)
+from processing.poses import compose_se2, world_box
+from server.jobs.banded import detect_banded
+from server.jobs.context import JobContext, params_record, write_png
+from server.storage.models import Defect, Frame
+
+MOSAIC_IN_MEMORY_PX = 48_000_000  # larger mosaics are searched band by band with bounded memory
+
+
+def _defect_row(ctx: JobContext, d: Defect_, source: str, mm: bool, world: tuple[float, float, float, float] | None,
+                frame_seq: int | None = None) -> Defect:
+    x, y, w, h = d.bbox
+    wx, wy, ww, wh = world if world is not None else (None, None, None, None)
+    return Defect(
+        session_id=ctx.session_id, job_id=ctx.job_id, source=source, frame_seq=frame_seq, defect_class=d.defect_class,
+        bbox_x=x, bbox_y=y, bbox_w=w, bbox_h=h, area_px=d.area_px, length_px=d.length_px,
+        max_width_px=d.max_width_px, mean_width_px=d.mean_width_px, orientation_deg=d.orientation_deg,
+        length_mm=d.length_mm if mm else None, max_width_mm=d.max_width_mm if mm else None,
+        area_mm2=d.area_mm2 if mm else None, world_x_m=wx, world_y_m=wy, world_w_m=ww, world_h_m=wh,
+    )
+
+
+def detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | None = None,
+               seams: np.ndarray | None = None, workers: int = 2) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
+    """Crack and rust masks of one image and its measured defects."""
+    masks = defect_masks(image, valid, seams, workers=workers)
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # labelling and distances release the GIL
+        rust = pool.submit(measure_defects, masks.rust, "corrosion", mm_per_px=mm_per_px, components=masks.rust_components)
+        found = measure_defects(masks.cracks, "crack", mm_per_px=mm_per_px, contrast=masks.contrast,
+                                components=masks.crack_components)
+        found += [replace(d, id=len(found) + d.id) for d in rust.result()]
+    return masks.cracks, masks.rust, found
+
+
+def _detect_frames(ctx: JobContext) -> list[Defect]:
+    """Defects of every camera frame, placed on the structure through the frame's pose."""
+    calib = ctx.session().calibration.get("camera", {})
+    px_per_m = float(calib.get("px_per_m", 0)) or None
+    T_rc = np.array(calib.get("T_robot_camera", [0.0, 0.0, 0.0]))
+    with ctx.factory() as db:
+        frames = list(db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)))
+    mm_per_px = 1000.0 / px_per_m if px_per_m else None
+
+    def detect(f: Frame) -> tuple[tuple[int, int], list[Defect_]] | None:
+        try:
+            img = cv2.imdecode(np.frombuffer(ctx.files.payload(f), np.uint8), cv2.IMREAD_COLOR)
+        except OSError:
+            return None
+        if img is None:
+            return None
+        return (img.shape[1], img.shape[0]), detect_in(img, mm_per_px, workers=1)[2]
+
+    rows: list[Defect] = []
+    with ThreadPoolExecutor(max_workers=2) as pool:  # a frame per core: decoding and detection release the GIL
+        for i, (f, done) in enumerate(zip(frames, pool.map(detect, frames))):
+            if i % 10 == 0:
+                ctx.progress(0.5 * i / max(len(frames), 1), f"frames {i}/{len(frames)}")
+            if done is not None:
+                rows += _frame_rows(ctx, f, done[1], done[0], px_per_m, T_rc)
+    return rows
+
+
+def _frame_rows(ctx: JobContext, f: Frame, found: list[Defect_], size: tuple[int, int], px_per_m: float | None,
+                T_rc: NDArray[np.float64]) -> list[Defect]:
+    """Rows of one frame's defects, placed on the structure through the frame's pose."""
+    rows: list[Defect] = []
+    cam = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw]), T_rc) if px_per_m and f.pose_x is not None else None
+    for d in found:
+        world = world_box(d.bbox, cam, px_per_m, size) if cam is not None and px_per_m else None
+        rows.append(_defect_row(ctx, d, "frame", px_per_m is not None, world, frame_seq=f.seq))
+    return rows
+
+
+def run_detect(ctx: JobContext) -> dict[str, Any]:
+    """Cracks and corrosion in every frame and on the mosaic, measured and placed on the structure."""
+    frame_rows = _detect_frames(ctx)
+    out = ctx.results_dir()
+    if not (out / "mosaic.png").is_file() or not (out / "mosaic.json").is_file():
+        raise ValueError("no mosaic to run detection on: run the stitch job first")
+    world = json.loads((out / "mosaic.json").read_text())
+    px_per_m, (ox, oy) = world["px_per_m"], world["origin_m"]
+    referenced = bool(world.get("world_referenced"))
+    mm_per_px = 1000.0 / px_per_m if referenced else None
+    ctx.progress(0.6, "mosaic")
+    if int(world["width_px"]) * int(world["height_px"]) > MOSAIC_IN_MEMORY_PX:
+        found = _detect_mosaic_banded(ctx, out, mm_per_px)
+    else:
+        found = _detect_mosaic(out, mm_per_px)
+    mosaic_rows = []
+    for d in found:
+        x, y, w, h = d.bbox
+        placed = (ox + x / px_per_m, oy + y / px_per_m, w / px_per_m, h / px_per_m) if referenced else None
+        mosaic_rows.append(_defect_row(ctx, d, "mosaic", referenced, placed))
+    with ctx.factory() as db:
+        reviewed = list(db.scalars(select(Defect).where(Defect.session_id == ctx.session_id, Defect.reviewed_by.is_not(None))))
+        kept = carry_reviews(reviewed, frame_rows + mosaic_rows)
+        db.execute(delete(Defect).where(Defect.session_id == ctx.session_id))
+        db.add_all(frame_rows + mosaic_rows)
+        db.commit()
+    by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
+    return {"defects": len(found), "by_class": by_class, "frame_defects": len(frame_rows), "method": "proposed",
+            "reviews_carried_over": kept, "crack_mask": str(out / "crack_mask.png"), "params": {"crack": params_record(CrackParams()), "corrosion": params_record(CorrosionParams())}}
+
+
+def _detect_mosaic(out: Path, mm_per_px: float | None) -> list[Defect_]:
+    """Defects of a mosaic that fits in memory, found in one pass; writes the mask PNGs."""
+    mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
+    if mosaic is None:
+        raise ValueError("mosaic.png cannot be read")
+    coverage = cv2.imread(str(out / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
+    if coverage is None or coverage.shape != mosaic.shape[:2]:
+        coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
+    seams = cv2.imread(str(out / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE) if (out / "mosaic_seams.png").is_file() else None
+    seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
+    cracks, rust, found = detect_in(mosaic, mm_per_px, on_surface(mosaic, coverage), seams)
+    write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
+    write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
+    return found
+
+
+def _detect_mosaic_banded(ctx: JobContext, out: Path, mm_per_px: float | None) -> list[Defect_]:
+    """Defects of a mosaic too large for memory, band by band (:mod:`server.jobs.banded`);
+    the surface's brightness level comes from the overview."""
+    overview = cv2.imread(str(out / "mosaic_overview.png"), cv2.IMREAD_COLOR)
+    if overview is None:
+        raise ValueError("mosaic_overview.png cannot be read")
+    level = surface_level(overview, np.any(overview > 0, axis=2))
+    return detect_banded(out, defect_masks, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m))
+
+
+def _box_iou(a: Defect, b: Defect) -> float:
+    x0, y0 = max(a.bbox_x, b.bbox_x), max(a.bbox_y, b.bbox_y)
+    x1, y1 = min(a.bbox_x + a.bbox_w, b.bbox_x + b.bbox_w), min(a.bbox_y + a.bbox_h, b.bbox_y + b.bbox_h)
+    inter = max(0, x1 - x0) * max(0, y1 - y0)
+    union = a.bbox_w * a.bbox_h + b.bbox_w * b.bbox_h - inter
+    return inter / union if union > 0 else 0.0
+
+
+def carry_reviews(reviewed: list[Defect], new: list[Defect], min_iou: float = 0.3) -> int:
+    """Give each new defect the review of the reviewed old one it overlaps most (same
+    class, source and frame, box IoU ≥ ``min_iou``): re-running detection keeps the
+    inspectors' work. Returns how many reviews were carried over."""
+    carried = 0
+    for d in new:
+        same = [r for r in reviewed if (r.defect_class, r.source, r.frame_seq) == (d.defect_class, d.source, d.frame_seq)]
+        best = max(same, key=lambda r: _box_iou(r, d), default=None)
+        if best is not None and _box_iou(best, d) >= min_iou:
+            d.review_status, d.condition_state, d.comment = best.review_status, best.condition_state, best.comment
+            d.reviewed_by, d.reviewed_at = best.reviewed_by, best.reviewed_at
+            carried += 1
+    return carried
