@@ -85,7 +85,8 @@ def sauvola_tuned(image: NDArray[np.uint8]) -> NDArray[np.bool_]:
     under 300 px removed (scikit-image's implementation)."""
     from skimage.filters import threshold_sauvola
 
-    from processing.detection import remove_small, to_gray
+    from processing.detection import to_gray
+    from processing.thresholds import remove_small
 
     gray = to_gray(image)
     return remove_small(gray < threshold_sauvola(gray, window_size=61, k=0.4), 300)
@@ -143,7 +144,8 @@ def _mosaic_throughput() -> Iterator[Result]:
     measured), against scikit-image's Sauvola on the same image; and the crack filter alone."""
     from skimage.filters import threshold_sauvola
 
-    from processing.detection import detect_cracks_tiled, on_surface
+    from processing.detection import detect_cracks_tiled
+    from processing.surface import on_surface
     from robot_link.sim.structure import make_structure
     from server.jobs.detect import detect_in
 

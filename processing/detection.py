@@ -13,16 +13,20 @@ from dataclasses import dataclass
 from typing import Literal
 
 import cv2
-import numba
 import numpy as np
 from numpy.typing import NDArray
 from skimage.filters import threshold_sauvola
 
 from processing.defects import Components
-from processing.labels import component_flags, lookup
 from processing.peaks import dominant_peaks, smooth_histogram, valley_emphasis_threshold
 from processing.region_growing import grow_regions
 from processing.ridges import line_emphasis
+from processing.thresholds import (
+    below_sauvola,
+    remove_small,
+    seeded_regions,
+    select_components,
+)
 
 Method = Literal["proposed", "paper", "otsu", "sauvola"]
 METHODS: tuple[str, ...] = ("proposed", "paper", "otsu", "sauvola")
@@ -262,102 +266,6 @@ def paper_cracks(gray: NDArray[np.uint8], params: PaperParams = PaperParams()) -
     return remove_small(grown, params.min_area_px)
 
 
-def select_components(labels: NDArray[np.int32], stats: NDArray[np.int32], keep: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """Mask of the components whose ``keep`` flag is set (``labels`` and ``stats`` from
-    ``cv2.connectedComponentsWithStats``, label 0 never kept).
-
-    A lookup ``keep[labels]`` costs ~3 ns per pixel of the whole image; when the kept (or
-    the dropped) components are few, painting them inside their boxes costs far less.
-    """
-    keep = keep.copy()
-    keep[0] = False
-    areas = stats[:, cv2.CC_STAT_WIDTH].astype(np.int64) * stats[:, cv2.CC_STAT_HEIGHT]
-    kept, dropped = np.flatnonzero(keep), np.flatnonzero(~keep[1:]) + 1
-    lookup_cost = 3.0 * labels.size
-    paint_kept = 1.5 * areas[kept].sum() + 3000.0 * len(kept)
-    paint_dropped = 1.5 * areas[dropped].sum() + 3000.0 * len(dropped) + 0.5 * labels.size
-    if min(paint_kept, paint_dropped) >= lookup_cost:
-        return lookup(labels, keep)
-    if paint_kept <= paint_dropped:
-        out = np.zeros(labels.shape, bool)
-        ids, value = kept, True
-    else:
-        out = labels > 0
-        ids, value = dropped, False
-    for i in ids.tolist():
-        x, y, w, h = (int(v) for v in stats[i, :4])
-        box = out[y : y + h, x : x + w]
-        box[labels[y : y + h, x : x + w] == i] = value
-    return out
-
-
-def seeded_regions(candidates: NDArray[np.bool_], seeds: NDArray[np.bool_], *, min_area_px: int = 0,
-                   max_half_width_px: float | None = None) -> NDArray[np.bool_]:
-    """Region growing from seeds: the 8-connected regions of ``candidates`` that hold a
-    seed pixel (and at least ``min_area_px`` pixels, and no inscribed radius over
-    ``max_half_width_px`` when given: wider than a crack)."""
-    grown = (candidates | seeds).astype(np.uint8)
-    n, labels = cv2.connectedComponents(grown, connectivity=8)
-    dist = None
-    if max_half_width_px is not None:
-        # components are separated by background, so each one's distance to the
-        # background is its own: one transform serves all
-        dist = cv2.distanceTransform(np.pad(grown, 1), cv2.DIST_L2, 3)[1:-1, 1:-1]
-    area, seeded, thick = component_flags(labels, n, seeds, dist, max_half_width_px or np.inf)
-    keep = seeded & (area >= min_area_px) & ~thick
-    keep[0] = False
-    return lookup(labels, keep)
-
-
-def hysteresis(response: NDArray[np.floating], low: float, high: float, *, min_area_px: int = 0) -> NDArray[np.bool_]:
-    """Hysteresis thresholding: regions above ``low`` that hold a pixel above ``high``."""
-    return seeded_regions(response > low, response > high, min_area_px=min_area_px)
-
-
-def sauvola_threshold(gray: NDArray[np.uint8], window: int, k: float, r: float = 127.5) -> NDArray[np.float32]:
-    """Sauvola's local threshold m·(1 + k·(s/r − 1)) from box-filtered moments (as scikit-image)."""
-    mean, sq = _local_moments(gray, window)
-    var = cv2.max(cv2.subtract(sq, cv2.multiply(mean, mean)), 0.0)
-    factor = cv2.sqrt(var)
-    cv2.addWeighted(factor, k / r, factor, 0.0, 1.0 - k, dst=factor)  # 1 + k (s/r - 1)
-    return cv2.multiply(mean, factor)
-
-
-def below_sauvola(gray: NDArray[np.uint8], window: int, k: float, r: float = 127.5) -> NDArray[np.bool_]:
-    """``gray < sauvola_threshold(gray, window, k, r)`` in one compiled pass after the box filters."""
-    mean, sq = _local_moments(gray, window)
-    out = np.empty(gray.shape, np.bool_)
-    _below_sauvola(gray, mean, sq, np.float32(k), np.float32(r), out)
-    return out
-
-
-def _local_moments(gray: NDArray[np.uint8], window: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Mean and mean square over a ``window``-wide square (reflected borders)."""
-    size = (window | 1, window | 1)
-    mean = cv2.boxFilter(gray, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
-    sq = cv2.sqrBoxFilter(gray, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
-    return mean, sq
-
-
-@numba.njit(nogil=True, cache=True)
-def _below_sauvola(gray: NDArray[np.uint8], mean: NDArray[np.float32], sq: NDArray[np.float32], k: np.float32, r: np.float32,
-                   out: NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
-    rows, cols = gray.shape
-    for y in range(rows):
-        for x in range(cols):
-            m = mean[y, x]
-            var = max(sq[y, x] - m * m, np.float32(0))
-            out[y, x] = gray[y, x] < m * (1 + k * (np.sqrt(var) / r - 1))
-
-
-def drop_along(mask: NDArray[np.bool_], lines: NDArray[np.bool_], *, band_px: int = 4, max_fraction: float = 0.5) -> NDArray[np.bool_]:
-    """Drop components lying mostly within ``band_px`` of ``lines`` (e.g. mosaic seams)."""
-    if not mask.any() or not lines.any():
-        return mask
-    comps = Components.of(mask)
-    return select_components(comps.labels, comps.stats, _off_lines(comps, lines, band_px=band_px, max_fraction=max_fraction))
-
-
 def _off_lines(comps: Components, lines: NDArray[np.bool_], *, band_px: int = 4, max_fraction: float = 0.5) -> NDArray[np.bool_]:
     """Per component: not lying mostly (> ``max_fraction``) within ``band_px`` of ``lines``."""
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1,) * 2)
@@ -367,15 +275,6 @@ def _off_lines(comps: Components, lines: NDArray[np.bool_], *, band_px: int = 4,
     keep = on <= max_fraction * np.maximum(comps.stats[:, cv2.CC_STAT_AREA], 1)
     keep[0] = False
     return keep
-
-
-def remove_small(mask: NDArray[np.bool_], min_area_px: int) -> NDArray[np.bool_]:
-    """Drop connected components smaller than ``min_area_px`` pixels."""
-    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
-    area, _, _ = component_flags(labels, n)
-    keep = area >= min_area_px
-    keep[0] = False
-    return lookup(labels, keep)
 
 
 def estimate_background(gray: NDArray[np.uint8], background_px: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
@@ -434,45 +333,3 @@ def detect_corrosion(image: NDArray[np.generic], *, params: CorrosionParams = Co
     return remove_small(corrosion_candidates(image, params), params.min_area_px)
 
 
-def _quarter(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
-    """An image at a quarter of its resolution (area average)."""
-    for _ in range(2):  # two halvings: OpenCV's 2x area path is ~15x faster than one 4x
-        h, w = image.shape[:2]
-        image = cv2.resize(image, (max(1, w // 2), max(1, h // 2)), interpolation=cv2.INTER_AREA)
-    return image
-
-
-def _covered_quarter(coverage: NDArray[np.generic]) -> NDArray[np.bool_]:
-    """4x4 blocks fully inside the covered area (``coverage`` > 0)."""
-    covered = cv2.threshold(coverage.astype(np.uint8, copy=False), 0, 255, cv2.THRESH_BINARY)[1]
-    return _quarter(covered) == 255
-
-
-def _surface_background_quarter(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
-    """The grey surface brightness with dark details closed away (a 45-px disk), at a
-    quarter of the resolution: it varies slowly."""
-    small = _quarter(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image)
-    return cv2.morphologyEx(small, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11)))
-
-
-def surface_level(image: NDArray[np.uint8], coverage: NDArray[np.generic]) -> float:
-    """The surface's typical brightness: median of the grey background over covered pixels."""
-    covered = _covered_quarter(coverage)
-    return float(np.median(_surface_background_quarter(image)[covered])) if covered.any() else 0.0
-
-
-def on_surface(image: NDArray[np.uint8], coverage: NDArray[np.generic], level: float | None = None) -> NDArray[np.bool_]:
-    """Where a mosaic shows the steel surface: not far darker than the surface typically
-    is (``level``; beyond a plate's edge the camera sees the dark void below), and well
-    inside the covered area (its edge is a dark step, not a crack); decided on 4x4 blocks."""
-    background = _surface_background_quarter(image)
-    covered = _covered_quarter(coverage)
-    if level is None:
-        level = float(np.median(background[covered])) if covered.any() else 0.0
-    surface = ((background > 0.4 * level) & covered).astype(np.uint8)
-    surface = cv2.erode(surface, np.ones((7, 7), np.uint8))  # ~15 px on each side
-    h, w = image.shape[:2]
-    full = np.zeros((h, w), np.uint8)
-    up = cv2.resize(surface, (surface.shape[1] * 4, surface.shape[0] * 4), interpolation=cv2.INTER_NEAREST)
-    full[: up.shape[0], : up.shape[1]] = up[:h, :w]
-    return full > 0

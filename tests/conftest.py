@@ -10,9 +10,9 @@ from typing import Any
 import pytest
 
 from server.config import Settings
-from server.storage.db import make_engine, make_sessionmaker, upgrade
 from server.demo import BackgroundServer, free_port
 from server.link.robots import create_robot
+from server.storage.db import make_engine, make_sessionmaker, upgrade
 
 
 @dataclass

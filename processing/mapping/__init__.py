@@ -65,7 +65,14 @@ from processing.mapping.icp import (
     within_bounds,
 )
 from processing.mapping.incremental import IncrementalMap, MapResult
-from processing.mapping.params import IcpParams, LoopParams, MapParams, OdometryParams, PlaneParams, SelectParams
+from processing.mapping.params import (
+    IcpParams,
+    LoopParams,
+    MapParams,
+    OdometryParams,
+    PlaneParams,
+    SelectParams,
+)
 from processing.mapping.selection import clean_cloud, filter_organised, fuse_map, select
 
 __all__ = [

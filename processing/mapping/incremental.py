@@ -2,20 +2,18 @@
 
 from __future__ import annotations
 
-
 from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-
 from scipy.spatial.transform import Rotation
 
 from processing.mapping.icp import (
-    register_pair,
     constrain_to_observable,
     mutual_overlap,
     plane_information,
+    register_pair,
     structure_fitness,
     structure_share,
 )

@@ -22,7 +22,8 @@ from numpy.typing import NDArray
 from scipy.cluster.hierarchy import DisjointSet
 
 from processing.defects import Defect, measure_defects, moved, seam_links
-from processing.detection import DefectMasks, on_surface
+from processing.detection import DefectMasks
+from processing.surface import on_surface
 
 CLASSES = ("crack", "corrosion")
 Masks = Callable[[NDArray[np.uint8], NDArray[np.bool_], NDArray[np.bool_] | None], DefectMasks]

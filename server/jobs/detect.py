@@ -16,14 +16,9 @@ from sqlalchemy import delete, select
 
 from processing.defects import Defect as Defect_
 from processing.defects import measure_defects
-from processing.detection import (
-    CorrosionParams,
-    CrackParams,
-    defect_masks,
-    on_surface,
-    surface_level,
-)
+from processing.detection import CorrosionParams, CrackParams, defect_masks
 from processing.poses import compose_se2, world_box
+from processing.surface import on_surface, surface_level
 from server.jobs.banded import detect_banded
 from server.jobs.context import JobContext, params_record, write_png
 from server.storage.models import Defect, Frame

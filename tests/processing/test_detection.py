@@ -73,7 +73,7 @@ def test_proposed_is_insensitive_to_uneven_low_light() -> None:
 def test_hysteresis_keeps_regions_with_a_strong_seed_only() -> None:
     from skimage.filters import apply_hysteresis_threshold
 
-    from processing.detection import hysteresis
+    from processing.thresholds import hysteresis
 
     rng = np.random.default_rng(0)
     r = cv2.GaussianBlur(rng.random((60, 80)).astype(np.float32), (0, 0), 2)
@@ -98,7 +98,7 @@ def test_tiled_detection_matches_whole_image_detection_away_from_tile_seams() ->
 
 @pytest.mark.parametrize("fraction", [0.0, 0.02, 0.5, 0.98, 1.0])
 def test_select_components_equals_a_lookup_whatever_the_share_kept(fraction: float) -> None:
-    from processing.detection import select_components
+    from processing.thresholds import select_components
 
     rng = np.random.default_rng(3)
     mask = cv2.GaussianBlur(rng.random((300, 400)), (0, 0), 3) > 0.52
@@ -110,7 +110,7 @@ def test_select_components_equals_a_lookup_whatever_the_share_kept(fraction: flo
 
 
 def test_fused_sauvola_comparison_equals_the_threshold_map() -> None:
-    from processing.detection import below_sauvola, sauvola_threshold
+    from processing.thresholds import below_sauvola, sauvola_threshold
 
     rng = np.random.default_rng(6)
     gray = cv2.GaussianBlur(rng.integers(0, 256, (120, 170)).astype(np.uint8), (5, 5), 2)

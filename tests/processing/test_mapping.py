@@ -5,7 +5,14 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-from processing.mapping import IcpParams, MapParams, OdometryParams, PlaneParams, filter_organised, register_clouds
+from processing.mapping import (
+    IcpParams,
+    MapParams,
+    OdometryParams,
+    PlaneParams,
+    filter_organised,
+    register_clouds,
+)
 from processing.metrics import absolute_trajectory_error
 from robot_link.clouds import depth_to_points
 from robot_link.sim.sensors import TofCamera
@@ -169,7 +176,7 @@ def test_loop_closures_need_views_that_share_most_of_what_they_see(tof: TofCamer
     params = MapParams()
     poses = {"here": (0.6, 0.5, 0.0), "again": (0.61, 0.51, 0.02), "next_lane": (0.6, 0.74, 0.0), "mid_turn": (0.6, 0.56, 0.7)}
     T = {k: tof.T_world_tof(np.array(p)) for k, p in poses.items()}
-    pcd = {k: select(depth_to_points(tof.render(T[k], rng), tof.fx, tof.fy, tof.cx, tof.cy), params, (172, 224)) for k in poses}
+    pcd = {k: select(depth_to_points(tof.render(T[k], rng), tof.fx, tof.fy, tof.cx, tof.cy), params.select, (172, 224)) for k in poses}
 
     def overlap(k: str) -> float:
         return mutual_overlap(pcd[k], pcd["here"], np.linalg.inv(T["here"]) @ T[k], params.loops.overlap_m)

@@ -1,9 +1,8 @@
 import numpy as np
 import pytest
 
-from processing.poses import relative_se2
 from processing.phase import phase_candidates
-from processing.poses import wrap_angle
+from processing.poses import relative_se2, wrap_angle
 from tests.processing.test_alignment import frame_at
 from tests.processing.test_stitching import texture
 

@@ -1,8 +1,8 @@
 import numpy as np
 import open3d as o3d
 
-from processing.metrics import absolute_trajectory_error
 from bench.map import oracle_poses, sees_structure
+from processing.metrics import absolute_trajectory_error
 
 
 def _pose(x: float, yaw: float) -> np.ndarray:

@@ -83,8 +83,7 @@ def test_bad_inputs_give_one_line_errors_and_no_output(tmp_path: Path) -> None:
 
 
 def test_stitch_folder_with_odometry_writes_mosaic_pyramid_and_poses(tmp_path: Path) -> None:
-    from processing.poses import relative_se2
-    from processing.poses import format_tum, se2_to_se3
+    from processing.poses import format_tum, relative_se2, se2_to_se3
     from tests.processing.test_stitching import sweep
 
     s = sweep(frames=8, seed=12)

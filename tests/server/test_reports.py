@@ -270,7 +270,8 @@ def test_banded_detection_matches_the_one_pass_result(inspected: tuple[LiveServe
     same defects as the in-memory pass on the session's mosaic."""
     import shutil as sh
 
-    from processing.detection import defect_masks, on_surface, surface_level
+    from processing.detection import defect_masks
+    from processing.surface import on_surface, surface_level
     from server.jobs.banded import detect_banded
     from server.jobs.detect import _detect_mosaic
 
