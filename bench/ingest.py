@@ -139,8 +139,8 @@ def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Itera
     """Most frames per second stored durably (flood) against the echo ceiling, then the
     sustained rate, ACK latency and losses of several robots at a camera's 30 frames/s."""
     from server.config import Settings
-    from server.demo import free_port, serve_process
     from server.link.robots import create_robot
+    from server.loopback import free_port, serve_process
     from server.storage.db import make_engine, make_sessionmaker, upgrade
 
     field_seconds = float(limit or 60)

@@ -78,8 +78,8 @@ def centre_errors(est_xy: NDArray[np.float64], truth_xy: NDArray[np.float64], *,
 def _ours(sweep: Sweep, blind: bool, repeats: int = 5) -> tuple[NDArray[np.float64], float, float, float, int]:
     """Poses, all-in seconds (decode, register, solve, blend) of the fastest and of the
     median of ``repeats`` runs, the fastest run's CPU seconds, and low-confidence frames.
-    The fastest run is the code's cost (as ``timeit`` reports): on this shared machine
-    other tenants slow single runs by up to 1.7x."""
+    The fastest run is the code's cost (as ``timeit`` reports): other load on the machine
+    slows single runs."""
     walls, cpus = [], []
     for _ in range(repeats):
         c0, t0 = os.times(), time.perf_counter()
@@ -122,7 +122,7 @@ def _opencv(sweep: Sweep) -> tuple[NDArray[np.float64] | None, float, str, int]:
 
 def _ecc_steps(sweep: Sweep, poses: NDArray[np.float64]) -> tuple[list[NDArray[np.float64]], float]:
     """Each consecutive pair refined by OpenCV's ECC (Euclidean, every pixel of the
-    overlap: the refinement the issue suggests) from our own step; and seconds per pair."""
+    overlap, a standard dense refinement) from our own step; and seconds per pair."""
     size = sweep.config.frame_size
     frames = _Jpegs(sweep.frames)
     grey = [cv2.cvtColor(frames[k], cv2.COLOR_BGR2GRAY).astype(np.float32) for k in range(len(frames))]

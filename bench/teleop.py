@@ -8,7 +8,7 @@ seconds; 60 by default).
 - dead-man: the page stops sending mid-drive (a hung tab or a lost link) → the robot at a
   standstill, measured from the last drive command the robot received.
 
-The targets of the issue (p99 video ≤ 150 ms, p99 command ≤ 20 ms, dead-man ≤ 300 ms) are the
+The product's targets (p99 video ≤ 150 ms, p99 command ≤ 20 ms, dead-man ≤ 300 ms) are the
 baselines; ``ratio`` = measured / target (≤ 1 meets it).
 """
 
@@ -39,8 +39,8 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
     from playwright.sync_api import sync_playwright
 
     from server.config import Settings
-    from server.demo import BackgroundServer, free_port
     from server.link.robots import create_robot
+    from server.loopback import BackgroundServer, free_port
     from server.storage.db import make_engine, make_sessionmaker, upgrade
 
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -1,6 +1,6 @@
 """The steelscan wire protocol: one binary websocket message per robot message.
 
-Layout (little-endian), see ``PROTOCOL.md``::
+Layout (little-endian), see ``docs/protocol.md``::
 
     magic  "STLS"   4 bytes
     version        u8
@@ -112,7 +112,6 @@ class VideoMeta(_Meta):
     height: int = Field(gt=0, le=16384)
 
 
-COMMANDS = ("drive", "stop", "estop", "resume", "capture", "lift", "auto_capture", "end_session")
 STOP_COMMANDS = frozenset({"stop", "estop"})  # always safe: never refused, rate-limited or ignored as a replay
 DRIVE_HOLD_S = 0.2  # a drive command holds this long; the robot stops unless a newer one arrives
 

@@ -1,4 +1,5 @@
-"""The ``steelscan`` command (see shared/spec/cli-contract.md)."""
+"""The ``steelscan`` command: ``demo``, ``serve``, ``sim``, ``detect``, ``stitch``, ``map``, ``bench``,
+``report``, ``export``, ``import`` and ``admin`` (``steelscan --help``)."""
 
 from __future__ import annotations
 
@@ -81,7 +82,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run the ground station, the simulated robot and the jobs; print the summary."""
-    from server.demo import run_demo
+    from server.loopback import run_demo
 
     settings = _settings(args)
     return run_demo(settings, port=args.port, exit_when_done=args.exit_when_done, keep_serving=args.keep_serving,

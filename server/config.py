@@ -42,7 +42,3 @@ class Settings(BaseSettings):
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'steelscan.db').resolve()}"
-
-    def sessions_dir(self) -> Path:
-        """Folder that holds one subfolder per inspection session."""
-        return self.data_dir / "sessions"

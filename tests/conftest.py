@@ -10,8 +10,8 @@ from typing import Any
 import pytest
 
 from server.config import Settings
-from server.demo import BackgroundServer, free_port
 from server.link.robots import create_robot
+from server.loopback import BackgroundServer, free_port
 from server.storage.db import make_engine, make_sessionmaker, upgrade
 
 

@@ -166,7 +166,7 @@ class RobotConnection:
 
 @router.websocket("/ws/robot")
 async def robot_socket(websocket: WebSocket) -> None:
-    """Robot link: binary protocol messages in, ACK/ERROR/COMMAND out (see PROTOCOL.md)."""
+    """Robot link: binary protocol messages in, ACK/ERROR/COMMAND out (see docs/protocol.md)."""
     state = websocket.app.state.steelscan
     robot = await anyio.to_thread.run_sync(authenticate_robot, state.factory, _bearer(websocket))
     if robot is None:

@@ -155,8 +155,7 @@ def test_repeating_stiffeners_and_turns_do_not_break_a_route_without_return() ->
     """Three lanes along the girder, its stiffeners repeating every 0.5 m, no return, clouds
     by distance only (38° apart in the turns): mid-turn views that barely overlap are left
     to the odometry, and views from the neighbouring lanes are not taken for loop closures,
-    so no step jumps (the issue's 2 cm) and the map ends better than odometry (before:
-    13 mm jumps and twice the odometry's error)."""
+    so no step jumps by 2 cm and the map ends better than odometry."""
     from bench.map import relative_pose_error
 
     sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.5, 0.62, 0.74), revisit=False, turn_step_deg=0, seed=41))
@@ -243,8 +242,8 @@ def test_an_icp_edge_carries_its_information_in_the_source_frame() -> None:
 def test_the_deck_plate_and_the_web_as_landmarks_keep_lanes_without_return_from_drifting() -> None:
     """Three lanes along the girder, no return: pairwise registrations add up their small
     heading errors lane after lane; tied to the plate and the web they see all along, the
-    lanes keep their heading and the drift stays within the issue's 0.25 % (measured on
-    this route: 0.09 % with the landmarks, 0.26 % without)."""
+    lanes keep their heading and the drift stays within 0.25 % of the path (on this
+    route: 0.09 % with the landmarks, 0.26 % without)."""
     sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.5, 0.62, 0.74), revisit=False, seed=49))
     with_planes = register_clouds(sweep.clouds, sweep.odometry, shape=(172, 224))
     without = register_clouds(sweep.clouds, sweep.odometry, params=MapParams(planes=PlaneParams(enabled=False)), shape=(172, 224))

@@ -10,7 +10,7 @@ from robot_link.client import RobotLink
 from robot_link.protocol import MessageType
 from robot_link.spool import Spool, SpoolFull
 from server.config import Settings
-from server.demo import BackgroundServer, free_port
+from server.loopback import BackgroundServer, free_port
 from tests.conftest import LiveServer, make_token
 from tests.server.test_ingest import JPEG, session_json
 

@@ -202,7 +202,7 @@ def test_bench_stitch_and_map_measure_against_baselines() -> None:
         assert mean["value"] < 0.5 and mean["value"] < mean["baseline"]  # far better than odometry alone
         assert results[f"stitch.{surface}.lawnmower.ms_per_frame"]["baseline_is"] == "cv2.Stitcher SCANS"
         assert f"stitch.{surface}.lawnmower.images_only.end_drift" in results
-        ecc = results[f"stitch.{surface}.straight.ecc_end_drift"]  # the suggested refinement on the same pairs
+        ecc = results[f"stitch.{surface}.straight.ecc_end_drift"]  # OpenCV's ECC refinement on the same pairs
         assert ecc["mean_overlap_error"] < 0.5 and ecc["ms_per_pair"] > 0
     spread = results["stitch.straight_runs.end_drift_rms"]
     assert spread["runs"] == len(spread["drifts"]) == len(spread["baseline_drifts"]) >= 8

@@ -13,7 +13,7 @@ from robot_link.client import RobotLink
 from robot_link.protocol import MessageType
 from robot_link.spool import Spool
 from server.config import Settings
-from server.demo import free_port, serve_process
+from server.loopback import free_port, serve_process
 from tests.conftest import make_token
 from tests.server.test_ingest import JPEG
 

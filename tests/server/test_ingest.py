@@ -191,7 +191,7 @@ def test_api_docs_need_no_internet(live_server: LiveServer) -> None:
 
 def test_a_robot_over_its_rate_limit_is_slowed_not_lost(tmp_path) -> None:
     from server.config import Settings
-    from server.demo import BackgroundServer, free_port
+    from server.loopback import BackgroundServer, free_port
     from tests.conftest import make_token
 
     settings = Settings(data_dir=tmp_path / "data", job_workers=1, robot_messages_per_s=100, robot_message_burst=10)

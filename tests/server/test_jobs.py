@@ -122,7 +122,7 @@ def test_map_job_on_tof_clouds_alone_beats_the_odometry(live_server: LiveServer)
 
 
 def test_a_job_the_station_died_in_is_marked_failed_on_restart(settings) -> None:  # type: ignore[no-untyped-def]
-    from server.demo import BackgroundServer, free_port
+    from server.loopback import BackgroundServer, free_port
     from server.storage.db import make_engine, make_sessionmaker
     from server.storage.models import InspectionSession, Job, JobState
     from tests.conftest import make_token

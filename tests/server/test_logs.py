@@ -11,8 +11,8 @@ from websockets.sync.client import connect
 
 from server.api.accounts import create_user
 from server.config import Settings
-from server.demo import free_port, serve_process
 from server.logs import MASK, RedactSecrets, redact
+from server.loopback import free_port, serve_process
 from server.storage.db import make_engine, make_sessionmaker
 from server.storage.models import Role
 from tests.conftest import make_token

@@ -27,7 +27,7 @@ from robot_link.client import RobotLink
 from robot_link.protocol import decode_message
 from robot_link.sim.inspection import InspectionSim, SimConfig
 from server.config import Settings
-from server.demo import BackgroundServer, free_port
+from server.loopback import BackgroundServer, free_port
 from tests.conftest import LiveServer, make_token
 from tests.server.test_ingest import start, ws_url
 from tests.server.test_jobs import wait_job
