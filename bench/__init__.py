@@ -18,13 +18,25 @@ from bench.teleop import bench_teleop
 from server.errors import CommandError
 
 BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {
-    "detect": bench_detect, "stitch": bench_stitch, "map": bench_map, "ingest": bench_ingest, "stitch-scale": bench_stitch_scale,
+    "detect": bench_detect,
+    "stitch": bench_stitch,
+    "map": bench_map,
+    "ingest": bench_ingest,
+    "stitch-scale": bench_stitch_scale,
     "teleop": bench_teleop,
 }
-DEFAULT = ["detect", "stitch", "map", "ingest", "teleop"]  # stitch-scale takes many minutes: run it by name
+DEFAULT = [
+    "detect",
+    "stitch",
+    "map",
+    "ingest",
+    "teleop",
+]  # stitch-scale takes many minutes: run it by name
 
 
-def run_benchmarks(names: list[str], *, dataset: Path | None = None, limit: int | None = None) -> None:
+def run_benchmarks(
+    names: list[str], *, dataset: Path | None = None, limit: int | None = None
+) -> None:
     """Run the named benchmarks (all when empty), printing one JSON object per line."""
     unknown = [n for n in names if n not in BENCHMARKS]
     if unknown:

@@ -57,7 +57,7 @@ def low_light(image: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np.
     h, w = gray.shape[:2]
     angle = rng.uniform(0, 2 * np.pi)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    t = (np.cos(angle) * xx / w + np.sin(angle) * yy / h)
+    t = np.cos(angle) * xx / w + np.sin(angle) * yy / h
     t = (t - t.min()) / max(float(t.max() - t.min()), 1e-6)
     light = 1.0 - 0.8 * t
     out = (gray * (light if gray.ndim == 2 else light[..., None])) ** 1.4
@@ -65,7 +65,9 @@ def low_light(image: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np.
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
-def load_crack_dataset(root: Path, limit: int | None) -> list[tuple[str, NDArray[np.uint8], NDArray[np.bool_]]]:
+def load_crack_dataset(
+    root: Path, limit: int | None
+) -> list[tuple[str, NDArray[np.uint8], NDArray[np.bool_]]]:
     """(name, image, truth) pairs of a folder with ``images/`` and ``masks/``."""
     images = sorted((root / "images").glob("*.jpg")) + sorted((root / "images").glob("*.png"))
     if not images:
@@ -117,9 +119,17 @@ def bench_detect(dataset: Path | None = None, limit: int | None = None) -> Itera
             pi, si, dsc = tol.scores()
             spi, ssi, sdsc = strict.scores()
             baseline = baseline or dsc
-            yield {"name": f"detect.{prefix}{method}.dsc_tol2", "value": dsc, "unit": "dsc", "baseline": baseline,
-                   "ratio": round(dsc / max(baseline, 1e-9), 3), "pi": pi, "si": si,
-                   "strict": {"pi": spi, "si": ssi, "dsc": sdsc}, "images": len(items)}
+            yield {
+                "name": f"detect.{prefix}{method}.dsc_tol2",
+                "value": dsc,
+                "unit": "dsc",
+                "baseline": baseline,
+                "ratio": round(dsc / max(baseline, 1e-9), 3),
+                "pi": pi,
+                "si": si,
+                "strict": {"pi": spi, "si": ssi, "dsc": sdsc},
+                "images": len(items),
+            }
     small = [cv2.resize(i, (480, 320), interpolation=cv2.INTER_AREA) for _, i, _ in data[:60]]
     times = {}
     for method in ("sauvola", "proposed", "paper"):
@@ -128,14 +138,26 @@ def bench_detect(dataset: Path | None = None, limit: int | None = None) -> Itera
         for img in small:
             fn(img)
         times[method] = 1000 * (time.perf_counter() - t0) / len(small)
-        yield {"name": f"detect.{method}.time_per_480x320", "value": round(times[method], 2), "unit": "ms",
-               "baseline": round(times["sauvola"], 2), "ratio": round(times[method] / times["sauvola"], 3)}
+        yield {
+            "name": f"detect.{method}.time_per_480x320",
+            "value": round(times[method], 2),
+            "unit": "ms",
+            "baseline": round(times["sauvola"], 2),
+            "ratio": round(times[method] / times["sauvola"], 3),
+        }
     yield from _mosaic_throughput()
-    hists = [np.bincount(cv2.cvtColor(i, cv2.COLOR_BGR2GRAY).ravel(), minlength=256) for _, i, _ in data[:50]]
+    hists = [
+        np.bincount(cv2.cvtColor(i, cv2.COLOR_BGR2GRAY).ravel(), minlength=256)
+        for _, i, _ in data[:50]
+    ]
     t0 = time.perf_counter()
     for h in hists:
         dominant_peaks(h)
-    yield {"name": "detect.peak_detection_per_histogram", "value": round(1000 * (time.perf_counter() - t0) / len(hists), 3), "unit": "ms"}
+    yield {
+        "name": "detect.peak_detection_per_histogram",
+        "value": round(1000 * (time.perf_counter() - t0) / len(hists), 3),
+        "unit": "ms",
+    }
 
 
 def _mosaic_throughput() -> Iterator[Result]:
@@ -166,11 +188,25 @@ def _mosaic_throughput() -> Iterator[Result]:
         _, _, found = detect_in(mosaic, 0.25, on_surface(mosaic, coverage), seams)
         runs.append(time.perf_counter() - t0)
     ours = mp / float(np.median(runs))
-    yield {"name": "detect.mosaic_throughput", "value": round(ours, 2), "unit": "MP/s", "baseline": round(base, 2),
-           "ratio": round(ours / base, 3), "megapixels": round(mp, 1), "defects": len(found), "target": 20.0,
-           "what": "surface mask + crack and rust masks (seams) + measurement, 2 threads"}
+    yield {
+        "name": "detect.mosaic_throughput",
+        "value": round(ours, 2),
+        "unit": "MP/s",
+        "baseline": round(base, 2),
+        "ratio": round(ours / base, 3),
+        "megapixels": round(mp, 1),
+        "defects": len(found),
+        "target": 20.0,
+        "what": "surface mask + crack and rust masks (seams) + measurement, 2 threads",
+    }
     t0 = time.perf_counter()
     detect_cracks_tiled(mosaic)
     cracks = mp / (time.perf_counter() - t0)
-    yield {"name": "detect.crack_filter_throughput", "value": round(cracks, 2), "unit": "MP/s", "baseline": round(base, 2),
-           "ratio": round(cracks / base, 3), "megapixels": round(mp, 1)}
+    yield {
+        "name": "detect.crack_filter_throughput",
+        "value": round(cracks, 2),
+        "unit": "MP/s",
+        "baseline": round(base, 2),
+        "ratio": round(cracks / base, 3),
+        "megapixels": round(mp, 1),
+    }

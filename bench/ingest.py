@@ -46,8 +46,14 @@ def _payload(rng: np.random.Generator) -> bytes:
     return b"\xff\xd8\xff\xe0" + rng.integers(0, 256, FRAME_BYTES - 4, dtype=np.uint8).tobytes()
 
 
-async def _robot(url: str, token: str, seconds: float, latencies: list[float], rng: np.random.Generator,
-                 fps: float | None = None) -> tuple[str, int]:
+async def _robot(
+    url: str,
+    token: str,
+    seconds: float,
+    latencies: list[float],
+    rng: np.random.Generator,
+    fps: float | None = None,
+) -> tuple[str, int]:
     """Stream frames for ``seconds`` (as fast as the window allows, or at ``fps``); returns
     the session id and how many were acknowledged."""
     sid = uuid.uuid4()
@@ -55,8 +61,19 @@ async def _robot(url: str, token: str, seconds: float, latencies: list[float], r
     sent_at: dict[int, float] = {}
     acked = 0
     window = asyncio.Semaphore(WINDOW)
-    async with connect(url, additional_headers={"Authorization": f"Bearer {token}"}, max_size=2**20, compression=None) as ws:
-        await ws.send(encode_message(Message(MessageType.SESSION_START, sid, 1, time.time(), {"structure": "ingest bench"})))
+    async with connect(
+        url,
+        additional_headers={"Authorization": f"Bearer {token}"},
+        max_size=2**20,
+        compression=None,
+    ) as ws:
+        await ws.send(
+            encode_message(
+                Message(
+                    MessageType.SESSION_START, sid, 1, time.time(), {"structure": "ingest bench"}
+                )
+            )
+        )
         decode_message(await ws.recv())
         done = asyncio.Event()
 
@@ -82,7 +99,9 @@ async def _robot(url: str, token: str, seconds: float, latencies: list[float], r
             await window.acquire()
             meta = {"width": 640, "height": 480, "pose": {"x": 0.0, "y": 0.0, "yaw": 0.0}}
             sent_at[seq] = time.perf_counter()
-            await ws.send(encode_message(Message(MessageType.FRAME, sid, seq, time.time(), meta, payload)))
+            await ws.send(
+                encode_message(Message(MessageType.FRAME, sid, seq, time.time(), meta, payload))
+            )
             seq += 1
         done.set()
         await asyncio.wait_for(task, 60)
@@ -122,7 +141,9 @@ async def _echo_ceiling(seconds: float) -> float:
             return count / elapsed
 
 
-def _load(port: int, token: str, robots: int, seconds: float, fps: float | None) -> tuple[list[tuple[str, int]], list[float], float]:
+def _load(
+    port: int, token: str, robots: int, seconds: float, fps: float | None
+) -> tuple[list[tuple[str, int]], list[float], float]:
     latencies: list[float] = []
     url = f"ws://127.0.0.1:{port}/ws/robot"
 
@@ -152,32 +173,72 @@ def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Itera
         token = create_robot(make_sessionmaker(engine), "bench")
         engine.dispose()
         port = free_port()
-        proc = serve_process(settings.data_dir, port, STEELSCAN_AUTO_PROCESS="false", STEELSCAN_VIEW3D="false")
+        proc = serve_process(
+            settings.data_dir, port, STEELSCAN_AUTO_PROCESS="false", STEELSCAN_VIEW3D="false"
+        )
         try:
             flood, flood_lat, flood_s = _load(port, token, ROBOTS, min(10.0, field_seconds), None)
             # the flood leaves a gigabyte or more of dirty pages; written back now, or the
             # field phase would measure the kernel's writeback of the flood
             os.sync()
             field, field_lat, field_s = _load(port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS)
-            stored = {sid: httpx.get(f"http://127.0.0.1:{port}/api/sessions/{sid}", timeout=30).json()["frames"] for sid, _ in flood + field}
+            stored = {
+                sid: httpx.get(f"http://127.0.0.1:{port}/api/sessions/{sid}", timeout=30).json()[
+                    "frames"
+                ]
+                for sid, _ in flood + field
+            }
         finally:
             proc.terminate()
             proc.wait(timeout=30)
         ceiling = asyncio.run(_echo_ceiling(5.0))
         acked = sum(a for _, a in flood)
         rate = acked / flood_s
-        yield {"name": "ingest.frames_per_second", "value": round(rate, 1), "unit": "frames/s", "target": 2000,
-               "baseline": round(ceiling, 1), "ratio": round(rate / ceiling, 3), "baseline_is": "bare websockets echo on loopback",
-               "robots": ROBOTS, "window": WINDOW, "frame_kb": FRAME_BYTES // 1024, "seconds": round(flood_s, 1),
-               "ack_latency_p50_ms": round(float(np.percentile(np.array(flood_lat) * 1000, 50)), 2)}
+        yield {
+            "name": "ingest.frames_per_second",
+            "value": round(rate, 1),
+            "unit": "frames/s",
+            "target": 2000,
+            "baseline": round(ceiling, 1),
+            "ratio": round(rate / ceiling, 3),
+            "baseline_is": "bare websockets echo on loopback",
+            "robots": ROBOTS,
+            "window": WINDOW,
+            "frame_kb": FRAME_BYTES // 1024,
+            "seconds": round(flood_s, 1),
+            "ack_latency_p50_ms": round(float(np.percentile(np.array(flood_lat) * 1000, 50)), 2),
+        }
         lat = np.array(field_lat) * 1000
         field_acked = sum(a for _, a in field)
-        yield {"name": "ingest.field_frames_per_second", "value": round(field_acked / field_s, 1), "unit": "frames/s",
-               "offered": FIELD_ROBOTS * FIELD_FPS, "robots": FIELD_ROBOTS, "fps_per_robot": FIELD_FPS, "seconds": round(field_s, 1)}
-        yield {"name": "ingest.ack_latency_p50", "value": round(float(np.percentile(lat, 50)), 2), "unit": "ms", "load": "field"}
-        yield {"name": "ingest.ack_latency_p99", "value": round(float(np.percentile(lat, 99)), 2), "unit": "ms", "target": 2.0, "load": "field"}
+        yield {
+            "name": "ingest.field_frames_per_second",
+            "value": round(field_acked / field_s, 1),
+            "unit": "frames/s",
+            "offered": FIELD_ROBOTS * FIELD_FPS,
+            "robots": FIELD_ROBOTS,
+            "fps_per_robot": FIELD_FPS,
+            "seconds": round(field_s, 1),
+        }
+        yield {
+            "name": "ingest.ack_latency_p50",
+            "value": round(float(np.percentile(lat, 50)), 2),
+            "unit": "ms",
+            "load": "field",
+        }
+        yield {
+            "name": "ingest.ack_latency_p99",
+            "value": round(float(np.percentile(lat, 99)), 2),
+            "unit": "ms",
+            "target": 2.0,
+            "load": "field",
+        }
         all_acked = {sid: a for sid, a in flood + field}
-        yield {"name": "ingest.lost", "value": sum(all_acked.values()) - sum(stored.values()), "unit": "frames",
-               "acked": sum(all_acked.values()), "stored": sum(stored.values())}
+        yield {
+            "name": "ingest.lost",
+            "value": sum(all_acked.values()) - sum(stored.values()),
+            "unit": "frames",
+            "acked": sum(all_acked.values()),
+            "stored": sum(stored.values()),
+        }
     finally:
         shutil.rmtree(root, ignore_errors=True)

@@ -14,11 +14,20 @@ from numpy.typing import NDArray
 from bench.common import Result
 
 
-def relative_pose_error(est: NDArray[np.float64], truth: NDArray[np.float64]) -> tuple[float, float]:
+def relative_pose_error(
+    est: NDArray[np.float64], truth: NDArray[np.float64]
+) -> tuple[float, float]:
     """RMSE of the translational error of consecutive relative motions (m) and the largest
     one (a jump: a catastrophic registration)."""
-    errs = [np.linalg.norm((np.linalg.inv(np.linalg.inv(est[k]) @ est[k + 1]) @ (np.linalg.inv(truth[k]) @ truth[k + 1]))[:3, 3])
-            for k in range(len(est) - 1)]
+    errs = [
+        np.linalg.norm(
+            (
+                np.linalg.inv(np.linalg.inv(est[k]) @ est[k + 1])
+                @ (np.linalg.inv(truth[k]) @ truth[k + 1])
+            )[:3, 3]
+        )
+        for k in range(len(est) - 1)
+    ]
     return float(np.sqrt(np.mean(np.square(errs)))), float(np.max(errs))
 
 
@@ -33,11 +42,20 @@ def _sweeps() -> list[tuple[str, Any]]:
     from robot_link.sim.tof_sweeps import TofSweepConfig
 
     three = (0.5, 0.62, 0.74)
-    return [("sweep31", TofSweepConfig(seed=31)), ("sweep32", TofSweepConfig(seed=32)),
-            ("three_lanes33", TofSweepConfig(lanes_y_m=three, revisit=False, seed=33)),
-            ("one_lane34", TofSweepConfig(lanes_y_m=(0.6,), revisit=False, seed=34)),
-            ("three_lanes35_bare_girder", TofSweepConfig(lanes_y_m=three, revisit=False, girder_overhang_m=0.0, seed=35)),
-            ("sweep36_poor_odometry", TofSweepConfig(odometry_distance_sigma=0.09, odometry_yaw_sigma_deg=1.8, seed=36))]
+    return [
+        ("sweep31", TofSweepConfig(seed=31)),
+        ("sweep32", TofSweepConfig(seed=32)),
+        ("three_lanes33", TofSweepConfig(lanes_y_m=three, revisit=False, seed=33)),
+        ("one_lane34", TofSweepConfig(lanes_y_m=(0.6,), revisit=False, seed=34)),
+        (
+            "three_lanes35_bare_girder",
+            TofSweepConfig(lanes_y_m=three, revisit=False, girder_overhang_m=0.0, seed=35),
+        ),
+        (
+            "sweep36_poor_odometry",
+            TofSweepConfig(odometry_distance_sigma=0.09, odometry_yaw_sigma_deg=1.8, seed=36),
+        ),
+    ]
 
 
 def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
@@ -61,31 +79,71 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
         tutorial = _open3d_tutorial_poses([select(c, SelectParams()) for c in clouds], odo)
         base_ms = 1000 * (time.perf_counter() - t0) / n
         name = f"map.{label}"
-        ate = {k: absolute_trajectory_error(p, truth) for k, p in (("ours", ours.poses), ("odometry", odo), ("tutorial", tutorial))}
-        rpe = {k: relative_pose_error(p, truth) for k, p in (("ours", ours.poses), ("odometry", odo), ("tutorial", tutorial))}
-        yield {"name": f"{name}.ate", "value": round(ate["ours"], 4), "unit": "m", "baseline": round(ate["tutorial"], 4),
-               "ratio": round(ate["ours"] / max(ate["tutorial"], 1e-9), 3), "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
-               "odometry": round(ate["odometry"], 4), "clouds": n, "path_m": round(length, 2),
-               "loop_closures": ours.loop_closures, "odometry_fallbacks": int(ours.used_odometry.sum()),
-               "odometry_error_scale": round(ours.odometry_error_scale, 2), "plane_landmarks": ours.plane_landmarks}
+        ate = {
+            k: absolute_trajectory_error(p, truth)
+            for k, p in (("ours", ours.poses), ("odometry", odo), ("tutorial", tutorial))
+        }
+        rpe = {
+            k: relative_pose_error(p, truth)
+            for k, p in (("ours", ours.poses), ("odometry", odo), ("tutorial", tutorial))
+        }
+        yield {
+            "name": f"{name}.ate",
+            "value": round(ate["ours"], 4),
+            "unit": "m",
+            "baseline": round(ate["tutorial"], 4),
+            "ratio": round(ate["ours"] / max(ate["tutorial"], 1e-9), 3),
+            "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
+            "odometry": round(ate["odometry"], 4),
+            "clouds": n,
+            "path_m": round(length, 2),
+            "loop_closures": ours.loop_closures,
+            "odometry_fallbacks": int(ours.used_odometry.sum()),
+            "odometry_error_scale": round(ours.odometry_error_scale, 2),
+            "plane_landmarks": ours.plane_landmarks,
+        }
         seen = sees_structure([select(c, SelectParams(), shape) for c in clouds], truth)
         oracle = absolute_trajectory_error(oracle_poses(truth, odo, seen), truth)
-        yield {"name": f"{name}.drift", "value": round(100 * ate["ours"] / length, 3), "unit": "% of path", "target": 0.25,
-               "baseline": round(100 * ate["odometry"] / length, 3), "ratio": round(ate["ours"] / max(ate["odometry"], 1e-9), 3),
-               "baseline_is": "odometry alone", "oracle_drift": round(100 * oracle / length, 3),
-               "oracle_is": "exact steps between clouds that both see structure off the deck plate, odometry's elsewhere",
-               "clouds_seeing_structure": int(seen.sum())}
-        yield {"name": f"{name}.rpe", "value": round(rpe["ours"][0], 4), "unit": "m", "max_step_error": round(rpe["ours"][1], 4), "max_step_target": 0.02,
-               "baseline": round(rpe["odometry"][0], 4), "baseline_is": "odometry alone",
-               "tutorial": round(rpe["tutorial"][0], 4), "tutorial_max_step_error": round(rpe["tutorial"][1], 4)}
-        yield {"name": f"{name}.ms_per_cloud", "value": round(ours_ms, 1), "unit": "ms", "target": 25.0, "baseline": round(base_ms, 1),
-               "ratio": round(ours_ms / base_ms, 3), "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP"}
+        yield {
+            "name": f"{name}.drift",
+            "value": round(100 * ate["ours"] / length, 3),
+            "unit": "% of path",
+            "target": 0.25,
+            "baseline": round(100 * ate["odometry"] / length, 3),
+            "ratio": round(ate["ours"] / max(ate["odometry"], 1e-9), 3),
+            "baseline_is": "odometry alone",
+            "oracle_drift": round(100 * oracle / length, 3),
+            "oracle_is": "exact steps between clouds that both see structure off the deck plate, odometry's elsewhere",
+            "clouds_seeing_structure": int(seen.sum()),
+        }
+        yield {
+            "name": f"{name}.rpe",
+            "value": round(rpe["ours"][0], 4),
+            "unit": "m",
+            "max_step_error": round(rpe["ours"][1], 4),
+            "max_step_target": 0.02,
+            "baseline": round(rpe["odometry"][0], 4),
+            "baseline_is": "odometry alone",
+            "tutorial": round(rpe["tutorial"][0], 4),
+            "tutorial_max_step_error": round(rpe["tutorial"][1], 4),
+        }
+        yield {
+            "name": f"{name}.ms_per_cloud",
+            "value": round(ours_ms, 1),
+            "unit": "ms",
+            "target": 25.0,
+            "baseline": round(base_ms, 1),
+            "ratio": round(ours_ms / base_ms, 3),
+            "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
+        }
 
 
 STRUCTURE_POINTS = 30  # points off the deck plate for a cloud to say anything beyond it
 
 
-def sees_structure(pcds: list[Any], truth: NDArray[np.float64], plate_z_m: float = 0.0, tol_m: float = 0.01) -> NDArray[np.bool_]:
+def sees_structure(
+    pcds: list[Any], truth: NDArray[np.float64], plate_z_m: float = 0.0, tol_m: float = 0.01
+) -> NDArray[np.bool_]:
     """Which clouds (selected, sensor frame) have at least :data:`STRUCTURE_POINTS` points
     off the simulator's deck plate (world z = ``plate_z_m``) where they truly are: a plate
     alone fixes height, roll and pitch only, so the rest of such a cloud's step can come
@@ -99,7 +157,9 @@ def sees_structure(pcds: list[Any], truth: NDArray[np.float64], plate_z_m: float
     return out
 
 
-def oracle_poses(truth: NDArray[np.float64], odometry: NDArray[np.float64], seen: NDArray[np.bool_]) -> NDArray[np.float64]:
+def oracle_poses(
+    truth: NDArray[np.float64], odometry: NDArray[np.float64], seen: NDArray[np.bool_]
+) -> NDArray[np.float64]:
     """What a perfect cloud-to-cloud registration would give without loop closures: the
     true step between consecutive clouds that both see structure, the odometry's otherwise
     (a reference for routes that do not return, not a strict bound: constraints that skip
@@ -119,19 +179,40 @@ def _open3d_tutorial_poses(pcds: list[Any], odometry: NDArray[np.float64]) -> ND
     reg = o3d.pipelines.registration
     voxel = 0.02
     usable = [len(p.points) >= 30 and p.has_normals() for p in pcds]
-    feats = [reg.compute_fpfh_feature(p, o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * 5, max_nn=100)) if ok else None
-             for p, ok in zip(pcds, usable)]
+    feats = [
+        reg.compute_fpfh_feature(
+            p, o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * 5, max_nn=100)
+        )
+        if ok
+        else None
+        for p, ok in zip(pcds, usable)
+    ]
     poses = [odometry[0]]
     for i in range(1, len(pcds)):
         if not (usable[i] and usable[i - 1]):
             poses.append(poses[-1] @ np.linalg.inv(odometry[i - 1]) @ odometry[i])
             continue
         ransac = reg.registration_ransac_based_on_feature_matching(
-            pcds[i], pcds[i - 1], feats[i], feats[i - 1], True, voxel * 1.5,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(voxel * 1.5)],
-            reg.RANSACConvergenceCriteria(100000, 0.999))
-        icp = reg.registration_icp(pcds[i], pcds[i - 1], voxel * 0.4 * 3, ransac.transformation,
-                                   reg.TransformationEstimationPointToPlane())
+            pcds[i],
+            pcds[i - 1],
+            feats[i],
+            feats[i - 1],
+            True,
+            voxel * 1.5,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
+            [
+                reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                reg.CorrespondenceCheckerBasedOnDistance(voxel * 1.5),
+            ],
+            reg.RANSACConvergenceCriteria(100000, 0.999),
+        )
+        icp = reg.registration_icp(
+            pcds[i],
+            pcds[i - 1],
+            voxel * 0.4 * 3,
+            ransac.transformation,
+            reg.TransformationEstimationPointToPlane(),
+        )
         poses.append(poses[-1] @ icp.transformation)
     return np.array(poses)

@@ -36,7 +36,9 @@ from robot_link.sim.sweeps import (
 )
 
 SEEDS = (101, 202)
-DRIFT_SEEDS = tuple(range(301, 309))  # straight runs for the end drift's spread (photographs and painted steel in turn)
+DRIFT_SEEDS = tuple(
+    range(301, 309)
+)  # straight runs for the end drift's spread (photographs and painted steel in turn)
 
 
 class _Jpegs:
@@ -65,17 +67,24 @@ def real_texture(need: tuple[int, int], dataset: Path | None) -> tuple[NDArray[n
     from skimage import data
 
     photos = [data.brick(), data.grass(), data.gravel(), data.camera()]
-    images = [cv2.flip(photos[k % 4], (k // 4) % 3 - 1) if k >= 4 else photos[k] for k in range(cols * rows)]
+    images = [
+        cv2.flip(photos[k % 4], (k // 4) % 3 - 1) if k >= 4 else photos[k]
+        for k in range(cols * rows)
+    ]
     return texture_from_images(images, cols, cell), "scikit-image texture photographs"
 
 
-def centre_errors(est_xy: NDArray[np.float64], truth_xy: NDArray[np.float64], *, with_scale: bool = False) -> NDArray[np.float64]:
+def centre_errors(
+    est_xy: NDArray[np.float64], truth_xy: NDArray[np.float64], *, with_scale: bool = False
+) -> NDArray[np.float64]:
     """Frame-centre errors (px) after the best rigid (or similarity) fit to the truth."""
     fit = similarity_align_2d if with_scale else rigid_align_2d
     return np.linalg.norm(fit(est_xy, truth_xy) - truth_xy, axis=1)
 
 
-def _ours(sweep: Sweep, blind: bool, repeats: int = 5) -> tuple[NDArray[np.float64], float, float, float, int]:
+def _ours(
+    sweep: Sweep, blind: bool, repeats: int = 5
+) -> tuple[NDArray[np.float64], float, float, float, int]:
     """Poses, all-in seconds (decode, register, solve, blend) of the fastest and of the
     median of ``repeats`` runs, the fastest run's CPU seconds, and low-confidence frames.
     The fastest run is the code's cost (as ``timeit`` reports): other load on the machine
@@ -90,7 +99,13 @@ def _ours(sweep: Sweep, blind: bool, repeats: int = 5) -> tuple[NDArray[np.float
         walls.append(time.perf_counter() - t0)
         cpus.append(c1.user - c0.user + c1.system - c0.system)
     best = int(np.argmin(walls))
-    return layout.poses_px, walls[best], float(np.median(walls)), cpus[best], int((~layout.confident).sum())
+    return (
+        layout.poses_px,
+        walls[best],
+        float(np.median(walls)),
+        cpus[best],
+        int((~layout.confident).sum()),
+    )
 
 
 def _warm_up() -> None:
@@ -109,7 +124,12 @@ def _opencv(sweep: Sweep) -> tuple[NDArray[np.float64] | None, float, str, int]:
     try:
         code, _ = stitcher.stitch(frames)
     except cv2.error as exc:
-        return None, time.perf_counter() - t0, f"raised: {str(exc).strip().splitlines()[-1][:100]}", 0
+        return (
+            None,
+            time.perf_counter() - t0,
+            f"raised: {str(exc).strip().splitlines()[-1][:100]}",
+            0,
+        )
     seconds = time.perf_counter() - t0
     if code != cv2.Stitcher_OK:
         return None, seconds, f"failed with status {code}", 0
@@ -125,7 +145,9 @@ def _ecc_steps(sweep: Sweep, poses: NDArray[np.float64]) -> tuple[list[NDArray[n
     overlap, a standard dense refinement) from our own step; and seconds per pair."""
     size = sweep.config.frame_size
     frames = _Jpegs(sweep.frames)
-    grey = [cv2.cvtColor(frames[k], cv2.COLOR_BGR2GRAY).astype(np.float32) for k in range(len(frames))]
+    grey = [
+        cv2.cvtColor(frames[k], cv2.COLOR_BGR2GRAY).astype(np.float32) for k in range(len(frames))
+    ]
     steps, seconds = [], 0.0
     for k in range(len(grey) - 1):
         start = relative_se2(poses[k], poses[k + 1])
@@ -135,25 +157,44 @@ def _ecc_steps(sweep: Sweep, poses: NDArray[np.float64]) -> tuple[list[NDArray[n
             steps.append(start)
             continue
         x0, y0, x1, y1 = rect
-        W = W0 = (M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2].astype(np.float32)  # template pixel -> frame k+1
+        W = W0 = (M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2].astype(
+            np.float32
+        )  # template pixel -> frame k+1
         t0 = time.perf_counter()
         try:
-            _, W = cv2.findTransformECC(grey[k][y0:y1, x0:x1], grey[k + 1], W0.copy(), cv2.MOTION_EUCLIDEAN,
-                                        (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-7), None, 5)
+            _, W = cv2.findTransformECC(
+                grey[k][y0:y1, x0:x1],
+                grey[k + 1],
+                W0.copy(),
+                cv2.MOTION_EUCLIDEAN,
+                (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-7),
+                None,
+                5,
+            )
         except cv2.error:  # did not converge: keep the start
             W = W0
         seconds += time.perf_counter() - t0
-        steps.append(delta_of_map(np.vstack([W, [0, 0, 1]]) @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]]), size))
+        steps.append(
+            delta_of_map(
+                np.vstack([W, [0, 0, 1]]) @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]]), size
+            )
+        )
     return steps, seconds / max(1, len(grey) - 1)
 
 
-def _sequence(name: str, sweep: Sweep, *, blind: bool = False, opencv: bool = False) -> Iterator[Result]:
+def _sequence(
+    name: str, sweep: Sweep, *, blind: bool = False, opencv: bool = False
+) -> Iterator[Result]:
     size = sweep.config.frame_size
     n = len(sweep.frames)
     poses, seconds, median_seconds, cpu_seconds, weak = _ours(sweep, blind)
     pairs, drift = mosaic_overlap_errors(poses, sweep.truth, size)
     centres = centre_errors(poses[:, :2], sweep.truth[:, :2])
-    base = {"frames": n, "pairs": len(pairs), "guess": "images only" if blind else "drifting odometry"}
+    base = {
+        "frames": n,
+        "pairs": len(pairs),
+        "guess": "images only" if blind else "drifting odometry",
+    }
     if blind:
         odo_pairs, odo_drift, odo_centres = None, None, None
     else:
@@ -161,37 +202,97 @@ def _sequence(name: str, sweep: Sweep, *, blind: bool = False, opencv: bool = Fa
         odo_centres = centre_errors(sweep.odometry[:, :2], sweep.truth[:, :2])
 
     def vs_odometry(value: float, odo: float | None) -> Result:
-        return {} if odo is None else {"baseline": round(odo, 3), "ratio": round(value / max(odo, 1e-9), 4), "baseline_is": "odometry alone"}
+        return (
+            {}
+            if odo is None
+            else {
+                "baseline": round(odo, 3),
+                "ratio": round(value / max(odo, 1e-9), 4),
+                "baseline_is": "odometry alone",
+            }
+        )
 
-    yield {"name": f"stitch.{name}.mean_overlap_error", "value": round(float(pairs.mean()), 4), "unit": "px", "target": 0.1,
-           **vs_odometry(float(pairs.mean()), None if odo_pairs is None else float(odo_pairs.mean())), **base}
-    yield {"name": f"stitch.{name}.max_overlap_error", "value": round(float(pairs.max()), 4), "unit": "px", "target": 2.0,
-           **vs_odometry(float(pairs.max()), None if odo_pairs is None else float(odo_pairs.max()))}
-    yield {"name": f"stitch.{name}.end_drift", "value": round(drift, 4), "unit": "px", "target": 1.0, **vs_odometry(drift, odo_drift)}
-    if sweep.config.pattern == "straight" and not blind:  # a chain of pairs only: is a pixel at the far end reachable?
+    yield {
+        "name": f"stitch.{name}.mean_overlap_error",
+        "value": round(float(pairs.mean()), 4),
+        "unit": "px",
+        "target": 0.1,
+        **vs_odometry(float(pairs.mean()), None if odo_pairs is None else float(odo_pairs.mean())),
+        **base,
+    }
+    yield {
+        "name": f"stitch.{name}.max_overlap_error",
+        "value": round(float(pairs.max()), 4),
+        "unit": "px",
+        "target": 2.0,
+        **vs_odometry(float(pairs.max()), None if odo_pairs is None else float(odo_pairs.max())),
+    }
+    yield {
+        "name": f"stitch.{name}.end_drift",
+        "value": round(drift, 4),
+        "unit": "px",
+        "target": 1.0,
+        **vs_odometry(drift, odo_drift),
+    }
+    if (
+        sweep.config.pattern == "straight" and not blind
+    ):  # a chain of pairs only: is a pixel at the far end reachable?
         steps, ecc_seconds = _ecc_steps(sweep, poses)
-        ecc_pairs, ecc_drift = mosaic_overlap_errors(chain_se2(sweep.truth[0], steps), sweep.truth, size)
-        yield {"name": f"stitch.{name}.ecc_end_drift", "value": round(ecc_drift, 4), "unit": "px",
-               "mean_overlap_error": round(float(ecc_pairs.mean()), 4), "max_overlap_error": round(float(ecc_pairs.max()), 4),
-               "ms_per_pair": round(1000 * ecc_seconds, 1), "ours_end_drift": round(drift, 4),
-               "what": "the same pairs refined by OpenCV's ECC (Euclidean, every pixel of the overlap) from our steps, chained"}
-    yield {"name": f"stitch.{name}.mean_centre_error", "value": round(float(centres.mean()), 4), "unit": "px",
-           "max": round(float(centres.max()), 4), **vs_odometry(float(centres.mean()), None if odo_centres is None else float(odo_centres.mean())),
-           "low_confidence_frames": weak}
+        ecc_pairs, ecc_drift = mosaic_overlap_errors(
+            chain_se2(sweep.truth[0], steps), sweep.truth, size
+        )
+        yield {
+            "name": f"stitch.{name}.ecc_end_drift",
+            "value": round(ecc_drift, 4),
+            "unit": "px",
+            "mean_overlap_error": round(float(ecc_pairs.mean()), 4),
+            "max_overlap_error": round(float(ecc_pairs.max()), 4),
+            "ms_per_pair": round(1000 * ecc_seconds, 1),
+            "ours_end_drift": round(drift, 4),
+            "what": "the same pairs refined by OpenCV's ECC (Euclidean, every pixel of the overlap) from our steps, chained",
+        }
+    yield {
+        "name": f"stitch.{name}.mean_centre_error",
+        "value": round(float(centres.mean()), 4),
+        "unit": "px",
+        "max": round(float(centres.max()), 4),
+        **vs_odometry(
+            float(centres.mean()), None if odo_centres is None else float(odo_centres.mean())
+        ),
+        "low_confidence_frames": weak,
+    }
     ms = 1000 * seconds / n
-    result: Result = {"name": f"stitch.{name}.ms_per_frame", "value": round(ms, 2), "unit": "ms", "target": 10.0,
-                      "frames_per_second": round(n / seconds, 1), "cpu_ms_per_frame": round(1000 * cpu_seconds / n, 2),
-                      "median_ms_per_frame": round(1000 * median_seconds / n, 2),
-                      "all_in": "decode, register, solve, gains, blend (2 threads; fastest of 5 runs)"}
+    result: Result = {
+        "name": f"stitch.{name}.ms_per_frame",
+        "value": round(ms, 2),
+        "unit": "ms",
+        "target": 10.0,
+        "frames_per_second": round(n / seconds, 1),
+        "cpu_ms_per_frame": round(1000 * cpu_seconds / n, 2),
+        "median_ms_per_frame": round(1000 * median_seconds / n, 2),
+        "all_in": "decode, register, solve, gains, blend (2 threads; fastest of 5 runs)",
+    }
     if opencv:
         centres_cv, cv_seconds, status, kept = _opencv(sweep)
         cv_ms = 1000 * cv_seconds / n
-        result.update({"baseline": round(cv_ms, 1), "ratio": round(ms / cv_ms, 4), "baseline_is": "cv2.Stitcher SCANS",
-                       "baseline_status": status, "baseline_frames_kept": kept})
+        result.update(
+            {
+                "baseline": round(cv_ms, 1),
+                "ratio": round(ms / cv_ms, 4),
+                "baseline_is": "cv2.Stitcher SCANS",
+                "baseline_status": status,
+                "baseline_frames_kept": kept,
+            }
+        )
         if centres_cv is not None and kept >= 3:
             ok = np.isfinite(centres_cv[:, 0])
             e = centre_errors(centres_cv[ok], sweep.truth[ok, :2], with_scale=True)
-            result.update({"baseline_mean_centre_error_px": round(float(e.mean()), 2), "baseline_max_centre_error_px": round(float(e.max()), 2)})
+            result.update(
+                {
+                    "baseline_mean_centre_error_px": round(float(e.mean()), 2),
+                    "baseline_max_centre_error_px": round(float(e.max()), 2),
+                }
+            )
     yield result
 
 
@@ -206,10 +307,17 @@ def bench_stitch(dataset: Path | None = None, limit: int | None = None) -> Itera
             if surface == "textured":
                 texture, source = real_texture(need, dataset)
             else:
-                texture, source = painted_steel((need[1], need[0]), seed=cfg.seed), "simulator paint"
+                texture, source = (
+                    painted_steel((need[1], need[0]), seed=cfg.seed),
+                    "simulator paint",
+                )
             sweep = make_sweep(texture, cfg)
             for result in _sequence(f"{surface}.{pattern}", sweep, opencv=pattern == "lawnmower"):
-                yield {**result, "texture": source} if result["name"].endswith("mean_overlap_error") else result
+                yield (
+                    {**result, "texture": source}
+                    if result["name"].endswith("mean_overlap_error")
+                    else result
+                )
             yield from _sequence(f"{surface}.{pattern}.images_only", sweep, blind=True)
     yield _straight_drifts(dataset, frames)
 
@@ -221,16 +329,33 @@ def _straight_drifts(dataset: Path | None, frames: int) -> Result:
     for k, seed in enumerate(DRIFT_SEEDS):
         cfg = SweepConfig(frames=frames, pattern="straight", seed=seed)
         need = texture_size_for(cfg)
-        texture = real_texture(need, dataset)[0] if k % 2 == 0 else painted_steel((need[1], need[0]), seed=seed)
+        texture = (
+            real_texture(need, dataset)[0]
+            if k % 2 == 0
+            else painted_steel((need[1], need[0]), seed=seed)
+        )
         sweep = make_sweep(texture, cfg)
         layout, _ = plan_mosaic(_Jpegs(sweep.frames), sweep.odometry)
         ours.append(mosaic_overlap_errors(layout.poses_px, sweep.truth, cfg.frame_size)[1])
         steps, _ = _ecc_steps(sweep, layout.poses_px)
-        ecc.append(mosaic_overlap_errors(chain_se2(sweep.truth[0], steps), sweep.truth, cfg.frame_size)[1])
+        ecc.append(
+            mosaic_overlap_errors(chain_se2(sweep.truth[0], steps), sweep.truth, cfg.frame_size)[1]
+        )
     rms, rms_ecc = float(np.sqrt(np.mean(np.square(ours)))), float(np.sqrt(np.mean(np.square(ecc))))
-    return {"name": "stitch.straight_runs.end_drift_rms", "value": round(rms, 3), "unit": "px", "target": 1.0,
-            "baseline": round(rms_ecc, 3), "ratio": round(rms / max(rms_ecc, 1e-9), 3),
-            "baseline_is": "OpenCV ECC refinement of the same pairs, chained", "runs": len(DRIFT_SEEDS), "frames": frames,
-            "median": round(float(np.median(ours)), 3), "baseline_median": round(float(np.median(ecc)), 3),
-            "runs_within_target": int(np.sum(np.array(ours) <= 1.0)), "baseline_runs_within_target": int(np.sum(np.array(ecc) <= 1.0)),
-            "drifts": [round(float(d), 2) for d in ours], "baseline_drifts": [round(float(d), 2) for d in ecc]}
+    return {
+        "name": "stitch.straight_runs.end_drift_rms",
+        "value": round(rms, 3),
+        "unit": "px",
+        "target": 1.0,
+        "baseline": round(rms_ecc, 3),
+        "ratio": round(rms / max(rms_ecc, 1e-9), 3),
+        "baseline_is": "OpenCV ECC refinement of the same pairs, chained",
+        "runs": len(DRIFT_SEEDS),
+        "frames": frames,
+        "median": round(float(np.median(ours)), 3),
+        "baseline_median": round(float(np.median(ecc)), 3),
+        "runs_within_target": int(np.sum(np.array(ours) <= 1.0)),
+        "baseline_runs_within_target": int(np.sum(np.array(ecc) <= 1.0)),
+        "drifts": [round(float(d), 2) for d in ours],
+        "baseline_drifts": [round(float(d), 2) for d in ecc],
+    }

@@ -46,7 +46,11 @@ def _rss_mb(pid: int) -> tuple[float, float]:
         status = Path(f"/proc/{pid}/status").read_text()
     except OSError:
         return 0.0, 0.0
-    values = dict(line.split(":", 1) for line in status.splitlines() if line.startswith(("RssAnon", "RssFile")))
+    values = dict(
+        line.split(":", 1)
+        for line in status.splitlines()
+        if line.startswith(("RssAnon", "RssFile"))
+    )
     return tuple(float(values.get(k, "0 kB").split()[0]) / 1024 for k in ("RssAnon", "RssFile"))  # type: ignore[return-value]
 
 
@@ -54,16 +58,32 @@ def _run(folder: Path) -> tuple[float, float, float]:
     """Seconds and peak resident memory (anonymous; file-backed, i.e. mapped scratch files the
     kernel can drop) in MB of one ``steelscan stitch`` process, sampled every 20 ms."""
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "server.cli", "stitch", str(folder / "frames"), "--out", str(folder / "out"),
-                             "--odometry", str(folder / "odometry.tum"), "--px-per-m", str(PX_PER_M)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "server.cli",
+            "stitch",
+            str(folder / "frames"),
+            "--out",
+            str(folder / "out"),
+            "--odometry",
+            str(folder / "odometry.tum"),
+            "--px-per-m",
+            str(PX_PER_M),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     anon = mapped = 0.0
     while proc.poll() is None:
         a, f = _rss_mb(proc.pid)
         anon, mapped = max(anon, a), max(mapped, f)
         time.sleep(0.02)
     if proc.returncode != 0:
-        raise RuntimeError(f"steelscan stitch failed: {proc.stderr.read().decode()[-500:] if proc.stderr else ''}")
+        raise RuntimeError(
+            f"steelscan stitch failed: {proc.stderr.read().decode()[-500:] if proc.stderr else ''}"
+        )
     return time.perf_counter() - t0, anon, mapped
 
 
@@ -79,12 +99,24 @@ def bench_stitch_scale(dataset: Path | None = None, limit: int | None = None) ->
             write_session(folder, n, lanes, seed=300 + n)
             seconds, peak_mb, mapped_mb = _run(folder)
             world = json.loads((folder / "out" / "mosaic.json").read_text())
-            result: Result = {"name": f"stitch.scale.{n}_frames.peak_memory", "value": round(peak_mb, 1), "unit": "MB",
-                              "ms_per_frame": round(1000 * seconds / n, 1), "mosaic_px": [world["width_px"], world["height_px"]],
-                              "pairs": world["pairs"], "peak_file_backed_mb": round(mapped_mb, 1),
-                              "note": "anonymous memory; file-backed pages are the mapped scratch image, reclaimable"}
+            result: Result = {
+                "name": f"stitch.scale.{n}_frames.peak_memory",
+                "value": round(peak_mb, 1),
+                "unit": "MB",
+                "ms_per_frame": round(1000 * seconds / n, 1),
+                "mosaic_px": [world["width_px"], world["height_px"]],
+                "pairs": world["pairs"],
+                "peak_file_backed_mb": round(mapped_mb, 1),
+                "note": "anonymous memory; file-backed pages are the mapped scratch image, reclaimable",
+            }
             if baseline_mb is not None:
-                result.update({"baseline": round(baseline_mb, 1), "ratio": round(peak_mb / baseline_mb, 3), "baseline_is": f"{sizes[0]} frames"})
+                result.update(
+                    {
+                        "baseline": round(baseline_mb, 1),
+                        "ratio": round(peak_mb / baseline_mb, 3),
+                        "baseline_is": f"{sizes[0]} frames",
+                    }
+                )
             baseline_mb = baseline_mb or peak_mb
             yield result
             shutil.rmtree(folder, ignore_errors=True)

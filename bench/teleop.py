@@ -26,7 +26,16 @@ from bench.common import Result
 from robot_link.sim.teleop import start_teleop_robot
 
 TARGETS_MS = {"video_p99": 150.0, "command_p99": 20.0, "deadman_max": 300.0}
-PATTERN = [("ArrowUp", 1.0), (None, 0.4), ("ArrowLeft", 0.5), (None, 0.3), ("ArrowDown", 1.0), (None, 0.4), ("ArrowRight", 0.5), (None, 0.3)]
+PATTERN = [
+    ("ArrowUp", 1.0),
+    (None, 0.4),
+    ("ArrowLeft", 0.5),
+    (None, 0.3),
+    ("ArrowDown", 1.0),
+    (None, 0.4),
+    ("ArrowRight", 0.5),
+    (None, 0.3),
+]
 DEADMAN_TRIALS = 10
 
 
@@ -45,7 +54,12 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
 
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
-        yield {"name": "teleop", "value": None, "unit": "", "error": "Debian's chromium is not installed (scripts/setup.sh installs it)"}
+        yield {
+            "name": "teleop",
+            "value": None,
+            "unit": "",
+            "error": "Debian's chromium is not installed (scripts/setup.sh installs it)",
+        }
         return
     seconds = float(limit or 60)
     scratch = Path(tempfile.mkdtemp(prefix="steelscan-bench-teleop-"))
@@ -59,11 +73,21 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
     robot = start_teleop_robot(server.url, token, duration_s=seconds + 30 + DEADMAN_TRIALS * 2)
     try:
         with sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=chromium, headless=True,
-                                         args=["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-sync"])
+            browser = pw.chromium.launch(
+                executable_path=chromium,
+                headless=True,
+                args=[
+                    "--no-sandbox",
+                    "--disable-gpu",
+                    "--disable-background-networking",
+                    "--disable-sync",
+                ],
+            )
             page = browser.new_page(viewport={"width": 1280, "height": 900})
             page.goto(server.url + "/")
-            page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000)
+            page.wait_for_function(
+                "Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000
+            )
             page.evaluate("window.steelscanStats.video.length = 0")
             sim = robot.sim
             sim.log.command_latency_ms.clear()
@@ -92,21 +116,53 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
                 page.keyboard.up("ArrowDown")
                 time.sleep(0.3)
             browser.close()
-        commands, keys, deadman = list(sim.log.command_latency_ms), list(sim.log.key_latency_ms), list(sim.log.deadman_stops_ms)
+        commands, keys, deadman = (
+            list(sim.log.command_latency_ms),
+            list(sim.log.key_latency_ms),
+            list(sim.log.deadman_stops_ms),
+        )
     finally:
         robot.stop()
         server.stop()
         shutil.rmtree(scratch, ignore_errors=True)
     base = {"seconds": seconds}
-    for name, values, target in (("teleop_video_latency", video, TARGETS_MS["video_p99"]),
-                                 ("teleop_key_to_robot_latency", keys, TARGETS_MS["command_p99"]),
-                                 ("teleop_command_latency", commands, TARGETS_MS["command_p99"])):
+    for name, values, target in (
+        ("teleop_video_latency", video, TARGETS_MS["video_p99"]),
+        ("teleop_key_to_robot_latency", keys, TARGETS_MS["command_p99"]),
+        ("teleop_command_latency", commands, TARGETS_MS["command_p99"]),
+    ):
         p99 = _pct(values, 99)
-        yield {"name": f"{name}_p50", "value": round(_pct(values, 50), 2), "unit": "ms", "samples": len(values), **base}
-        yield {"name": f"{name}_p99", "value": round(p99, 2), "unit": "ms", "baseline": target, "baseline_is": "target",
-               "ratio": round(p99 / target, 3), "samples": len(values), **base}
-    yield {"name": "teleop_video_fps", "value": round(frames / seconds, 1), "unit": "frames/s", **base}
+        yield {
+            "name": f"{name}_p50",
+            "value": round(_pct(values, 50), 2),
+            "unit": "ms",
+            "samples": len(values),
+            **base,
+        }
+        yield {
+            "name": f"{name}_p99",
+            "value": round(p99, 2),
+            "unit": "ms",
+            "baseline": target,
+            "baseline_is": "target",
+            "ratio": round(p99 / target, 3),
+            "samples": len(values),
+            **base,
+        }
+    yield {
+        "name": "teleop_video_fps",
+        "value": round(frames / seconds, 1),
+        "unit": "frames/s",
+        **base,
+    }
     worst = max(deadman) if deadman else float("nan")
-    yield {"name": "teleop_deadman_stop_max", "value": round(worst, 1), "unit": "ms", "baseline": TARGETS_MS["deadman_max"],
-           "baseline_is": "target", "ratio": round(worst / TARGETS_MS["deadman_max"], 3), "trials": len(deadman),
-           "p50": round(_pct(deadman, 50), 1)}
+    yield {
+        "name": "teleop_deadman_stop_max",
+        "value": round(worst, 1),
+        "unit": "ms",
+        "baseline": TARGETS_MS["deadman_max"],
+        "baseline_is": "target",
+        "ratio": round(worst / TARGETS_MS["deadman_max"], 3),
+        "trials": len(deadman),
+        "p50": round(_pct(deadman, 50), 1),
+    }

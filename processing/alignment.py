@@ -45,11 +45,15 @@ def _runs(count: int, workers: int) -> list[range]:
     return [range(a, b) for a, b in pairwise(edges) if b > a]
 
 
-def _nearest_measured(measurements: Sequence[PairMeasurement | None], k: int, count: int = 2) -> list[int]:
+def _nearest_measured(
+    measurements: Sequence[PairMeasurement | None], k: int, count: int = 2
+) -> list[int]:
     """Indices of the ``count`` measured entries nearest to entry k (the one before first
     when two are as near)."""
     found: list[int] = []
-    for step in range(1, len(measurements)):  # outwards from k: no scan of a whole long session per pair
+    for step in range(
+        1, len(measurements)
+    ):  # outwards from k: no scan of a whole long session per pair
         for j in (k - step, k + step):
             if 0 <= j < len(measurements) and measurements[j] is not None:
                 found.append(j)
@@ -58,7 +62,9 @@ def _nearest_measured(measurements: Sequence[PairMeasurement | None], k: int, co
     return found
 
 
-BLIND_ANGLES = tuple(np.radians([-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0]))  # turns searched when there is no odometry (climbed from 0)
+BLIND_ANGLES = tuple(
+    np.radians([-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0])
+)  # turns searched when there is no odometry (climbed from 0)
 SURE_MATCH = 0.9  # a verified guess this good ends the search (true matches ≥ 0.98, false ones ≤ 0.88, measured)
 
 
@@ -66,14 +72,23 @@ class _PairRegistrar:
     """Registers pairs of frames from ``load`` on a thread pool; frames prepared for phase
     correlation are kept until both of their pairs are done."""
 
-    def __init__(self, load: Callable[[int], Level], params: RegistrationParams, pool: ThreadPoolExecutor) -> None:
+    def __init__(
+        self, load: Callable[[int], Level], params: RegistrationParams, pool: ThreadPoolExecutor
+    ) -> None:
         self.load, self.params, self.pool = load, params, pool
         # an image-only guess can be tens of pixels off: search wider, let the refinement travel
-        self.blind_params = replace(params, search_px=2 * params.search_px, max_refine_px=3 * params.search_px)
+        self.blind_params = replace(
+            params, search_px=2 * params.search_px, max_refine_px=3 * params.search_px
+        )
         self.views: dict[tuple[int, int], PhaseView] = {}
 
-    def measure(self, pair: tuple[int, int], start: NDArray[np.float64], angles: Sequence[float] = (0.0,),
-                params: RegistrationParams | None = None) -> PairMeasurement | None:
+    def measure(
+        self,
+        pair: tuple[int, int],
+        start: NDArray[np.float64],
+        angles: Sequence[float] = (0.0,),
+        params: RegistrationParams | None = None,
+    ) -> PairMeasurement | None:
         """The pair registered from ``start`` (searching ``angles``), or None."""
         chosen = params or (self.params if len(angles) == 1 else self.blind_params)
         found = register_pair(self.load(pair[0]), self.load(pair[1]), start, chosen, angles=angles)
@@ -88,17 +103,25 @@ class _PairRegistrar:
             view = self.views[k, scale] = PhaseView.of(self.load(k).half.image, scale, reduced=2)
         return view
 
-    def _blind_guesses(self, k: int, previous: PairMeasurement | None) -> Iterator[NDArray[np.float64]]:
+    def _blind_guesses(
+        self, k: int, previous: PairMeasurement | None
+    ) -> Iterator[NDArray[np.float64]]:
         # phase correlation at a quarter of the resolution; then the step of the pair
         # before (a robot moves much as it did a frame earlier); then at half resolution
         for n_scale, scale in enumerate(PHASE_SCALES):
             if n_scale == 1 and previous is not None:
                 yield previous.delta
-            for g, _ in phase_candidates(self._phase_view(k, scale), self._phase_view(k + 1, scale)):
+            for g, _ in phase_candidates(
+                self._phase_view(k, scale), self._phase_view(k + 1, scale)
+            ):
                 yield g
 
-    def measure_blind(self, k: int, next_too: bool = False, previous: PairMeasurement | None = None,
-                      ) -> tuple[PairMeasurement | None, NDArray[np.float64]]:
+    def measure_blind(
+        self,
+        k: int,
+        next_too: bool = False,
+        previous: PairMeasurement | None = None,
+    ) -> tuple[PairMeasurement | None, NDArray[np.float64]]:
         """Pair (k, k+1) without odometry: guesses verified by registration until one verifies
         surely; frame k+1's preparations are kept when the same thread measures pair k+1 next.
         Returns the best measurement (or None) and the step to use."""
@@ -120,7 +143,9 @@ class _PairRegistrar:
             return best, best.delta
         return None, first_guess if first_guess is not None else np.zeros(3)
 
-    def measure_blind_run(self, ks: range) -> list[tuple[PairMeasurement | None, NDArray[np.float64]]]:
+    def measure_blind_run(
+        self, ks: range
+    ) -> list[tuple[PairMeasurement | None, NDArray[np.float64]]]:
         """:meth:`measure_blind` for a run of consecutive pairs, each guided by the one before."""
         out: list[tuple[PairMeasurement | None, NDArray[np.float64]]] = []
         for k in ks:
@@ -128,11 +153,17 @@ class _PairRegistrar:
         return out
 
 
-def _consecutive_from_images(reg: _PairRegistrar, n: int) -> tuple[list[PairMeasurement | None], NDArray[np.float64]]:
+def _consecutive_from_images(
+    reg: _PairRegistrar, n: int
+) -> tuple[list[PairMeasurement | None], NDArray[np.float64]]:
     """Consecutive pairs measured from the images alone; the step of each pair (its prior)."""
     # each thread takes runs of consecutive pairs: the threads then prepare different
     # frames instead of waiting in turn for the frame the other one is decoding
-    blind = [r for run in reg.pool.map(reg.measure_blind_run, _runs(n - 1, reg.params.workers)) for r in run]
+    blind = [
+        r
+        for run in reg.pool.map(reg.measure_blind_run, _runs(n - 1, reg.params.workers))
+        for r in run
+    ]
     consecutive = [m for m, _ in blind]
     steps = [step for _, step in blind]
     # a pair no phase-correlation guess could place (its overlap's texture drowned by
@@ -146,24 +177,34 @@ def _consecutive_from_images(reg: _PairRegistrar, n: int) -> tuple[list[PairMeas
                 consecutive[k] = found
                 break
         if near:
-            steps[k] = consecutive[k].delta if consecutive[k] is not None else consecutive[near[0]].delta  # type: ignore[union-attr]
+            steps[k] = (
+                consecutive[k].delta if consecutive[k] is not None else consecutive[near[0]].delta
+            )  # type: ignore[union-attr]
     return consecutive, np.array(steps).reshape(-1, 3)
 
 
-def _consecutive_from_odometry(reg: _PairRegistrar, guess: NDArray[np.float64]) -> tuple[list[PairMeasurement | None], NDArray[np.float64]]:
+def _consecutive_from_odometry(
+    reg: _PairRegistrar, guess: NDArray[np.float64]
+) -> tuple[list[PairMeasurement | None], NDArray[np.float64]]:
     """Consecutive pairs measured from the odometry's steps (their priors); where the
     odometry was too far off (wheel slip), the images alone decide."""
     n = len(guess)
     priors = np.array([relative_se2(guess[k], guess[k + 1]) for k in range(n - 1)]).reshape(-1, 3)
     runs = _runs(n - 1, reg.params.workers)
-    consecutive = [m for run in reg.pool.map(lambda ks: [reg.measure((k, k + 1), priors[k]) for k in ks], runs) for m in run]
+    consecutive = [
+        m
+        for run in reg.pool.map(lambda ks: [reg.measure((k, k + 1), priors[k]) for k in ks], runs)
+        for m in run
+    ]
     lost = [k for k, m in enumerate(consecutive) if m is None]
     for k, (m, _) in zip(lost, reg.pool.map(reg.measure_blind, lost)):
         consecutive[k] = m
     return consecutive, priors
 
 
-def _other_pairs(reg: _PairRegistrar, chained: NDArray[np.float64], size: tuple[int, int]) -> list[PairMeasurement | None]:
+def _other_pairs(
+    reg: _PairRegistrar, chained: NDArray[np.float64], size: tuple[int, int]
+) -> list[PairMeasurement | None]:
     """Every other overlapping pair (lane neighbours, revisits), registered from the chain:
     near it first (accurate where consecutive pairs registered), then wider."""
     near = replace(reg.params, search_px=max(8, reg.params.search_px // 3))
@@ -175,8 +216,12 @@ def _other_pairs(reg: _PairRegistrar, chained: NDArray[np.float64], size: tuple[
     return list(reg.pool.map(measure_other, candidate_pairs(chained, size, skip_consecutive=True)))
 
 
-def _solve(chained: NDArray[np.float64], measurements: list[PairMeasurement], priors: NDArray[np.float64],
-           params: RegistrationParams) -> PoseEstimate:
+def _solve(
+    chained: NDArray[np.float64],
+    measurements: list[PairMeasurement],
+    priors: NDArray[np.float64],
+    params: RegistrationParams,
+) -> PoseEstimate:
     """The pose graph solved robustly; pairs that still disagree by more than
     ``max_residual_px`` are dropped and the graph solved again."""
     n = len(chained)
@@ -194,7 +239,10 @@ def _solve(chained: NDArray[np.float64], measurements: list[PairMeasurement], pr
 
 
 def estimate_poses(
-    load: Callable[[int], Level], n: int, guess: NDArray[np.float64] | None, params: RegistrationParams = RegistrationParams(),
+    load: Callable[[int], Level],
+    n: int,
+    guess: NDArray[np.float64] | None,
+    params: RegistrationParams = RegistrationParams(),
     progress: Callable[[float, str], None] | None = None,
 ) -> PoseEstimate:
     """Globally consistent frame poses from images (and an odometry guess when given).
@@ -220,7 +268,9 @@ def estimate_poses(
         else:
             guess = np.asarray(guess, dtype=np.float64)
             consecutive, priors = _consecutive_from_odometry(reg, guess)
-        chained = chain_se2(guess[0], [m.delta if m is not None else priors[k] for k, m in enumerate(consecutive)])
+        chained = chain_se2(
+            guess[0], [m.delta if m is not None else priors[k] for k, m in enumerate(consecutive)]
+        )
         report(0.4, "registering overlapping frames")
         others = _other_pairs(reg, chained, (w, h))
     report(0.8, "solving the pose graph")

@@ -27,7 +27,13 @@ def feather_weight(size: tuple[int, int]) -> NDArray[np.float32]:
     return np.outer(wy, wx).astype(np.float32)
 
 
-def paper_blend_mask(existing: NDArray[np.uint8], new: NDArray[np.uint8], covered: NDArray[np.bool_], tau: float, median_px: int) -> NDArray[np.bool_]:
+def paper_blend_mask(
+    existing: NDArray[np.uint8],
+    new: NDArray[np.uint8],
+    covered: NDArray[np.bool_],
+    tau: float,
+    median_px: int,
+) -> NDArray[np.bool_]:
     """Where the new frame's pixel replaces the mosaic's: eq. (2), I = I2 if τ·I2 > I1 else
     I1, on grey levels, the region's gaps filled by a 2D median filter; everywhere the
     mosaic has nothing yet."""
@@ -43,14 +49,21 @@ def band_rows(layout: MosaicLayout, params: StitchParams, in_flight: int = 1) ->
     bands a multiple of ``in_flight`` in number, so that no worker idles while another
     renders the last band (3 bands on 2 threads took as long as 4)."""
     c = layout.channels
-    per_row = max(layout.width, 1) * ((c + 1) * 4 * (params.blend == "feather") + c + 1) * (in_flight + 1)
+    per_row = (
+        max(layout.width, 1) * ((c + 1) * 4 * (params.blend == "feather") + c + 1) * (in_flight + 1)
+    )
     rows = int(np.clip(params.band_bytes // per_row, 32, 2048))
     bands = -(-max(layout.height, 1) // rows)
     bands = -(-bands // in_flight) * in_flight
     return max(32, -(-max(layout.height, 1) // bands))
 
 
-def render_bands(layout: MosaicLayout, frames: FrameCache, params: StitchParams = StitchParams(), progress: Progress | None = None) -> Iterator[Band]:
+def render_bands(
+    layout: MosaicLayout,
+    frames: FrameCache,
+    params: StitchParams = StitchParams(),
+    progress: Progress | None = None,
+) -> Iterator[Band]:
     """The mosaic, top to bottom, one band at a time (bounded memory for any size); bands
     are rendered on ``params.registration.workers`` threads, at most that many at once."""
     n = len(layout.poses_px)
@@ -64,7 +77,11 @@ def render_bands(layout: MosaicLayout, frames: FrameCache, params: StitchParams 
     weight[[0, -1], :] = weight[:, [0, -1]] = 0
     flat_c = None
     if frames.inv_flat is not None:
-        flat_c = cv2.merge([frames.inv_flat] * layout.channels) if layout.channels > 1 else frames.inv_flat
+        flat_c = (
+            cv2.merge([frames.inv_flat] * layout.channels)
+            if layout.channels > 1
+            else frames.inv_flat
+        )
     starts = list(range(0, layout.height, rows))
 
     scratch = local()  # each worker thread's accumulator, reused band after band (no fresh pages)
@@ -73,7 +90,9 @@ def render_bands(layout: MosaicLayout, frames: FrameCache, params: StitchParams 
         y1 = min(layout.height, y0 + rows)
         hits = np.nonzero((boxes[:, 1] < y1) & (boxes[:, 3] > y0))[0]
         if params.blend == "feather" and getattr(scratch, "acc", None) is None:
-            scratch.acc = np.zeros((rows, layout.width, layout.channels + 1), np.float32)  # zeroed again as read
+            scratch.acc = np.zeros(
+                (rows, layout.width, layout.channels + 1), np.float32
+            )  # zeroed again as read
         acc = scratch.acc[: y1 - y0] if params.blend == "feather" else None
         return _render_band(layout, frames, params, y0, y1, hits, weight, flat_c, acc)
 
@@ -95,7 +114,9 @@ def _done(future: Future[Band], layout: MosaicLayout, progress: Progress | None)
     return band
 
 
-def _band_source(layout: MosaicLayout, k: int, x0: int, y0: int, w: int, h: int) -> tuple[NDArray[np.float64], tuple[slice, slice]]:
+def _band_source(
+    layout: MosaicLayout, k: int, x0: int, y0: int, w: int, h: int
+) -> tuple[NDArray[np.float64], tuple[slice, slice]]:
     """The part of frame k that lands in the mosaic rectangle (x0, y0, w, h), and the 2x3
     map from that part's pixels to the rectangle's."""
     A = frame_to_mosaic(layout.poses_px[k], layout.frame_size)
@@ -103,13 +124,21 @@ def _band_source(layout: MosaicLayout, k: int, x0: int, y0: int, w: int, h: int)
     corners = np.linalg.inv(A) @ np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float).T
     fw, fh = layout.frame_size
     sx0, sy0 = (max(0, int(np.floor(v)) - 1) for v in corners[:2].min(axis=1))
-    sx1, sy1 = min(fw, int(np.ceil(corners[0].max())) + 2), min(fh, int(np.ceil(corners[1].max())) + 2)
+    sx1, sy1 = (
+        min(fw, int(np.ceil(corners[0].max())) + 2),
+        min(fh, int(np.ceil(corners[1].max())) + 2),
+    )
     A = A @ np.array([[1, 0, sx0], [0, 1, sy0], [0, 0, 1.0]])
     return A[:2], (slice(sy0, max(sy1, sy0 + 1)), slice(sx0, max(sx1, sx0 + 1)))
 
 
-def _band_pieces(layout: MosaicLayout, y0: int, y1: int, hits: NDArray[np.int64]
-                 ) -> Iterator[tuple[int, float, NDArray[np.float64], tuple[slice, slice], tuple[slice, slice], tuple[int, int]]]:
+def _band_pieces(
+    layout: MosaicLayout, y0: int, y1: int, hits: NDArray[np.int64]
+) -> Iterator[
+    tuple[
+        int, float, NDArray[np.float64], tuple[slice, slice], tuple[slice, slice], tuple[int, int]
+    ]
+]:
     """For each frame in ``hits`` that reaches rows y0..y1: its index, gain, the map from
     its source part to the band region, that source part (slices of the frame), the region
     (slices of the band) and the region's (w, h)."""
@@ -124,8 +153,17 @@ def _band_pieces(layout: MosaicLayout, y0: int, y1: int, hits: NDArray[np.int64]
         yield int(k), float(layout.gains[k]), A, src, region, (cx1 - cx0, cy1 - cy0)
 
 
-def _render_band(layout: MosaicLayout, frames: FrameCache, params: StitchParams, y0: int, y1: int, hits: NDArray[np.int64],
-                 weight: NDArray[np.uint8], flat_c: NDArray[np.float32] | None, acc: NDArray[np.float32] | None = None) -> Band:
+def _render_band(
+    layout: MosaicLayout,
+    frames: FrameCache,
+    params: StitchParams,
+    y0: int,
+    y1: int,
+    hits: NDArray[np.int64],
+    weight: NDArray[np.uint8],
+    flat_c: NDArray[np.float32] | None,
+    acc: NDArray[np.float32] | None = None,
+) -> Band:
     W, H, C = layout.width, y1 - y0, layout.channels
     if params.blend == "feather":
         return _feather_band(layout, frames, y0, y1, hits, weight, flat_c, acc)
@@ -134,11 +172,22 @@ def _render_band(layout: MosaicLayout, frames: FrameCache, params: StitchParams,
     for k, gain, A, src, region, size in _band_pieces(layout, y0, y1, hits):
         img = frames.image(k)[src]
         src8 = img if gain == 1.0 else cv2.convertScaleAbs(img, alpha=gain)
-        warped = cv2.warpAffine(src8, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        inside = cv2.warpAffine(np.full(src8.shape[:2], 255, np.uint8), A, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        warped = cv2.warpAffine(
+            src8, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+        )
+        inside = cv2.warpAffine(
+            np.full(src8.shape[:2], 255, np.uint8),
+            A,
+            size,
+            flags=cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_CONSTANT,
+        )
         inside = cv2.erode(inside, np.ones((3, 3), np.uint8)) > 0
         if params.blend == "paper":
-            take = paper_blend_mask(out[region], warped, covered[region], params.tau, params.median_px) & inside
+            take = (
+                paper_blend_mask(out[region], warped, covered[region], params.tau, params.median_px)
+                & inside
+            )
         else:
             take = inside
         out[region][take] = warped[take]
@@ -146,8 +195,16 @@ def _render_band(layout: MosaicLayout, frames: FrameCache, params: StitchParams,
     return Band(y0, out, covered)
 
 
-def _feather_band(layout: MosaicLayout, frames: FrameCache, y0: int, y1: int, hits: NDArray[np.int64], weight: NDArray[np.uint8],
-                  flat_c: NDArray[np.float32] | None, acc: NDArray[np.float32] | None = None) -> Band:
+def _feather_band(
+    layout: MosaicLayout,
+    frames: FrameCache,
+    y0: int,
+    y1: int,
+    hits: NDArray[np.int64],
+    weight: NDArray[np.uint8],
+    flat_c: NDArray[np.float32] | None,
+    acc: NDArray[np.float32] | None = None,
+) -> Band:
     """Rows y0..y1 of the feathered mosaic. Each frame, corrected (gain, flat field) and
     rounded to 8 bits, is warped with its weight as a fourth channel (four-channel 8-bit
     warps are OpenCV's fast path: three channels are ~4x slower, float ones need 4x the
@@ -164,7 +221,9 @@ def _feather_band(layout: MosaicLayout, frames: FrameCache, y0: int, y1: int, hi
         with_w = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA if C == 3 else cv2.COLOR_GRAY2BGRA)
         with_w = with_w if C == 3 else np.ascontiguousarray(with_w[..., :2])
         with_w[..., C] = weight[src]
-        warped = cv2.warpAffine(with_w, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        warped = cv2.warpAffine(
+            with_w, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+        )
         _accumulate(warped, acc[region])  # a view of the band, row stride and all
     out = np.empty((H, W, C), np.uint8)
     covered = np.empty((H, W), bool)
@@ -173,7 +232,9 @@ def _feather_band(layout: MosaicLayout, frames: FrameCache, y0: int, y1: int, hi
 
 
 @numba.njit(nogil=True, cache=True, fastmath=True)
-def _accumulate(warped: NDArray[np.uint8], acc: NDArray[np.float32]) -> None:  # pragma: no cover - compiled
+def _accumulate(
+    warped: NDArray[np.uint8], acc: NDArray[np.float32]
+) -> None:  # pragma: no cover - compiled
     """Add a warped frame into the accumulator: Σ w·I per channel and 255·Σ w, with w the
     warped frame's last channel (its interpolated feather weight). Colour and grey frames
     have their own loop (unrolled channels: 2x faster than a loop over them)."""
@@ -195,7 +256,9 @@ def _accumulate(warped: NDArray[np.uint8], acc: NDArray[np.float32]) -> None:  #
 
 
 @numba.njit(nogil=True, cache=True, fastmath=True)
-def _normalise(acc: NDArray[np.float32], out: NDArray[np.uint8], covered: NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
+def _normalise(
+    acc: NDArray[np.float32], out: NDArray[np.uint8], covered: NDArray[np.bool_]
+) -> None:  # pragma: no cover - compiled
     """Feathered colour Σ w·I / Σ w, rounded and saturated to 8 bits, from an accumulator
     whose last channel is 255·Σ w; pixels no frame reached stay black and uncovered. The
     accumulator is left zeroed."""
@@ -206,5 +269,7 @@ def _normalise(acc: NDArray[np.float32], out: NDArray[np.uint8], covered: NDArra
             covered[y, x] = total > 0
             scale = np.float32(255.0) / max(total, np.float32(1e-30))  # 0 where nothing landed
             for c in range(channels):  # float32 throughout: 3x faster than int() rounding
-                out[y, x, c] = np.uint8(min(acc[y, x, c] * scale + np.float32(0.5), np.float32(255.0)))
+                out[y, x, c] = np.uint8(
+                    min(acc[y, x, c] * scale + np.float32(0.5), np.float32(255.0))
+                )
         acc[y] = 0.0

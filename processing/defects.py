@@ -160,4 +160,9 @@ def seam_links(above: NDArray[np.integer], below: NDArray[np.integer]) -> set[tu
 def moved(d: Defect, dx: int, dy: int, new_id: int) -> Defect:
     """The defect ``d`` measured on a crop, placed back at offset (dx, dy) with a new id."""
     x, y, w, h = d.bbox
-    return replace(d, id=new_id, bbox=(x + dx, y + dy, w, h), centroid_px=(d.centroid_px[0] + dx, d.centroid_px[1] + dy))
+    return replace(
+        d,
+        id=new_id,
+        bbox=(x + dx, y + dy, w, h),
+        centroid_px=(d.centroid_px[0] + dx, d.centroid_px[1] + dy),
+    )

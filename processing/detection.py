@@ -85,7 +85,9 @@ class CorrosionParams:
 def to_gray(image: NDArray[np.generic]) -> NDArray[np.uint8]:
     """8-bit grayscale of an 8/16-bit gray or BGR(A) image; raise ValueError otherwise."""
     if image.ndim == 3 and image.shape[2] in (3, 4):
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+        image = cv2.cvtColor(
+            image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        )
     if image.ndim != 2:
         raise ValueError(f"image must be (H, W) or (H, W, 3), got shape {image.shape}")
     if image.dtype == np.uint16:
@@ -95,7 +97,9 @@ def to_gray(image: NDArray[np.generic]) -> NDArray[np.uint8]:
     return image
 
 
-def detect_cracks(image: NDArray[np.generic], *, method: Method = "proposed", params: CrackParams = CrackParams()) -> NDArray[np.bool_]:
+def detect_cracks(
+    image: NDArray[np.generic], *, method: Method = "proposed", params: CrackParams = CrackParams()
+) -> NDArray[np.bool_]:
     """Boolean (H, W) mask of crack pixels by the chosen method."""
     gray = to_gray(image)
     if gray.shape[0] < 3 or gray.shape[1] < 3:
@@ -113,7 +117,9 @@ def detect_cracks(image: NDArray[np.generic], *, method: Method = "proposed", pa
     return proposed_cracks(gray, params)
 
 
-def tile_cores(shape: tuple[int, int], tile_px: int, overlap_px: int) -> list[tuple[slice, slice, slice, slice]]:
+def tile_cores(
+    shape: tuple[int, int], tile_px: int, overlap_px: int
+) -> list[tuple[slice, slice, slice, slice]]:
     """Tiles covering an (H, W) image: for each, the tile's (rows, cols) slices with
     ``overlap_px`` of context and, relative to the tile, the slices of its core; the
     cores partition the image."""
@@ -129,14 +135,18 @@ def tile_cores(shape: tuple[int, int], tile_px: int, overlap_px: int) -> list[tu
             y0, x0 = max(0, y - overlap_px), max(0, x - overlap_px)
             y1, x1 = min(h, y + step + overlap_px), min(w, x + step + overlap_px)
             cy1, cx1 = min(h, y + step), min(w, x + step)
-            out.append((slice(y0, y1), slice(x0, x1), slice(y - y0, cy1 - y0), slice(x - x0, cx1 - x0)))
+            out.append(
+                (slice(y0, y1), slice(x0, x1), slice(y - y0, cy1 - y0), slice(x - x0, cx1 - x0))
+            )
     return out
 
 
 def _core(rows: slice, cols: slice, core_rows: slice, core_cols: slice) -> tuple[slice, slice]:
     """A tile core's slices in image coordinates."""
-    return (slice(rows.start + core_rows.start, rows.start + core_rows.stop),
-            slice(cols.start + core_cols.start, cols.start + core_cols.stop))
+    return (
+        slice(rows.start + core_rows.start, rows.start + core_rows.stop),
+        slice(cols.start + core_cols.start, cols.start + core_cols.stop),
+    )
 
 
 def detect_cracks_tiled(
@@ -252,7 +262,13 @@ def paper_cracks(gray: NDArray[np.uint8], params: PaperParams = PaperParams()) -
     hist = np.bincount(gray.ravel(), minlength=256).astype(np.float64)
     t_global, defect_peak = global_threshold(hist)
     dark = gray <= t_global
-    R = line_emphasis(gray, sigma1=params.sigma1, scale_factor=params.scale_factor, n_scales=params.n_scales, mu=params.mu)
+    R = line_emphasis(
+        gray,
+        sigma1=params.sigma1,
+        scale_factor=params.scale_factor,
+        n_scales=params.n_scales,
+        mu=params.mu,
+    )
     if float(R.max()) <= 0 or not dark.any():
         return np.zeros(gray.shape, bool)
     r8 = np.round(255 * R / R.max()).astype(np.uint8)
@@ -262,11 +278,15 @@ def paper_cracks(gray: NDArray[np.uint8], params: PaperParams = PaperParams()) -
         return candidates
     t_star = valley_emphasis_threshold(hist)
     g_defect = defect_peak if defect_peak is not None else float(gray[candidates].mean())
-    grown = grow_regions(gray, candidates, max(abs(t_star - g_defect), 1.0), max_iter=params.grow_iterations)
+    grown = grow_regions(
+        gray, candidates, max(abs(t_star - g_defect), 1.0), max_iter=params.grow_iterations
+    )
     return remove_small(grown, params.min_area_px)
 
 
-def _off_lines(comps: Components, lines: NDArray[np.bool_], *, band_px: int = 4, max_fraction: float = 0.5) -> NDArray[np.bool_]:
+def _off_lines(
+    comps: Components, lines: NDArray[np.bool_], *, band_px: int = 4, max_fraction: float = 0.5
+) -> NDArray[np.bool_]:
     """Per component: not lying mostly (> ``max_fraction``) within ``band_px`` of ``lines``."""
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1,) * 2)
     near = cv2.dilate(lines.astype(np.uint8), k)
@@ -277,17 +297,23 @@ def _off_lines(comps: Components, lines: NDArray[np.bool_], *, band_px: int = 4,
     return keep
 
 
-def estimate_background(gray: NDArray[np.uint8], background_px: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+def estimate_background(
+    gray: NDArray[np.uint8], background_px: int
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Lightly smoothed image and its background (a grey closing, which erases dark thin
     structures), both float32."""
     k = max(3, background_px | 1)
     smooth = cv2.GaussianBlur(gray, (3, 3), 0)
     # a square element: OpenCV separates it into two 1-D passes (an ellipse costs ~10x more)
-    background = cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)))
+    background = cv2.morphologyEx(
+        smooth, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+    )
     return smooth.astype(np.float32), background.astype(np.float32)
 
 
-def proposed_cracks(gray: NDArray[np.uint8], params: CrackParams = CrackParams()) -> NDArray[np.bool_]:
+def proposed_cracks(
+    gray: NDArray[np.uint8], params: CrackParams = CrackParams()
+) -> NDArray[np.bool_]:
     """The improved pipeline: illumination normalisation, scale-normalised Hessian line
     emphasis (eq. 14 with σ_i²), then region growing from strong line seeds (the paper's
     enhanced segmentation) over pixels that are line-like or locally dark (Sauvola), small
@@ -295,13 +321,22 @@ def proposed_cracks(gray: NDArray[np.uint8], params: CrackParams = CrackParams()
     return _proposed(gray, params)[0]
 
 
-def _proposed(gray: NDArray[np.uint8], params: CrackParams) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
+def _proposed(
+    gray: NDArray[np.uint8], params: CrackParams
+) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
     """``proposed_cracks`` and each pixel's darkness below its background (grey levels)."""
     smooth, background = estimate_background(gray, params.background_px)
     contrast = cv2.subtract(background, smooth)
     norm = cv2.divide(smooth, cv2.max(background, 1.0))
-    R = line_emphasis(norm, sigma1=params.sigma1, scale_factor=params.scale_factor, n_scales=params.n_scales,
-                      mu=params.mu, normalise=True, half_resolution_from=params.half_resolution_from)
+    R = line_emphasis(
+        norm,
+        sigma1=params.sigma1,
+        scale_factor=params.scale_factor,
+        n_scales=params.n_scales,
+        mu=params.mu,
+        normalise=True,
+        half_resolution_from=params.half_resolution_from,
+    )
     if float(R.max()) < params.high:
         return np.zeros(gray.shape, bool), contrast
     dark = below_sauvola(gray, params.local_window_px, params.local_k)
@@ -309,15 +344,21 @@ def _proposed(gray: NDArray[np.uint8], params: CrackParams) -> tuple[NDArray[np.
     # in near-black areas sensor noise alone makes large ratios
     seeds = (R > params.high) & (contrast > params.min_contrast_levels)
     # shadows and plate edges are wider than cracks
-    mask = seeded_regions(dark | (R > params.low), seeds, min_area_px=params.min_area_px,
-                          max_half_width_px=params.max_half_width_px)
+    mask = seeded_regions(
+        dark | (R > params.low),
+        seeds,
+        min_area_px=params.min_area_px,
+        max_half_width_px=params.max_half_width_px,
+    )
     if params.min_darkness > 0:  # keep the crack's own dark pixels, not its blurred halo
         mask &= norm < 1.0 - params.min_darkness
         mask = remove_small(mask, params.min_area_px // 4)
     return mask, contrast
 
 
-def corrosion_candidates(image: NDArray[np.uint8], params: CorrosionParams = CorrosionParams()) -> NDArray[np.bool_]:
+def corrosion_candidates(
+    image: NDArray[np.uint8], params: CorrosionParams = CorrosionParams()
+) -> NDArray[np.bool_]:
     """Rust-coloured pixels of a BGR image (hue and saturation), cleaned by an opening and
     a closing; components of any size."""
     hsv = cv2.cvtColor(cv2.GaussianBlur(image, (5, 5), 0), cv2.COLOR_BGR2HSV)
@@ -326,10 +367,10 @@ def corrosion_candidates(image: NDArray[np.uint8], params: CorrosionParams = Cor
     return cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((9, 9), np.uint8)) > 0
 
 
-def detect_corrosion(image: NDArray[np.generic], *, params: CorrosionParams = CorrosionParams()) -> NDArray[np.bool_]:
+def detect_corrosion(
+    image: NDArray[np.generic], *, params: CorrosionParams = CorrosionParams()
+) -> NDArray[np.bool_]:
     """Boolean (H, W) mask of rust-coloured areas (needs a BGR image; gray gives none)."""
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         return np.zeros(image.shape[:2], bool)
     return remove_small(corrosion_candidates(image, params), params.min_area_px)
-
-

@@ -12,7 +12,9 @@ from scipy.sparse.linalg import spsolve
 from processing.registration import PairMeasurement
 
 
-def solve_gains(n: int, measurements: Sequence[PairMeasurement], *, sigma_n: float = 0.5, sigma_g: float = 0.1) -> NDArray[np.float64]:
+def solve_gains(
+    n: int, measurements: Sequence[PairMeasurement], *, sigma_n: float = 0.5, sigma_g: float = 0.1
+) -> NDArray[np.float64]:
     """Per-frame exposure gains that make overlapping frames equally bright (Brown & Lowe's
     gain compensation: min Σ (g_i m_i − g_j m_j)² / σ_n² + Σ (g_k − 1)² / σ_g², with m the
     mean grey of the same surface points in both frames; Brown & Lowe sum the first term

@@ -19,7 +19,9 @@ def gray_of(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
 
 
-def estimate_flat_field(frames: Sequence[NDArray[np.uint8]], *, scale: int = 8) -> NDArray[np.float32]:
+def estimate_flat_field(
+    frames: Sequence[NDArray[np.uint8]], *, scale: int = 8
+) -> NDArray[np.float32]:
     """Relative brightness of each pixel position over many frames (vignetting), (H, W).
 
     The per-pixel median of the frames (each divided by its own mean, at 1/``scale``
@@ -70,7 +72,9 @@ class FrameCache:
         if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim not in (2, 3):
             raise ValueError(f"frame {k} is not an 8-bit image")
         if self.shape is not None and img.shape != self.shape:
-            raise ValueError(f"frame {k} is {img.shape[1]}x{img.shape[0]}; all frames must be {self.shape[1]}x{self.shape[0]}")
+            raise ValueError(
+                f"frame {k} is {img.shape[1]}x{img.shape[0]}; all frames must be {self.shape[1]}x{self.shape[0]}"
+            )
         return img
 
     def _entry(self, k: int, level: bool) -> tuple[NDArray[np.uint8], Level | None]:
@@ -120,7 +124,9 @@ class FrameCache:
     def image(self, k: int) -> NDArray[np.uint8]:
         """Frame k, flat-fielded."""
         img = self.raw(k)
-        return _times(img, self.inv_flat) if self.inv_flat is not None else img  # flat-field correction
+        return (
+            _times(img, self.inv_flat) if self.inv_flat is not None else img
+        )  # flat-field correction
 
     def level(self, k: int) -> Level:
         """Frame k's grey levels for registration (flat-fielded)."""
@@ -141,7 +147,9 @@ def prepare_frames(source: FrameSource, params: StitchParams) -> FrameCache:
     first = frames.image(0)
     frames.shape = first.shape
     if n >= params.flat_field_min_frames and not params.vignetting:  # else measured on overlaps
-        picks = np.unique(np.linspace(0, n - 1, min(n, params.flat_field_sample)).round().astype(int))
+        picks = np.unique(
+            np.linspace(0, n - 1, min(n, params.flat_field_sample)).round().astype(int)
+        )
         flat = estimate_flat_field([frames.load(int(k)) for k in picks])
         if float(flat.min()) < 1.0 - params.flat_field_min_falloff:  # correct real vignetting only
             frames.inv_flat = (1.0 / np.maximum(flat, 0.2)).astype(np.float32)

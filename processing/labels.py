@@ -13,8 +13,13 @@ from numpy.typing import NDArray
 
 
 @numba.njit(nogil=True, cache=True)
-def _flags(labels: NDArray[np.int32], n: int, seeds: NDArray[np.bool_], dist: NDArray[np.float32],
-           max_dist: float) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:  # pragma: no cover - compiled
+def _flags(
+    labels: NDArray[np.int32],
+    n: int,
+    seeds: NDArray[np.bool_],
+    dist: NDArray[np.float32],
+    max_dist: float,
+) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:  # pragma: no cover - compiled
     area = np.zeros(n, np.int64)
     seeded = np.zeros(n, np.bool_)
     thick = np.zeros(n, np.bool_)
@@ -31,9 +36,13 @@ def _flags(labels: NDArray[np.int32], n: int, seeds: NDArray[np.bool_], dist: ND
     return area, seeded, thick
 
 
-def component_flags(labels: NDArray[np.int32], n: int, seeds: NDArray[np.bool_] | None = None,
-                    dist: NDArray[np.float32] | None = None, max_dist: float = np.inf
-                    ) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:
+def component_flags(
+    labels: NDArray[np.int32],
+    n: int,
+    seeds: NDArray[np.bool_] | None = None,
+    dist: NDArray[np.float32] | None = None,
+    max_dist: float = np.inf,
+) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:
     """Per label 0..n-1: pixel count, whether it holds a ``seeds`` pixel, and whether it
     holds a pixel with ``dist`` over ``max_dist``."""
     seeds = np.zeros((1, 1), np.bool_) if seeds is None else seeds
@@ -46,7 +55,9 @@ def component_flags(labels: NDArray[np.int32], n: int, seeds: NDArray[np.bool_] 
 
 
 @numba.njit(nogil=True, cache=True)
-def _lookup(labels: NDArray[np.int32], keep: NDArray[np.bool_], out: NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
+def _lookup(
+    labels: NDArray[np.int32], keep: NDArray[np.bool_], out: NDArray[np.bool_]
+) -> None:  # pragma: no cover - compiled
     rows, cols = labels.shape
     for y in range(rows):
         for x in range(cols):
@@ -61,7 +72,9 @@ def lookup(labels: NDArray[np.int32], keep: NDArray[np.bool_]) -> NDArray[np.boo
 
 
 @numba.njit(nogil=True, cache=True)
-def _stats(labels: NDArray[np.int32], n: int, stats: NDArray[np.int32], sums: NDArray[np.float64]) -> None:  # pragma: no cover - compiled
+def _stats(
+    labels: NDArray[np.int32], n: int, stats: NDArray[np.int32], sums: NDArray[np.float64]
+) -> None:  # pragma: no cover - compiled
     rows, cols = labels.shape
     for i in range(n):
         stats[i, 0], stats[i, 1], stats[i, 2], stats[i, 3] = cols, rows, -1, -1
@@ -82,7 +95,9 @@ def _stats(labels: NDArray[np.int32], n: int, stats: NDArray[np.int32], sums: ND
                 sums[a, 1] += y
 
 
-def component_stats(labels: NDArray[np.int32], n: int) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
+def component_stats(
+    labels: NDArray[np.int32], n: int
+) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
     """``cv2.connectedComponentsWithStats``'s statistics (x, y, width, height, area) and
     centroids from a label image, in one compiled pass (OpenCV's own costs twice its
     labelling); the background's row holds the image box and its area, centroid 0."""

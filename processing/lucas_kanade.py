@@ -16,14 +16,21 @@ from numpy.typing import NDArray
 from processing.phase import Gray
 
 
-def _strong_points(mag: NDArray[np.float32], n: int, cells: int = 6) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+def _strong_points(
+    mag: NDArray[np.float32], n: int, cells: int = 6
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """About ``n`` pixels (x, y) of strong gradient, spread over a ``cells`` x ``cells`` grid:
     in each cell, the strongest of every other pixel (neighbours carry the same information)."""
     sub = mag[::2, ::2]
     h, w = sub.shape
     ch, cw = h // cells, w // cells
     per = int(min(max(1, n // (cells * cells)), ch * cw))
-    blocks = sub[: ch * cells, : cw * cells].reshape(cells, ch, cells, cw).transpose(0, 2, 1, 3).reshape(cells * cells, ch * cw)
+    blocks = (
+        sub[: ch * cells, : cw * cells]
+        .reshape(cells, ch, cells, cw)
+        .transpose(0, 2, 1, 3)
+        .reshape(cells * cells, ch * cw)
+    )
     thr = np.partition(blocks, ch * cw - per, axis=1)[:, ch * cw - per]
     full_thr = np.repeat(np.repeat(thr.reshape(cells, cells), ch, axis=0), cw, axis=1)
     ys, xs = np.nonzero(sub[: ch * cells, : cw * cells] >= full_thr)
@@ -39,7 +46,9 @@ class Smoothed:
     @classmethod
     def of(cls, gray: Gray, sigma: float) -> Smoothed:
         """Smooth by a Gaussian of ``sigma``."""
-        return cls(cv2.GaussianBlur(gray, (5, 5), sigma))  # truncated at 2σ: cheaper, as good for registration
+        return cls(
+            cv2.GaussianBlur(gray, (5, 5), sigma)
+        )  # truncated at 2σ: cheaper, as good for registration
 
     def crop(self, x0: int, y0: int, x1: int, y1: int) -> Smoothed:
         """A rectangle of it."""
@@ -47,7 +56,12 @@ class Smoothed:
 
 
 def refine_euclidean(
-    template: Smoothed, image: Gray, W0: NDArray[np.float64], *, points: int = 4000, iterations: int = 30,
+    template: Smoothed,
+    image: Gray,
+    W0: NDArray[np.float64],
+    *,
+    points: int = 4000,
+    iterations: int = 30,
 ) -> tuple[NDArray[np.float64], float, float, float]:
     """Sub-pixel Euclidean warp (2x3, template pixel → image pixel) by inverse-compositional
     Lucas–Kanade (Baker & Matthews 2004) on the template's strongest-gradient pixels, with a
@@ -64,15 +78,30 @@ def refine_euclidean(
     c = np.array([(w - 1) / 2, (h - 1) / 2])
     X, Y = xs - c[0], ys - c[1]
     Gx, Gy = gx[ys, xs].astype(np.float64), gy[ys, xs].astype(np.float64)
-    SD = np.column_stack([Gx * -Y + Gy * X, Gx, Gy])  # steepest-descent images (θ about the centre, tx, ty)
+    SD = np.column_stack(
+        [Gx * -Y + Gy * X, Gx, Gy]
+    )  # steepest-descent images (θ about the centre, tx, ty)
     H_inv = np.linalg.inv(SD.T @ SD)
     Tv = template.image[ys, xs].astype(np.float64)
     Tc = Tv - Tv.mean()
     t_var = float(Tc @ Tc)
     W = np.vstack([W0, [0, 0, 1]]).astype(np.float64)
     Iw = np.empty(len(xs))
-    _lk_iterate(np.asarray(image, dtype=np.float32), xs.astype(np.float64), ys.astype(np.float64), SD, H_inv, Tc,
-                t_var, float(c[0]), float(c[1]), float(max(w, h)), W, Iw, iterations)
+    _lk_iterate(
+        np.asarray(image, dtype=np.float32),
+        xs.astype(np.float64),
+        ys.astype(np.float64),
+        SD,
+        H_inv,
+        Tc,
+        t_var,
+        float(c[0]),
+        float(c[1]),
+        float(max(w, h)),
+        W,
+        Iw,
+        iterations,
+    )
     Ic = Iw - Iw.mean()
     score = float(Ic @ Tc) / max(float(np.sqrt((Ic @ Ic) * t_var)), 1e-12)
     return W[:2], score, float(Tv.mean()), float(Iw.mean())
@@ -83,11 +112,18 @@ def _cubic(t: float) -> tuple[float, float, float, float]:  # pragma: no cover -
     """Keys' cubic convolution weights (a = -0.5) of the samples at -1, 0, 1, 2 for offset t."""
     t2 = t * t
     t3 = t2 * t
-    return (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * t3 - 0.5 * t2)
+    return (
+        -0.5 * t3 + t2 - 0.5 * t,
+        1.5 * t3 - 2.5 * t2 + 1.0,
+        -1.5 * t3 + 2.0 * t2 + 0.5 * t,
+        0.5 * t3 - 0.5 * t2,
+    )
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
-def _sample(image: Gray, qx: float, qy: float, rows: int, cols: int) -> float:  # pragma: no cover - compiled
+def _sample(
+    image: Gray, qx: float, qy: float, rows: int, cols: int
+) -> float:  # pragma: no cover - compiled
     """The image at (qx, qy) by bicubic interpolation, edges replicated."""
     qx = min(max(qx, 0.0), cols - 1.0)
     qy = min(max(qy, 0.0), rows - 1.0)
@@ -105,9 +141,21 @@ def _sample(image: Gray, qx: float, qy: float, rows: int, cols: int) -> float:  
 
 
 @numba.njit(nogil=True, cache=True)
-def _lk_iterate(image: Gray, xs: NDArray[np.float64], ys: NDArray[np.float64], SD: NDArray[np.float64], H_inv: NDArray[np.float64],
-                Tc: NDArray[np.float64], t_var: float, cx: float, cy: float, extent: float, W: NDArray[np.float64],
-                Iw: NDArray[np.float64], iterations: int) -> None:  # pragma: no cover - compiled
+def _lk_iterate(
+    image: Gray,
+    xs: NDArray[np.float64],
+    ys: NDArray[np.float64],
+    SD: NDArray[np.float64],
+    H_inv: NDArray[np.float64],
+    Tc: NDArray[np.float64],
+    t_var: float,
+    cx: float,
+    cy: float,
+    extent: float,
+    W: NDArray[np.float64],
+    Iw: NDArray[np.float64],
+    iterations: int,
+) -> None:  # pragma: no cover - compiled
     """The Lucas–Kanade iterations of :func:`refine_euclidean`, compiled: sample the image
     at the warped points (bilinear, edges replicated), estimate the gain, step, update
     ``W`` in place (W ← W ∘ D⁻¹); ``Iw`` ends as the last samples."""

@@ -19,7 +19,9 @@ class SegmentationScores:
     dsc: float
 
 
-def segmentation_scores(pred: NDArray[np.bool_], truth: NDArray[np.bool_], *, tolerance_px: int = 0) -> SegmentationScores:
+def segmentation_scores(
+    pred: NDArray[np.bool_], truth: NDArray[np.bool_], *, tolerance_px: int = 0
+) -> SegmentationScores:
     """PI = TP/(TP+FP), SI = TP/(TP+FN), DSC = 2TP/(2TP+FP+FN) (paper eqs. 18-20).
 
     With ``tolerance_px`` > 0 a predicted pixel counts as true within that distance of a
@@ -39,8 +41,10 @@ def segmentation_scores(pred: NDArray[np.bool_], truth: NDArray[np.bool_], *, to
         fp, fn = int((p & ~t).sum()), int((~p & t).sum())
     pi = tp_p / (tp_p + fp) if tp_p + fp else (1.0 if not t.any() else 0.0)
     si = tp_t / (tp_t + fn) if tp_t + fn else 1.0
-    dsc = 2 * pi * si / (pi + si) if tolerance_px > 0 and pi + si else (
-        2 * tp_p / (2 * tp_p + fp + fn) if 2 * tp_p + fp + fn else 1.0
+    dsc = (
+        2 * pi * si / (pi + si)
+        if tolerance_px > 0 and pi + si
+        else (2 * tp_p / (2 * tp_p + fp + fn) if 2 * tp_p + fp + fn else 1.0)
     )
     return SegmentationScores(round(pi, 6), round(si, 6), round(dsc, 6))
 
@@ -60,7 +64,9 @@ def umeyama_alignment(src: NDArray[np.floating], dst: NDArray[np.floating]) -> N
     return T
 
 
-def absolute_trajectory_error(est: NDArray[np.floating], gt: NDArray[np.floating], *, align: bool = True) -> float:
+def absolute_trajectory_error(
+    est: NDArray[np.floating], gt: NDArray[np.floating], *, align: bool = True
+) -> float:
     """RMSE in metres of trajectory positions (N, 4, 4) after rigid alignment (TUM ATE)."""
     if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
         raise ValueError(f"est {est.shape} and gt {gt.shape} must both be (N, 4, 4)")
@@ -89,14 +95,20 @@ def match_defects(found: Sequence[Box], truth: Sequence[Box], *, margin_m: float
         for f in found:
             if f.defect_class != t.defect_class:
                 continue
-            if (f.x <= t.x + t.w + margin_m and t.x <= f.x + f.w + margin_m
-                    and f.y <= t.y + t.h + margin_m and t.y <= f.y + f.h + margin_m):
+            if (
+                f.x <= t.x + t.w + margin_m
+                and t.x <= f.x + f.w + margin_m
+                and f.y <= t.y + t.h + margin_m
+                and t.y <= f.y + f.h + margin_m
+            ):
                 matched += 1
                 break
     return matched
 
 
-def mosaic_overlap_errors(est: NDArray[np.floating], truth: NDArray[np.floating], size: tuple[int, int]) -> tuple[NDArray[np.float64], float]:
+def mosaic_overlap_errors(
+    est: NDArray[np.floating], truth: NDArray[np.floating], size: tuple[int, int]
+) -> tuple[NDArray[np.float64], float]:
     """How far (px, worst frame corner) the estimated relative placement of every pair of
     truly overlapping frames is from the true one, and the end drift (first frame to last).
 
@@ -113,6 +125,10 @@ def mosaic_overlap_errors(est: NDArray[np.floating], truth: NDArray[np.floating]
         rel_t = np.linalg.inv(frame_to_mosaic(truth[i], size)) @ frame_to_mosaic(truth[j], size)
         return float(np.linalg.norm((rel_e @ corners - rel_t @ corners)[:2], axis=0).max())
 
-    out = [err(i, j) for i in range(len(truth)) for j in range(i + 1, len(truth))
-           if abs(truth[j, 0] - truth[i, 0]) < 0.9 * w and abs(truth[j, 1] - truth[i, 1]) < 0.9 * h]
+    out = [
+        err(i, j)
+        for i in range(len(truth))
+        for j in range(i + 1, len(truth))
+        if abs(truth[j, 0] - truth[i, 0]) < 0.9 * w and abs(truth[j, 1] - truth[i, 1]) < 0.9 * h
+    ]
     return np.array(out), (err(0, len(truth) - 1) if len(truth) > 1 else 0.0)

@@ -75,7 +75,9 @@ class MosaicLayout:
         """Bounding box (x0, y0, x1, y1), end exclusive, of frame k in the mosaic."""
         w, h = self.frame_size
         A = frame_to_mosaic(self.poses_px[k], self.frame_size)
-        pts = A[:2] @ np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
+        pts = (
+            A[:2] @ np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
+        )
         lo, hi = np.floor(pts.min(axis=1)).astype(int), np.ceil(pts.max(axis=1)).astype(int) + 1
         return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
 
@@ -113,7 +115,9 @@ class Mosaic:
         return self.layout.to_world(u, v)
 
 
-def camera_poses(robot_poses: NDArray[np.floating], T_robot_camera: Sequence[float], px_per_m: float) -> NDArray[np.float64]:
+def camera_poses(
+    robot_poses: NDArray[np.floating], T_robot_camera: Sequence[float], px_per_m: float
+) -> NDArray[np.float64]:
     """Camera-centre poses in world pixels from robot odometry (the paper's chain
     image → camera → robot → world: T_ic is the scale ``px_per_m``, T_cr the camera's mount
     (x, y, yaw) on the robot, T_rw the odometry (x, y, yaw))."""

@@ -66,7 +66,9 @@ def offset_distances(h: NDArray[np.floating], delta: NDArray[np.intp]) -> NDArra
         return np.where(den > 0, hk * gap / den, np.inf)
 
 
-def crossover_indices(h: NDArray[np.floating], delta: NDArray[np.intp], L: NDArray[np.float64]) -> NDArray[np.float64]:
+def crossover_indices(
+    h: NDArray[np.floating], delta: NDArray[np.intp], L: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Crossover index θ(δk) = d(δk) / L(δk), d = h(δk) - min(h(δk), h(δk+1)) / 2 (eq. 8)."""
     h = np.asarray(h, dtype=np.float64)
     n = len(delta)

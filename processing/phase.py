@@ -19,7 +19,12 @@ from processing.poses import wrap_angle
 
 Gray = NDArray[np.float32]
 
-QUARTER_TURNS = (None, cv2.ROTATE_90_CLOCKWISE, cv2.ROTATE_180, cv2.ROTATE_90_COUNTERCLOCKWISE)  # cv2.rotate codes, k quarter turns
+QUARTER_TURNS = (
+    None,
+    cv2.ROTATE_90_CLOCKWISE,
+    cv2.ROTATE_180,
+    cv2.ROTATE_90_COUNTERCLOCKWISE,
+)  # cv2.rotate codes, k quarter turns
 
 
 def _tukey(n: int, taper: float) -> NDArray[np.float32]:
@@ -48,7 +53,9 @@ def _spectrum(image: Gray) -> NDArray[np.float32]:
     return cv2.dft(windowed, flags=cv2.DFT_COMPLEX_OUTPUT)
 
 
-def _correlation_peaks(Fa: NDArray[np.float32], Fb: NDArray[np.float32], count: int) -> list[tuple[float, float]]:
+def _correlation_peaks(
+    Fa: NDArray[np.float32], Fb: NDArray[np.float32], count: int
+) -> list[tuple[float, float]]:
     """The ``count`` strongest peaks (shift of b's content relative to a's, modulo the image
     size) of the phase correlation surface of two :func:`_spectrum`, by non-maximum suppression."""
     cross = cv2.mulSpectrums(Fa, Fb, 0, conjB=True)
@@ -72,7 +79,10 @@ def _correlation(a: Gray, b: Gray) -> float:
     return float(covariance / max(std_a[0, 0] * std_b[0, 0], 1e-12))
 
 
-PHASE_SCALES = (4, 2)  # phase correlation at a quarter of the resolution, at half where that places nothing
+PHASE_SCALES = (
+    4,
+    2,
+)  # phase correlation at a quarter of the resolution, at half where that places nothing
 
 
 @dataclass(frozen=True)
@@ -96,12 +106,21 @@ class PhaseView:
         return cls(small, cv2.GaussianBlur(small, (0, 0), 4.0 / scale), _spectrum(small), scale)
 
 
-PHASE_TILTS = tuple(np.radians([0.0, 6.0, -6.0]))  # small turns tried where frame b, as it is, finds nothing sure
+PHASE_TILTS = tuple(
+    np.radians([0.0, 6.0, -6.0])
+)  # small turns tried where frame b, as it is, finds nothing sure
 SURE_OVERLAP = 0.15  # a candidate ends the search only if its overlap is this share of the frame (tiny ones correlate by chance)
 
 
-def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turns: Sequence[int] = (0, 2), keep: int = 4,
-                     sure: float = 0.8, tilts: Sequence[float] = PHASE_TILTS) -> list[tuple[NDArray[np.float64], float]]:
+def phase_candidates(
+    gray_a: Gray | PhaseView,
+    gray_b: Gray | PhaseView,
+    *,
+    turns: Sequence[int] = (0, 2),
+    keep: int = 4,
+    sure: float = 0.8,
+    tilts: Sequence[float] = PHASE_TILTS,
+) -> list[tuple[NDArray[np.float64], float]]:
     """Image-only guesses of the relative pose (dx, dy, θ) of frame b in frame a, best
     first, with their overlap correlation.
 
@@ -129,7 +148,14 @@ def phase_candidates(gray_a: Gray | PhaseView, gray_b: Gray | PhaseView, *, turn
         if k == 0 and tilt == 0.0:
             Fb, b_s = vb.spectrum, vb.smooth
         else:  # turning commutes with the (isotropic, mirror-bordered) smoothing
-            small, b_s = (vb.small, vb.smooth) if k == 0 else (cv2.rotate(vb.small, QUARTER_TURNS[k]), cv2.rotate(vb.smooth, QUARTER_TURNS[k]))
+            small, b_s = (
+                (vb.small, vb.smooth)
+                if k == 0
+                else (
+                    cv2.rotate(vb.small, QUARTER_TURNS[k]),
+                    cv2.rotate(vb.smooth, QUARTER_TURNS[k]),
+                )
+            )
             if tilt != 0.0:
                 small, b_s = _tilted(small, tilt), _tilted(b_s, tilt)
             Fb = _spectrum(small)
@@ -148,7 +174,9 @@ def _tilted(image: Gray, angle: float) -> Gray:
     return cv2.warpAffine(image, R, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
 
 
-def _score_peaks(va: PhaseView, Fb: NDArray[np.float32], b_s: Gray, theta: float) -> list[tuple[NDArray[np.float64], float, float]]:
+def _score_peaks(
+    va: PhaseView, Fb: NDArray[np.float32], b_s: Gray, theta: float
+) -> list[tuple[NDArray[np.float64], float, float]]:
     """Candidates (dx, dy, ``theta``) from the phase correlation peaks of view a with a
     prepared frame b (spectrum, smoothed image): each wrap-around reading with its score
     and the share of the frame its overlap covers."""
@@ -163,5 +191,11 @@ def _score_peaks(va: PhaseView, Fb: NDArray[np.float32], b_s: Gray, theta: float
                     continue
                 pa = va.smooth[max(iy, 0) : max(iy, 0) + oh, max(ix, 0) : max(ix, 0) + ow]
                 pb = b_s[max(-iy, 0) : max(-iy, 0) + oh, max(-ix, 0) : max(-ix, 0) + ow]
-                out.append((np.array([va.scale * dx, va.scale * dy, theta]), _correlation(pa, pb), ow * oh / (w * h)))
+                out.append(
+                    (
+                        np.array([va.scale * dx, va.scale * dy, theta]),
+                        _correlation(pa, pb),
+                        ow * oh / (w * h),
+                    )
+                )
     return out

@@ -89,7 +89,9 @@ def extract_planes(
     rng = np.random.default_rng(0)
     remaining = np.arange(len(points))
     planes: list[Plane] = []
-    for _ in range(max_planes * 2):  # a plane refused for its shape is removed too: a few more tries
+    for _ in range(
+        max_planes * 2
+    ):  # a plane refused for its shape is removed too: a few more tries
         if len(planes) == max_planes or len(remaining) < max(min_points, 3):
             break
         pts = points[remaining]
@@ -102,16 +104,22 @@ def extract_planes(
             break
         own = None if normals is None else np.asarray(normals)[remaining]
         stride = max(1, len(pts) // score_points)
-        scores = _support(pts[::stride], None if own is None else own[::stride], n, a, distance_m, cos_max).sum(axis=0)
+        scores = _support(
+            pts[::stride], None if own is None else own[::stride], n, a, distance_m, cos_max
+        ).sum(axis=0)
         best = int(np.argmax(scores))
         normal = n[best]
-        inliers = _support(pts, own, n[best : best + 1], a[best : best + 1], distance_m, cos_max)[:, 0]
+        inliers = _support(pts, own, n[best : best + 1], a[best : best + 1], distance_m, cos_max)[
+            :, 0
+        ]
         offset = 0.0
         for _ in range(2):
             if inliers.sum() < 3:
                 break
             normal, offset = _fit(pts[inliers])
-            inliers = _support(pts, own, normal[None], -offset * normal[None], distance_m, cos_max)[:, 0]
+            inliers = _support(pts, own, normal[None], -offset * normal[None], distance_m, cos_max)[
+                :, 0
+            ]
         taken = remaining[inliers]
         remaining = remaining[~inliers]
         if len(taken) < min_points:  # the best of the rest is too small: nothing bigger is left
@@ -120,13 +128,23 @@ def extract_planes(
             normal, offset = -normal, -offset
         plane = Plane(normal, float(offset), points[taken])
         major, minor = plane.extent
-        if major >= min_extent_m[0] and minor >= min_extent_m[1] and _halves_agree(plane, max_split_deg):
+        if (
+            major >= min_extent_m[0]
+            and minor >= min_extent_m[1]
+            and _halves_agree(plane, max_split_deg)
+        ):
             planes.append(plane)
     return planes
 
 
-def _support(points: NDArray[np.float64], normals: NDArray[np.float64] | None, n: NDArray[np.float64],
-             a: NDArray[np.float64], distance_m: float, cos_max: float) -> NDArray[np.bool_]:
+def _support(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    n: NDArray[np.float64],
+    a: NDArray[np.float64],
+    distance_m: float,
+    cos_max: float,
+) -> NDArray[np.bool_]:
     """(K, H): whether each point lies within ``distance_m`` of each plane (normal n through
     a), with its own normal within the angle whose cosine is ``cos_max``, when given."""
     close = np.abs(points @ n.T - np.einsum("ij,ij->i", n, a)) < distance_m
@@ -176,11 +194,15 @@ def same_plane(a: Plane, b: Plane, max_angle_deg: float, max_offset_m: float) ->
     each one's inlier centroid within ``max_offset_m`` of the other plane."""
     if a.normal @ b.normal < np.cos(np.radians(max_angle_deg)):
         return False
-    return bool(abs(b.normal @ a.centroid + b.offset) < max_offset_m and abs(a.normal @ b.centroid + a.offset) < max_offset_m)
+    return bool(
+        abs(b.normal @ a.centroid + b.offset) < max_offset_m
+        and abs(a.normal @ b.centroid + a.offset) < max_offset_m
+    )
 
 
-def plane_edge(source: Plane, target: Plane, T_target_source: NDArray[np.float64],
-               sigma_m: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def plane_edge(
+    source: Plane, target: Plane, T_target_source: NDArray[np.float64], sigma_m: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """A pose-graph edge saying that ``source`` (seen in the source cloud) is ``target``
     (seen in the target cloud), from the current estimate ``T_target_source``: the estimate
     corrected as little as possible so the planes coincide, and its information (Open3D's

@@ -14,7 +14,9 @@ from processing.poses import relative_se2, wrap_angle
 from processing.registration import PairMeasurement, RegistrationParams
 
 
-def candidate_pairs(poses: NDArray[np.float64], size: tuple[int, int], *, skip_consecutive: bool = False) -> list[tuple[int, int]]:
+def candidate_pairs(
+    poses: NDArray[np.float64], size: tuple[int, int], *, skip_consecutive: bool = False
+) -> list[tuple[int, int]]:
     """Pairs (i < j) of frames whose centres are close enough for their footprints to overlap
     (the overlap itself is checked when the pair is registered)."""
     reach = 0.9 * max(size)
@@ -33,8 +35,12 @@ def candidate_pairs(poses: NDArray[np.float64], size: tuple[int, int], *, skip_c
 
 
 def solve_pose_graph(
-    initial: NDArray[np.float64], measurements: Sequence[PairMeasurement], priors: NDArray[np.float64] | None, params: RegistrationParams = RegistrationParams(),
-    *, iterations: int = 10,
+    initial: NDArray[np.float64],
+    measurements: Sequence[PairMeasurement],
+    priors: NDArray[np.float64] | None,
+    params: RegistrationParams = RegistrationParams(),
+    *,
+    iterations: int = 10,
 ) -> NDArray[np.float64]:
     """Poses (N, 3) minimising the robust pose-graph error (Gauss-Newton with Huber weights).
 
@@ -61,14 +67,25 @@ def solve_pose_graph(
         pred = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
         r = np.column_stack([pred - Z[:, :2], L * wrap_angle(x[J, 2] - th - Z[:, 2])])
         norm = np.linalg.norm(r, axis=1)
-        w = base_w * np.where(norm <= params.huber_px, 1.0, params.huber_px / np.maximum(norm, 1e-12))
+        w = base_w * np.where(
+            norm <= params.huber_px, 1.0, params.huber_px / np.maximum(norm, 1e-12)
+        )
         # Jacobian: rows 3e..3e+2 of edge e, columns of pose i and pose j
         ne = len(edges)
         one = np.ones(ne)
         blocks = [  # (residual row, node, pose component, derivative)
-            (0, I, 0, -c), (0, I, 1, -s), (0, I, 2, -s * d[:, 0] + c * d[:, 1]),
-            (1, I, 0, s), (1, I, 1, -c), (1, I, 2, -c * d[:, 0] - s * d[:, 1]),
-            (2, I, 2, -L * one), (0, J, 0, c), (0, J, 1, s), (1, J, 0, -s), (1, J, 1, c), (2, J, 2, L * one),
+            (0, I, 0, -c),
+            (0, I, 1, -s),
+            (0, I, 2, -s * d[:, 0] + c * d[:, 1]),
+            (1, I, 0, s),
+            (1, I, 1, -c),
+            (1, I, 2, -c * d[:, 0] - s * d[:, 1]),
+            (2, I, 2, -L * one),
+            (0, J, 0, c),
+            (0, J, 1, s),
+            (1, J, 0, -s),
+            (1, J, 1, c),
+            (2, J, 2, L * one),
         ]
         e = np.arange(ne)
         rows = np.concatenate([3 * e + r for r, _, _, _ in blocks])
@@ -87,7 +104,9 @@ def solve_pose_graph(
     return x
 
 
-def measurement_residuals(poses: NDArray[np.float64], measurements: Sequence[PairMeasurement], params: RegistrationParams) -> NDArray[np.float64]:
+def measurement_residuals(
+    poses: NDArray[np.float64], measurements: Sequence[PairMeasurement], params: RegistrationParams
+) -> NDArray[np.float64]:
     """Size (px) of each measurement's disagreement with the poses."""
     out = []
     for m in measurements:

@@ -59,7 +59,9 @@ def se2_of_matrix(M: NDArray[np.floating]) -> NDArray[np.float64]:
     return np.array([M[0, n], M[1, n], np.arctan2(M[1, 0], M[0, 0])])
 
 
-def chain_se2(first: NDArray[np.floating], steps: Sequence[NDArray[np.floating]]) -> NDArray[np.float64]:
+def chain_se2(
+    first: NDArray[np.floating], steps: Sequence[NDArray[np.floating]]
+) -> NDArray[np.float64]:
     """Poses (N+1, 3) from a first pose and the relative step to each next one."""
     out = [np.asarray(first, float)]
     for d in steps:
@@ -80,7 +82,9 @@ def frame_i_to_j(delta: NDArray[np.floating], size: tuple[int, int]) -> NDArray[
     w, h = size
     c = np.array([(w - 1) / 2, (h - 1) / 2])
     Rt = rot2(float(delta[2])).T
-    return np.vstack([np.hstack([Rt, (c - Rt @ (c + np.asarray(delta[:2], float)))[:, None]]), [0, 0, 1.0]])
+    return np.vstack(
+        [np.hstack([Rt, (c - Rt @ (c + np.asarray(delta[:2], float)))[:, None]]), [0, 0, 1.0]]
+    )
 
 
 def delta_of_map(M: NDArray[np.float64], size: tuple[int, int]) -> NDArray[np.float64]:
@@ -95,12 +99,16 @@ def delta_of_map(M: NDArray[np.float64], size: tuple[int, int]) -> NDArray[np.fl
 def format_tum(timestamps: NDArray[np.floating], poses: NDArray[np.floating]) -> str:
     """TUM text (``t tx ty tz qx qy qz qw`` per line) of (N,) times and (N, 4, 4) poses."""
     if len(timestamps) != len(poses):
-        raise ValueError(f"timestamps ({len(timestamps)}) and poses ({len(poses)}) differ in length")
+        raise ValueError(
+            f"timestamps ({len(timestamps)}) and poses ({len(poses)}) differ in length"
+        )
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     for t, T in zip(timestamps, poses):
         q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
         tx, ty, tz = T[:3, 3]
-        lines.append(f"{t:.6f} {tx:.6f} {ty:.6f} {tz:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}")
+        lines.append(
+            f"{t:.6f} {tx:.6f} {ty:.6f} {tz:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -135,7 +143,10 @@ def yaw_of(T: NDArray[np.floating]) -> float:
 
 
 def image_to_world(
-    uv: NDArray[np.floating], camera_pose: NDArray[np.floating], px_per_m: float, size: tuple[int, int]
+    uv: NDArray[np.floating],
+    camera_pose: NDArray[np.floating],
+    px_per_m: float,
+    size: tuple[int, int],
 ) -> NDArray[np.float64]:
     """World (x, y) of downward-camera pixels: the chain image → camera → world (paper §3.1).
 
@@ -149,8 +160,11 @@ def image_to_world(
 
 
 def transfer_correction(
-    ref_times: NDArray[np.floating], ref_odometry: NDArray[np.floating], ref_truth: NDArray[np.floating],
-    times: NDArray[np.floating], odometry: NDArray[np.floating],
+    ref_times: NDArray[np.floating],
+    ref_odometry: NDArray[np.floating],
+    ref_truth: NDArray[np.floating],
+    times: NDArray[np.floating],
+    odometry: NDArray[np.floating],
 ) -> NDArray[np.float64]:
     """Correct odometry poses (N, 3: x, y, yaw) taken at ``times`` by a better estimate known
     at other instants: at each reference k the world-frame correction C_k = T_k · O_k⁻¹
@@ -159,7 +173,12 @@ def transfer_correction(
     Used to carry the mosaic's camera motion over to the ToF clouds."""
     order = np.argsort(ref_times)
     rt = np.asarray(ref_times, dtype=np.float64)[order]
-    corr = np.array([se2_of_matrix(se2_matrix(*ref_truth[k]) @ np.linalg.inv(se2_matrix(*ref_odometry[k]))) for k in order])
+    corr = np.array(
+        [
+            se2_of_matrix(se2_matrix(*ref_truth[k]) @ np.linalg.inv(se2_matrix(*ref_odometry[k])))
+            for k in order
+        ]
+    )
     corr[:, 2] = np.unwrap(corr[:, 2])
     out = []
     for t, o in zip(np.asarray(times, dtype=np.float64), np.asarray(odometry, dtype=np.float64)):
@@ -168,18 +187,28 @@ def transfer_correction(
     return np.array(out)
 
 
-def robot_poses_from_camera(camera_poses: NDArray[np.floating], T_robot_camera: Sequence[float]) -> NDArray[np.float64]:
+def robot_poses_from_camera(
+    camera_poses: NDArray[np.floating], T_robot_camera: Sequence[float]
+) -> NDArray[np.float64]:
     """Robot poses (N, 3) from the poses of a camera mounted at ``T_robot_camera`` (x, y, θ
     of the camera in the robot's frame): T_world_robot = T_world_camera · T_robot_camera⁻¹."""
     mount_inv = np.linalg.inv(se2_matrix(*T_robot_camera))
-    return np.array([se2_of_matrix(se2_matrix(*p) @ mount_inv) for p in np.asarray(camera_poses, float)]).reshape(-1, 3)
+    return np.array(
+        [se2_of_matrix(se2_matrix(*p) @ mount_inv) for p in np.asarray(camera_poses, float)]
+    ).reshape(-1, 3)
 
 
-def world_box(bbox: tuple[int, int, int, int], camera_pose: NDArray[np.floating], px_per_m: float,
-              size: tuple[int, int]) -> tuple[float, float, float, float]:
+def world_box(
+    bbox: tuple[int, int, int, int],
+    camera_pose: NDArray[np.floating],
+    px_per_m: float,
+    size: tuple[int, int],
+) -> tuple[float, float, float, float]:
     """World (x, y, w, h) in metres of the axis-aligned box around a pixel box (x, y, w, h) of
     a downward-camera image of ``size`` (w, h) taken at ``camera_pose``."""
     x, y, w, h = bbox
-    corners = image_to_world(np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]]), camera_pose, px_per_m, size)
+    corners = image_to_world(
+        np.array([[x, y], [x + w, y], [x, y + h], [x + w, y + h]]), camera_pose, px_per_m, size
+    )
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     return float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])

@@ -32,7 +32,9 @@ class RegistrationParams:
     max_refine_px: float = 6.0  # the refinement may move the overlap this far from the coarse match
     max_refine_rad: float = 0.05  # ... and turn it this far
     points: int = 3000  # pixels used by the sub-pixel refinement
-    half_stage_below: float = 0.9  # refine at half resolution first when the coarse correlation is weaker
+    half_stage_below: float = (
+        0.9  # refine at half resolution first when the coarse correlation is weaker
+    )
     iterations: int = 30
     lever_px: float = 200.0  # weight of a heading residual: radians times this, as pixels
     prior_weight: float = 0.01  # odometry steps, relative to image measurements
@@ -56,11 +58,17 @@ class PairMeasurement:
 def _quarter_turn(k: int, size: tuple[int, int]) -> NDArray[np.float64]:
     """3x3 pixel map of ``cv2.rotate`` by k quarter turns clockwise on screen, for (w, h)."""
     w, h = size
-    return [np.eye(3), np.array([[0, -1, h - 1], [1, 0, 0], [0, 0, 1.0]]),
-            np.array([[-1, 0, w - 1], [0, -1, h - 1], [0, 0, 1.0]]), np.array([[0, 1, 0], [-1, 0, w - 1], [0, 0, 1.0]])][k]
+    return [
+        np.eye(3),
+        np.array([[0, -1, h - 1], [1, 0, 0], [0, 0, 1.0]]),
+        np.array([[-1, 0, w - 1], [0, -1, h - 1], [0, 0, 1.0]]),
+        np.array([[0, 1, 0], [-1, 0, w - 1], [0, 0, 1.0]]),
+    ][k]
 
 
-def overlap_rect(M: NDArray[np.float64], size: tuple[int, int], margin: int, min_overlap: float) -> tuple[int, int, int, int] | None:
+def overlap_rect(
+    M: NDArray[np.float64], size: tuple[int, int], margin: int, min_overlap: float
+) -> tuple[int, int, int, int] | None:
     """Axis-aligned rectangle of frame i that frame j covers (via the i→j map ``M``), shrunk
     by ``margin``; None when smaller than ``min_overlap`` of the frame."""
     w, h = size
@@ -76,7 +84,9 @@ def overlap_rect(M: NDArray[np.float64], size: tuple[int, int], margin: int, min
 
 
 FIRST_SEARCH_PX = 12  # the coarse search's first radius (full-resolution pixels)
-EARLY_OVERLAP = 0.9  # pairs guessed to overlap less than this share of ``min_overlap`` are not searched
+EARLY_OVERLAP = (
+    0.9  # pairs guessed to overlap less than this share of ``min_overlap`` are not searched
+)
 SIGMA = 1.0  # smoothing of both images before Lucas-Kanade (its convergence basin)
 
 
@@ -104,7 +114,9 @@ class Level:
         return self.full.image.nbytes + self.half.image.nbytes
 
 
-def _crop_for(image: Gray, W: NDArray[np.float64], tw: int, th: int, pad: int) -> tuple[Gray, NDArray[np.float64]]:
+def _crop_for(
+    image: Gray, W: NDArray[np.float64], tw: int, th: int, pad: int
+) -> tuple[Gray, NDArray[np.float64]]:
     """The part of ``image`` that a (tw x th) template reaches through warp ``W`` (plus
     ``pad``), and the warp into that part."""
     corners = W[:2] @ np.array([[0, 0, 1], [tw, 0, 1], [0, th, 1], [tw, th, 1]], float).T
@@ -115,15 +127,21 @@ def _crop_for(image: Gray, W: NDArray[np.float64], tw: int, th: int, pad: int) -
     return image[y0 : min(y1, image.shape[0]), x0 : min(x1, image.shape[1])], out
 
 
-def _uncrop(W: NDArray[np.float64], crop_W: NDArray[np.float64], crop_W0: NDArray[np.float64]) -> NDArray[np.float64]:
+def _uncrop(
+    W: NDArray[np.float64], crop_W: NDArray[np.float64], crop_W0: NDArray[np.float64]
+) -> NDArray[np.float64]:
     out = W.copy()
     out[:, 2] += crop_W0[:, 2] - crop_W[:, 2]
     return out
 
 
 def register_pair(
-    frame_i: Level | Gray, frame_j: Level | Gray, guess: NDArray[np.floating], params: RegistrationParams = RegistrationParams(),
-    *, angles: Sequence[float] = (0.0,),
+    frame_i: Level | Gray,
+    frame_j: Level | Gray,
+    guess: NDArray[np.floating],
+    params: RegistrationParams = RegistrationParams(),
+    *,
+    angles: Sequence[float] = (0.0,),
 ) -> tuple[NDArray[np.float64], float, float, float] | None:
     """Relative pose of frame j in frame i's frame, refined from ``guess``.
 
@@ -150,7 +168,9 @@ def register_pair(
     # peak is weak or on the search window's edge
     coarse, edge = 0.0, True
     if len(angles) == 1 and params.search_px > FIRST_SEARCH_PX:
-        M_try, coarse, edge = _coarse_search(li, j_half, M, Q, size, FIRST_SEARCH_PX, params, angles)
+        M_try, coarse, edge = _coarse_search(
+            li, j_half, M, Q, size, FIRST_SEARCH_PX, params, angles
+        )
         if not edge and coarse >= params.half_stage_below:
             M = M_try
     if edge or coarse < params.half_stage_below:
@@ -163,33 +183,59 @@ def register_pair(
     template = li.full.crop(x0, y0, x1, y1)
     if _std(template.image[::2, ::2]) < params.min_texture:
         return None
-    W0 = (Q @ M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2]  # template pixel -> turned-j pixel
+    W0 = (Q @ M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[
+        :2
+    ]  # template pixel -> turned-j pixel
     # Lucas-Kanade on the half- and then the full-resolution image: wide basin, then precision
     tw, th = x1 - x0, y1 - y0
     pad = 6 + int(params.max_refine_px + params.max_refine_rad * max(tw, th) / 2)
     full0 = W0
-    if coarse < params.half_stage_below or len(angles) > 1:  # a weak or uncertain coarse match: widen the basin first
+    if (
+        coarse < params.half_stage_below or len(angles) > 1
+    ):  # a weak or uncertain coarse match: widen the basin first
         half0 = _scale_warp(W0, 0.5)
         crop, cW = _crop_for(j_half, half0, tw // 2, th // 2, pad)
-        hW, _, _, _ = refine_euclidean(li.half.crop(x0 // 2, y0 // 2, x1 // 2, y1 // 2), crop, _shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),
-                                       points=params.points // 4, iterations=params.iterations)
+        hW, _, _, _ = refine_euclidean(
+            li.half.crop(x0 // 2, y0 // 2, x1 // 2, y1 // 2),
+            crop,
+            _shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),
+            points=params.points // 4,
+            iterations=params.iterations,
+        )
         hW = _uncrop(_shift_origin(hW, -(x0 % 2) / 2, -(y0 % 2) / 2), cW, half0)
         full0 = _scale_warp(hW, 2.0)
     crop, cW = _crop_for(j_full, full0, tw, th, pad)
-    W, score, mean_i, mean_j = refine_euclidean(template, crop, cW, points=params.points, iterations=params.iterations)
+    W, score, mean_i, mean_j = refine_euclidean(
+        template, crop, cW, points=params.points, iterations=params.iterations
+    )
     W = _uncrop(W, cW, full0)
     if not np.isfinite(W).all() or score < params.min_score:
         return None
     centre = np.array([tw / 2, th / 2, 1.0])
     turned_by = abs(np.arctan2(W[1, 0], W[0, 0]) - np.arctan2(W0[1, 0], W0[0, 0]))
-    if np.abs(W @ centre - W0 @ centre).max() > params.max_refine_px or turned_by > params.max_refine_rad:
+    if (
+        np.abs(W @ centre - W0 @ centre).max() > params.max_refine_px
+        or turned_by > params.max_refine_rad
+    ):
         return None  # the refinement ran away from the coarse match
-    M_ij = np.linalg.inv(Q) @ np.vstack([W, [0, 0, 1]]) @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
+    M_ij = (
+        np.linalg.inv(Q)
+        @ np.vstack([W, [0, 0, 1]])
+        @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
+    )
     return delta_of_map(M_ij, size), score, mean_i, mean_j
 
 
-def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[np.float64], size: tuple[int, int], search_px: int,
-                   params: RegistrationParams, angles: Sequence[float]) -> tuple[NDArray[np.float64], float, bool]:
+def _coarse_search(
+    li: Level,
+    j_half: Gray,
+    M: NDArray[np.float64],
+    Q: NDArray[np.float64],
+    size: tuple[int, int],
+    search_px: int,
+    params: RegistrationParams,
+    angles: Sequence[float],
+) -> tuple[NDArray[np.float64], float, bool]:
     """Normalised cross-correlation of frame i's overlap (shrunk by the search radius, so
     it stays inside frame j for any guess error up to it; the radius is halved until a
     template is left) over ±``search_px`` of frame j at half resolution, at the best of
@@ -211,20 +257,33 @@ def _coarse_search(li: Level, j_half: Gray, M: NDArray[np.float64], Q: NDArray[n
         return M, 0.0, False
     hs = s // 2
     centre = np.array([(rect[0] + rect[2]) / 2, (rect[1] + rect[3]) / 2])
-    origin = np.array([[1, 0, 2 * (hx0 - hs)], [0, 1, 2 * (hy0 - hs)], [0, 0, 1.0]])  # the searched window, full-resolution px
+    origin = np.array(
+        [[1, 0, 2 * (hx0 - hs)], [0, 1, 2 * (hy0 - hs)], [0, 0, 1.0]]
+    )  # the searched window, full-resolution px
     window = (hx1 - hx0 + 2 * hs, hy1 - hy0 + 2 * hs)
 
-    def at_angle(angle: float, f: int = 2, j_img: Gray = j_half, tmpl: Gray = template) -> tuple[float, NDArray[np.float64], bool]:
+    def at_angle(
+        angle: float, f: int = 2, j_img: Gray = j_half, tmpl: Gray = template
+    ) -> tuple[float, NDArray[np.float64], bool]:
         # the guess turned by ``angle`` about the overlap's centre, searched at 1/f resolution
         R = rot2(angle)
         Ma = M @ np.vstack([np.hstack([R, (centre - R @ centre)[:, None]]), [0, 0, 1]])
         size_f = (-(-window[0] * 2 // f), -(-window[1] * 2 // f))
-        seen = cv2.warpAffine(j_img, _scale_warp((Q @ Ma @ origin)[:2], 1 / f), size_f, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        seen = cv2.warpAffine(
+            j_img,
+            _scale_warp((Q @ Ma @ origin)[:2], 1 / f),
+            size_f,
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        )
         res = cv2.matchTemplate(seen, tmpl, cv2.TM_CCOEFF_NORMED)
         at = _parabola_peak(res)
         shift = f * at - 2 * hs
         edge = bool(min(at[0], at[1]) < 1 or at[0] > res.shape[1] - 2 or at[1] > res.shape[0] - 2)
-        return float(res.max()), Ma @ np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]]), edge
+        return (
+            float(res.max()),
+            Ma @ np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]]),
+            edge,
+        )
 
     if len(angles) == 1:
         peak, M_best, edge = at_angle(angles[0])

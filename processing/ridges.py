@@ -10,7 +10,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def _hessian(image: NDArray[np.float32], sigma: float) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
+def _hessian(
+    image: NDArray[np.float32], sigma: float
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
     """Half trace (Ixx + Iyy)/2, half difference (Ixx − Iyy)/2 and Ixy of the
     Gaussian-smoothed image (eqs. 10, 11), each (M, N) float32."""
     if sigma <= 0:
@@ -24,14 +26,18 @@ def _hessian(image: NDArray[np.float32], sigma: float) -> tuple[NDArray[np.float
     return cv2.add(ixx, iyy), cv2.subtract(ixx, iyy), ixy
 
 
-def hessian_eigenvalues(image: NDArray[np.floating], sigma: float) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+def hessian_eigenvalues(
+    image: NDArray[np.floating], sigma: float
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Eigenvalues λ1 ≥ λ2 of the Gaussian-smoothed Hessian (eqs. 10, 11, 13), each (M, N)."""
     half_trace, half_diff, ixy = _hessian(np.asarray(image, dtype=np.float32), sigma)
     root = cv2.magnitude(half_diff, ixy)
     return cv2.add(half_trace, root), cv2.subtract(half_trace, root)
 
 
-def line_measure(l1: NDArray[np.floating], l2: NDArray[np.floating], mu: float) -> NDArray[np.float32]:
+def line_measure(
+    l1: NDArray[np.floating], l2: NDArray[np.floating], mu: float
+) -> NDArray[np.float32]:
     """Similarity to a bright line λ12 of eq. (12) from eigenvalues λ1 ≥ λ2, 0 < μ ≤ 1."""
     if not 0 < mu <= 1:
         raise ValueError(f"mu must be in (0, 1], got {mu}")
@@ -43,7 +49,9 @@ def line_measure(l1: NDArray[np.floating], l2: NDArray[np.floating], mu: float) 
     return out.astype(np.float32, copy=False)
 
 
-def line_response(image: NDArray[np.float32], sigma: float, mu: float, weight: float = 1.0) -> NDArray[np.float32]:
+def line_response(
+    image: NDArray[np.float32], sigma: float, mu: float, weight: float = 1.0
+) -> NDArray[np.float32]:
     """``weight`` · λ12(x; σ) of eq. (12), computed from the Hessian without forming λ1, λ2
     (see :func:`_max_line_response`)."""
     out = np.zeros(image.shape, np.float32)
@@ -51,8 +59,9 @@ def line_response(image: NDArray[np.float32], sigma: float, mu: float, weight: f
     return out
 
 
-def _accumulate_line_response(image: NDArray[np.float32], sigma: float, mu: float, weight: float,
-                              out: NDArray[np.float32]) -> None:
+def _accumulate_line_response(
+    image: NDArray[np.float32], sigma: float, mu: float, weight: float, out: NDArray[np.float32]
+) -> None:
     """``out`` ← max(``out``, ``weight`` · λ12(x; σ)): Gaussian smoothing, then one fused pass."""
     if sigma <= 0:
         raise ValueError(f"sigma must be positive, got {sigma}")
@@ -65,7 +74,9 @@ def _accumulate_line_response(image: NDArray[np.float32], sigma: float, mu: floa
 
 
 @numba.njit(nogil=True, cache=True)
-def _max_line_response(p: NDArray[np.float32], out: NDArray[np.float32], weight: np.float32, mu: np.float32) -> None:  # pragma: no cover - compiled
+def _max_line_response(
+    p: NDArray[np.float32], out: NDArray[np.float32], weight: np.float32, mu: np.float32
+) -> None:  # pragma: no cover - compiled
     """One pass over a padded smoothed image: the 3x3 Sobel Hessian (as :func:`_hessian`)
     and eq. (12) in closed form, max-accumulated into ``out``.
 
@@ -82,8 +93,12 @@ def _max_line_response(p: NDArray[np.float32], out: NDArray[np.float32], weight:
             p00, p01, p02 = p[y, x], p[y, x + 1], p[y, x + 2]
             p10, p11, p12 = p[y + 1, x], p[y + 1, x + 1], p[y + 1, x + 2]
             p20, p21, p22 = p[y + 2, x], p[y + 2, x + 1], p[y + 2, x + 2]
-            hxx = ((p00 - 2 * p01 + p02) + 2 * (p10 - 2 * p11 + p12) + (p20 - 2 * p21 + p22)) * 0.125
-            hyy = ((p00 - 2 * p10 + p20) + 2 * (p01 - 2 * p11 + p21) + (p02 - 2 * p12 + p22)) * 0.125
+            hxx = (
+                (p00 - 2 * p01 + p02) + 2 * (p10 - 2 * p11 + p12) + (p20 - 2 * p21 + p22)
+            ) * 0.125
+            hyy = (
+                (p00 - 2 * p10 + p20) + 2 * (p01 - 2 * p11 + p21) + (p02 - 2 * p12 + p22)
+            ) * 0.125
             ixy = (p22 - p20 - p02 + p00) * 0.25
             r = np.sqrt((hxx - hyy) * (hxx - hyy) + ixy * ixy)
             v = min(a * r + b * (hxx + hyy), c * r)
@@ -95,7 +110,7 @@ def line_emphasis(
     image: NDArray[np.floating],
     *,
     sigma1: float = 1.0,
-    scale_factor: float = 2 ** 0.5,
+    scale_factor: float = 2**0.5,
     n_scales: int = 4,
     mu: float = 0.5,
     dark_lines: bool = True,
@@ -126,7 +141,12 @@ def line_emphasis(
     coarse = np.zeros(half.shape, np.float32) if half is not None else None
     for sigma in sigmas(sigma1, scale_factor, n_scales):
         weight = sigma**2 if normalise else sigma1**2
-        if half is not None and coarse is not None and half_resolution_from is not None and sigma >= half_resolution_from:
+        if (
+            half is not None
+            and coarse is not None
+            and half_resolution_from is not None
+            and sigma >= half_resolution_from
+        ):
             # derivatives per half-resolution pixel are 4x those per pixel
             _accumulate_line_response(half, sigma / 2, mu, weight / 4, coarse)
         else:

@@ -18,9 +18,17 @@ def view_rotation(azimuth_deg: float, elevation_deg: float) -> NDArray[np.float6
     return Rx @ Rz
 
 
-def render_points(points: NDArray[np.floating], *, size: tuple[int, int] = (1200, 800), azimuth_deg: float = 30.0,
-                  elevation_deg: float = 55.0, height_axis: int = 2, path: NDArray[np.floating] | None = None,
-                  point_px: int = 2, background: tuple[int, int, int] = (255, 255, 255)) -> NDArray[np.uint8]:
+def render_points(
+    points: NDArray[np.floating],
+    *,
+    size: tuple[int, int] = (1200, 800),
+    azimuth_deg: float = 30.0,
+    elevation_deg: float = 55.0,
+    height_axis: int = 2,
+    path: NDArray[np.floating] | None = None,
+    point_px: int = 2,
+    background: tuple[int, int, int] = (255, 255, 255),
+) -> NDArray[np.uint8]:
     """BGR image of a point cloud seen obliquely, nearer points drawn over farther ones,
     coloured by the coordinate ``height_axis`` (turbo colour map); ``path`` (M, 3), when
     given, is drawn as a black polyline (the robot's trajectory)."""
@@ -35,7 +43,11 @@ def render_points(points: NDArray[np.floating], *, size: tuple[int, int] = (1200
     R = view_rotation(azimuth_deg, elevation_deg)
     centre = np.median(pts, axis=0)
     v = (pts - centre) @ R.T
-    extra = (np.asarray(path, dtype=np.float64) - centre) @ R.T if path is not None and len(path) else np.empty((0, 3))
+    extra = (
+        (np.asarray(path, dtype=np.float64) - centre) @ R.T
+        if path is not None and len(path)
+        else np.empty((0, 3))
+    )
     both = np.vstack([v[:, :2], extra[:, :2]])
     lo, hi = np.percentile(both, 0.5, axis=0), np.percentile(both, 99.5, axis=0)
     scale = 0.92 * min(width / max(hi[0] - lo[0], 1e-9), height / max(hi[1] - lo[1], 1e-9))

@@ -43,13 +43,28 @@ from processing.registration import PairMeasurement
 from processing.vignetting import overlap_samples, solve_photometry
 
 __all__ = [
-    "Band", "Blend", "FrameSource", "Mosaic", "MosaicLayout", "StitchParams", "camera_poses", "estimate_flat_field",
-    "feather_weight", "paper_blend_mask", "plan_mosaic", "render_bands", "stitch_frames",
+    "Band",
+    "Blend",
+    "FrameSource",
+    "Mosaic",
+    "MosaicLayout",
+    "StitchParams",
+    "camera_poses",
+    "estimate_flat_field",
+    "feather_weight",
+    "paper_blend_mask",
+    "plan_mosaic",
+    "render_bands",
+    "stitch_frames",
 ]
 
 
 def plan_mosaic(
-    source: FrameSource, poses: NDArray[np.floating] | None, *, px_per_m: float = 1.0, params: StitchParams = StitchParams(),
+    source: FrameSource,
+    poses: NDArray[np.floating] | None,
+    *,
+    px_per_m: float = 1.0,
+    params: StitchParams = StitchParams(),
     progress: Progress | None = None,
 ) -> tuple[MosaicLayout, FrameCache]:
     """Frame poses (registered and solved globally), exposure gains and the mosaic's extent.
@@ -73,15 +88,33 @@ def plan_mosaic(
         est_poses = (poses if poses is not None else np.zeros((1, 3))).copy()
         confident, measurements, rejected = np.ones(1, bool), [], 0
     else:
-        est = estimate_poses(frames.level, n, poses, params.registration, _scaled(progress, 0.0, 0.5))
+        est = estimate_poses(
+            frames.level, n, poses, params.registration, _scaled(progress, 0.0, 0.5)
+        )
         if params.vignetting and _correct_vignetting(frames, est.measurements, params):
             # registration sees the surface evenly lit now: register again from the solution
             again = replace(params.registration, search_px=8)  # the first solution is close
             est = estimate_poses(frames.level, n, est.poses, again, _scaled(progress, 0.5, 1.0))
-        est_poses, confident, measurements, rejected = est.poses, est.confident, est.measurements, est.rejected
+        est_poses, confident, measurements, rejected = (
+            est.poses,
+            est.confident,
+            est.measurements,
+            est.rejected,
+        )
     gains = _gains(n, measurements) if params.gain_compensation else np.ones(n)
-    layout = MosaicLayout(0, 0, (w, h), 1 if len(frames.shape) == 2 else frames.shape[2], px_per_m, (0.0, 0.0),  # type: ignore[arg-type]
-                          est_poses, confident, gains, len(measurements), rejected)
+    layout = MosaicLayout(
+        0,
+        0,
+        (w, h),
+        1 if len(frames.shape) == 2 else frames.shape[2],
+        px_per_m,
+        (0.0, 0.0),  # type: ignore[arg-type]
+        est_poses,
+        confident,
+        gains,
+        len(measurements),
+        rejected,
+    )
     boxes = np.array([layout.footprint(k) for k in range(n)])
     x0, y0 = boxes[:, 0].min(), boxes[:, 1].min()
     layout.poses_px = est_poses - (x0, y0, 0)
@@ -96,17 +129,27 @@ def _scaled(progress: Progress | None, lo: float, hi: float) -> Progress | None:
     return lambda f, m: progress(lo + (hi - lo) * f, m)
 
 
-def _correct_vignetting(frames: FrameCache, measurements: Sequence[PairMeasurement], params: StitchParams) -> bool:
+def _correct_vignetting(
+    frames: FrameCache, measurements: Sequence[PairMeasurement], params: StitchParams
+) -> bool:
     """Estimate the lens falloff from registered overlaps (:mod:`processing.vignetting`) on
     up to ``params.vignetting_pairs`` pairs; install its correction when it is real and
     differs from the one in use. True when frames must be registered again."""
     if not measurements:
         return False
     h, w = frames.shape[:2]  # type: ignore[index]
-    picks = np.unique(np.linspace(0, len(measurements) - 1, min(len(measurements), params.vignetting_pairs)).round().astype(int))
+    picks = np.unique(
+        np.linspace(0, len(measurements) - 1, min(len(measurements), params.vignetting_pairs))
+        .round()
+        .astype(int)
+    )
     # the registration's own half-resolution smoothed images, with any correction undone
     half_size = frames.level(0).half.image.shape[::-1]
-    undo = None if frames.inv_flat is None else cv2.resize(1.0 / frames.inv_flat, half_size, interpolation=cv2.INTER_AREA)
+    undo = (
+        None
+        if frames.inv_flat is None
+        else cv2.resize(1.0 / frames.inv_flat, half_size, interpolation=cv2.INTER_AREA)
+    )
     to_half = np.diag([0.5, 0.5, 1.0])
 
     def grey(k: int) -> NDArray[np.float32]:
@@ -123,8 +166,12 @@ def _correct_vignetting(frames: FrameCache, measurements: Sequence[PairMeasureme
     photo = solve_photometry(len(frames.source), samples)
     if photo is None:
         return False
-    falls_off = float(photo.flat_field((w, h), step=8).min()) < 1.0 - params.flat_field_min_falloff  # the whole field only if so
-    new = (1.0 / np.maximum(photo.flat_field((w, h)), 0.2)).astype(np.float32) if falls_off else None
+    falls_off = (
+        float(photo.flat_field((w, h), step=8).min()) < 1.0 - params.flat_field_min_falloff
+    )  # the whole field only if so
+    new = (
+        (1.0 / np.maximum(photo.flat_field((w, h)), 0.2)).astype(np.float32) if falls_off else None
+    )
     old = frames.inv_flat
     if new is None and old is None:
         return False
@@ -140,7 +187,11 @@ def _gains(n: int, measurements: Sequence[PairMeasurement]) -> NDArray[np.float6
 
 
 def stitch_frames(
-    frames: FrameSource, poses: NDArray[np.floating] | None, *, px_per_m: float = 1.0, params: StitchParams = StitchParams(),
+    frames: FrameSource,
+    poses: NDArray[np.floating] | None,
+    *,
+    px_per_m: float = 1.0,
+    params: StitchParams = StitchParams(),
     progress: Progress | None = None,
 ) -> Mosaic:
     """Stitch frames into one in-memory mosaic in world orientation.

@@ -25,7 +25,9 @@ def _surface_background_quarter(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
     """The grey surface brightness with dark details closed away (a 45-px disk), at a
     quarter of the resolution: it varies slowly."""
     small = _quarter(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image)
-    return cv2.morphologyEx(small, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11)))
+    return cv2.morphologyEx(
+        small, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11))
+    )
 
 
 def surface_level(image: NDArray[np.uint8], coverage: NDArray[np.generic]) -> float:
@@ -34,7 +36,9 @@ def surface_level(image: NDArray[np.uint8], coverage: NDArray[np.generic]) -> fl
     return float(np.median(_surface_background_quarter(image)[covered])) if covered.any() else 0.0
 
 
-def on_surface(image: NDArray[np.uint8], coverage: NDArray[np.generic], level: float | None = None) -> NDArray[np.bool_]:
+def on_surface(
+    image: NDArray[np.uint8], coverage: NDArray[np.generic], level: float | None = None
+) -> NDArray[np.bool_]:
     """Where a mosaic shows the steel surface: not far darker than the surface typically
     is (``level``; beyond a plate's edge the camera sees the dark void below), and well
     inside the covered area (its edge is a dark step, not a crack); decided on 4x4 blocks."""
@@ -46,6 +50,8 @@ def on_surface(image: NDArray[np.uint8], coverage: NDArray[np.generic], level: f
     surface = cv2.erode(surface, np.ones((7, 7), np.uint8))  # ~15 px on each side
     h, w = image.shape[:2]
     full = np.zeros((h, w), np.uint8)
-    up = cv2.resize(surface, (surface.shape[1] * 4, surface.shape[0] * 4), interpolation=cv2.INTER_NEAREST)
+    up = cv2.resize(
+        surface, (surface.shape[1] * 4, surface.shape[0] * 4), interpolation=cv2.INTER_NEAREST
+    )
     full[: up.shape[0], : up.shape[1]] = up[:h, :w]
     return full > 0

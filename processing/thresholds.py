@@ -11,7 +11,9 @@ from numpy.typing import NDArray
 from processing.labels import component_flags, lookup
 
 
-def select_components(labels: NDArray[np.int32], stats: NDArray[np.int32], keep: NDArray[np.bool_]) -> NDArray[np.bool_]:
+def select_components(
+    labels: NDArray[np.int32], stats: NDArray[np.int32], keep: NDArray[np.bool_]
+) -> NDArray[np.bool_]:
     """Mask of the components whose ``keep`` flag is set (``labels`` and ``stats`` from
     ``cv2.connectedComponentsWithStats``, label 0 never kept).
 
@@ -40,8 +42,13 @@ def select_components(labels: NDArray[np.int32], stats: NDArray[np.int32], keep:
     return out
 
 
-def seeded_regions(candidates: NDArray[np.bool_], seeds: NDArray[np.bool_], *, min_area_px: int = 0,
-                   max_half_width_px: float | None = None) -> NDArray[np.bool_]:
+def seeded_regions(
+    candidates: NDArray[np.bool_],
+    seeds: NDArray[np.bool_],
+    *,
+    min_area_px: int = 0,
+    max_half_width_px: float | None = None,
+) -> NDArray[np.bool_]:
     """Region growing from seeds: the 8-connected regions of ``candidates`` that hold a
     seed pixel (and at least ``min_area_px`` pixels, and no inscribed radius over
     ``max_half_width_px`` when given: wider than a crack)."""
@@ -58,12 +65,16 @@ def seeded_regions(candidates: NDArray[np.bool_], seeds: NDArray[np.bool_], *, m
     return lookup(labels, keep)
 
 
-def hysteresis(response: NDArray[np.floating], low: float, high: float, *, min_area_px: int = 0) -> NDArray[np.bool_]:
+def hysteresis(
+    response: NDArray[np.floating], low: float, high: float, *, min_area_px: int = 0
+) -> NDArray[np.bool_]:
     """Hysteresis thresholding: regions above ``low`` that hold a pixel above ``high``."""
     return seeded_regions(response > low, response > high, min_area_px=min_area_px)
 
 
-def sauvola_threshold(gray: NDArray[np.uint8], window: int, k: float, r: float = 127.5) -> NDArray[np.float32]:
+def sauvola_threshold(
+    gray: NDArray[np.uint8], window: int, k: float, r: float = 127.5
+) -> NDArray[np.float32]:
     """Sauvola's local threshold m·(1 + k·(s/r − 1)) from box-filtered moments (as scikit-image)."""
     mean, sq = _local_moments(gray, window)
     var = cv2.max(cv2.subtract(sq, cv2.multiply(mean, mean)), 0.0)
@@ -72,7 +83,9 @@ def sauvola_threshold(gray: NDArray[np.uint8], window: int, k: float, r: float =
     return cv2.multiply(mean, factor)
 
 
-def below_sauvola(gray: NDArray[np.uint8], window: int, k: float, r: float = 127.5) -> NDArray[np.bool_]:
+def below_sauvola(
+    gray: NDArray[np.uint8], window: int, k: float, r: float = 127.5
+) -> NDArray[np.bool_]:
     """``gray < sauvola_threshold(gray, window, k, r)`` in one compiled pass after the box filters."""
     mean, sq = _local_moments(gray, window)
     out = np.empty(gray.shape, np.bool_)
@@ -80,7 +93,9 @@ def below_sauvola(gray: NDArray[np.uint8], window: int, k: float, r: float = 127
     return out
 
 
-def _local_moments(gray: NDArray[np.uint8], window: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+def _local_moments(
+    gray: NDArray[np.uint8], window: int
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Mean and mean square over a ``window``-wide square (reflected borders)."""
     size = (window | 1, window | 1)
     mean = cv2.boxFilter(gray, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
@@ -89,8 +104,14 @@ def _local_moments(gray: NDArray[np.uint8], window: int) -> tuple[NDArray[np.flo
 
 
 @numba.njit(nogil=True, cache=True)
-def _below_sauvola(gray: NDArray[np.uint8], mean: NDArray[np.float32], sq: NDArray[np.float32], k: np.float32, r: np.float32,
-                   out: NDArray[np.bool_]) -> None:  # pragma: no cover - compiled
+def _below_sauvola(
+    gray: NDArray[np.uint8],
+    mean: NDArray[np.float32],
+    sq: NDArray[np.float32],
+    k: np.float32,
+    r: np.float32,
+    out: NDArray[np.bool_],
+) -> None:  # pragma: no cover - compiled
     rows, cols = gray.shape
     for y in range(rows):
         for x in range(cols):

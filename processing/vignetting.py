@@ -45,14 +45,23 @@ class Photometry:
         return np.asarray(g, dtype=np.float64)
 
 
-def radius2(x: NDArray[np.floating], y: NDArray[np.floating], size: tuple[int, int]) -> NDArray[np.float64]:
+def radius2(
+    x: NDArray[np.floating], y: NDArray[np.floating], size: tuple[int, int]
+) -> NDArray[np.float64]:
     """Squared normalised distance of pixels (x, y) from the centre of a (w, h) frame."""
     w, h = size
-    return ((np.asarray(x, float) + 0.5) / w * 2 - 1) ** 2 + ((np.asarray(y, float) + 0.5) / h * 2 - 1) ** 2
+    return ((np.asarray(x, float) + 0.5) / w * 2 - 1) ** 2 + (
+        (np.asarray(y, float) + 0.5) / h * 2 - 1
+    ) ** 2
 
 
 def overlap_samples(
-    gray_i: NDArray[np.float32], gray_j: NDArray[np.float32], i_to_j: NDArray[np.float64], *, grid: int = 20, min_level: float = 30.0,
+    gray_i: NDArray[np.float32],
+    gray_j: NDArray[np.float32],
+    i_to_j: NDArray[np.float64],
+    *,
+    grid: int = 20,
+    min_level: float = 30.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Samples of one registered pair: r²(u) in frame i, r²(u') in frame j and the log
     ratio of the (smoothed) grey levels there. ``i_to_j`` maps frame-i pixels to frame j.
@@ -66,15 +75,26 @@ def overlap_samples(
     if u.shape[1] == 0:
         empty = np.zeros(0)
         return empty, empty, empty
-    vi = cv2.remap(gray_i, u[0].astype(np.float32)[:, None], u[1].astype(np.float32)[:, None], cv2.INTER_LINEAR)[:, 0]
-    vj = cv2.remap(gray_j, v[0].astype(np.float32)[:, None], v[1].astype(np.float32)[:, None], cv2.INTER_LINEAR)[:, 0]
+    vi = cv2.remap(
+        gray_i, u[0].astype(np.float32)[:, None], u[1].astype(np.float32)[:, None], cv2.INTER_LINEAR
+    )[:, 0]
+    vj = cv2.remap(
+        gray_j, v[0].astype(np.float32)[:, None], v[1].astype(np.float32)[:, None], cv2.INTER_LINEAR
+    )[:, 0]
     ok = (vi > min_level) & (vj > min_level) & (vi < 250) & (vj < 250)
-    return (radius2(u[0][ok], u[1][ok], (w, h)), radius2(v[0][ok], v[1][ok], (w, h)),
-            np.log(vi[ok].astype(np.float64)) - np.log(vj[ok].astype(np.float64)))
+    return (
+        radius2(u[0][ok], u[1][ok], (w, h)),
+        radius2(v[0][ok], v[1][ok], (w, h)),
+        np.log(vi[ok].astype(np.float64)) - np.log(vj[ok].astype(np.float64)),
+    )
 
 
-def solve_photometry(n: int, pairs: list[tuple[int, int, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
-                     *, iterations: int = 3) -> Photometry | None:
+def solve_photometry(
+    n: int,
+    pairs: list[tuple[int, int, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
+    *,
+    iterations: int = 3,
+) -> Photometry | None:
     """Falloff and log gains from the samples of every pair (i, j, r²_i, r²_j, log ratio),
     by robust (iteratively reweighted, Huber) sparse least squares; None without samples."""
     rows_i, rows_j, s_i, s_j, obs = [], [], [], [], []
@@ -90,8 +110,16 @@ def solve_photometry(n: int, pairs: list[tuple[int, int, NDArray[np.float64], ND
     si, sj, L = np.concatenate(s_i), np.concatenate(s_j), np.concatenate(obs)
     m = len(L)
     r = np.arange(m)
-    A = sp.csr_matrix((np.concatenate([np.ones(m), -np.ones(m), si - sj, si * si - sj * sj]),
-                       (np.concatenate([r, r, r, r]), np.concatenate([I, J, np.full(m, n), np.full(m, n + 1)]))), shape=(m, n + 2))
+    A = sp.csr_matrix(
+        (
+            np.concatenate([np.ones(m), -np.ones(m), si - sj, si * si - sj * sj]),
+            (
+                np.concatenate([r, r, r, r]),
+                np.concatenate([I, J, np.full(m, n), np.full(m, n + 1)]),
+            ),
+        ),
+        shape=(m, n + 2),
+    )
     gauge = np.zeros(n + 2)
     gauge[:n] = 1e-6  # (1e-3)²: log gains near 0
     weights = np.ones(m)

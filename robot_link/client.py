@@ -88,7 +88,9 @@ class RobotLink:
         on_link_change: Callable[[bool], None] | None = None,
     ) -> None:
         self.url = robot_ws_url(server_url)
-        self.on_link_change = on_link_change  # called with True on (re)connect, False when the link drops
+        self.on_link_change = (
+            on_link_change  # called with True on (re)connect, False when the link drops
+        )
         self._video_busy = False
         self._video_seq = 0
         self.token = token
@@ -155,9 +157,13 @@ class RobotLink:
         spool = self.spool
         async with self._space:
             if spool is None:
-                await self._space.wait_for(lambda: len(self._unacked) < self.window or self._fatal is not None)
+                await self._space.wait_for(
+                    lambda: len(self._unacked) < self.window or self._fatal is not None
+                )
             else:
-                await self._space.wait_for(lambda: spool.room_for(len(data)) or self._fatal is not None)
+                await self._space.wait_for(
+                    lambda: spool.room_for(len(data)) or self._fatal is not None
+                )
         self._raise_if_failed()
         self._unacked[message.seq] = (data, time.monotonic())
         if spool is not None:
@@ -174,7 +180,9 @@ class RobotLink:
         data = encode_message(Message(mtype, self.session_id, seq, time.time(), meta))
         await self._transmit(data)
 
-    async def send_video(self, meta: dict[str, Any], jpeg: bytes, *, timestamp: float | None = None) -> bool:
+    async def send_video(
+        self, meta: dict[str, Any], jpeg: bytes, *, timestamp: float | None = None
+    ) -> bool:
         """Send a live preview frame (VIDEO): never spooled or resent; dropped when offline or
         while the previous one is still being written (stale video is worth nothing)."""
         if self._video_busy or self._ws is None or not self._connected.is_set():
@@ -184,7 +192,11 @@ class RobotLink:
         try:
             self._video_seq += 1
             stamp = time.time() if timestamp is None else timestamp  # when the image was taken
-            return await self._transmit(encode_message(Message(MessageType.VIDEO, self.session_id, self._video_seq, stamp, meta, jpeg)))
+            return await self._transmit(
+                encode_message(
+                    Message(MessageType.VIDEO, self.session_id, self._video_seq, stamp, meta, jpeg)
+                )
+            )
         finally:
             self._video_busy = False
 
@@ -226,10 +238,15 @@ class RobotLink:
         while not self._closing:
             try:
                 headers = {"Authorization": f"Bearer {self.token}"}
-                async with connect(
-                    self.url, additional_headers=headers, max_size=2**20, open_timeout=10,
-                    compression=None,  # JPEG and PNG payloads do not deflate: compression only costs CPU
-                ) as ws:
+                async with (
+                    connect(
+                        self.url,
+                        additional_headers=headers,
+                        max_size=2**20,
+                        open_timeout=10,
+                        compression=None,  # JPEG and PNG payloads do not deflate: compression only costs CPU
+                    ) as ws
+                ):
                     self._ws = ws
                     backoff = 0.1
                     await self._resend_all(ws)
@@ -239,7 +256,9 @@ class RobotLink:
             except websockets.InvalidStatus as exc:
                 status = exc.response.status_code
                 if status in (401, 403):
-                    await self._fail(LinkError(f"ground station refused the robot token (HTTP {status})"))
+                    await self._fail(
+                        LinkError(f"ground station refused the robot token (HTTP {status})")
+                    )
                     return
                 log.warning("link: ground station answered HTTP %s; retrying", status)
             except (OSError, websockets.WebSocketException, asyncio.TimeoutError) as exc:
@@ -273,7 +292,11 @@ class RobotLink:
         assert self.spool is not None
         self.stats.spool_bytes = self.spool.used_bytes
         if self.spool.near_full and not self._warned_full:
-            log.warning("link: spool %.0f %% full (%d unacknowledged messages)", 100 * self.stats.spool_bytes / self.spool.max_bytes, len(self.spool))
+            log.warning(
+                "link: spool %.0f %% full (%d unacknowledged messages)",
+                100 * self.stats.spool_bytes / self.spool.max_bytes,
+                len(self.spool),
+            )
         self._warned_full = self.spool.near_full
 
     async def _resend_all(self, ws: ClientConnection) -> None:
@@ -335,13 +358,25 @@ class RobotLink:
                     self.stats.duplicates += 1
             async with self._space:
                 self._space.notify_all()
-        elif message.type is MessageType.ERROR and message.meta.get("retry") and message.seq in self._unacked:
+        elif (
+            message.type is MessageType.ERROR
+            and message.meta.get("retry")
+            and message.seq in self._unacked
+        ):
             self.stats.errors += 1
-            log.info("link: seq %d not stored yet (%s); sending it again", message.seq, message.meta.get("error"))
-            asyncio.get_running_loop().call_later(RETRY_S, lambda seq=message.seq: asyncio.ensure_future(self._retry(seq)))
+            log.info(
+                "link: seq %d not stored yet (%s); sending it again",
+                message.seq,
+                message.meta.get("error"),
+            )
+            asyncio.get_running_loop().call_later(
+                RETRY_S, lambda seq=message.seq: asyncio.ensure_future(self._retry(seq))
+            )
         elif message.type is MessageType.ERROR:
             self.stats.errors += 1
-            log.error("link: ground station rejected seq %d: %s", message.seq, message.meta.get("error"))
+            log.error(
+                "link: ground station rejected seq %d: %s", message.seq, message.meta.get("error")
+            )
             # A rejected message will never be accepted: drop it so flush() can finish.
             self._unacked.pop(message.seq, None)
             if self.spool is not None:
@@ -353,8 +388,15 @@ class RobotLink:
             cmd = message.meta.get("cmd")
             if message.seq <= self._last_command_seq and cmd not in STOP_COMMANDS:
                 # an old command delivered again (a replay): never act on it twice; stopping is always safe
-                log.warning("link: ignoring command %r with stale seq %d (last %d)", cmd, message.seq, self._last_command_seq)
-                await self.notify(MessageType.COMMAND_ACK, {"cmd": str(cmd), "accepted": False}, seq=message.seq)
+                log.warning(
+                    "link: ignoring command %r with stale seq %d (last %d)",
+                    cmd,
+                    message.seq,
+                    self._last_command_seq,
+                )
+                await self.notify(
+                    MessageType.COMMAND_ACK, {"cmd": str(cmd), "accepted": False}, seq=message.seq
+                )
                 return
             self._last_command_seq = max(self._last_command_seq, message.seq)
             result = self.on_command(message)

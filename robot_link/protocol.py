@@ -112,7 +112,9 @@ class VideoMeta(_Meta):
     height: int = Field(gt=0, le=16384)
 
 
-STOP_COMMANDS = frozenset({"stop", "estop"})  # always safe: never refused, rate-limited or ignored as a replay
+STOP_COMMANDS = frozenset(
+    {"stop", "estop"}
+)  # always safe: never refused, rate-limited or ignored as a replay
 DRIVE_HOLD_S = 0.2  # a drive command holds this long; the robot stops unless a newer one arrives
 
 
@@ -121,7 +123,9 @@ class CommandMeta(_Meta):
     DRIVE_HOLD_S); ``lift``: ``axle`` front|rear, ``up`` bool; ``auto_capture``: ``on`` bool,
     ``spacing_m``; any command may carry ``sent_ms`` (the operator's clock, ms since the epoch)."""
 
-    cmd: Literal["drive", "stop", "estop", "resume", "capture", "lift", "auto_capture", "end_session"]
+    cmd: Literal[
+        "drive", "stop", "estop", "resume", "capture", "lift", "auto_capture", "end_session"
+    ]
     args: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -198,12 +202,16 @@ def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Messag
     if len(data) > max_bytes:
         raise ProtocolError(f"message is {len(data)} bytes, more than the limit of {max_bytes}")
     if len(data) < HEADER_BYTES:
-        raise ProtocolError(f"message is {len(data)} bytes, shorter than the {HEADER_BYTES}-byte header")
+        raise ProtocolError(
+            f"message is {len(data)} bytes, shorter than the {HEADER_BYTES}-byte header"
+        )
     magic, version, type_code, flags, sid, seq, timestamp, meta_len = HEADER.unpack_from(data)
     if magic != MAGIC:
         raise ProtocolError(f"bad magic {magic!r}, expected {MAGIC!r}")
     if version != PROTOCOL_VERSION:
-        raise ProtocolError(f"protocol version {version} is not supported (expected {PROTOCOL_VERSION})")
+        raise ProtocolError(
+            f"protocol version {version} is not supported (expected {PROTOCOL_VERSION})"
+        )
     try:
         mtype = MessageType(type_code)
     except ValueError:

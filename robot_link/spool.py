@@ -23,7 +23,14 @@ class SpoolFull(RuntimeError):
 class Spool:
     """Unacknowledged messages of one robot session, on disk, bounded in bytes."""
 
-    def __init__(self, directory: Path, *, max_bytes: int = 2 * 2**30, warn_fraction: float = 0.8, fsync: bool = True) -> None:
+    def __init__(
+        self,
+        directory: Path,
+        *,
+        max_bytes: int = 2 * 2**30,
+        warn_fraction: float = 0.8,
+        fsync: bool = True,
+    ) -> None:
         self.directory = Path(directory)
         self.max_bytes = max_bytes
         self.warn_fraction = warn_fraction
@@ -31,7 +38,9 @@ class Spool:
         self.directory.mkdir(parents=True, exist_ok=True)
         for stale in self.directory.glob("*.tmp"):  # a write cut short by a crash never happened
             stale.unlink(missing_ok=True)
-        self._sizes = {int(p.stem): p.stat().st_size for p in self.directory.glob("*.msg") if p.stem.isdigit()}
+        self._sizes = {
+            int(p.stem): p.stat().st_size for p in self.directory.glob("*.msg") if p.stem.isdigit()
+        }
 
     @property
     def used_bytes(self) -> int:
@@ -65,7 +74,9 @@ class Spool:
     def put(self, seq: int, data: bytes) -> None:
         """Keep a message until :meth:`remove`; :class:`SpoolFull` past the bound."""
         if not self.room_for(len(data)):
-            raise SpoolFull(f"spool full: {self.used_bytes} of {self.max_bytes} bytes held by {len(self)} unacknowledged messages")
+            raise SpoolFull(
+                f"spool full: {self.used_bytes} of {self.max_bytes} bytes held by {len(self)} unacknowledged messages"
+            )
         self._write(self._path(seq), data)
         self._sizes[seq] = len(data)
 
@@ -94,4 +105,7 @@ class Spool:
         """Remember the session and a sequence number not used yet (atomically). The link
         saves a block ahead, so a restart never reuses a number (a reused one would read as a
         resend and be dropped as a duplicate); gaps are fine."""
-        self._write(self.directory / "session.json", json.dumps({"session_id": str(session_id), "next_seq": next_seq}).encode())
+        self._write(
+            self.directory / "session.json",
+            json.dumps({"session_id": str(session_id), "next_seq": next_seq}).encode(),
+        )

@@ -20,11 +20,18 @@ def main(out: Path) -> None:
     sweep = make_sweep(painted_steel((need[1], need[0]), seed=31), cfg)
     frames = [cv2.imdecode(np.frombuffer(j, np.uint8), cv2.IMREAD_COLOR) for j in sweep.frames]
     panels = []
-    for label, params in (("newest on top, no gain compensation", StitchParams(blend="newest", gain_compensation=False)),
-                          ("steelscan: gains solved over all overlaps, feathered", StitchParams())):
+    for label, params in (
+        (
+            "newest on top, no gain compensation",
+            StitchParams(blend="newest", gain_compensation=False),
+        ),
+        ("steelscan: gains solved over all overlaps, feathered", StitchParams()),
+    ):
         m = stitch_frames(frames, sweep.odometry, params=params)
         img = cv2.resize(m.image, None, fx=0.4, fy=0.4, interpolation=cv2.INTER_AREA)
-        cv2.putText(img, label, (12, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2, cv2.LINE_AA)
+        cv2.putText(
+            img, label, (12, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2, cv2.LINE_AA
+        )
         panels.append(img)
     w = min(p.shape[1] for p in panels)
     cv2.imwrite(str(out), np.vstack([p[:, :w] for p in panels]))

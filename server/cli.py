@@ -35,8 +35,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings = _settings(args)
     host = args.host or settings.host
     port = args.port if args.port is not None else settings.port
-    uvicorn.run(create_app(settings), host=host, port=port, log_level="info", log_config=uvicorn_log_config(),
-                ws_max_size=settings.max_message_bytes + 1024, ws_per_message_deflate=False)  # media does not deflate: compression would only cost CPU
+    uvicorn.run(
+        create_app(settings),
+        host=host,
+        port=port,
+        log_level="info",
+        log_config=uvicorn_log_config(),
+        ws_max_size=settings.max_message_bytes + 1024,
+        ws_per_message_deflate=False,
+    )  # media does not deflate: compression would only cost CPU
     return 0
 
 
@@ -47,22 +54,35 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
     token = args.token or os.environ.get("STEELSCAN_ROBOT_TOKEN")
     if not token:
-        raise CommandError("a robot token is needed: --token or STEELSCAN_ROBOT_TOKEN (make one with 'steelscan admin create-robot NAME')")
+        raise CommandError(
+            "a robot token is needed: --token or STEELSCAN_ROBOT_TOKEN (make one with 'steelscan admin create-robot NAME')"
+        )
     config = SimConfig(seed=args.seed, lanes=args.lanes, time_scale=args.time_scale)
 
     async def main() -> dict:
         from robot_link.spool import Spool
 
-        spool = Spool(Path(args.spool), max_bytes=int(args.spool_max_mb * 2**20)) if args.spool else None
+        spool = (
+            Spool(Path(args.spool), max_bytes=int(args.spool_max_mb * 2**20))
+            if args.spool
+            else None
+        )
         link = RobotLink(args.server, token, spool=spool)
         await link.start()
         if args.teleop:
             from robot_link.sim.teleop import TeleopConfig, TeleopSim
 
-            sim: InspectionSim = TeleopSim(link, SimConfig(seed=args.seed, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0),
-                                           TeleopConfig(duration_s=args.duration))
+            sim: InspectionSim = TeleopSim(
+                link,
+                SimConfig(seed=args.seed, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0),
+                TeleopConfig(duration_s=args.duration),
+            )
         else:
-            sim = InspectionSim(link, config, progress=lambda f, m: logging.getLogger("sim").info("%3.0f%% %s", f * 100, m))
+            sim = InspectionSim(
+                link,
+                config,
+                progress=lambda f, m: logging.getLogger("sim").info("%3.0f%% %s", f * 100, m),
+            )
         try:
             result = await sim.run()
             if not args.exit_when_done:
@@ -85,8 +105,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from server.loopback import run_demo
 
     settings = _settings(args)
-    return run_demo(settings, port=args.port, exit_when_done=args.exit_when_done, keep_serving=args.keep_serving,
-                    time_scale=args.time_scale, lanes=args.lanes, seed=args.seed)
+    return run_demo(
+        settings,
+        port=args.port,
+        exit_when_done=args.exit_when_done,
+        keep_serving=args.keep_serving,
+        time_scale=args.time_scale,
+        lanes=args.lanes,
+        seed=args.seed,
+    )
 
 
 def cmd_create_robot(args: argparse.Namespace) -> int:
@@ -143,7 +170,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
     """Segment defects in images."""
     from server.commands import detect_images
 
-    detect_images([Path(p) for p in args.images], Path(args.out), method=args.method, px_per_mm=args.px_per_mm)
+    detect_images(
+        [Path(p) for p in args.images], Path(args.out), method=args.method, px_per_mm=args.px_per_mm
+    )
     return 0
 
 
@@ -151,7 +180,12 @@ def cmd_stitch(args: argparse.Namespace) -> int:
     """Stitch a folder of frames."""
     from server.commands import stitch_folder
 
-    stitch_folder(Path(args.frames_dir), Path(args.out), odometry=Path(args.odometry) if args.odometry else None, px_per_m=args.px_per_m)
+    stitch_folder(
+        Path(args.frames_dir),
+        Path(args.out),
+        odometry=Path(args.odometry) if args.odometry else None,
+        px_per_m=args.px_per_m,
+    )
     return 0
 
 
@@ -159,7 +193,11 @@ def cmd_map(args: argparse.Namespace) -> int:
     """Register a folder of point clouds into a map."""
     from server.commands import map_folder
 
-    map_folder(Path(args.clouds_dir), Path(args.out), odometry=Path(args.odometry) if args.odometry else None)
+    map_folder(
+        Path(args.clouds_dir),
+        Path(args.out),
+        odometry=Path(args.odometry) if args.odometry else None,
+    )
     return 0
 
 
@@ -237,7 +275,14 @@ def cmd_report(args: argparse.Namespace) -> int:
         write_atomic(out / "report.json", json.dumps(report, indent=1).encode())
         write_atomic(out / "defects.csv", "".join(defects_csv(report["defects"])).encode("utf-8"))
         write_pdf(db, files, sid, out / "report.pdf")
-    print(json.dumps({name: str((out / name).resolve()) for name in ("report.pdf", "report.json", "defects.csv")}))
+    print(
+        json.dumps(
+            {
+                name: str((out / name).resolve())
+                for name in ("report.pdf", "report.json", "defects.csv")
+            }
+        )
+    )
     return 0
 
 
@@ -245,13 +290,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
     """Run benchmarks; one JSON line per result."""
     from bench import run_benchmarks
 
-    run_benchmarks(args.names, dataset=Path(args.dataset) if args.dataset else None, limit=args.limit)
+    run_benchmarks(
+        args.names, dataset=Path(args.dataset) if args.dataset else None, limit=args.limit
+    )
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every sub-command."""
-    p = argparse.ArgumentParser(prog="steelscan", description="Ground station for steel-inspection climbing robots.")
+    p = argparse.ArgumentParser(
+        prog="steelscan", description="Ground station for steel-inspection climbing robots."
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="log more")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -265,8 +314,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data-dir")
     s.add_argument("--port", type=int, default=0, help="0 = a free port")
     s.add_argument("--exit-when-done", action="store_true")
-    s.add_argument("--keep-serving", action="store_true", help="with --exit-when-done: keep the server up after the summary")
-    s.add_argument("--time-scale", type=float, default=20.0, help="simulated seconds per wall second (0 = flat out)")
+    s.add_argument(
+        "--keep-serving",
+        action="store_true",
+        help="with --exit-when-done: keep the server up after the summary",
+    )
+    s.add_argument(
+        "--time-scale",
+        type=float,
+        default=20.0,
+        help="simulated seconds per wall second (0 = flat out)",
+    )
     s.add_argument("--lanes", type=int, default=5)
     s.add_argument("--seed", type=int, default=7)
     s.set_defaults(func=cmd_demo)
@@ -275,13 +333,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--server", required=True, help="ground station base URL, http://host:port")
     s.add_argument("--token")
     s.add_argument("--exit-when-done", action="store_true")
-    s.add_argument("--spool", help="durable spool folder: unacknowledged messages survive outages and restarts")
+    s.add_argument(
+        "--spool", help="durable spool folder: unacknowledged messages survive outages and restarts"
+    )
     s.add_argument("--spool-max-mb", type=float, default=2048.0, help="size bound of the spool")
     s.add_argument("--time-scale", type=float, default=20.0)
     s.add_argument("--lanes", type=int, default=5)
     s.add_argument("--seed", type=int, default=7)
-    s.add_argument("--teleop", action="store_true", help="drive as the operator commands (live video, dead-man stop) instead of the route")
-    s.add_argument("--duration", type=float, help="with --teleop: end the session after this many seconds (default: on the operator's end_session)")
+    s.add_argument(
+        "--teleop",
+        action="store_true",
+        help="drive as the operator commands (live video, dead-man stop) instead of the route",
+    )
+    s.add_argument(
+        "--duration",
+        type=float,
+        help="with --teleop: end the session after this many seconds (default: on the operator's end_session)",
+    )
     s.set_defaults(func=cmd_sim)
 
     s = sub.add_parser("detect", help="crack/defect segmentation of images")
@@ -305,12 +373,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_map, image_work=True)
 
     s = sub.add_parser("bench", help="benchmarks against baselines measured in the same run")
-    s.add_argument("names", nargs="*", help="benchmarks to run: detect, stitch, map, ingest, teleop (the default set), stitch-scale")
+    s.add_argument(
+        "names",
+        nargs="*",
+        help="benchmarks to run: detect, stitch, map, ingest, teleop (the default set), stitch-scale",
+    )
     s.add_argument("--dataset", help="crack dataset folder with images/ and masks/ (detect)")
     s.add_argument("--limit", type=int, help="use at most this many images")
     s.set_defaults(func=cmd_bench, image_work=True)
 
-    s = sub.add_parser("import", help="import a session's MCAP log (as exported) into a new session")
+    s = sub.add_parser(
+        "import", help="import a session's MCAP log (as exported) into a new session"
+    )
     s.add_argument("file")
     s.add_argument("--data-dir")
     s.set_defaults(func=cmd_import)
@@ -321,7 +395,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data-dir")
     s.set_defaults(func=cmd_export)
 
-    s = sub.add_parser("report", help="write a session's inspection report (PDF, JSON, CSV) into a folder")
+    s = sub.add_parser(
+        "report", help="write a session's inspection report (PDF, JSON, CSV) into a folder"
+    )
     s.add_argument("session_id")
     s.add_argument("--out", required=True)
     s.add_argument("--data-dir")
@@ -346,8 +422,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     handler = logging.StreamHandler(sys.stderr)
     handler.addFilter(RedactSecrets())
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, handlers=[handler],
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        handlers=[handler],
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     for noisy in ("alembic", "httpx", "pyvips"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     func: Callable[[argparse.Namespace], int] = args.func

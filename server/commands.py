@@ -59,7 +59,11 @@ def detect_images(images: list[Path], out: Path, *, method: str, px_per_mm: floa
         try:
             # large images (mosaics) go tile by tile on both cores with bounded working memory
             big = img.shape[0] * img.shape[1] > TILED_ABOVE_PX
-            mask = detect_cracks_tiled(img, method=method) if big else detect_cracks(img, method=method)  # type: ignore[arg-type]
+            mask = (
+                detect_cracks_tiled(img, method=method)
+                if big
+                else detect_cracks(img, method=method)
+            )  # type: ignore[arg-type]
         except ValueError as exc:
             raise CommandError(f"{path}: {exc}") from None
         mm_per_px = 1.0 / px_per_mm if px_per_mm else None
@@ -90,7 +94,9 @@ def _odometry(path: Path, n: int, what: str) -> np.ndarray:
     return poses
 
 
-def stitch_folder(frames_dir: Path, out: Path, *, odometry: Path | None, px_per_m: float | None) -> None:
+def stitch_folder(
+    frames_dir: Path, out: Path, *, odometry: Path | None, px_per_m: float | None
+) -> None:
     """Write ``mosaic.png``, ``poses.csv``, the Deep Zoom pyramid, an overview and the world
     mapping (``mosaic.json``) for a folder of frames, reading the frames as needed."""
     files = _list(frames_dir, IMAGE_EXTS, "image")
@@ -105,7 +111,9 @@ def stitch_folder(frames_dir: Path, out: Path, *, odometry: Path | None, px_per_
         if mode not in EIGHT_BIT_MODES:
             raise CommandError(f"{p}: expected an 8-bit image, got mode {mode}")
         if first is not None and (w, h) != first:
-            raise CommandError(f"{p}: size {w}x{h} differs from the first frame's {first[0]}x{first[1]}")
+            raise CommandError(
+                f"{p}: size {w}x{h} differs from the first frame's {first[0]}x{first[1]}"
+            )
         first = first or (w, h)
     guess = None
     if odometry is not None:
@@ -120,7 +128,10 @@ def stitch_folder(frames_dir: Path, out: Path, *, odometry: Path | None, px_per_
         w.writerow(["frame", "x", "y", "theta_deg"])
         for p, (x, y, th) in zip(files, layout.poses_px):
             w.writerow([p.name, f"{x:.3f}", f"{y:.3f}", f"{np.degrees(th):.4f}"])
-        world = {"world_referenced": odometry is not None, "frames": frame_records(layout, [p.name for p in files])}
+        world = {
+            "world_referenced": odometry is not None,
+            "frames": frame_records(layout, [p.name for p in files]),
+        }
         write_mosaic(out, layout, render_bands(layout, frames), world=world)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
@@ -135,7 +146,9 @@ def _read_cloud(path: Path, sensor: dict | None) -> np.ndarray:
     if pts.size == 0:
         raise CommandError(f"{path}: no points (not a readable .ply/.pcd?)")
     if sensor and len(pts) != sensor["width"] * sensor["height"]:
-        raise CommandError(f"{path}: {len(pts)} points, but sensor.json says {sensor['width']}x{sensor['height']}")
+        raise CommandError(
+            f"{path}: {len(pts)} points, but sensor.json says {sensor['width']}x{sensor['height']}"
+        )
     return pts
 
 
@@ -169,8 +182,16 @@ def map_folder(clouds_dir: Path, out: Path, *, odometry: Path | None) -> None:
     if not o3d.io.write_point_cloud(str(tmp), pcd):
         raise CommandError(f"could not write {out / 'map.ply'}")
     tmp.replace(out / "map.ply")
-    write_atomic(out / "poses.tum", format_tum(np.arange(len(clouds), dtype=float), result.poses).encode())
-    log.info("%d clouds mapped: %d loop closures, %d placed by odometry alone, %d with directions only the odometry "
-             "fixed (a flat view), odometry error %.1fx the configured one, %d plane landmarks", len(clouds), result.loop_closures,
-             int(result.used_odometry.sum()), int((result.degenerate_dims > 0).sum()), result.odometry_error_scale,
-             result.plane_landmarks)
+    write_atomic(
+        out / "poses.tum", format_tum(np.arange(len(clouds), dtype=float), result.poses).encode()
+    )
+    log.info(
+        "%d clouds mapped: %d loop closures, %d placed by odometry alone, %d with directions only the odometry "
+        "fixed (a flat view), odometry error %.1fx the configured one, %d plane landmarks",
+        len(clouds),
+        result.loop_closures,
+        int(result.used_odometry.sum()),
+        int((result.degenerate_dims > 0).sum()),
+        result.odometry_error_scale,
+        result.plane_landmarks,
+    )

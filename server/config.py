@@ -20,22 +20,44 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = 8765
     max_message_bytes: int = 8 * 1024 * 1024
-    max_import_bytes: int = Field(default=50 * 1024**3, description="largest MCAP file POST /api/sessions/import accepts")
-    robot_messages_per_s: float = Field(default=3000.0, description="rate limit per robot connection (ERROR, retry, beyond it)")
-    robot_message_burst: float = Field(default=500.0, description="messages a robot may send at once before the rate limit")
-    browser_messages_per_s: float = Field(default=100.0, description="rate limit per browser connection (stop and e-stop always pass)")
-    browser_message_burst: float = Field(default=50.0, description="messages a browser may send at once before the rate limit")
-    max_browser_message_bytes: int = Field(default=16 * 1024, description="largest message a browser may send (commands are small)")
+    max_import_bytes: int = Field(
+        default=50 * 1024**3, description="largest MCAP file POST /api/sessions/import accepts"
+    )
+    robot_messages_per_s: float = Field(
+        default=3000.0, description="rate limit per robot connection (ERROR, retry, beyond it)"
+    )
+    robot_message_burst: float = Field(
+        default=500.0, description="messages a robot may send at once before the rate limit"
+    )
+    browser_messages_per_s: float = Field(
+        default=100.0, description="rate limit per browser connection (stop and e-stop always pass)"
+    )
+    browser_message_burst: float = Field(
+        default=50.0, description="messages a browser may send at once before the rate limit"
+    )
+    max_browser_message_bytes: int = Field(
+        default=16 * 1024, description="largest message a browser may send (commands are small)"
+    )
     fsync: bool = Field(default=False, description="fsync every stored file (power-loss safety)")
     job_workers: int = Field(default=2, ge=1, description="worker processes for processing jobs")
     auto_process: bool = Field(default=True, description="run jobs when a session ends")
     web_dir: Path = PROJECT_ROOT / "web"
     live_queue: int = Field(default=8, description="frames buffered per watching browser")
-    allowed_origins: list[str] = Field(default_factory=list, description="pages of other origins (scheme://host:port) "
-                                       "whose browser websockets are accepted; the station's own always are")
-    view3d: bool = Field(default=True, description="serve the 3D view (viser, proxied under /viser/)")
-    view3d_port: int = Field(default=0, description="loopback port of the viser server (0: any free one)")
-    live_map: bool = Field(default=True, description="grow the 3D map during a session (ICP in a worker process) and show it")
+    allowed_origins: list[str] = Field(
+        default_factory=list,
+        description="pages of other origins (scheme://host:port) "
+        "whose browser websockets are accepted; the station's own always are",
+    )
+    view3d: bool = Field(
+        default=True, description="serve the 3D view (viser, proxied under /viser/)"
+    )
+    view3d_port: int = Field(
+        default=0, description="loopback port of the viser server (0: any free one)"
+    )
+    live_map: bool = Field(
+        default=True,
+        description="grow the 3D map during a session (ICP in a worker process) and show it",
+    )
 
     def resolved_database_url(self) -> str:
         """The database URL, SQLite in the data directory unless set."""

@@ -30,21 +30,36 @@ log = logging.getLogger(__name__)
 
 
 def _boxes(defects: list[dict[str, Any]]) -> list[Box]:
-    return [Box(d["defect_class"], d["world_x_m"], d["world_y_m"], d["world_w_m"], d["world_h_m"])
-            for d in defects if d.get("world_x_m") is not None]
+    return [
+        Box(d["defect_class"], d["world_x_m"], d["world_y_m"], d["world_w_m"], d["world_h_m"])
+        for d in defects
+        if d.get("world_x_m") is not None
+    ]
 
 
-def score(result: SimResult, session: dict[str, Any], defects: list[dict[str, Any]], trajectory_tum: str | None,
-          frame_defects: list[dict[str, Any]] | None = None, mosaic_world: dict[str, Any] | None = None) -> dict[str, Any]:
+def score(
+    result: SimResult,
+    session: dict[str, Any],
+    defects: list[dict[str, Any]],
+    trajectory_tum: str | None,
+    frame_defects: list[dict[str, Any]] | None = None,
+    mosaic_world: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """Compare what the station found (on the mosaic, and frame by frame) with the simulator's ground truth."""
     assert result.structure is not None
     truth = [Box(d.defect_class, *d.bbox_m) for d in result.structure.defects]
-    out: dict[str, Any] = {"defects_found": len(defects), "defects_true": len(truth), "defects_matched": match_defects(_boxes(defects), truth)}
+    out: dict[str, Any] = {
+        "defects_found": len(defects),
+        "defects_true": len(truth),
+        "defects_matched": match_defects(_boxes(defects), truth),
+    }
     if frame_defects is not None:
         out["frame_defects_found"] = len(frame_defects)
         out["frame_defects_matched"] = match_defects(_boxes(frame_defects), truth)
     out["map_ate_m"] = None
-    map_job = next((j for j in session["jobs"] if j["kind"] == "map" and j["state"] == "done"), None)
+    map_job = next(
+        (j for j in session["jobs"] if j["kind"] == "map" and j["state"] == "done"), None
+    )
     if trajectory_tum and map_job:
         _, est = parse_tum(trajectory_tum)
         seqs = map_job["result"]["cloud_seqs"]
@@ -60,7 +75,11 @@ def score(result: SimResult, session: dict[str, Any], defects: list[dict[str, An
 def _mosaic_scores(result: SimResult, world: dict[str, Any] | None) -> dict[str, Any]:
     """Relative placement error of overlapping frames in the mosaic against the simulator's
     true camera poses (px, worst frame corner)."""
-    if not world or len(world.get("frames", [])) != len(result.frame_poses_true) or not result.frame_poses_true:
+    if (
+        not world
+        or len(world.get("frames", [])) != len(result.frame_poses_true)
+        or not result.frame_poses_true
+    ):
         return {}
     est = np.array([[f["x"], f["y"], np.radians(f["theta_deg"])] for f in world["frames"]])
     truth = np.array(result.frame_poses_true, dtype=np.float64)
@@ -68,11 +87,25 @@ def _mosaic_scores(result: SimResult, world: dict[str, Any] | None) -> dict[str,
     errors, _ = mosaic_overlap_errors(est, truth, tuple(result.frame_size))
     if len(errors) == 0:
         return {}
-    return {"mosaic_overlap_error_px": {"mean": round(float(errors.mean()), 3), "max": round(float(errors.max()), 3), "pairs": len(errors)}}
+    return {
+        "mosaic_overlap_error_px": {
+            "mean": round(float(errors.mean()), 3),
+            "max": round(float(errors.max()), 3),
+            "pairs": len(errors),
+        }
+    }
 
 
-def run_demo(settings: Settings, *, port: int = 0, exit_when_done: bool = False, keep_serving: bool = False,
-             time_scale: float = 20.0, lanes: int = 5, seed: int = 7) -> int:
+def run_demo(
+    settings: Settings,
+    *,
+    port: int = 0,
+    exit_when_done: bool = False,
+    keep_serving: bool = False,
+    time_scale: float = 20.0,
+    lanes: int = 5,
+    seed: int = 7,
+) -> int:
     """Run everything; the last stdout line is the JSON summary when ``exit_when_done``."""
     console = Console(stderr=True)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
@@ -91,17 +124,37 @@ def run_demo(settings: Settings, *, port: int = 0, exit_when_done: bool = False,
     auth = _login(server.url, operator, password)
     console.print(f"[bold]steelscan demo[/]: data in {settings.data_dir.resolve()}")
     try:
-        with Progress(TextColumn("{task.description:<28}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%  {task.fields[note]}"),
-                      TimeElapsedColumn(), console=console, transient=False) as progress:
+        with Progress(
+            TextColumn("{task.description:<28}"),
+            BarColumn(),
+            TextColumn("{task.percentage:>3.0f}%  {task.fields[note]}"),
+            TimeElapsedColumn(),
+            console=console,
+            transient=False,
+        ) as progress:
             sim_task = progress.add_task("robot inspection (live)", total=1.0, note="")
-            result = asyncio.run(_run_sim(server.url, token, SimConfig(seed=seed, lanes=lanes, time_scale=time_scale),
-                                          lambda f, m: progress.update(sim_task, completed=f, note=m)))
-            progress.update(sim_task, completed=1.0, note=f"{result.frames_sent} frames, {result.clouds_sent} clouds sent")
+            result = asyncio.run(
+                _run_sim(
+                    server.url,
+                    token,
+                    SimConfig(seed=seed, lanes=lanes, time_scale=time_scale),
+                    lambda f, m: progress.update(sim_task, completed=f, note=m),
+                )
+            )
+            progress.update(
+                sim_task,
+                completed=1.0,
+                note=f"{result.frames_sent} frames, {result.clouds_sent} clouds sent",
+            )
             session = _wait_for_jobs(server.url, auth, result.session_id, progress)
         summary = _summary(server.url, auth, result, session)
-        shown = httpx.post(f"{server.url}/api/sessions/{result.session_id}/view3d", headers=auth, timeout=60)
+        shown = httpx.post(
+            f"{server.url}/api/sessions/{result.session_id}/view3d", headers=auth, timeout=60
+        )
         if shown.status_code == 200:
-            console.print(f"3D view of the session: {server.url}/viser/ (open it from the dashboard's session page)")
+            console.print(
+                f"3D view of the session: {server.url}/viser/ (open it from the dashboard's session page)"
+            )
     except BaseException:
         server.stop()
         raise
@@ -113,8 +166,10 @@ def run_demo(settings: Settings, *, port: int = 0, exit_when_done: bool = False,
     from robot_link.sim.teleop import start_teleop_robot
 
     teleop = start_teleop_robot(server.url, token, seed=seed)
-    console.print(f"Serving {server.url}/ — drive the simulated robot on the Drive page (arrows/WASD), review the "
-                  f"inspection under Sessions. Ctrl-C stops.")
+    console.print(
+        f"Serving {server.url}/ — drive the simulated robot on the Drive page (arrows/WASD), review the "
+        f"inspection under Sessions. Ctrl-C stops."
+    )
     try:
         while server.thread.is_alive():
             time.sleep(0.5)
@@ -137,11 +192,15 @@ async def _run_sim(url: str, token: str, config: SimConfig, progress: Any) -> Si
 
 def _login(url: str, name: str, password: str) -> dict[str, str]:
     """Authorization header of a fresh bearer token."""
-    r = httpx.post(f"{url}/api/auth/token", data={"username": name, "password": password}, timeout=30)
+    r = httpx.post(
+        f"{url}/api/auth/token", data={"username": name, "password": password}, timeout=30
+    )
     return {"Authorization": f"Bearer {r.raise_for_status().json()['access_token']}"}
 
 
-def _wait_for_jobs(url: str, auth: dict[str, str], session_id: str, progress: Progress, timeout_s: float = 600) -> dict[str, Any]:
+def _wait_for_jobs(
+    url: str, auth: dict[str, str], session_id: str, progress: Progress, timeout_s: float = 600
+) -> dict[str, Any]:
     tasks: dict[int, Any] = {}
     deadline = time.monotonic() + timeout_s
     with httpx.Client(base_url=url, timeout=30, headers=auth) as client:
@@ -149,9 +208,15 @@ def _wait_for_jobs(url: str, auth: dict[str, str], session_id: str, progress: Pr
             session = client.get(f"/api/sessions/{session_id}").raise_for_status().json()
             for job in session["jobs"]:
                 if job["id"] not in tasks:
-                    tasks[job["id"]] = progress.add_task(f"job: {job['kind']}", total=1.0, note="queued")
+                    tasks[job["id"]] = progress.add_task(
+                        f"job: {job['kind']}", total=1.0, note="queued"
+                    )
                 note = job["error"] or job["message"] or job["state"]
-                progress.update(tasks[job["id"]], completed=job["progress"] if job["state"] != "done" else 1.0, note=note[:60])
+                progress.update(
+                    tasks[job["id"]],
+                    completed=job["progress"] if job["state"] != "done" else 1.0,
+                    note=note[:60],
+                )
             if session["jobs"] and all(j["state"] in ("done", "failed") for j in session["jobs"]):
                 return session
             if time.monotonic() > deadline:
@@ -159,11 +224,21 @@ def _wait_for_jobs(url: str, auth: dict[str, str], session_id: str, progress: Pr
             time.sleep(0.5)
 
 
-def _summary(url: str, auth: dict[str, str], result: SimResult, session: dict[str, Any]) -> dict[str, Any]:
+def _summary(
+    url: str, auth: dict[str, str], result: SimResult, session: dict[str, Any]
+) -> dict[str, Any]:
     sid = result.session_id
     with httpx.Client(base_url=url, timeout=30, headers=auth) as client:
-        defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "mosaic"}).raise_for_status().json()["data"]
-        frame_defects = client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "frame"}).raise_for_status().json()["data"]
+        defects = (
+            client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "mosaic"})
+            .raise_for_status()
+            .json()["data"]
+        )
+        frame_defects = (
+            client.get(f"/api/sessions/{sid}/defects", params={"limit": 5000, "source": "frame"})
+            .raise_for_status()
+            .json()["data"]
+        )
         traj = client.get(f"/api/sessions/{sid}/results/trajectory.tum")
         world = client.get(f"/api/sessions/{sid}/results/mosaic.json")
     jobs = {j["kind"]: j for j in session["jobs"]}
@@ -177,8 +252,14 @@ def _summary(url: str, auth: dict[str, str], result: SimResult, session: dict[st
         "clouds_sent": result.clouds_sent,
         "mosaic_path": mosaic,
         "map_path": map_path,
-        **score(result, session, defects, traj.text if traj.status_code == 200 else None, frame_defects,
-                world.json() if world.status_code == 200 else None),
+        **score(
+            result,
+            session,
+            defects,
+            traj.text if traj.status_code == 200 else None,
+            frame_defects,
+            world.json() if world.status_code == 200 else None,
+        ),
         "jobs": {k: j["state"] for k, j in jobs.items()},
         "job_errors": {k: j["error"] for k, j in jobs.items() if j["error"]},
         "dashboard_url": f"{url}/",

@@ -28,7 +28,9 @@ def _secrets() -> re.Pattern[str]:
 
 def redact(text: str) -> str:
     """``text`` with every token, password or bearer credential replaced by :data:`MASK`."""
-    return _secrets().sub(lambda m: (m.group("query") or m.group("bearer") or m.group("robot")) + MASK, text)
+    return _secrets().sub(
+        lambda m: (m.group("query") or m.group("bearer") or m.group("robot")) + MASK, text
+    )
 
 
 class RedactSecrets(logging.Filter):

@@ -31,8 +31,16 @@ class BackgroundServer:
     """uvicorn serving the app in a thread, on loopback."""
 
     def __init__(self, settings: Settings, port: int) -> None:
-        config = uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning", log_config=uvicorn_log_config(),
-                                ws_max_size=settings.max_message_bytes + 1024, ws_per_message_deflate=False, lifespan="on")
+        config = uvicorn.Config(
+            create_app(settings),
+            host="127.0.0.1",
+            port=port,
+            log_level="warning",
+            log_config=uvicorn_log_config(),
+            ws_max_size=settings.max_message_bytes + 1024,
+            ws_per_message_deflate=False,
+            lifespan="on",
+        )
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
         self.url = f"http://127.0.0.1:{port}"
@@ -52,21 +60,38 @@ class BackgroundServer:
         self.thread.join(timeout=20)
 
 
-def serve_process(data_dir: Path, port: int, *, log: Path | None = None, **env: str) -> subprocess.Popen[bytes]:
+def serve_process(
+    data_dir: Path, port: int, *, log: Path | None = None, **env: str
+) -> subprocess.Popen[bytes]:
     """``steelscan serve`` as a separate process on loopback (``env``: extra STEELSCAN_*
     settings; ``log``: a file for its output), returned once it answers its health check."""
     out = subprocess.DEVNULL if log is None else log.open("ab")
     try:
-        proc = subprocess.Popen([sys.executable, "-m", "server.cli", "serve", "--data-dir", str(data_dir), "--port", str(port)],
-                                stdout=out, stderr=subprocess.STDOUT if log is not None else subprocess.DEVNULL,
-                                env={**os.environ, **env})
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "server.cli",
+                "serve",
+                "--data-dir",
+                str(data_dir),
+                "--port",
+                str(port),
+            ],
+            stdout=out,
+            stderr=subprocess.STDOUT if log is not None else subprocess.DEVNULL,
+            env={**os.environ, **env},
+        )
     finally:
         if log is not None:
             out.close()
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         try:
-            if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code in (200, 401):  # 401: up, with accounts
+            if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code in (
+                200,
+                401,
+            ):  # 401: up, with accounts
                 return proc
         except httpx.HTTPError:
             time.sleep(0.1)

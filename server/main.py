@@ -39,7 +39,16 @@ def build_state(settings: Settings) -> AppState:
     files = SessionFiles(settings.data_dir, fsync=settings.fsync)
     runner = JobRunner(factory, url, str(settings.data_dir.resolve()), settings.job_workers)
     ingest = Ingest(factory, files)
-    return AppState(settings, engine, factory, files, ingest, LiveHub(settings.live_queue), runner, GroupCommit(ingest))
+    return AppState(
+        settings,
+        engine,
+        factory,
+        files,
+        ingest,
+        LiveHub(settings.live_queue),
+        runner,
+        GroupCommit(ingest),
+    )
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -67,8 +76,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.engine.dispose()
 
     # the API docs serve Swagger/ReDoc from the station itself: no CDN on a bridge
-    app = FastAPIOffline(title="steelscan ground station", version="0.1.0", lifespan=lifespan,
-                  description="Live link, storage, processing and review for steel-inspection climbing robots.")
+    app = FastAPIOffline(
+        title="steelscan ground station",
+        version="0.1.0",
+        lifespan=lifespan,
+        description="Live link, storage, processing and review for steel-inspection climbing robots.",
+    )
 
     @app.exception_handler(NotFound)
     async def not_found(_: Request, exc: NotFound) -> JSONResponse:
@@ -96,11 +109,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             required = accounts_exist(db)
         html = (web_dir / "index.html").read_text(encoding="utf-8")
         meta = f'<meta name="steelscan-auth" content="{"required" if required else "open"}">'
-        return HTMLResponse(html.replace("<head>", f"<head>\n{meta}", 1), headers={"Cache-Control": "no-store"})
+        return HTMLResponse(
+            html.replace("<head>", f"<head>\n{meta}", 1), headers={"Cache-Control": "no-store"}
+        )
 
     app.mount("/static", StaticFiles(directory=web_dir), name="static")
     # front-end libraries installed from npm by scripts/setup.sh (web/package-lock.json): served here, never from a CDN
-    for name, folder in (("openseadragon", "openseadragon/build/openseadragon"), ("uplot", "uplot/dist")):
+    for name, folder in (
+        ("openseadragon", "openseadragon/build/openseadragon"),
+        ("uplot", "uplot/dist"),
+    ):
         path = web_dir / "node_modules" / folder
         if path.is_dir():
             app.mount(f"/vendor/{name}", StaticFiles(directory=path), name=f"vendor-{name}")

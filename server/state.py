@@ -31,4 +31,6 @@ class AppState:
     writer: GroupCommit
     scene: Scene3D | None = None  # the 3D view, when switched on
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
-    logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per (client, user)
+    logins: LoginThrottle = field(
+        default_factory=LoginThrottle
+    )  # wrong passwords per (client, user)

@@ -23,7 +23,9 @@ class FaultProxy:
     connections: int = 0
     _rng: random.Random = field(init=False)
     _server: asyncio.AbstractServer | None = field(default=None, init=False)
-    _open: set[asyncio.Event] = field(default_factory=set, init=False)  # the cut switch of each open connection
+    _open: set[asyncio.Event] = field(
+        default_factory=set, init=False
+    )  # the cut switch of each open connection
 
     def __post_init__(self) -> None:
         self._rng = random.Random(self.seed)
@@ -55,7 +57,11 @@ class FaultProxy:
         cut = asyncio.Event()
         self._open.add(cut)
         waiter = asyncio.ensure_future(self._cut_on(cut, client_w, server_w))
-        await asyncio.gather(self._pipe(client_r, server_w, cut), self._pipe(server_r, client_w, cut), return_exceptions=True)
+        await asyncio.gather(
+            self._pipe(client_r, server_w, cut),
+            self._pipe(server_r, client_w, cut),
+            return_exceptions=True,
+        )
         self._open.discard(cut)
         waiter.cancel()
         for w in (client_w, server_w):
@@ -68,7 +74,9 @@ class FaultProxy:
         for w in writers:
             w.transport.abort()
 
-    async def _pipe(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, cut: asyncio.Event) -> None:
+    async def _pipe(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, cut: asyncio.Event
+    ) -> None:
         while not cut.is_set():
             chunk = await reader.read(65536)
             if not chunk:

@@ -14,9 +14,23 @@ from mcap.reader import make_reader
 
 def test_demo_runs_end_to_end(tmp_path: Path) -> None:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "server.cli", "demo", "--data-dir", str(tmp_path), "--exit-when-done", "--keep-serving",
-         "--lanes", "2", "--time-scale", "0"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "server.cli",
+            "demo",
+            "--data-dir",
+            str(tmp_path),
+            "--exit-when-done",
+            "--keep-serving",
+            "--lanes",
+            "2",
+            "--time-scale",
+            "0",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         assert proc.stdout is not None
@@ -30,22 +44,39 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
         summary = json.loads(lines[-1])
         assert summary["frames"] == summary["frames_sent"] > 0  # every frame stored exactly once
         assert summary["clouds"] == summary["clouds_sent"] > 0
-        assert summary["jobs"] == {"stitch": "done", "map": "done", "detect": "done", "export": "done"}
+        assert summary["jobs"] == {
+            "stitch": "done",
+            "map": "done",
+            "detect": "done",
+            "export": "done",
+        }
         assert Path(summary["mosaic_path"]).is_file() and Path(summary["map_path"]).is_file()
         assert 0 <= summary["defects_matched"] <= summary["defects_true"] == 9
         assert summary["defects_found"] >= summary["defects_matched"]
-        assert summary["frame_defects_found"] >= summary["frame_defects_matched"] >= 1  # frames placed on the structure
+        assert (
+            summary["frame_defects_found"] >= summary["frame_defects_matched"] >= 1
+        )  # frames placed on the structure
         assert isinstance(summary["map_ate_m"], float) and summary["map_ate_m"] < 0.05
 
         base = lines[0].split()[1].rstrip("/")
-        token = httpx.post(f"{base}/api/auth/token", data={"username": name, "password": password}).json()["access_token"]
+        token = httpx.post(
+            f"{base}/api/auth/token", data={"username": name, "password": password}
+        ).json()["access_token"]
         auth = {"Authorization": f"Bearer {token}"}
-        assert httpx.get(summary["report_pdf_url"]).status_code == 401  # the URLs need the operator's login
+        assert (
+            httpx.get(summary["report_pdf_url"]).status_code == 401
+        )  # the URLs need the operator's login
         report = httpx.get(summary["report_json_url"], headers=auth).json()
         assert report["summary"]["defects"] == summary["defects_found"]
         pdf = httpx.get(summary["report_pdf_url"], headers=auth, timeout=120)
         assert pdf.status_code == 200 and pdf.content.startswith(b"%PDF")
-        rows = list(csv.DictReader(io.StringIO(httpx.get(summary["report_csv_url"], headers=auth).content.decode("utf-8-sig"))))
+        rows = list(
+            csv.DictReader(
+                io.StringIO(
+                    httpx.get(summary["report_csv_url"], headers=auth).content.decode("utf-8-sig")
+                )
+            )
+        )
         assert len(rows) == summary["defects_found"]
         mcap = httpx.get(summary["mcap_url"], headers=auth, timeout=120)
         assert mcap.status_code == 200

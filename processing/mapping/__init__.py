@@ -76,9 +76,26 @@ from processing.mapping.params import (
 from processing.mapping.selection import clean_cloud, filter_organised, fuse_map, select
 
 __all__ = [
-    "IcpParams", "IncrementalMap", "LoopParams", "MapParams", "MapResult", "OdometryParams", "PlaneParams", "SelectParams",
-    "align", "clean_cloud", "constrain_to_observable", "filter_organised", "fuse_map", "match", "mutual_overlap",
-    "plane_information", "register_clouds", "select", "structure_fitness", "within_bounds",
+    "IcpParams",
+    "IncrementalMap",
+    "LoopParams",
+    "MapParams",
+    "MapResult",
+    "OdometryParams",
+    "PlaneParams",
+    "SelectParams",
+    "align",
+    "clean_cloud",
+    "constrain_to_observable",
+    "filter_organised",
+    "fuse_map",
+    "match",
+    "mutual_overlap",
+    "plane_information",
+    "register_clouds",
+    "select",
+    "structure_fitness",
+    "within_bounds",
 ]
 
 
@@ -104,7 +121,9 @@ def register_clouds(
     if initial_poses is not None:
         initial_poses = np.asarray(initial_poses, dtype=np.float64)
         if initial_poses.shape != (n, 4, 4):
-            raise ValueError(f"initial_poses must be ({n}, 4, 4), one per cloud, got {initial_poses.shape}")
+            raise ValueError(
+                f"initial_poses must be ({n}, 4, 4), one per cloud, got {initial_poses.shape}"
+            )
         if not np.isfinite(initial_poses).all():
             raise ValueError("initial_poses contain NaN or infinite values")
     if not params.refine:
@@ -112,11 +131,20 @@ def register_clouds(
             raise ValueError("refine=False needs initial poses")
         pcds = [select(c, params.select, shape) for c in clouds]
         zeros = np.zeros(n)
-        return MapResult(initial_poses.copy(), fuse_map(pcds, initial_poses, params.map_voxel_m), zeros, zeros, np.ones(n, bool), np.zeros(n, int))
+        return MapResult(
+            initial_poses.copy(),
+            fuse_map(pcds, initial_poses, params.map_voxel_m),
+            zeros,
+            zeros,
+            np.ones(n, bool),
+            np.zeros(n, int),
+        )
     graph_map = IncrementalMap(params)
     for i, cloud in enumerate(clouds):
         graph_map.add(cloud, None if initial_poses is None else initial_poses[i], shape)
     if graph_map.usable_clouds == 0:  # e.g. clouds in millimetres: every point "beyond" range
-        raise ValueError(f"no cloud has {params.icp.min_points} or more points within {params.select.max_range_m} m of the sensor "
-                         "(point clouds must be in metres)")
+        raise ValueError(
+            f"no cloud has {params.icp.min_points} or more points within {params.select.max_range_m} m of the sensor "
+            "(point clouds must be in metres)"
+        )
     return graph_map.result()

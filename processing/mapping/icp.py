@@ -20,39 +20,71 @@ def within_bounds(init: NDArray[np.float64], T: NDArray[np.float64], params: Icp
     """Stopping rule 3: the transform stayed within the odometry's error bounds."""
     d = np.linalg.inv(init) @ T
     angle = np.degrees(np.linalg.norm(Rotation.from_matrix(d[:3, :3]).as_rotvec()))
-    return bool(np.linalg.norm(d[:3, 3]) <= params.max_correction_m and angle <= params.max_correction_deg)
+    return bool(
+        np.linalg.norm(d[:3, 3]) <= params.max_correction_m and angle <= params.max_correction_deg
+    )
 
 
 def _fpfh(pcd: o3d.geometry.PointCloud, params: IcpParams) -> reg.Feature:
-    return reg.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=params.fpfh_radius_m, max_nn=100))
+    return reg.compute_fpfh_feature(
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=params.fpfh_radius_m, max_nn=100)
+    )
 
 
-def match(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: NDArray[np.float64], params: IcpParams) -> NDArray[np.float64]:
+def match(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    init: NDArray[np.float64],
+    params: IcpParams,
+) -> NDArray[np.float64]:
     """Matching step: the odometry's ``init``, refined by FPFH feature matching on the
     roughly aligned clouds (fast global registration) when enabled and when the
     refinement stays within bounds."""
     if not params.use_fpfh or len(source.points) < 30 or len(target.points) < 30:
         return init
     moved = o3d.geometry.PointCloud(source).transform(init)
-    option = reg.FastGlobalRegistrationOption(maximum_correspondence_distance=params.max_correspondence_m)
-    result = reg.registration_fgr_based_on_feature_matching(moved, target, _fpfh(moved, params), _fpfh(target, params), option)
+    option = reg.FastGlobalRegistrationOption(
+        maximum_correspondence_distance=params.max_correspondence_m
+    )
+    result = reg.registration_fgr_based_on_feature_matching(
+        moved, target, _fpfh(moved, params), _fpfh(target, params), option
+    )
     refined = result.transformation @ init
-    return refined if result.fitness > params.min_fitness and within_bounds(init, refined, params) else init
+    return (
+        refined
+        if result.fitness > params.min_fitness and within_bounds(init, refined, params)
+        else init
+    )
 
 
-def align(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: NDArray[np.float64], params: IcpParams) -> reg.RegistrationResult:
+def align(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    init: NDArray[np.float64],
+    params: IcpParams,
+) -> reg.RegistrationResult:
     """Rejection and alignment steps: ICP with correspondences capped at
     ``max_correspondence_m`` and weighted by a Tukey loss, point-to-plane or point-to-point,
     stopped by the error-constant and iteration-cap rules."""
     kernel = reg.TukeyLoss(k=params.tukey_m)
-    criteria = reg.ICPConvergenceCriteria(relative_fitness=params.relative_fitness, relative_rmse=params.relative_rmse,
-                                          max_iteration=params.max_iterations)
+    criteria = reg.ICPConvergenceCriteria(
+        relative_fitness=params.relative_fitness,
+        relative_rmse=params.relative_rmse,
+        max_iteration=params.max_iterations,
+    )
     gicp = reg.TransformationEstimationForGeneralizedICP(epsilon=1e-3, kernel=kernel)
     if params.metric == "generalized":
-        return reg.registration_generalized_icp(source, target, params.max_correspondence_m, init, gicp, criteria)
-    estimator = (reg.TransformationEstimationPointToPlane(kernel) if params.metric == "point_to_plane"
-                 else reg.TransformationEstimationPointToPoint())
-    return reg.registration_icp(source, target, params.max_correspondence_m, init, estimator, criteria)
+        return reg.registration_generalized_icp(
+            source, target, params.max_correspondence_m, init, gicp, criteria
+        )
+    estimator = (
+        reg.TransformationEstimationPointToPlane(kernel)
+        if params.metric == "point_to_plane"
+        else reg.TransformationEstimationPointToPoint()
+    )
+    return reg.registration_icp(
+        source, target, params.max_correspondence_m, init, estimator, criteria
+    )
 
 
 def _structure_mask(normals: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -68,7 +100,9 @@ def structure_share(pcd: o3d.geometry.PointCloud) -> float:
     return float(_structure_mask(normals).mean()) if len(normals) else 0.0
 
 
-def structure_fitness(source: o3d.geometry.PointCloud, result: reg.RegistrationResult, min_points: int) -> float:
+def structure_fitness(
+    source: o3d.geometry.PointCloud, result: reg.RegistrationResult, min_points: int
+) -> float:
     """Share of the source's structure points (normals more than 35° from the dominant one:
     web, stiffeners, bolts, edges, not the plate) that found a correspondence; 0 with fewer
     than ``min_points`` of them. A loop closure that only matched the plate, or a parallel
@@ -84,7 +118,12 @@ def structure_fitness(source: o3d.geometry.PointCloud, result: reg.RegistrationR
     return float((matched & structure).sum() / structure.sum())
 
 
-def mutual_overlap(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: NDArray[np.float64], distance_m: float) -> float:
+def mutual_overlap(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    T: NDArray[np.float64],
+    distance_m: float,
+) -> float:
     """The smaller of the shares of source and of target points within ``distance_m`` of
     the other cloud once ``T`` (target <- source) is applied: near-identical views score high,
     views from another lane or mid-turn, which share only part of what they see, low."""
@@ -93,9 +132,16 @@ def mutual_overlap(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCl
     return float(min(forward, backward))
 
 
-def register_pair(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: NDArray[np.float64], params: IcpParams,
-              *, coarse: Sequence[float] = (), bounds: tuple[float, float] | None = None,
-              min_fitness: float | None = None) -> reg.RegistrationResult | None:
+def register_pair(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    init: NDArray[np.float64],
+    params: IcpParams,
+    *,
+    coarse: Sequence[float] = (),
+    bounds: tuple[float, float] | None = None,
+    min_fitness: float | None = None,
+) -> reg.RegistrationResult | None:
     """Matching, rejection and alignment of one pair, first at the ``coarse``
     correspondence distances; None when too few points, too low a fitness or a
     transform out of bounds (stopping rule 3)."""
@@ -103,17 +149,30 @@ def register_pair(source: o3d.geometry.PointCloud, target: o3d.geometry.PointClo
         return None
     start = match(source, target, init, params)
     for dist in coarse:
-        start = align(source, target, start, replace(params, max_correspondence_m=dist, tukey_m=dist / 2)).transformation
+        start = align(
+            source, target, start, replace(params, max_correspondence_m=dist, tukey_m=dist / 2)
+        ).transformation
     result = align(source, target, start, params)
-    limits = replace(params, max_correction_m=bounds[0], max_correction_deg=bounds[1]) if bounds else params
-    if (result.fitness < (params.min_fitness if min_fitness is None else min_fitness)
-            or not np.isfinite(result.transformation).all() or not within_bounds(init, result.transformation, limits)):
+    limits = (
+        replace(params, max_correction_m=bounds[0], max_correction_deg=bounds[1])
+        if bounds
+        else params
+    )
+    if (
+        result.fitness < (params.min_fitness if min_fitness is None else min_fitness)
+        or not np.isfinite(result.transformation).all()
+        or not within_bounds(init, result.transformation, limits)
+    ):
         return None
     return result
 
 
-def plane_information(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, result: reg.RegistrationResult,
-                      params: IcpParams) -> NDArray[np.float64]:
+def plane_information(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    result: reg.RegistrationResult,
+    params: IcpParams,
+) -> NDArray[np.float64]:
     """Information matrix of a point-to-plane ICP edge: the sum over the final
     correspondences of the Tukey weight times Jᵀ J over σ², J = [q × n, n] for the source
     point q and the target's normal n both in the SOURCE frame. Open3D's pose graph measures

@@ -36,8 +36,12 @@ class MapResult:
     degenerate_dims: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, int))
     loop_closures: int = 0
     pruned_edges: int = 0
-    odometry_error_scale: float = 1.0  # the odometry's error measured against ICP, over the configured one (>= 1)
-    plane_landmarks: int = 0  # large planes (deck plate, web, stiffener faces) that tied the clouds seeing them
+    odometry_error_scale: float = (
+        1.0  # the odometry's error measured against ICP, over the configured one (>= 1)
+    )
+    plane_landmarks: int = (
+        0  # large planes (deck plate, web, stiffener faces) that tied the clouds seeing them
+    )
 
 
 class IncrementalMap:
@@ -59,19 +63,31 @@ class IncrementalMap:
         self.params = params
         self.optimise_every = optimise_every
         self.graph = reg.PoseGraph()
-        self._pose_buffer = np.zeros((64, 4, 4))  # the nodes' poses (the first len(graph.nodes) rows)
+        self._pose_buffer = np.zeros(
+            (64, 4, 4)
+        )  # the nodes' poses (the first len(graph.nodes) rows)
         self.loop_closures = 0
         self._looped: set[tuple[int, int]] = set()  # (i, j) pairs tied by a loop closure
         self.pruned_edges = 0
         self._pcds: list[o3d.geometry.PointCloud] = []
         self._guesses: list[NDArray[np.float64] | None] = []
         self._steps: list[NDArray[np.float64]] = []  # odometry (or seed) step into each cloud
-        self._facts: list[tuple[float, float, bool, int]] = []  # fitness, rmse, used odometry, degenerate dims
-        self._odometry_sigmas: dict[int, tuple[float, float]] = {}  # cloud -> configured (rotation rad, translation m) of its odometry edge
-        self._heading_gaps: list[float] = []  # ICP's heading step minus the odometry's, where the structure fixes it, over its configured error
+        self._facts: list[
+            tuple[float, float, bool, int]
+        ] = []  # fitness, rmse, used odometry, degenerate dims
+        self._odometry_sigmas: dict[
+            int, tuple[float, float]
+        ] = {}  # cloud -> configured (rotation rad, translation m) of its odometry edge
+        self._heading_gaps: list[
+            float
+        ] = []  # ICP's heading step minus the odometry's, where the structure fixes it, over its configured error
         self._planes: list[list[Plane]] = []  # large planes of each cloud (sensor frame)
-        self._landmarks: list[list[tuple[int, int]]] = []  # each landmark's sightings (cloud, plane index)
-        self._landmark_poses: list[NDArray[np.float64]] = []  # T_world_landmark: a frame on the plane, z along its normal
+        self._landmarks: list[
+            list[tuple[int, int]]
+        ] = []  # each landmark's sightings (cloud, plane index)
+        self._landmark_poses: list[
+            NDArray[np.float64]
+        ] = []  # T_world_landmark: a frame on the plane, z along its normal
         self._fused = o3d.geometry.PointCloud()
         self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
 
@@ -91,19 +107,28 @@ class IncrementalMap:
         self.graph.nodes.append(reg.PoseGraphNode(pose))
         n = len(self.graph.nodes)
         if n > len(self._pose_buffer):
-            self._pose_buffer = np.concatenate([self._pose_buffer, np.zeros_like(self._pose_buffer)])
+            self._pose_buffer = np.concatenate(
+                [self._pose_buffer, np.zeros_like(self._pose_buffer)]
+            )
         self._pose_buffer[n - 1] = pose
 
-    def add(self, points: NDArray[np.floating], guess: NDArray[np.floating] | None = None,
-            shape: tuple[int, int] | None = None) -> NDArray[np.float64]:
+    def add(
+        self,
+        points: NDArray[np.floating],
+        guess: NDArray[np.floating] | None = None,
+        shape: tuple[int, int] | None = None,
+    ) -> NDArray[np.float64]:
         """Place one cloud (sensor frame) given its odometry pose ``guess``; its pose."""
         guess = None if guess is None else np.asarray(guess, dtype=np.float64)
         pcd = select(points, self.params.select, shape)
         i = len(self._pcds)
         self._pcds.append(pcd)
         self._guesses.append(guess)
-        self._planes.append(extract_planes(np.asarray(pcd.points), np.asarray(pcd.normals))
-                            if self.params.planes.enabled and pcd.has_normals() else [])
+        self._planes.append(
+            extract_planes(np.asarray(pcd.points), np.asarray(pcd.normals))
+            if self.params.planes.enabled and pcd.has_normals()
+            else []
+        )
         if i == 0:
             pose = guess if guess is not None else np.eye(4)
             self._append_node(pose)
@@ -119,8 +144,12 @@ class IncrementalMap:
         if result is None:
             seed, facts = step, (0.0, 0.0, True, 6)
         else:
-            seed, degenerate = constrain_to_observable(step, result, pcd, self._pcds[i - 1], self.params.icp)
-            if guess is None:  # no odometry to hold the weak directions: ICP's weak evidence beats a guess
+            seed, degenerate = constrain_to_observable(
+                step, result, pcd, self._pcds[i - 1], self.params.icp
+            )
+            if (
+                guess is None
+            ):  # no odometry to hold the weak directions: ICP's weak evidence beats a guess
                 seed = np.asarray(result.transformation)
             facts = (float(result.fitness), float(result.inlier_rmse), False, degenerate)
             if guess is not None:
@@ -134,7 +163,12 @@ class IncrementalMap:
             if result is not None:
                 self._add_edge(i, i - 1, result, uncertain=False)
             for j in range(max(0, i - self.params.neighbours), i - 1):
-                self._add_edge(i, j, register_pair(pcd, self._pcds[j], self._relative(j, i), self.params.icp), uncertain=False)
+                self._add_edge(
+                    i,
+                    j,
+                    register_pair(pcd, self._pcds[j], self._relative(j, i), self.params.icp),
+                    uncertain=False,
+                )
             self._associate_planes(i)
             loops = self._close_loops(i)
             # every ``optimise_every`` clouds, and less often as the graph grows (each
@@ -145,7 +179,9 @@ class IncrementalMap:
 
     def _relative(self, t: int, s: int) -> NDArray[np.float64]:
         """T_t_s from the current estimate."""
-        return np.linalg.inv(np.asarray(self.graph.nodes[t].pose)) @ np.asarray(self.graph.nodes[s].pose)
+        return np.linalg.inv(np.asarray(self.graph.nodes[t].pose)) @ np.asarray(
+            self.graph.nodes[s].pose
+        )
 
     def _add_odometry_edge(self, i: int) -> None:
         """Odometry edge into cloud i: holds what the geometry cannot; its error grows with the step."""
@@ -158,15 +194,23 @@ class IncrementalMap:
         """Configured error of an odometry step: rotation (rad) and translation (m)."""
         p = self.params
         d = float(np.linalg.norm(step[:3, 3]))
-        return float(np.radians(p.odometry.sigma_deg_per_m * d + 0.2)), max(p.odometry.sigma_frac * d, p.odometry.sigma_floor_m)
+        return float(np.radians(p.odometry.sigma_deg_per_m * d + 0.2)), max(
+            p.odometry.sigma_frac * d, p.odometry.sigma_floor_m
+        )
 
-    def _record_heading_gap(self, i: int, step: NDArray[np.float64], result: reg.RegistrationResult) -> None:
+    def _record_heading_gap(
+        self, i: int, step: NDArray[np.float64], result: reg.RegistrationResult
+    ) -> None:
         """Heading difference between the odometry's step into cloud i and ICP's, kept when
         ICP's is trustworthy (a close match whose structure, not only the plate, fixes it)."""
         if result.fitness < 0.9 or structure_share(self._pcds[i]) < 0.15:
             return
-        gap = Rotation.from_matrix(np.asarray(result.transformation)[:3, :3] @ step[:3, :3].T).as_rotvec()
-        up = np.asarray(self.graph.nodes[i - 1].pose)[2, :3]  # the world's z axis in cloud i-1's frame
+        gap = Rotation.from_matrix(
+            np.asarray(result.transformation)[:3, :3] @ step[:3, :3].T
+        ).as_rotvec()
+        up = np.asarray(self.graph.nodes[i - 1].pose)[
+            2, :3
+        ]  # the world's z axis in cloud i-1's frame
         self._heading_gaps.append(float(gap @ up) / self._odometry_sigma(step)[0])
 
     def odometry_error_scale(self) -> float:
@@ -189,14 +233,20 @@ class IncrementalMap:
                 continue
             seen.add(s)
             sigma_r, sigma_t = self._odometry_sigmas[s]
-            edge.information = np.diag([1 / (scale * sigma_r) ** 2] * 3 + [1 / (scale * sigma_t) ** 2] * 3)
+            edge.information = np.diag(
+                [1 / (scale * sigma_r) ** 2] * 3 + [1 / (scale * sigma_t) ** 2] * 3
+            )
 
-    def _add_edge(self, s: int, t: int, result: reg.RegistrationResult | None, *, uncertain: bool) -> int:
+    def _add_edge(
+        self, s: int, t: int, result: reg.RegistrationResult | None, *, uncertain: bool
+    ) -> int:
         """An ICP edge from cloud s to cloud t with its point-to-plane information (1 if added)."""
         if result is None:
             return 0
         info = plane_information(self._pcds[s], self._pcds[t], result, self.params.icp)
-        self.graph.edges.append(reg.PoseGraphEdge(s, t, np.asarray(result.transformation), info, uncertain=uncertain))
+        self.graph.edges.append(
+            reg.PoseGraphEdge(s, t, np.asarray(result.transformation), info, uncertain=uncertain)
+        )
         return 1
 
     @property
@@ -216,8 +266,19 @@ class IncrementalMap:
         pose = np.asarray(self.graph.nodes[i].pose)
         for k, plane in enumerate(self._planes[i]):
             world = to_frame(plane, pose)
-            m = next((m for m in range(len(self._landmarks))
-                      if same_plane(world, self._landmark_plane(m), p.planes.max_angle_deg, p.planes.max_offset_m)), None)
+            m = next(
+                (
+                    m
+                    for m in range(len(self._landmarks))
+                    if same_plane(
+                        world,
+                        self._landmark_plane(m),
+                        p.planes.max_angle_deg,
+                        p.planes.max_offset_m,
+                    )
+                ),
+                None,
+            )
             if m is None:
                 self._landmarks.append([(i, k)])
                 self._landmark_poses.append(plane_frame(world))
@@ -229,8 +290,19 @@ class IncrementalMap:
         p = self.params
         m = 0
         while m < len(self._landmarks):
-            other = next((o for o in range(m + 1, len(self._landmarks))
-                          if same_plane(self._landmark_plane(m), self._landmark_plane(o), p.planes.max_angle_deg, p.planes.max_offset_m)), None)
+            other = next(
+                (
+                    o
+                    for o in range(m + 1, len(self._landmarks))
+                    if same_plane(
+                        self._landmark_plane(m),
+                        self._landmark_plane(o),
+                        p.planes.max_angle_deg,
+                        p.planes.max_offset_m,
+                    )
+                ),
+                None,
+            )
             if other is None:
                 m += 1
                 continue
@@ -244,16 +316,33 @@ class IncrementalMap:
         (the robust optimisation can drop a sighting that disagrees), and a weak prior tying
         each landmark to its first sighting along what planes leave free."""
         p = self.params
-        active = [m for m, sightings in enumerate(self._landmarks) if len(sightings) >= p.planes.min_sightings]
+        active = [
+            m
+            for m, sightings in enumerate(self._landmarks)
+            if len(sightings) >= p.planes.min_sightings
+        ]
         edges = []
         on_plane = Plane(np.array([0.0, 0.0, 1.0]), 0.0, np.zeros((1, 3)))
         for node, m in enumerate(active, start=first_node):
             T_L = np.linalg.inv(self._landmark_poses[m])
             for i, k in self._landmarks[m]:
-                measurement, info = plane_edge(self._planes[i][k], on_plane, T_L @ np.asarray(self.graph.nodes[i].pose), p.planes.sigma_m)
+                measurement, info = plane_edge(
+                    self._planes[i][k],
+                    on_plane,
+                    T_L @ np.asarray(self.graph.nodes[i].pose),
+                    p.planes.sigma_m,
+                )
                 edges.append(reg.PoseGraphEdge(i, node, measurement, info, uncertain=True))
             anchor = self._landmarks[m][0][0]
-            edges.append(reg.PoseGraphEdge(anchor, node, T_L @ np.asarray(self.graph.nodes[anchor].pose), np.eye(6), uncertain=False))
+            edges.append(
+                reg.PoseGraphEdge(
+                    anchor,
+                    node,
+                    T_L @ np.asarray(self.graph.nodes[anchor].pose),
+                    np.eye(6),
+                    uncertain=False,
+                )
+            )
         return active, edges
 
     def _close_loops(self, i: int, *, optimised: bool = False) -> int:
@@ -268,7 +357,9 @@ class IncrementalMap:
         poses = self.poses
         dist = np.linalg.norm(poses[: i - p.loops.min_gap, :3, 3] - poses[i, :3, 3], axis=1)
         # clouds looking another way (the other lane, driven the other way) see other things
-        facing = poses[: i - p.loops.min_gap, :3, 2] @ poses[i, :3, 2] >= np.cos(np.radians(p.loops.max_view_angle_deg))
+        facing = poses[: i - p.loops.min_gap, :3, 2] @ poses[i, :3, 2] >= np.cos(
+            np.radians(p.loops.max_view_angle_deg)
+        )
         dist[~facing] = np.inf
         added = 0
         for j in np.argsort(dist)[: p.loops.per_cloud]:
@@ -276,15 +367,49 @@ class IncrementalMap:
                 break
             if (i, int(j)) in self._looped:
                 continue
-            if optimised and min(len(self._pcds[i].points), len(self._pcds[int(j)].points)) < p.icp.min_points:
+            if (
+                optimised
+                and min(len(self._pcds[i].points), len(self._pcds[int(j)].points))
+                < p.icp.min_points
+            ):
                 continue
-            if optimised and mutual_overlap(self._pcds[i], self._pcds[int(j)], self._relative(int(j), i), p.loops.prefilter_m) < p.loops.min_overlap:
+            if (
+                optimised
+                and mutual_overlap(
+                    self._pcds[i],
+                    self._pcds[int(j)],
+                    self._relative(int(j), i),
+                    p.loops.prefilter_m,
+                )
+                < p.loops.min_overlap
+            ):
                 continue
-            result = register_pair(self._pcds[i], self._pcds[j], self._relative(int(j), i), p.icp, coarse=p.loops.search_m,
-                               min_fitness=p.loops.min_fitness, bounds=(p.loops.max_correction_m, p.loops.max_correction_deg))
-            if result is not None and structure_fitness(self._pcds[i], result, p.loops.min_structure_points) < p.loops.min_structure_fitness:
+            result = register_pair(
+                self._pcds[i],
+                self._pcds[j],
+                self._relative(int(j), i),
+                p.icp,
+                coarse=p.loops.search_m,
+                min_fitness=p.loops.min_fitness,
+                bounds=(p.loops.max_correction_m, p.loops.max_correction_deg),
+            )
+            if (
+                result is not None
+                and structure_fitness(self._pcds[i], result, p.loops.min_structure_points)
+                < p.loops.min_structure_fitness
+            ):
                 result = None
-            if result is not None and p.loops.min_overlap > 0 and mutual_overlap(self._pcds[i], self._pcds[int(j)], np.asarray(result.transformation), p.loops.overlap_m) < p.loops.min_overlap:
+            if (
+                result is not None
+                and p.loops.min_overlap > 0
+                and mutual_overlap(
+                    self._pcds[i],
+                    self._pcds[int(j)],
+                    np.asarray(result.transformation),
+                    p.loops.overlap_m,
+                )
+                < p.loops.min_overlap
+            ):
                 result = None
             if self._add_edge(i, int(j), result, uncertain=True):
                 self._looped.add((i, int(j)))
@@ -307,12 +432,19 @@ class IncrementalMap:
             graph.nodes.append(reg.PoseGraphNode(self._landmark_poses[m]))
         for edge in list(self.graph.edges) + landmark_edges:
             graph.edges.append(edge)
-        option = reg.GlobalOptimizationOption(max_correspondence_distance=self.params.icp.max_correspondence_m,
-                                              edge_prune_threshold=0.25, preference_loop_closure=self.params.loops.preference,
-                                              reference_node=0)
+        option = reg.GlobalOptimizationOption(
+            max_correspondence_distance=self.params.icp.max_correspondence_m,
+            edge_prune_threshold=0.25,
+            preference_loop_closure=self.params.loops.preference,
+            reference_node=0,
+        )
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
-                                    reg.GlobalOptimizationConvergenceCriteria(), option)
+            reg.global_optimization(
+                graph,
+                reg.GlobalOptimizationLevenbergMarquardt(),
+                reg.GlobalOptimizationConvergenceCriteria(),
+                option,
+            )
         kept = reg.PoseGraph()
         for k in range(n):
             kept.nodes.append(graph.nodes[k])
@@ -348,10 +480,22 @@ class IncrementalMap:
             self.optimise()
             landmarks = len(self._landmarks)
             self._merge_landmarks()
-            if sum(self._close_loops(i, optimised=True) for i in range(len(self._pcds))) or len(self._landmarks) < landmarks:
+            if (
+                sum(self._close_loops(i, optimised=True) for i in range(len(self._pcds)))
+                or len(self._landmarks) < landmarks
+            ):
                 self.optimise()
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
         poses = self.poses
-        return MapResult(poses, fuse_map(self._pcds, poses, self.params.map_voxel_m), fitness.astype(float),
-                         rmse.astype(float), used.astype(bool), degenerate.astype(int), self.loop_closures, self.pruned_edges,
-                         self.odometry_error_scale(), self.plane_landmarks)
+        return MapResult(
+            poses,
+            fuse_map(self._pcds, poses, self.params.map_voxel_m),
+            fitness.astype(float),
+            rmse.astype(float),
+            used.astype(bool),
+            degenerate.astype(int),
+            self.loop_closures,
+            self.pruned_edges,
+            self.odometry_error_scale(),
+            self.plane_landmarks,
+        )

@@ -21,7 +21,9 @@ def clean_cloud(points: NDArray[np.floating], max_range_m: float) -> NDArray[np.
     return pts[ok].astype(np.float64)
 
 
-def filter_organised(points: NDArray[np.floating], shape: tuple[int, int], median_px: int, stride: int = 1) -> NDArray[np.float32]:
+def filter_organised(
+    points: NDArray[np.floating], shape: tuple[int, int], median_px: int, stride: int = 1
+) -> NDArray[np.float32]:
     """Median-filter the depth of an organised cloud (H·W points, row-major), keeping each
     point on its pixel's ray (ToF noise is mostly along the ray), then average the
     consistent pixels of ``stride`` x ``stride`` blocks (NaN where a block has none)."""
@@ -37,7 +39,9 @@ def filter_organised(points: NDArray[np.floating], shape: tuple[int, int], media
         scale = np.where(good, med / z, np.float32(1))
     out = pts * scale[..., None]
     out[~valid] = np.nan
-    if stride > 1:  # stride x stride blocks averaged (the voxels average them anyway): fewer points, less noise
+    if (
+        stride > 1
+    ):  # stride x stride blocks averaged (the voxels average them anyway): fewer points, less noise
         hb, wb = h // stride, w // stride
         ok = valid & good
         masked = np.where(ok[..., None], out, np.float32(0))
@@ -52,19 +56,33 @@ def filter_organised(points: NDArray[np.floating], shape: tuple[int, int], media
     return out.reshape(-1, 3)
 
 
-def select(points: NDArray[np.floating], params: SelectParams = SelectParams(), shape: tuple[int, int] | None = None) -> o3d.geometry.PointCloud:
+def select(
+    points: NDArray[np.floating],
+    params: SelectParams = SelectParams(),
+    shape: tuple[int, int] | None = None,
+) -> o3d.geometry.PointCloud:
     """Selection step: (organised) depth filtering, cleaning, voxel downsampling, normals."""
-    if shape is not None and params.depth_median_px and np.asarray(points).reshape(-1, 3).shape[0] == shape[0] * shape[1]:
+    if (
+        shape is not None
+        and params.depth_median_px
+        and np.asarray(points).reshape(-1, 3).shape[0] == shape[0] * shape[1]
+    ):
         points = filter_organised(points, shape, params.depth_median_px, params.pixel_stride)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(clean_cloud(points, params.max_range_m)))
+    pcd = o3d.geometry.PointCloud(
+        o3d.utility.Vector3dVector(clean_cloud(points, params.max_range_m))
+    )
     pcd = pcd.voxel_down_sample(params.voxel_m)
     if len(pcd.points) >= 3:
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.voxel_m * 3, max_nn=30))
+        pcd.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=params.voxel_m * 3, max_nn=30)
+        )
         pcd.orient_normals_towards_camera_location(np.zeros(3))
     return pcd
 
 
-def fuse_map(pcds: Sequence[o3d.geometry.PointCloud], poses: NDArray[np.float64], voxel_m: float) -> NDArray[np.float32]:
+def fuse_map(
+    pcds: Sequence[o3d.geometry.PointCloud], poses: NDArray[np.float64], voxel_m: float
+) -> NDArray[np.float32]:
     """All clouds in the world frame, voxel-filtered, as (M, 3) float32."""
     fused = o3d.geometry.PointCloud()
     for pcd, T in zip(pcds, poses):

@@ -15,8 +15,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def warp_affine_exact(texture: NDArray[np.uint8], M: NDArray[np.floating], size: tuple[int, int],
-                      border: float | None = None) -> NDArray[np.float32]:
+def warp_affine_exact(
+    texture: NDArray[np.uint8],
+    M: NDArray[np.floating],
+    size: tuple[int, int],
+    border: float | None = None,
+) -> NDArray[np.float32]:
     """A (w, h) image whose pixel (x, y) is ``texture`` at M @ (x, y, 1), by bicubic
     convolution (Keys, a = -0.5) at the exact position; beyond the texture's edges it is
     reflected, or reads ``border`` when given (``cv2.BORDER_CONSTANT``); float32, with the
@@ -26,7 +30,13 @@ def warp_affine_exact(texture: NDArray[np.uint8], M: NDArray[np.floating], size:
     if M.shape != (2, 3):
         raise ValueError(f"M must be 2x3, got {M.shape}")
     out = np.empty((size[1], size[0], src.shape[2]), np.float32)
-    _warp(np.ascontiguousarray(src), M, out, border is not None, 0.0 if border is None else float(border))
+    _warp(
+        np.ascontiguousarray(src),
+        M,
+        out,
+        border is not None,
+        0.0 if border is None else float(border),
+    )
     return out if texture.ndim == 3 else out[..., 0]
 
 
@@ -52,8 +62,13 @@ def _keys(t: float, weights: NDArray[np.float64]) -> None:  # pragma: no cover -
 
 
 @numba.njit(nogil=True, cache=True, fastmath=True)
-def _warp(src: NDArray[np.uint8], M: NDArray[np.float64], out: NDArray[np.float32], constant: bool,
-          value: float) -> None:  # pragma: no cover - compiled
+def _warp(
+    src: NDArray[np.uint8],
+    M: NDArray[np.float64],
+    out: NDArray[np.float32],
+    constant: bool,
+    value: float,
+) -> None:  # pragma: no cover - compiled
     rows, cols, channels = src.shape
     h, w, _ = out.shape
     wx = np.empty(4)
@@ -72,12 +87,25 @@ def _warp(src: NDArray[np.uint8], M: NDArray[np.float64], out: NDArray[np.float3
                     acc = 0.0
                     for a in range(4):
                         r = y0 - 1 + a
-                        acc += wy[a] * (wx[0] * src[r, x0 - 1, c] + wx[1] * src[r, x0, c] + wx[2] * src[r, x0 + 1, c] + wx[3] * src[r, x0 + 2, c])
+                        acc += wy[a] * (
+                            wx[0] * src[r, x0 - 1, c]
+                            + wx[1] * src[r, x0, c]
+                            + wx[2] * src[r, x0 + 1, c]
+                            + wx[3] * src[r, x0 + 2, c]
+                        )
                     out[y, x, c] = acc
                 continue
             for k in range(4):  # near or beyond an edge: reflected taps, or -1 for the constant
-                ix[k] = _reflect(x0 - 1 + k, cols) if not constant else (x0 - 1 + k if 0 <= x0 - 1 + k < cols else -1)
-                iy[k] = _reflect(y0 - 1 + k, rows) if not constant else (y0 - 1 + k if 0 <= y0 - 1 + k < rows else -1)
+                ix[k] = (
+                    _reflect(x0 - 1 + k, cols)
+                    if not constant
+                    else (x0 - 1 + k if 0 <= x0 - 1 + k < cols else -1)
+                )
+                iy[k] = (
+                    _reflect(y0 - 1 + k, rows)
+                    if not constant
+                    else (y0 - 1 + k if 0 <= y0 - 1 + k < rows else -1)
+                )
             for c in range(channels):
                 acc = 0.0
                 for a in range(4):

@@ -65,8 +65,12 @@ class SimResult:
     telemetry_sent: int = 0
     edge_events: int = 0
     frame_poses_true: list[list[float]] = field(default_factory=list)  # camera x, y, yaw
-    cloud_poses_true: dict[int, NDArray[np.float64]] = field(default_factory=dict)  # seq -> T_world_tof
-    cloud_poses_odom: dict[int, NDArray[np.float64]] = field(default_factory=dict)  # what odometry said
+    cloud_poses_true: dict[int, NDArray[np.float64]] = field(
+        default_factory=dict
+    )  # seq -> T_world_tof
+    cloud_poses_odom: dict[int, NDArray[np.float64]] = field(
+        default_factory=dict
+    )  # what odometry said
     structure: SteelStructure | None = None
     frame_size: tuple[int, int] = (640, 480)  # (w, h) of the camera frames
 
@@ -84,8 +88,14 @@ class SimResult:
 class InspectionSim:
     """Drives the robot over its route, capturing frames and clouds every ``spacing``."""
 
-    def __init__(self, link: RobotLink, config: SimConfig = SimConfig(), *, structure: SteelStructure | None = None,
-                 progress: Callable[[float, str], None] | None = None) -> None:
+    def __init__(
+        self,
+        link: RobotLink,
+        config: SimConfig = SimConfig(),
+        *,
+        structure: SteelStructure | None = None,
+        progress: Callable[[float, str], None] | None = None,
+    ) -> None:
         self.link = link
         self.cfg = config
         self.rng = np.random.default_rng(config.seed + 1)
@@ -96,9 +106,14 @@ class InspectionSim:
         start = np.array([config.start_x_m, config.first_lane_y_m, 0.0])
         self.robot = SimRobot(self.spec, self.rng, pose=start.copy(), odom=start.copy())
         self.spacing_m = self.camera.capture_spacing_m(config.min_overlap)
-        self.lane_spacing_m = float(np.floor(self.camera.footprint_m[1] * (1 - config.min_overlap) * 100) / 100)
-        self.result = SimResult(session_id=str(link.session_id), structure=self.structure,
-                                frame_size=(self.camera.width, self.camera.height))
+        self.lane_spacing_m = float(
+            np.floor(self.camera.footprint_m[1] * (1 - config.min_overlap) * 100) / 100
+        )
+        self.result = SimResult(
+            session_id=str(link.session_id),
+            structure=self.structure,
+            frame_size=(self.camera.width, self.camera.height),
+        )
         self.progress = progress
         self.paused = False
         self.capture_requested = False
@@ -111,8 +126,12 @@ class InspectionSim:
     def calibration(self) -> dict[str, Any]:
         """Sensor calibration sent with SESSION_START (T_robot_camera, T_robot_tof, ...)."""
         return {
-            "camera": {"width": self.camera.width, "height": self.camera.height,
-                       "px_per_m": 1.0 / self.camera.m_per_px, "T_robot_camera": [self.camera.mount_x_m, 0.0, 0.0]},
+            "camera": {
+                "width": self.camera.width,
+                "height": self.camera.height,
+                "px_per_m": 1.0 / self.camera.m_per_px,
+                "T_robot_camera": [self.camera.mount_x_m, 0.0, 0.0],
+            },
             "tof": {**self.tof.intrinsics(), "T_robot_tof": self.tof.T_robot_tof.tolist()},
             "capture_spacing_m": self.spacing_m,
             "inclination_deg": self.cfg.inclination_deg,
@@ -127,14 +146,25 @@ class InspectionSim:
             self.paused = False
         elif cmd == "capture":
             self.capture_requested = True
-        await self.link.notify(MessageType.COMMAND_ACK, {"cmd": cmd, "accepted": cmd in ("stop", "estop", "resume", "capture")}, seq=message.seq)
+        await self.link.notify(
+            MessageType.COMMAND_ACK,
+            {"cmd": cmd, "accepted": cmd in ("stop", "estop", "resume", "capture")},
+            seq=message.seq,
+        )
 
     async def run(self) -> SimResult:
         """Run the whole route and wait until the station acknowledged everything."""
         self._wall0 = time.monotonic()
-        await self.link.send(MessageType.SESSION_START, {"structure": self.cfg.structure, "operator": self.cfg.operator,
-                                                          "location": self.cfg.location,
-                                                          "robot": "sim", "calibration": self.calibration()})
+        await self.link.send(
+            MessageType.SESSION_START,
+            {
+                "structure": self.cfg.structure,
+                "operator": self.cfg.operator,
+                "location": self.cfg.location,
+                "robot": "sim",
+                "calibration": self.calibration(),
+            },
+        )
         heading = 0.0
         for lane in range(self.cfg.lanes):
             lane_y = self.cfg.first_lane_y_m + lane * self.lane_spacing_m
@@ -150,21 +180,33 @@ class InspectionSim:
             await self.drive(lane_y + self.lane_spacing_m - float(self.robot.odom[1]))
             await self.rotate(turn)
             heading = np.pi if heading == 0.0 else 0.0
-        await self.link.send(MessageType.SESSION_END, {"reason": "route completed", "frames": self.result.frames_sent,
-                                                        "clouds": self.result.clouds_sent})
+        await self.link.send(
+            MessageType.SESSION_END,
+            {
+                "reason": "route completed",
+                "frames": self.result.frames_sent,
+                "clouds": self.result.clouds_sent,
+            },
+        )
         await self.link.flush(timeout_s=120)
         return self.result
 
     def _report(self, lanes_done: int) -> None:
         if self.progress is not None:
-            self.progress(lanes_done / self.cfg.lanes, f"lane {lanes_done}/{self.cfg.lanes}, {self.result.frames_sent} frames")
+            self.progress(
+                lanes_done / self.cfg.lanes,
+                f"lane {lanes_done}/{self.cfg.lanes}, {self.result.frames_sent} frames",
+            )
 
     async def drive_lane(self, lane_y: float, heading: float) -> None:
         """Follow the lane (odometry line following), capturing every spacing, to the edge."""
         since = 0.0
         while True:
-            action, out = edge_avoidance(self.robot.ir_ranges(self.structure.on_plate),
-                                         np.full(4, self.spec.ir_calibrated_m), self.cfg.ir_eps_m)
+            action, out = edge_avoidance(
+                self.robot.ir_ranges(self.structure.on_plate),
+                np.full(4, self.spec.ir_calibrated_m),
+                self.cfg.ir_eps_m,
+            )
             if action is EdgeAction.stop_and_wait or (out and set(out) <= {0, 1}):
                 # the front sensors reached the plate's end: stop; the route planner turns
                 self._edge_event(out)
@@ -204,7 +246,12 @@ class InspectionSim:
             if abs(err) < resolution:
                 return
             w = float(np.clip(err / self.cfg.dt_s, -self.cfg.turn_rate, self.cfg.turn_rate))
-            await self.step(0.0, w if abs(w) * self.cfg.dt_s >= resolution else np.sign(err) * resolution / self.cfg.dt_s)
+            await self.step(
+                0.0,
+                w
+                if abs(w) * self.cfg.dt_s >= resolution
+                else np.sign(err) * resolution / self.cfg.dt_s,
+            )
 
     async def step(self, v: float, w: float) -> None:
         """Advance the simulation by one time step, pacing to wall time and sending telemetry."""
@@ -235,22 +282,33 @@ class InspectionSim:
         """One telemetry sample: odometry, Hall wheel speeds/distances, IR, batteries, adhesion."""
         r = self.robot
         ranges = r.ir_ranges(self.structure.on_plate)
-        action, out = edge_avoidance(ranges, np.full(4, self.spec.ir_calibrated_m), self.cfg.ir_eps_m)
+        action, out = edge_avoidance(
+            ranges, np.full(4, self.spec.ir_calibrated_m), self.cfg.ir_eps_m
+        )
         meta = {
             "pose": {"x": float(r.odom[0]), "y": float(r.odom[1]), "yaw": float(r.odom[2])},
             "wheel_speed_mps": [round(float(v), 4) for v in r.wheel_speed],
-            "wheel_distance_m": [round(float(t * self.spec.metres_per_tick), 4) for t in r.wheel_ticks],
+            "wheel_distance_m": [
+                round(float(t * self.spec.metres_per_tick), 4) for t in r.wheel_ticks
+            ],
             "ir_range_m": [round(float(v), 4) for v in ranges],
             "ir_no_surface": [IR_NAMES[i] for i in out],
             "edge_action": action.value,
-            "battery_v": {"main": round(r.batteries.main_v, 3), "logic": round(r.batteries.logic_v, 3)},
+            "battery_v": {
+                "main": round(r.batteries.main_v, 3),
+                "logic": round(r.batteries.logic_v, 3),
+            },
             "inclination_deg": self.cfg.inclination_deg,
             "adhesion_margin": round(adhesion_margin(self.spec, self.cfg.inclination_deg), 3),
             "distance_m": round(r.distance_m, 4),
             "paused": self.paused,
-            "link": {"pending": self.link.pending, "resent": self.link.stats.resent,
-                     "ack_latency_ms": round(self.link.stats.last_ack_latency_s * 1000, 2),
-                     "reconnects": self.link.stats.reconnects, "video_dropped": self.link.stats.video_dropped},
+            "link": {
+                "pending": self.link.pending,
+                "resent": self.link.stats.resent,
+                "ack_latency_ms": round(self.link.stats.last_ack_latency_s * 1000, 2),
+                "reconnects": self.link.stats.reconnects,
+                "video_dropped": self.link.stats.video_dropped,
+            },
         }
         return meta
 
@@ -260,15 +318,28 @@ class InspectionSim:
         odom_pose = {"x": float(r.odom[0]), "y": float(r.odom[1]), "yaw": float(r.odom[2])}
         cam_true = self.camera.pose_in_world(r.pose)
         # rendered off the event loop: the link keeps reading commands meanwhile
-        image = await asyncio.to_thread(partial(self.camera.render, exact=True), self.structure, cam_true, self.rng)
-        await self.link.send(MessageType.FRAME, {"encoding": "jpeg", "width": self.camera.width,
-                                                  "height": self.camera.height, "pose": odom_pose}, self.camera.encode(image))
+        image = await asyncio.to_thread(
+            partial(self.camera.render, exact=True), self.structure, cam_true, self.rng
+        )
+        await self.link.send(
+            MessageType.FRAME,
+            {
+                "encoding": "jpeg",
+                "width": self.camera.width,
+                "height": self.camera.height,
+                "pose": odom_pose,
+            },
+            self.camera.encode(image),
+        )
         self.result.frames_sent += 1
         self.result.frame_poses_true.append([float(v) for v in cam_true])
         T_true = self.tof.T_world_tof(r.pose)
         depth = await asyncio.to_thread(self.tof.render, T_true, self.rng)
-        seq = await self.link.send(MessageType.CLOUD, {"encoding": "png16_depth_mm", **self.tof.intrinsics(), "pose": odom_pose},
-                                   encode_depth_png(depth))
+        seq = await self.link.send(
+            MessageType.CLOUD,
+            {"encoding": "png16_depth_mm", **self.tof.intrinsics(), "pose": odom_pose},
+            encode_depth_png(depth),
+        )
         self.result.clouds_sent += 1
         self.result.cloud_poses_true[seq] = T_true
         self.result.cloud_poses_odom[seq] = self.tof.T_world_tof(r.odom)

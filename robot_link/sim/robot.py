@@ -19,7 +19,12 @@ class RobotSpec:
     track_m: float = 0.20
     wheel_radius_m: float = 0.03
     magnets_per_wheel: int = 36  # paper §2.1; two Hall sensors per wheel, rising and falling edges
-    ir_corners_m: tuple[tuple[float, float], ...] = ((0.13, -0.09), (0.13, 0.09), (-0.13, -0.09), (-0.13, 0.09))
+    ir_corners_m: tuple[tuple[float, float], ...] = (
+        (0.13, -0.09),
+        (0.13, 0.09),
+        (-0.13, -0.09),
+        (-0.13, 0.09),
+    )
     ir_calibrated_m: float = 0.03
     ir_max_m: float = 0.5
     ir_noise_m: float = 0.001
@@ -49,7 +54,9 @@ class EdgeAction(enum.Enum):
 IR_NAMES = ("front_left", "front_right", "rear_left", "rear_right")
 
 
-def edge_avoidance(ranges_m: NDArray[np.floating], calibrated_m: NDArray[np.floating], eps_m: float) -> tuple[EdgeAction, list[int]]:
+def edge_avoidance(
+    ranges_m: NDArray[np.floating], calibrated_m: NDArray[np.floating], eps_m: float
+) -> tuple[EdgeAction, list[int]]:
     """Paper Algorithm 1: which IR sensors see no surface, and the action to take.
 
     One sensor out of ``[r_cal - eps, r_cal + eps]``: back off 5 cm and turn away from its
@@ -61,14 +68,18 @@ def edge_avoidance(ranges_m: NDArray[np.floating], calibrated_m: NDArray[np.floa
     if len(out) > 1:
         return EdgeAction.stop_and_wait, out
     # sensor on the right side (y > 0 in the robot frame: front_right, rear_right) -> turn left
-    return (EdgeAction.back_off_turn_left if out[0] in (1, 3) else EdgeAction.back_off_turn_right), out
+    return (
+        EdgeAction.back_off_turn_left if out[0] in (1, 3) else EdgeAction.back_off_turn_right
+    ), out
 
 
 def adhesion_margin(spec: RobotSpec, inclination_deg: float) -> float:
     """F_mag / max(P sin(a)/mu + P cos(a), 2 P d / L) of the paper's eq. (1); > 1 is safe."""
     a = np.radians(inclination_deg)
     P = spec.mass_kg * G
-    need = max(P * np.sin(a) / spec.friction + P * np.cos(a), 2 * P * spec.com_height_m / spec.wheelbase_m)
+    need = max(
+        P * np.sin(a) / spec.friction + P * np.cos(a), 2 * P * spec.com_height_m / spec.wheelbase_m
+    )
     return float(4 * spec.magnet_force_per_wheel_kg * G / need)
 
 
@@ -138,4 +149,6 @@ def _integrate(pose: NDArray[np.float64], d: float, dth: float) -> NDArray[np.fl
     """Midpoint integration of a planar move of ``d`` metres while turning ``dth`` rad."""
     x, y, th = pose
     mid = th + dth / 2
-    return np.array([x + d * np.cos(mid), y + d * np.sin(mid), (th + dth + np.pi) % (2 * np.pi) - np.pi])
+    return np.array(
+        [x + d * np.cos(mid), y + d * np.sin(mid), (th + dth + np.pi) % (2 * np.pi) - np.pi]
+    )

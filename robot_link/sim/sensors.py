@@ -44,8 +44,14 @@ class DownwardCamera:
         x, y, yaw = robot_pose
         return np.array([x + self.mount_x_m * np.cos(yaw), y + self.mount_x_m * np.sin(yaw), yaw])
 
-    def render(self, structure: SteelStructure, cam_pose: NDArray[np.floating], rng: np.random.Generator,
-               *, exact: bool = False) -> NDArray[np.uint8]:
+    def render(
+        self,
+        structure: SteelStructure,
+        cam_pose: NDArray[np.floating],
+        rng: np.random.Generator,
+        *,
+        exact: bool = False,
+    ) -> NDArray[np.uint8]:
         """BGR image of the surface under the camera at ``cam_pose`` (x, y, yaw); ``exact``:
         interpolated at the exact sub-pixel position (:func:`warp_affine_exact`, ~20 ms, for
         the frames that are stitched and scored), else by OpenCV (which rounds positions to
@@ -60,8 +66,14 @@ class DownwardCamera:
         if exact:
             img = warp_affine_exact(structure.texture, M, (self.width, self.height), border=25.0)
         else:
-            img = cv2.warpAffine(structure.texture, M, (self.width, self.height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                 borderMode=cv2.BORDER_CONSTANT, borderValue=(25, 25, 25))
+            img = cv2.warpAffine(
+                structure.texture,
+                M,
+                (self.width, self.height),
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=(25, 25, 25),
+            )
         gain = rng.uniform(*self.gain_range)
         yy, xx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float32)
         vignette = 1 - 0.15 * (((xx - cx) / cx) ** 2 + ((yy - cy) / cy) ** 2) / 2
@@ -77,7 +89,9 @@ class DownwardCamera:
         return buf.tobytes()
 
 
-def tof_mount(x_m: float = 0.15, height_m: float = 0.10, pitch_deg: float = 20.0) -> NDArray[np.float64]:
+def tof_mount(
+    x_m: float = 0.15, height_m: float = 0.10, pitch_deg: float = 20.0
+) -> NDArray[np.float64]:
     """T_robot_tof: ToF at the front, looking ahead and tilted ``pitch_deg`` down to the surface.
 
     Robot frame: x forward, y right, z down into the surface; sensor frame: x right,
@@ -110,13 +124,22 @@ class TofCamera:
         self._scene = o3d.t.geometry.RaycastingScene()
         self._scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(self.structure.mesh))
         u, v = np.meshgrid(np.arange(self.width), np.arange(self.height))
-        d = np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u, float)], -1).reshape(-1, 3)
+        d = np.stack(
+            [(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u, float)], -1
+        ).reshape(-1, 3)
         self._dir_norm = np.linalg.norm(d, axis=1)
         self._dirs = d / self._dir_norm[:, None]
 
     def intrinsics(self) -> dict[str, float]:
         """Pinhole parameters for the wire."""
-        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy}
+        return {
+            "width": self.width,
+            "height": self.height,
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+        }
 
     def T_world_tof(self, robot_pose: NDArray[np.floating]) -> NDArray[np.float64]:
         """Sensor pose in the world for a planar robot pose."""
@@ -126,7 +149,9 @@ class TofCamera:
         T[:2, 3] = (x, y)
         return T @ self.T_robot_tof
 
-    def render(self, T_world_tof: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float32]:
+    def render(
+        self, T_world_tof: NDArray[np.float64], rng: np.random.Generator
+    ) -> NDArray[np.float32]:
         """(H, W) depth image in metres (z along the optical axis), NaN where no return."""
         R, t = T_world_tof[:3, :3], T_world_tof[:3, 3]
         dirs = self._dirs @ R.T

@@ -49,7 +49,9 @@ class SteelStructure:
 
 
 def _noise(rng: np.random.Generator, shape: tuple[int, int], cell: int) -> NDArray[np.float32]:
-    small = rng.standard_normal((max(2, shape[0] // cell), max(2, shape[1] // cell))).astype(np.float32)
+    small = rng.standard_normal((max(2, shape[0] // cell), max(2, shape[1] // cell))).astype(
+        np.float32
+    )
     return cv2.resize(small, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
 
 
@@ -65,11 +67,20 @@ def paint_texture(rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[n
         d = rng.normal(size=2)
         d /= np.linalg.norm(d)
         q = p + d * rng.uniform(20, 120)
-        cv2.line(img, tuple(int(v) for v in p), tuple(int(v) for v in q), (150, 146, 140), 1, cv2.LINE_AA)
+        cv2.line(
+            img, tuple(int(v) for v in p), tuple(int(v) for v in q), (150, 146, 140), 1, cv2.LINE_AA
+        )
     return img
 
 
-def _draw_crack(rng: np.random.Generator, img: NDArray[np.float32], mask: NDArray[np.uint8], start: NDArray[np.float64], length_px: float, width_px: float) -> NDArray[np.bool_]:
+def _draw_crack(
+    rng: np.random.Generator,
+    img: NDArray[np.float32],
+    mask: NDArray[np.uint8],
+    start: NDArray[np.float64],
+    length_px: float,
+    width_px: float,
+) -> NDArray[np.bool_]:
     """Paint a dark meandering crack; returns the full-size mask of its pixels."""
     heading = rng.uniform(0, np.pi)
     pts = [start]
@@ -94,7 +105,13 @@ def _draw_crack(rng: np.random.Generator, img: NDArray[np.float32], mask: NDArra
     return mine
 
 
-def _draw_corrosion(rng: np.random.Generator, img: NDArray[np.float32], mask: NDArray[np.uint8], centre: NDArray[np.float64], radius_px: float) -> NDArray[np.bool_]:
+def _draw_corrosion(
+    rng: np.random.Generator,
+    img: NDArray[np.float32],
+    mask: NDArray[np.uint8],
+    centre: NDArray[np.float64],
+    radius_px: float,
+) -> NDArray[np.bool_]:
     """Paint a rust patch; returns the full-size mask of its pixels."""
     h, w = mask.shape
     r = int(radius_px * 1.6)
@@ -102,11 +119,15 @@ def _draw_corrosion(rng: np.random.Generator, img: NDArray[np.float32], mask: ND
     x1, y1 = int(min(w, centre[0] + r)), int(min(h, centre[1] + r))
     yy, xx = np.mgrid[y0:y1, x0:x1].astype(np.float32)
     ang = np.arctan2(yy - centre[1], xx - centre[0])
-    wobble = 1 + 0.25 * np.sin(3 * ang + rng.uniform(0, 6)) + 0.15 * np.sin(5 * ang + rng.uniform(0, 6))
+    wobble = (
+        1 + 0.25 * np.sin(3 * ang + rng.uniform(0, 6)) + 0.15 * np.sin(5 * ang + rng.uniform(0, 6))
+    )
     dist = np.hypot(xx - centre[0], yy - centre[1]) / (radius_px * wobble)
     blotch = _noise(rng, (y1 - y0, x1 - x0), 12)
     inside = dist + 0.15 * blotch < 1.0
-    rust = np.array([28, 62, 140], np.float32) + 18 * blotch[..., None] * np.array([0.5, 0.8, 1.0], np.float32)
+    rust = np.array([28, 62, 140], np.float32) + 18 * blotch[..., None] * np.array(
+        [0.5, 0.8, 1.0], np.float32
+    )
     region = img[y0:y1, x0:x1]
     region[inside] = rust[inside]
     mask[y0:y1, x0:x1][inside] = 255
@@ -115,12 +136,16 @@ def _draw_corrosion(rng: np.random.Generator, img: NDArray[np.float32], mask: ND
     return mine
 
 
-def _box(x0: float, x1: float, y0: float, y1: float, z0: float, z1: float) -> o3d.geometry.TriangleMesh:
+def _box(
+    x0: float, x1: float, y0: float, y1: float, z0: float, z1: float
+) -> o3d.geometry.TriangleMesh:
     box = o3d.geometry.TriangleMesh.create_box(x1 - x0, y1 - y0, z1 - z0)
     return box.translate((x0, y0, z0))
 
 
-def _geometry(plate_w: float, plate_h: float, girder_overhang_m: float = 0.0, stiffener_spacing_m: float = 0.5) -> o3d.geometry.TriangleMesh:
+def _geometry(
+    plate_w: float, plate_h: float, girder_overhang_m: float = 0.0, stiffener_spacing_m: float = 0.5
+) -> o3d.geometry.TriangleMesh:
     """Plate, I-girder (web, top flange, stiffeners, bolts) and an edge angle, as one mesh;
     the girder extends ``girder_overhang_m`` beyond both ends of the plate, a stiffener every
     ``stiffener_spacing_m`` (one at x = 0.55)."""
@@ -129,13 +154,19 @@ def _geometry(plate_w: float, plate_h: float, girder_overhang_m: float = 0.0, st
     mesh += _box(x0, x1, plate_h, plate_h + 0.012, -0.5, 0.0)  # girder web
     mesh += _box(x0, x1, plate_h - 0.09, plate_h + 0.1, -0.512, -0.5)  # top flange
     first = 0.55 - stiffener_spacing_m * np.floor((0.55 - x0) / stiffener_spacing_m)
-    for sx in np.arange(first, x1 - 0.006, stiffener_spacing_m):  # transverse stiffeners welded to the web
+    for sx in np.arange(
+        first, x1 - 0.006, stiffener_spacing_m
+    ):  # transverse stiffeners welded to the web
         mesh += _box(sx - 0.006, sx + 0.006, plate_h - 0.12, plate_h, -0.45, 0.0)
     mesh += _box(0, plate_w, -0.01, 0.0, -0.08, 0.0)  # edge angle along y = 0
     for bx in np.arange(x0 + 0.08, x1, 0.16):  # bolt heads on the web
         for bz in (-0.12, -0.3):
-            bolt = o3d.geometry.TriangleMesh.create_cylinder(radius=0.012, height=0.02, resolution=10)
-            bolt.rotate(o3d.geometry.get_rotation_matrix_from_xyz((np.pi / 2, 0, 0)), center=(0, 0, 0))
+            bolt = o3d.geometry.TriangleMesh.create_cylinder(
+                radius=0.012, height=0.02, resolution=10
+            )
+            bolt.rotate(
+                o3d.geometry.get_rotation_matrix_from_xyz((np.pi / 2, 0, 0)), center=(0, 0, 0)
+            )
             mesh += bolt.translate((bx, plate_h - 0.01, bz))
     mesh.compute_vertex_normals()
     return mesh
@@ -182,7 +213,9 @@ def make_structure(
         c = free_spot(0.15)
         radius = rng.uniform(0.02, 0.035)
         mine = _draw_corrosion(rng, img, rust, c / m_per_px, radius / m_per_px)
-        defects.append(_true_defect(len(defects) + 1, "corrosion", mine, m_per_px, 2 * radius, 2 * radius))
+        defects.append(
+            _true_defect(len(defects) + 1, "corrosion", mine, m_per_px, 2 * radius, 2 * radius)
+        )
     for _ in range(n_cracks):
         c = free_spot(0.12)
         length = rng.uniform(0.04, 0.10)
@@ -190,11 +223,27 @@ def make_structure(
         mine = _draw_crack(rng, img, crack, c / m_per_px, length / m_per_px, width / m_per_px)
         defects.append(_true_defect(len(defects) + 1, "crack", mine, m_per_px, length, width))
     texture = np.clip(img, 0, 255).astype(np.uint8)
-    return SteelStructure(plate_size_m, m_per_px, texture, crack > 0, rust > 0, defects,
-                          _geometry(*plate_size_m, girder_overhang_m, stiffener_spacing_m))
+    return SteelStructure(
+        plate_size_m,
+        m_per_px,
+        texture,
+        crack > 0,
+        rust > 0,
+        defects,
+        _geometry(*plate_size_m, girder_overhang_m, stiffener_spacing_m),
+    )
 
 
-def _true_defect(i: int, cls: str, pixels: NDArray[np.bool_], m_per_px: float, length: float, width: float) -> TrueDefect:
+def _true_defect(
+    i: int, cls: str, pixels: NDArray[np.bool_], m_per_px: float, length: float, width: float
+) -> TrueDefect:
     ys, xs = np.nonzero(pixels)
-    bbox = (xs.min() * m_per_px, ys.min() * m_per_px, (xs.max() - xs.min() + 1) * m_per_px, (ys.max() - ys.min() + 1) * m_per_px)
-    return TrueDefect(i, cls, tuple(round(float(v), 5) for v in bbox), round(length, 4), round(width, 5))  # type: ignore[arg-type]
+    bbox = (
+        xs.min() * m_per_px,
+        ys.min() * m_per_px,
+        (xs.max() - xs.min() + 1) * m_per_px,
+        (ys.max() - ys.min() + 1) * m_per_px,
+    )
+    return TrueDefect(
+        i, cls, tuple(round(float(v), 5) for v in bbox), round(length, 4), round(width, 5)
+    )  # type: ignore[arg-type]

@@ -57,7 +57,9 @@ class Sweep:
     gains: NDArray[np.float64]  # the exposure gain of each frame
 
 
-def texture_from_images(images: Sequence[NDArray[np.uint8]], columns: int, cell: tuple[int, int] = (544, 384)) -> NDArray[np.uint8]:
+def texture_from_images(
+    images: Sequence[NDArray[np.uint8]], columns: int, cell: tuple[int, int] = (544, 384)
+) -> NDArray[np.uint8]:
     """A large BGR texture from real photographs laid side by side in a grid (each image
     resized to ``cell`` (w, h)); each image appears once, so nothing repeats."""
     if not images:
@@ -67,7 +69,9 @@ def texture_from_images(images: Sequence[NDArray[np.uint8]], columns: int, cell:
     for k, img in enumerate(images):
         img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img
         r, c = divmod(k, columns)
-        out[r * cell[1] : (r + 1) * cell[1], c * cell[0] : (c + 1) * cell[0]] = cv2.resize(img, cell, interpolation=cv2.INTER_AREA)
+        out[r * cell[1] : (r + 1) * cell[1], c * cell[0] : (c + 1) * cell[0]] = cv2.resize(
+            img, cell, interpolation=cv2.INTER_AREA
+        )
     return out
 
 
@@ -94,11 +98,15 @@ def sweep_poses(cfg: SweepConfig, rng: np.random.Generator) -> NDArray[np.float6
         x = (per_lane - 1 - i if back else i) * step_x
         y = lane * step_y
         heading = np.pi if back and cfg.turn_lanes else 0.0
-        poses.append((x + rng.normal(0, 2), y + rng.normal(0, 2), heading + rng.uniform(-jitter, jitter)))
+        poses.append(
+            (x + rng.normal(0, 2), y + rng.normal(0, 2), heading + rng.uniform(-jitter, jitter))
+        )
     return np.array(poses, float)
 
 
-def drifting_odometry(truth: NDArray[np.float64], cfg: SweepConfig, rng: np.random.Generator) -> NDArray[np.float64]:
+def drifting_odometry(
+    truth: NDArray[np.float64], cfg: SweepConfig, rng: np.random.Generator
+) -> NDArray[np.float64]:
     """Odometry guess: each true step (in the robot's frame) with a random error, integrated
     from the first pose, so heading errors accumulate into position drift as on a robot."""
     from processing.poses import compose_se2, relative_se2
@@ -113,8 +121,13 @@ def drifting_odometry(truth: NDArray[np.float64], cfg: SweepConfig, rng: np.rand
     return np.array(odo)
 
 
-def render_frame(texture: NDArray[np.uint8], pose: NDArray[np.floating], cfg: SweepConfig, rng: np.random.Generator,
-                 gain: float | None = None) -> bytes:
+def render_frame(
+    texture: NDArray[np.uint8],
+    pose: NDArray[np.floating],
+    cfg: SweepConfig,
+    rng: np.random.Generator,
+    gain: float | None = None,
+) -> bytes:
     """One camera frame (JPEG) centred at ``pose`` (frame pixels) on the texture, with an
     exposure ``gain`` (drawn from ``cfg.gain`` when None)."""
     w, h = cfg.frame_size
@@ -123,10 +136,16 @@ def render_frame(texture: NDArray[np.uint8], pose: NDArray[np.floating], cfg: Sw
     R = cfg.scale * np.array([[c, -s], [s, c]])
     centre = cfg.scale * np.asarray(pose[:2]) + _margin(cfg)
     M = np.hstack([R, (centre - R @ half)[:, None]])  # frame pixel -> texture pixel
-    img = warp_affine_exact(texture, M, (w, h))  # not cv2.warpAffine: it rounds positions to 1/32 px
+    img = warp_affine_exact(
+        texture, M, (w, h)
+    )  # not cv2.warpAffine: it rounds positions to 1/32 px
     gain = rng.uniform(*cfg.gain) if gain is None else gain
     img = img * np.float32(gain) + rng.normal(0, cfg.noise_sigma, img.shape).astype(np.float32)
-    ok, buf = cv2.imencode(".jpg", np.clip(img + 0.5, 0, 255).astype(np.uint8), [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
+    ok, buf = cv2.imencode(
+        ".jpg",
+        np.clip(img + 0.5, 0, 255).astype(np.uint8),
+        [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality],
+    )
     if not ok:
         raise RuntimeError("JPEG encoding failed")
     return buf.tobytes()
@@ -153,7 +172,9 @@ def make_sweep(texture: NDArray[np.uint8], cfg: SweepConfig = SweepConfig()) -> 
     """Drive a sweep over ``texture`` (large enough: see :func:`texture_size_for`)."""
     need = texture_size_for(cfg)
     if texture.shape[1] < need[0] or texture.shape[0] < need[1]:
-        raise ValueError(f"texture {texture.shape[1]}x{texture.shape[0]} is smaller than the sweep needs ({need[0]}x{need[1]})")
+        raise ValueError(
+            f"texture {texture.shape[1]}x{texture.shape[0]} is smaller than the sweep needs ({need[0]}x{need[1]})"
+        )
     rng = np.random.default_rng(cfg.seed)
     truth = sweep_poses(cfg, rng)
     gains = rng.uniform(*cfg.gain, size=len(truth))
@@ -188,7 +209,9 @@ class TiledSurface:
             for tx in range(x0 // t, (x0 + w - 1) // t + 1):
                 sx0, sy0 = max(x0, tx * t), max(y0, ty * t)
                 sx1, sy1 = min(x0 + w, (tx + 1) * t), min(y0 + h, (ty + 1) * t)
-                out[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = self._tile(tx, ty)[sy0 - ty * t : sy1 - ty * t, sx0 - tx * t : sx1 - tx * t]
+                out[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = self._tile(tx, ty)[
+                    sy0 - ty * t : sy1 - ty * t, sx0 - tx * t : sx1 - tx * t
+                ]
         return out
 
 
@@ -213,7 +236,13 @@ class LazySweep:
         centre = cfg.scale * self.truth[k, :2] + _margin(cfg)
         x0, y0 = int(centre[0]) - reach, int(centre[1]) - reach
         patch = self.surface.patch(x0, y0, 2 * reach, 2 * reach)
-        pose = np.array([(centre[0] - x0 - _margin(cfg)[0]) / cfg.scale, (centre[1] - y0 - _margin(cfg)[1]) / cfg.scale, self.truth[k, 2]])
+        pose = np.array(
+            [
+                (centre[0] - x0 - _margin(cfg)[0]) / cfg.scale,
+                (centre[1] - y0 - _margin(cfg)[1]) / cfg.scale,
+                self.truth[k, 2],
+            ]
+        )
         rng = np.random.default_rng([cfg.seed, k])
         jpeg = render_frame(patch, pose, cfg, rng)
         return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)

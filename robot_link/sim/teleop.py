@@ -22,7 +22,9 @@ from robot_link.sim.inspection import InspectionSim, SimConfig
 from robot_link.sim.robot import edge_avoidance
 
 FRONT, REAR = {0, 1}, {2, 3}  # IR sensor indices (IR_NAMES order)
-TELEOP_SIM = SimConfig(time_scale=1.0, dt_s=0.02, telemetry_hz=10.0)  # real time, 50 Hz control loop
+TELEOP_SIM = SimConfig(
+    time_scale=1.0, dt_s=0.02, telemetry_hz=10.0
+)  # real time, 50 Hz control loop
 
 
 @dataclass(frozen=True)
@@ -42,8 +44,12 @@ class TeleopConfig:
 class TeleopLog:
     """What the robot measured of its operator: for the teleop benchmark and tests."""
 
-    command_latency_ms: list[float] = field(default_factory=list)  # sent (operator clock) -> received
-    key_latency_ms: list[float] = field(default_factory=list)  # key pressed in the browser -> its drive command received
+    command_latency_ms: list[float] = field(
+        default_factory=list
+    )  # sent (operator clock) -> received
+    key_latency_ms: list[float] = field(
+        default_factory=list
+    )  # key pressed in the browser -> its drive command received
     deadman_stops_ms: list[float] = field(default_factory=list)  # last drive received -> standstill
     drive_commands: int = 0
     video_sent: int = 0
@@ -53,7 +59,13 @@ class TeleopLog:
 class TeleopSim(InspectionSim):
     """A robot the operator drives."""
 
-    def __init__(self, link: RobotLink, config: SimConfig = TELEOP_SIM, teleop: TeleopConfig = TeleopConfig(), **kwargs: Any) -> None:
+    def __init__(
+        self,
+        link: RobotLink,
+        config: SimConfig = TELEOP_SIM,
+        teleop: TeleopConfig = TeleopConfig(),
+        **kwargs: Any,
+    ) -> None:
         super().__init__(link, config, **kwargs)
         self.teleop = teleop
         self.v = self.w = 0.0
@@ -63,7 +75,9 @@ class TeleopSim(InspectionSim):
         self.auto_capture = teleop.auto_capture
         self.end_requested = False
         self.log = TeleopLog()
-        self.video_rng = np.random.default_rng(config.seed + 99)  # the video renders in its own thread
+        self.video_rng = np.random.default_rng(
+            config.seed + 99
+        )  # the video renders in its own thread
         link.on_link_change = self._on_link_change
 
     def _on_link_change(self, up: bool) -> None:
@@ -81,9 +95,19 @@ class TeleopSim(InspectionSim):
         reason = self._apply(str(cmd), args)
         if reason:
             self.log.refused.append(f"{cmd}: {reason}")
-        ack = {"cmd": cmd, "accepted": not reason, "reason": reason,
-               "latency_ms": round(self.log.command_latency_ms[-1], 2) if "sent_ms" in args and self.log.command_latency_ms else None}
-        await self.link.notify(MessageType.COMMAND_ACK, {k: v for k, v in ack.items() if v is not None}, seq=message.seq)
+        ack = {
+            "cmd": cmd,
+            "accepted": not reason,
+            "reason": reason,
+            "latency_ms": round(self.log.command_latency_ms[-1], 2)
+            if "sent_ms" in args and self.log.command_latency_ms
+            else None,
+        }
+        await self.link.notify(
+            MessageType.COMMAND_ACK,
+            {k: v for k, v in ack.items() if v is not None},
+            seq=message.seq,
+        )
 
     def _apply(self, cmd: str, args: dict[str, Any]) -> str:
         """Carry out one command; the reason it was refused, or ''."""
@@ -130,14 +154,21 @@ class TeleopSim(InspectionSim):
         """The inspection telemetry plus the drive state (speed, dead-man, lift, capture)."""
         meta = super().telemetry_meta()
         held = (time.monotonic() - self.last_drive) * 1000 if np.isfinite(self.last_drive) else None
-        meta.update({
-            "mode": "teleop",
-            "drive": {"linear_mps": round(self.v, 4), "angular_radps": round(self.w, 4),
-                      "last_command_ms": round(held, 1) if held is not None else None, "hold_ms": self.teleop.hold_s * 1000},
-            "estop": self.estopped, "lift": dict(self.lift),
-            "auto_capture": {"on": self.auto_capture, "spacing_m": round(self.spacing_m, 4)},
-            "frames": self.result.frames_sent,
-        })
+        meta.update(
+            {
+                "mode": "teleop",
+                "drive": {
+                    "linear_mps": round(self.v, 4),
+                    "angular_radps": round(self.w, 4),
+                    "last_command_ms": round(held, 1) if held is not None else None,
+                    "hold_ms": self.teleop.hold_s * 1000,
+                },
+                "estop": self.estopped,
+                "lift": dict(self.lift),
+                "auto_capture": {"on": self.auto_capture, "spacing_m": round(self.spacing_m, 4)},
+                "frames": self.result.frames_sent,
+            }
+        )
         return meta
 
     def _deadman(self) -> None:
@@ -149,7 +180,11 @@ class TeleopSim(InspectionSim):
     def _edge_guard(self) -> tuple[float, float]:
         """The commanded motion, without driving off the plate (the paper's Algorithm 1): no
         forward motion when a front IR sensor sees no surface, no reverse at the rear."""
-        _, out = edge_avoidance(self.robot.ir_ranges(self.structure.on_plate), np.full(4, self.spec.ir_calibrated_m), self.cfg.ir_eps_m)
+        _, out = edge_avoidance(
+            self.robot.ir_ranges(self.structure.on_plate),
+            np.full(4, self.spec.ir_calibrated_m),
+            self.cfg.ir_eps_m,
+        )
         v = self.v
         if (v > 0 and FRONT & set(out)) or (v < 0 and REAR & set(out)):
             self._edge_event(out)
@@ -161,10 +196,14 @@ class TeleopSim(InspectionSim):
         period = 1.0 / self.teleop.video_fps
         while not self.end_requested:
             t0 = time.monotonic()
-            captured = time.time()  # the exposure: latency is measured from here, rendering included
+            captured = (
+                time.time()
+            )  # the exposure: latency is measured from here, rendering included
             cam = self.camera.pose_in_world(self.robot.pose.copy())
             image = await asyncio.to_thread(self.camera.render, self.structure, cam, self.video_rng)
-            ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.teleop.video_quality])
+            ok, buf = cv2.imencode(
+                ".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.teleop.video_quality]
+            )
             meta = {"encoding": "jpeg", "width": image.shape[1], "height": image.shape[0]}
             if ok and await self.link.send_video(meta, buf.tobytes(), timestamp=captured):
                 self.log.video_sent += 1
@@ -174,13 +213,22 @@ class TeleopSim(InspectionSim):
         """Drive as commanded until ``end_session`` (or the configured duration), then end the
         session and wait until the station acknowledged everything."""
         self._wall0 = time.monotonic()
-        await self.link.send(MessageType.SESSION_START, {"structure": self.cfg.structure, "operator": self.cfg.operator,
-                                                          "location": self.cfg.location, "robot": "sim-teleop",
-                                                          "calibration": self.calibration()})
+        await self.link.send(
+            MessageType.SESSION_START,
+            {
+                "structure": self.cfg.structure,
+                "operator": self.cfg.operator,
+                "location": self.cfg.location,
+                "robot": "sim-teleop",
+                "calibration": self.calibration(),
+            },
+        )
         video = asyncio.create_task(self._video())
         since = 0.0
         try:
-            while not self.end_requested and (self.teleop.duration_s is None or self._sim_t < self.teleop.duration_s):
+            while not self.end_requested and (
+                self.teleop.duration_s is None or self._sim_t < self.teleop.duration_s
+            ):
                 self._deadman()
                 before = self.robot.odom.copy()
                 await self.step(*self._edge_guard())
@@ -191,8 +239,14 @@ class TeleopSim(InspectionSim):
         finally:
             self.end_requested = True
             await asyncio.gather(video, return_exceptions=True)
-        await self.link.send(MessageType.SESSION_END, {"reason": "operator ended the session", "frames": self.result.frames_sent,
-                                                        "clouds": self.result.clouds_sent})
+        await self.link.send(
+            MessageType.SESSION_END,
+            {
+                "reason": "operator ended the session",
+                "frames": self.result.frames_sent,
+                "clouds": self.result.clouds_sent,
+            },
+        )
         await self.link.flush(timeout_s=120)
         return self.result
 
@@ -211,8 +265,15 @@ class TeleopRobot:
         self.thread.join(timeout=timeout_s)
 
 
-def start_teleop_robot(server_url: str, token: str, *, seed: int = 5, duration_s: float | None = None,
-                       video_fps: float = 10.0, timeout_s: float = 30) -> TeleopRobot:
+def start_teleop_robot(
+    server_url: str,
+    token: str,
+    *,
+    seed: int = 5,
+    duration_s: float | None = None,
+    video_fps: float = 10.0,
+    timeout_s: float = 30,
+) -> TeleopRobot:
     """Connect a teleoperated simulated robot to a ground station from a background thread."""
     import threading
 
@@ -222,8 +283,11 @@ def start_teleop_robot(server_url: str, token: str, *, seed: int = 5, duration_s
     def run() -> None:
         async def main() -> None:
             link = RobotLink(server_url, token)
-            sim = TeleopSim(link, SimConfig(seed=seed, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0),
-                            TeleopConfig(duration_s=duration_s, video_fps=video_fps))
+            sim = TeleopSim(
+                link,
+                SimConfig(seed=seed, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0),
+                TeleopConfig(duration_s=duration_s, video_fps=video_fps),
+            )
             holder.update(sim=sim, sid=str(link.session_id))
             await link.start()
             ready.set()

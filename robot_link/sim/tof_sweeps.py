@@ -30,10 +30,16 @@ class TofSweepConfig:
     step_m: float = 0.04
     revisit: bool = True  # turn back to the start at the end
     noise_sigma_m: float = 0.01
-    odometry_distance_sigma: float = 0.03  # relative error of the distance of a step_m step (a random walk in distance)
-    odometry_yaw_sigma_deg: float = 0.6  # heading error per step_m driven (a random walk in distance)
+    odometry_distance_sigma: float = (
+        0.03  # relative error of the distance of a step_m step (a random walk in distance)
+    )
+    odometry_yaw_sigma_deg: float = (
+        0.6  # heading error per step_m driven (a random walk in distance)
+    )
     girder_overhang_m: float = 1.6  # the girder beyond the plate's ends (0: it ends with the plate)
-    turn_step_deg: float = 5.0  # in turns, a cloud every this many degrees of heading too (0: by distance only)
+    turn_step_deg: float = (
+        5.0  # in turns, a cloud every this many degrees of heading too (0: by distance only)
+    )
     seed: int = 0
 
 
@@ -64,7 +70,11 @@ def route(cfg: TofSweepConfig) -> NDArray[np.float64]:
         if k + 1 < len(ys):
             y_next = ys[k + 1]
             r = abs(y_next - y) / 2
-            arc_step = cfg.step_m if cfg.turn_step_deg <= 0 else min(cfg.step_m, r * np.radians(cfg.turn_step_deg))
+            arc_step = (
+                cfg.step_m
+                if cfg.turn_step_deg <= 0
+                else min(cfg.step_m, r * np.radians(cfg.turn_step_deg))
+            )
             arc = np.arange(0, np.pi * r, arc_step) / r
             side = 1.0 if y_next > y else -1.0
             turn = side if forward else -side  # turn towards the next lane
@@ -79,7 +89,9 @@ def route(cfg: TofSweepConfig) -> NDArray[np.float64]:
     return poses
 
 
-def drifting_odometry(robot: NDArray[np.float64], cfg: TofSweepConfig, rng: np.random.Generator) -> NDArray[np.float64]:
+def drifting_odometry(
+    robot: NDArray[np.float64], cfg: TofSweepConfig, rng: np.random.Generator
+) -> NDArray[np.float64]:
     """Wheel odometry: each true step (in the robot's frame) with errors, integrated. The
     errors are random walks in the distance driven (a step of ``step_m`` gets the configured
     sigmas), so sampling the route more finely does not add odometry error."""
@@ -89,21 +101,32 @@ def drifting_odometry(robot: NDArray[np.float64], cfg: TofSweepConfig, rng: np.r
         step = np.linalg.inv(se2_matrix(*robot[k - 1])) @ se2_matrix(*robot[k])
         share = max(float(np.linalg.norm(step[:2, 2])), 1e-9) / cfg.step_m
         d = step[:2, 2] * (1 + rng.normal(0, cfg.odometry_distance_sigma) / np.sqrt(share))
-        dyaw = np.arctan2(step[1, 0], step[0, 0]) + rng.normal(0, np.radians(cfg.odometry_yaw_sigma_deg)) * np.sqrt(share)
+        dyaw = np.arctan2(step[1, 0], step[0, 0]) + rng.normal(
+            0, np.radians(cfg.odometry_yaw_sigma_deg)
+        ) * np.sqrt(share)
         noisy = se2_matrix(d[0], d[1], dyaw)
         T = T @ noisy
         out.append(se2_of_matrix(T))
     return np.array(out)
 
 
-def tof_sweep(cfg: TofSweepConfig = TofSweepConfig(), structure: SteelStructure | None = None) -> TofSweep:
+def tof_sweep(
+    cfg: TofSweepConfig = TofSweepConfig(), structure: SteelStructure | None = None
+) -> TofSweep:
     """Drive the route and record what the ToF camera sees."""
     rng = np.random.default_rng(cfg.seed)
-    structure = structure or make_structure(cfg.seed, n_cracks=1, n_corrosion=1, girder_overhang_m=cfg.girder_overhang_m)
+    structure = structure or make_structure(
+        cfg.seed, n_cracks=1, n_corrosion=1, girder_overhang_m=cfg.girder_overhang_m
+    )
     tof = TofCamera(structure, noise_sigma_m=cfg.noise_sigma_m)
     robot = route(cfg)
     odo = drifting_odometry(robot, cfg, rng)
     truth = np.array([tof.T_world_tof(p) for p in robot])
-    clouds = [depth_to_points(tof.render(T, rng), tof.fx, tof.fy, tof.cx, tof.cy).astype(np.float32) for T in truth]
+    clouds = [
+        depth_to_points(tof.render(T, rng), tof.fx, tof.fy, tof.cx, tof.cy).astype(np.float32)
+        for T in truth
+    ]
     length = float(np.sum(np.linalg.norm(np.diff(robot[:, :2], axis=0), axis=1)))
-    return TofSweep(clouds, truth, np.array([tof.T_world_tof(p) for p in odo]), length, tof.intrinsics())
+    return TofSweep(
+        clouds, truth, np.array([tof.T_world_tof(p) for p in odo]), length, tof.intrinsics()
+    )

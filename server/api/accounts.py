@@ -42,7 +42,9 @@ def accounts_exist(db: Session) -> bool:
     return (db.scalar(select(func.count()).select_from(User)) or 0) > 0
 
 
-def issue_token(factory: sessionmaker[Session], name: str, password: str) -> tuple[str, User] | None:
+def issue_token(
+    factory: sessionmaker[Session], name: str, password: str
+) -> tuple[str, User] | None:
     """A new bearer token for a correct name and password, else None."""
     with factory() as db:
         user = db.scalar(select(User).where(User.name == name))
@@ -56,7 +58,11 @@ def issue_token(factory: sessionmaker[Session], name: str, password: str) -> tup
         token = secrets.token_urlsafe(32)
         now = utcnow()
         db.execute(delete(AuthToken).where(AuthToken.expires_at < now))
-        db.add(AuthToken(token_hash=hash_token(token), user_id=user.id, expires_at=now + TOKEN_LIFETIME))
+        db.add(
+            AuthToken(
+                token_hash=hash_token(token), user_id=user.id, expires_at=now + TOKEN_LIFETIME
+            )
+        )
         db.commit()
         return token, user
 
@@ -68,7 +74,9 @@ def user_for_token(db: Session, token: str | None) -> User | None:
     row = db.get(AuthToken, hash_token(token))
     if row is None:
         return None
-    expires = row.expires_at if row.expires_at.tzinfo else row.expires_at.replace(tzinfo=utcnow().tzinfo)
+    expires = (
+        row.expires_at if row.expires_at.tzinfo else row.expires_at.replace(tzinfo=utcnow().tzinfo)
+    )
     if expires < utcnow():
         return None
     return db.get(User, row.user_id)
@@ -84,7 +92,9 @@ class LoginThrottle:
     ``window_s`` until the oldest of them is that old (password guessing, not typing slips).
     Bounded: at most ``max_keys`` pairs are remembered."""
 
-    def __init__(self, max_failures: int = 5, window_s: float = 60.0, max_keys: int = 10_000) -> None:
+    def __init__(
+        self, max_failures: int = 5, window_s: float = 60.0, max_keys: int = 10_000
+    ) -> None:
         self.max_failures = max_failures
         self.window_s = window_s
         self.max_keys = max_keys
@@ -108,8 +118,12 @@ class LoginThrottle:
         """Count a wrong password."""
         now = time.monotonic()
         with self._lock:
-            if len(self._failures) >= self.max_keys:  # forget the pairs whose failures are all old, then the oldest pairs
-                self._failures = {k: v for k, v in self._failures.items() if v and now - v[-1] <= self.window_s}
+            if (
+                len(self._failures) >= self.max_keys
+            ):  # forget the pairs whose failures are all old, then the oldest pairs
+                self._failures = {
+                    k: v for k, v in self._failures.items() if v and now - v[-1] <= self.window_s
+                }
                 for key in list(self._failures)[: max(0, len(self._failures) - self.max_keys + 1)]:
                     del self._failures[key]
             self._failures.setdefault((client, name), deque(maxlen=self.max_failures)).append(now)

@@ -52,7 +52,11 @@ def get_current_user(db: SessionDep, token: Annotated[str | None, Depends(oauth2
         return ANONYMOUS
     user = user_for_token(db, token)
     if user is None:
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "a valid bearer token is required", headers={"WWW-Authenticate": "Bearer"})
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            "a valid bearer token is required",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
     return user
 
 
@@ -64,7 +68,10 @@ def require(role: Role) -> Callable[[User], User]:
 
     def check(user: CurrentUser) -> User:
         if not has_role(user, role):
-            raise HTTPException(status.HTTP_403_FORBIDDEN, f"this needs the {role.value} role; you are {user.role.value}")
+            raise HTTPException(
+                status.HTTP_403_FORBIDDEN,
+                f"this needs the {role.value} role; you are {user.role.value}",
+            )
         return user
 
     return check

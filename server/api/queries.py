@@ -16,13 +16,28 @@ from server.storage.models import Cloud, Defect, Frame, InspectionSession, Job, 
 MAX_INT = 2**63 - 1  # SQLite's largest integer: a bigger id cannot exist
 Seq = Annotated[int, Path(ge=0, le=MAX_INT)]
 DefectId = Annotated[int, Path(ge=1, le=MAX_INT)]
-DEFECT_SORT_KEYS = ("id", "defect_class", "source", "length_mm", "max_width_mm", "area_mm2", "area_px", "length_px",
-                    "world_x_m", "world_y_m", "review_status", "condition_state")
+DEFECT_SORT_KEYS = (
+    "id",
+    "defect_class",
+    "source",
+    "length_mm",
+    "max_width_mm",
+    "area_mm2",
+    "area_px",
+    "length_px",
+    "world_x_m",
+    "world_y_m",
+    "review_status",
+    "condition_state",
+)
 
 
 def count_rows(db: Session, model: Any, session_id: str) -> int:
     """Rows of ``model`` (a table with ``session_id``) in one session."""
-    return db.scalar(select(func.count()).select_from(model).where(model.session_id == session_id)) or 0
+    return (
+        db.scalar(select(func.count()).select_from(model).where(model.session_id == session_id))
+        or 0
+    )
 
 
 def count_query(db: Session, q: Select[Any]) -> int:
@@ -86,8 +101,15 @@ def read_payload(files: SessionFiles, row: Frame | Cloud, what: str) -> bytes:
         raise NotFound(f"the data of {what} cannot be read: {exc}") from None
 
 
-def defects_query(session_id: str, *, defect_class: str | None = None, source: str | None = None,
-                  review_status: str | None = None, condition_state: str | None = None, sort: str = "id") -> Select[Any]:
+def defects_query(
+    session_id: str,
+    *,
+    defect_class: str | None = None,
+    source: str | None = None,
+    review_status: str | None = None,
+    condition_state: str | None = None,
+    sort: str = "id",
+) -> Select[Any]:
     """SELECT of a session's defects with the list's filters and order (nulls last)."""
     q = select(Defect).where(Defect.session_id == session_id)
     if defect_class:

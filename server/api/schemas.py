@@ -148,7 +148,9 @@ class DefectReview(BaseModel):
     model_config = ConfigDict(extra="forbid")
     review_status: ReviewStatus | None = None
     condition_state: ConditionState | None = None
-    clear_condition_state: bool = Field(default=False, description="set the condition state back to none")
+    clear_condition_state: bool = Field(
+        default=False, description="set the condition state back to none"
+    )
     comment: str | None = Field(default=None, max_length=2000)
 
 

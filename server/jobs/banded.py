@@ -58,22 +58,37 @@ def _rows(path: Path, bands: int, rows: int) -> Iterator[NDArray[np.uint8]]:
         img = img.extract_band(0, n=bands)
     for y in range(0, img.height, rows):
         h = min(rows, img.height - y)
-        block = np.ndarray(buffer=img.crop(0, y, img.width, h).write_to_memory(), dtype=np.uint8,
-                           shape=(h, img.width, img.bands))
-        yield cv2.cvtColor(block, cv2.COLOR_RGB2BGR) if bands == 3 else block[..., 0]  # OpenCV's channel order
+        block = np.ndarray(
+            buffer=img.crop(0, y, img.width, h).write_to_memory(),
+            dtype=np.uint8,
+            shape=(h, img.width, img.bands),
+        )
+        yield (
+            cv2.cvtColor(block, cv2.COLOR_RGB2BGR) if bands == 3 else block[..., 0]
+        )  # OpenCV's channel order
 
 
 BUDGET_BYTES = 768 * 2**20  # a band's working set, context rows included
 BYTES_PER_PX = 96  # measured: the detectors' intermediates per pixel of a band
 
 
-def band_rows(width: int, overlap: int, budget_bytes: int = BUDGET_BYTES, per_px: int = BYTES_PER_PX) -> int:
+def band_rows(
+    width: int, overlap: int, budget_bytes: int = BUDGET_BYTES, per_px: int = BYTES_PER_PX
+) -> int:
     """Core rows per band so that a band with its context rows fits the memory budget."""
     return int(max(128, budget_bytes // max(1, width * per_px) - 2 * overlap))
 
 
-def detect_banded(results: Path, masks: Masks, mm_per_px: float | None, level: float, *, rows: int | None = None,
-                  overlap: int = 64, progress: Callable[[float, str], None] = lambda f, m: None) -> list[Defect]:
+def detect_banded(
+    results: Path,
+    masks: Masks,
+    mm_per_px: float | None,
+    level: float,
+    *,
+    rows: int | None = None,
+    overlap: int = 64,
+    progress: Callable[[float, str], None] = lambda f, m: None,
+) -> list[Defect]:
     """Cracks and corrosion of ``results/mosaic.png`` (with its coverage and seams), band by
     band; writes the two mask PNGs and returns the measured defects (mosaic pixels)."""
     header = pyvips.Image.new_from_file(str(results / "mosaic.png"))
@@ -83,11 +98,18 @@ def detect_banded(results: Path, masks: Masks, mm_per_px: float | None, level: f
     shutil.rmtree(scratch, ignore_errors=True)
     scratch.mkdir()
     try:
-        maps = {name: np.memmap(scratch / f"{name}.raw", mode="w+", dtype=np.uint8, shape=(height, width))
-                for name in ("crack", "corrosion", "contrast")}
+        maps = {
+            name: np.memmap(
+                scratch / f"{name}.raw", mode="w+", dtype=np.uint8, shape=(height, width)
+            )
+            for name in ("crack", "corrosion", "contrast")
+        }
         parts = {c: _Parts() for c in CLASSES}
         have_seams = (results / "mosaic_seams.png").is_file()
-        streams = [_rows(results / "mosaic.png", 3, rows), _rows(results / "mosaic_coverage.png", 1, rows)]
+        streams = [
+            _rows(results / "mosaic.png", 3, rows),
+            _rows(results / "mosaic_coverage.png", 1, rows),
+        ]
         if have_seams:
             streams.append(_rows(results / "mosaic_seams.png", 1, rows))
         buffers: list[NDArray[np.uint8] | None] = [None] * len(streams)
@@ -96,12 +118,17 @@ def detect_banded(results: Path, masks: Masks, mm_per_px: float | None, level: f
         while core_y0 < height:
             core_y1 = min(core_y0 + rows, height)
             # read until the buffer reaches past the core's context (or the image ends)
-            while not exhausted and (buffers[0] is None or buf_y0 + len(buffers[0]) < min(core_y1 + overlap, height)):
+            while not exhausted and (
+                buffers[0] is None or buf_y0 + len(buffers[0]) < min(core_y1 + overlap, height)
+            ):
                 blocks = [next(s, None) for s in streams]
                 if blocks[0] is None:
                     exhausted = True
                     break
-                buffers = [b if buf is None else np.concatenate([buf, b]) for buf, b in zip(buffers, blocks)]  # type: ignore[list-item]
+                buffers = [
+                    b if buf is None else np.concatenate([buf, b])
+                    for buf, b in zip(buffers, blocks)
+                ]  # type: ignore[list-item]
             image, coverage = buffers[0], buffers[1]
             seams = buffers[2] > 0 if have_seams else None
             assert image is not None and coverage is not None
@@ -110,7 +137,9 @@ def detect_banded(results: Path, masks: Masks, mm_per_px: float | None, level: f
             a, b = core_y0 - buf_y0, core_y1 - buf_y0
             maps["crack"][core_y0:core_y1] = cracks[a:b]
             maps["corrosion"][core_y0:core_y1] = rust[a:b]
-            maps["contrast"][core_y0:core_y1] = np.clip(np.round(np.where(cracks[a:b], contrast[a:b], 0)), 0, 255)
+            maps["contrast"][core_y0:core_y1] = np.clip(
+                np.round(np.where(cracks[a:b], contrast[a:b], 0)), 0, 255
+            )
             for name, mask in (("crack", cracks[a:b]), ("corrosion", rust[a:b])):
                 _label(parts[name], mask, band, core_y0)
             progress(core_y1 / height, f"mosaic rows {core_y1}/{height}")
@@ -124,7 +153,14 @@ def detect_banded(results: Path, masks: Masks, mm_per_px: float | None, level: f
             _save_mask(scratch / f"{name}.raw", results / out, width, height)
         found: list[Defect] = []
         for name in CLASSES:
-            found += _measure(parts[name], maps[name], maps["contrast"] if name == "crack" else None, name, mm_per_px, len(found) + 1)
+            found += _measure(
+                parts[name],
+                maps[name],
+                maps["contrast"] if name == "crack" else None,
+                name,
+                mm_per_px,
+                len(found) + 1,
+            )
         return found
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
@@ -138,14 +174,22 @@ def _label(acc: _Parts, mask: NDArray[np.bool_], band: int, y0: int) -> None:
         first = np.unique(labels[ys, xs], return_index=True)
         for lab, idx in zip(first[0].tolist(), first[1].tolist()):
             x, y, w, h = (int(v) for v in stats[lab][:4])
-            acc.parts[(band, lab)] = _Part(x, y0 + y, x + w, y0 + y + h, (int(xs[idx]), int(ys[idx]) + y0))
+            acc.parts[(band, lab)] = _Part(
+                x, y0 + y, x + w, y0 + y + h, (int(xs[idx]), int(ys[idx]) + y0)
+            )
     if acc.last_row is not None and len(labels):
         acc.links += [((band - 1, a), (band, b)) for a, b in seam_links(acc.last_row, labels[0])]
     acc.last_row = labels[-1].copy() if len(labels) else None
 
 
-def _measure(acc: _Parts, mask: NDArray[np.uint8], contrast: NDArray[np.uint8] | None, name: str, mm_per_px: float | None,
-             first_id: int) -> list[Defect]:
+def _measure(
+    acc: _Parts,
+    mask: NDArray[np.uint8],
+    contrast: NDArray[np.uint8] | None,
+    name: str,
+    mm_per_px: float | None,
+    first_id: int,
+) -> list[Defect]:
     """Each joined component measured on a crop around it."""
     groups = DisjointSet(list(acc.parts))
     for a, b in acc.links:
@@ -155,7 +199,10 @@ def _measure(acc: _Parts, mask: NDArray[np.uint8], contrast: NDArray[np.uint8] |
     for members in groups.subsets():
         ps = [acc.parts[m] for m in members]
         x0, y0 = max(0, min(p.x0 for p in ps) - 2), max(0, min(p.y0 for p in ps) - 2)
-        x1, y1 = min(mask.shape[1], max(p.x1 for p in ps) + 2), min(mask.shape[0], max(p.y1 for p in ps) + 2)
+        x1, y1 = (
+            min(mask.shape[1], max(p.x1 for p in ps) + 2),
+            min(mask.shape[0], max(p.y1 for p in ps) + 2),
+        )
         crop = np.asarray(mask[y0:y1, x0:x1]) > 0
         _, labels = cv2.connectedComponents(crop.astype(np.uint8), connectivity=8)
         sx, sy = ps[0].seed

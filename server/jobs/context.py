@@ -59,5 +59,3 @@ def write_png(path: Path, image: np.ndarray) -> None:
 def params_record(params: Any) -> dict[str, Any]:
     """A parameters dataclass as JSON-ready data (for the report's parameter table)."""
     return json.loads(json.dumps(asdict(params), default=str))
-
-

@@ -26,27 +26,65 @@ from server.storage.models import Defect, Frame
 MOSAIC_IN_MEMORY_PX = 48_000_000  # larger mosaics are searched band by band with bounded memory
 
 
-def _defect_row(ctx: JobContext, d: Defect_, source: str, mm: bool, world: tuple[float, float, float, float] | None,
-                frame_seq: int | None = None) -> Defect:
+def _defect_row(
+    ctx: JobContext,
+    d: Defect_,
+    source: str,
+    mm: bool,
+    world: tuple[float, float, float, float] | None,
+    frame_seq: int | None = None,
+) -> Defect:
     x, y, w, h = d.bbox
     wx, wy, ww, wh = world if world is not None else (None, None, None, None)
     return Defect(
-        session_id=ctx.session_id, job_id=ctx.job_id, source=source, frame_seq=frame_seq, defect_class=d.defect_class,
-        bbox_x=x, bbox_y=y, bbox_w=w, bbox_h=h, area_px=d.area_px, length_px=d.length_px,
-        max_width_px=d.max_width_px, mean_width_px=d.mean_width_px, orientation_deg=d.orientation_deg,
-        length_mm=d.length_mm if mm else None, max_width_mm=d.max_width_mm if mm else None,
-        area_mm2=d.area_mm2 if mm else None, world_x_m=wx, world_y_m=wy, world_w_m=ww, world_h_m=wh,
+        session_id=ctx.session_id,
+        job_id=ctx.job_id,
+        source=source,
+        frame_seq=frame_seq,
+        defect_class=d.defect_class,
+        bbox_x=x,
+        bbox_y=y,
+        bbox_w=w,
+        bbox_h=h,
+        area_px=d.area_px,
+        length_px=d.length_px,
+        max_width_px=d.max_width_px,
+        mean_width_px=d.mean_width_px,
+        orientation_deg=d.orientation_deg,
+        length_mm=d.length_mm if mm else None,
+        max_width_mm=d.max_width_mm if mm else None,
+        area_mm2=d.area_mm2 if mm else None,
+        world_x_m=wx,
+        world_y_m=wy,
+        world_w_m=ww,
+        world_h_m=wh,
     )
 
 
-def detect_in(image: np.ndarray, mm_per_px: float | None, valid: np.ndarray | None = None,
-               seams: np.ndarray | None = None, workers: int = 2) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
+def detect_in(
+    image: np.ndarray,
+    mm_per_px: float | None,
+    valid: np.ndarray | None = None,
+    seams: np.ndarray | None = None,
+    workers: int = 2,
+) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
     """Crack and rust masks of one image and its measured defects."""
     masks = defect_masks(image, valid, seams, workers=workers)
     with ThreadPoolExecutor(max_workers=workers) as pool:  # labelling and distances release the GIL
-        rust = pool.submit(measure_defects, masks.rust, "corrosion", mm_per_px=mm_per_px, components=masks.rust_components)
-        found = measure_defects(masks.cracks, "crack", mm_per_px=mm_per_px, contrast=masks.contrast,
-                                components=masks.crack_components)
+        rust = pool.submit(
+            measure_defects,
+            masks.rust,
+            "corrosion",
+            mm_per_px=mm_per_px,
+            components=masks.rust_components,
+        )
+        found = measure_defects(
+            masks.cracks,
+            "crack",
+            mm_per_px=mm_per_px,
+            contrast=masks.contrast,
+            components=masks.crack_components,
+        )
         found += [replace(d, id=len(found) + d.id) for d in rust.result()]
     return masks.cracks, masks.rust, found
 
@@ -57,7 +95,9 @@ def _detect_frames(ctx: JobContext) -> list[Defect]:
     px_per_m = float(calib.get("px_per_m", 0)) or None
     T_rc = np.array(calib.get("T_robot_camera", [0.0, 0.0, 0.0]))
     with ctx.factory() as db:
-        frames = list(db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)))
+        frames = list(
+            db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq))
+        )
     mm_per_px = 1000.0 / px_per_m if px_per_m else None
 
     def detect(f: Frame) -> tuple[tuple[int, int], list[Defect_]] | None:
@@ -70,7 +110,9 @@ def _detect_frames(ctx: JobContext) -> list[Defect]:
         return (img.shape[1], img.shape[0]), detect_in(img, mm_per_px, workers=1)[2]
 
     rows: list[Defect] = []
-    with ThreadPoolExecutor(max_workers=2) as pool:  # a frame per core: decoding and detection release the GIL
+    with ThreadPoolExecutor(
+        max_workers=2
+    ) as pool:  # a frame per core: decoding and detection release the GIL
         for i, (f, done) in enumerate(zip(frames, pool.map(detect, frames))):
             if i % 10 == 0:
                 ctx.progress(0.5 * i / max(len(frames), 1), f"frames {i}/{len(frames)}")
@@ -79,11 +121,21 @@ def _detect_frames(ctx: JobContext) -> list[Defect]:
     return rows
 
 
-def _frame_rows(ctx: JobContext, f: Frame, found: list[Defect_], size: tuple[int, int], px_per_m: float | None,
-                T_rc: NDArray[np.float64]) -> list[Defect]:
+def _frame_rows(
+    ctx: JobContext,
+    f: Frame,
+    found: list[Defect_],
+    size: tuple[int, int],
+    px_per_m: float | None,
+    T_rc: NDArray[np.float64],
+) -> list[Defect]:
     """Rows of one frame's defects, placed on the structure through the frame's pose."""
     rows: list[Defect] = []
-    cam = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw]), T_rc) if px_per_m and f.pose_x is not None else None
+    cam = (
+        compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw]), T_rc)
+        if px_per_m and f.pose_x is not None
+        else None
+    )
     for d in found:
         world = world_box(d.bbox, cam, px_per_m, size) if cam is not None and px_per_m else None
         rows.append(_defect_row(ctx, d, "frame", px_per_m is not None, world, frame_seq=f.seq))
@@ -108,17 +160,37 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     mosaic_rows = []
     for d in found:
         x, y, w, h = d.bbox
-        placed = (ox + x / px_per_m, oy + y / px_per_m, w / px_per_m, h / px_per_m) if referenced else None
+        placed = (
+            (ox + x / px_per_m, oy + y / px_per_m, w / px_per_m, h / px_per_m)
+            if referenced
+            else None
+        )
         mosaic_rows.append(_defect_row(ctx, d, "mosaic", referenced, placed))
     with ctx.factory() as db:
-        reviewed = list(db.scalars(select(Defect).where(Defect.session_id == ctx.session_id, Defect.reviewed_by.is_not(None))))
+        reviewed = list(
+            db.scalars(
+                select(Defect).where(
+                    Defect.session_id == ctx.session_id, Defect.reviewed_by.is_not(None)
+                )
+            )
+        )
         kept = carry_reviews(reviewed, frame_rows + mosaic_rows)
         db.execute(delete(Defect).where(Defect.session_id == ctx.session_id))
         db.add_all(frame_rows + mosaic_rows)
         db.commit()
     by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
-    return {"defects": len(found), "by_class": by_class, "frame_defects": len(frame_rows), "method": "proposed",
-            "reviews_carried_over": kept, "crack_mask": str(out / "crack_mask.png"), "params": {"crack": params_record(CrackParams()), "corrosion": params_record(CorrosionParams())}}
+    return {
+        "defects": len(found),
+        "by_class": by_class,
+        "frame_defects": len(frame_rows),
+        "method": "proposed",
+        "reviews_carried_over": kept,
+        "crack_mask": str(out / "crack_mask.png"),
+        "params": {
+            "crack": params_record(CrackParams()),
+            "corrosion": params_record(CorrosionParams()),
+        },
+    }
 
 
 def _detect_mosaic(out: Path, mm_per_px: float | None) -> list[Defect_]:
@@ -129,7 +201,11 @@ def _detect_mosaic(out: Path, mm_per_px: float | None) -> list[Defect_]:
     coverage = cv2.imread(str(out / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     if coverage is None or coverage.shape != mosaic.shape[:2]:
         coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
-    seams = cv2.imread(str(out / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE) if (out / "mosaic_seams.png").is_file() else None
+    seams = (
+        cv2.imread(str(out / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE)
+        if (out / "mosaic_seams.png").is_file()
+        else None
+    )
     seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
     cracks, rust, found = detect_in(mosaic, mm_per_px, on_surface(mosaic, coverage), seams)
     write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
@@ -144,12 +220,17 @@ def _detect_mosaic_banded(ctx: JobContext, out: Path, mm_per_px: float | None) -
     if overview is None:
         raise ValueError("mosaic_overview.png cannot be read")
     level = surface_level(overview, np.any(overview > 0, axis=2))
-    return detect_banded(out, defect_masks, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m))
+    return detect_banded(
+        out, defect_masks, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m)
+    )
 
 
 def _box_iou(a: Defect, b: Defect) -> float:
     x0, y0 = max(a.bbox_x, b.bbox_x), max(a.bbox_y, b.bbox_y)
-    x1, y1 = min(a.bbox_x + a.bbox_w, b.bbox_x + b.bbox_w), min(a.bbox_y + a.bbox_h, b.bbox_y + b.bbox_h)
+    x1, y1 = (
+        min(a.bbox_x + a.bbox_w, b.bbox_x + b.bbox_w),
+        min(a.bbox_y + a.bbox_h, b.bbox_y + b.bbox_h),
+    )
     inter = max(0, x1 - x0) * max(0, y1 - y0)
     union = a.bbox_w * a.bbox_h + b.bbox_w * b.bbox_h - inter
     return inter / union if union > 0 else 0.0
@@ -161,10 +242,18 @@ def carry_reviews(reviewed: list[Defect], new: list[Defect], min_iou: float = 0.
     inspectors' work. Returns how many reviews were carried over."""
     carried = 0
     for d in new:
-        same = [r for r in reviewed if (r.defect_class, r.source, r.frame_seq) == (d.defect_class, d.source, d.frame_seq)]
+        same = [
+            r
+            for r in reviewed
+            if (r.defect_class, r.source, r.frame_seq) == (d.defect_class, d.source, d.frame_seq)
+        ]
         best = max(same, key=lambda r: _box_iou(r, d), default=None)
         if best is not None and _box_iou(best, d) >= min_iou:
-            d.review_status, d.condition_state, d.comment = best.review_status, best.condition_state, best.comment
+            d.review_status, d.condition_state, d.comment = (
+                best.review_status,
+                best.condition_state,
+                best.comment,
+            )
             d.reviewed_by, d.reviewed_at = best.reviewed_by, best.reviewed_at
             carried += 1
     return carried

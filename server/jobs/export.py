@@ -19,4 +19,8 @@ def run_export(ctx: JobContext) -> dict[str, Any]:
         tmp.replace(out / "session.mcap")
     finally:
         tmp.unlink(missing_ok=True)
-    return {"mcap_path": str(out / "session.mcap"), "bytes": (out / "session.mcap").stat().st_size, **counts}
+    return {
+        "mcap_path": str(out / "session.mcap"),
+        "bytes": (out / "session.mcap").stat().st_size,
+        **counts,
+    }

@@ -23,7 +23,9 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     calib = ctx.session().calibration.get("tof", {})
     T_rt = np.array(calib.get("T_robot_tof", np.eye(4).tolist()), dtype=np.float64)
     with ctx.factory() as db:
-        rows = list(db.scalars(select(Cloud).where(Cloud.session_id == ctx.session_id).order_by(Cloud.seq)))
+        rows = list(
+            db.scalars(select(Cloud).where(Cloud.session_id == ctx.session_id).order_by(Cloud.seq))
+        )
     if not rows:
         raise ValueError("the session has no ToF clouds")
     clouds, guesses, stamps, seqs, skipped = [], [], [], [], []
@@ -58,7 +60,12 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         guesses = [se2_to_se3(*p) @ T_rt for p in robot]
         params = MapParams(refine=False)
     ctx.progress(0.3, "registering")
-    result = register_clouds(clouds, np.array(guesses) if len(guesses) == len(clouds) else None, params=params, shape=shape)
+    result = register_clouds(
+        clouds,
+        np.array(guesses) if len(guesses) == len(clouds) else None,
+        params=params,
+        shape=shape,
+    )
     out = ctx.results_dir()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
     tmp = out / ".map.tmp.ply"
@@ -66,18 +73,29 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         raise OSError("could not write map.ply")
     tmp.replace(out / "map.ply")
     write_atomic(out / "trajectory.tum", format_tum(np.array(stamps), result.poses).encode())
-    return {"map_path": str(out / "map.ply"), "trajectory_path": str(out / "trajectory.tum"), "points": len(result.points),
-            "guided_by_mosaic": robot is not None, "loop_closures": result.loop_closures,
-            "clouds": len(clouds), "skipped_clouds": skipped, "cloud_seqs": seqs, "odometry_fallbacks": int(result.used_odometry.sum()),
-            # clouds whose view left some directions to the odometry (a flat plate: sliding along it)
-            "clouds_with_unobservable_directions": int((result.degenerate_dims > 0).sum()),
-            # the odometry's heading error measured against ICP, over the configured one (1: as configured)
-            "odometry_error_scale": round(result.odometry_error_scale, 2),
-            "plane_landmarks": result.plane_landmarks,  # large planes (deck plate, web) tying the clouds that see them
-            "mean_fitness": float(result.fitness.mean()), "params": params_record(params)}
+    return {
+        "map_path": str(out / "map.ply"),
+        "trajectory_path": str(out / "trajectory.tum"),
+        "points": len(result.points),
+        "guided_by_mosaic": robot is not None,
+        "loop_closures": result.loop_closures,
+        "clouds": len(clouds),
+        "skipped_clouds": skipped,
+        "cloud_seqs": seqs,
+        "odometry_fallbacks": int(result.used_odometry.sum()),
+        # clouds whose view left some directions to the odometry (a flat plate: sliding along it)
+        "clouds_with_unobservable_directions": int((result.degenerate_dims > 0).sum()),
+        # the odometry's heading error measured against ICP, over the configured one (1: as configured)
+        "odometry_error_scale": round(result.odometry_error_scale, 2),
+        "plane_landmarks": result.plane_landmarks,  # large planes (deck plate, web) tying the clouds that see them
+        "mean_fitness": float(result.fitness.mean()),
+        "params": params_record(params),
+    }
 
 
-def _visual_robot_poses(ctx: JobContext, clouds: list[Cloud], seqs: list[int]) -> NDArray[np.float64] | None:
+def _visual_robot_poses(
+    ctx: JobContext, clouds: list[Cloud], seqs: list[int]
+) -> NDArray[np.float64] | None:
     """Robot poses at the clouds' times from the mosaic (when the stitch job placed the frames
     on the structure by image registration), else None."""
     world_file = ctx.results_dir() / "mosaic.json"
@@ -89,14 +107,25 @@ def _visual_robot_poses(ctx: JobContext, clouds: list[Cloud], seqs: list[int]) -
         return None
     placed = {f["frame"]: f for f in world.get("frames", []) if f.get("confident")}
     with ctx.factory() as db:
-        frames = [f for f in db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq))
-                  if f.seq in placed and f.pose_x is not None]
+        frames = [
+            f
+            for f in db.scalars(
+                select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)
+            )
+            if f.seq in placed and f.pose_x is not None
+        ]
     if len(frames) < 2:
         return None
     ox, oy = world["origin_m"]
     scale = float(world["px_per_m"])
-    cameras = [(ox + placed[f.seq]["x"] / scale, oy + placed[f.seq]["y"] / scale, np.radians(placed[f.seq]["theta_deg"]))
-               for f in frames]
+    cameras = [
+        (
+            ox + placed[f.seq]["x"] / scale,
+            oy + placed[f.seq]["y"] / scale,
+            np.radians(placed[f.seq]["theta_deg"]),
+        )
+        for f in frames
+    ]
     visual = robot_poses_from_camera(np.array(cameras), calib["T_robot_camera"])
     odometry = [[f.pose_x, f.pose_y, f.pose_yaw] for f in frames]
     times = [f.timestamp for f in frames]

@@ -26,7 +26,9 @@ class JobRunner:
     the reason and leaves the runner and the server running.
     """
 
-    def __init__(self, factory: sessionmaker[Session], database_url: str, data_dir: str, workers: int) -> None:
+    def __init__(
+        self, factory: sessionmaker[Session], database_url: str, data_dir: str, workers: int
+    ) -> None:
         self.factory = factory
         self.database_url = database_url
         self.data_dir = data_dir
@@ -58,15 +60,26 @@ class JobRunner:
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
 
-    def enqueue(self, session_id: str, kind: str, *, after: list[int] | None = None, uses: list[int] | None = None,
-                params: dict[str, Any] | None = None) -> int:
+    def enqueue(
+        self,
+        session_id: str,
+        kind: str,
+        *,
+        after: list[int] | None = None,
+        uses: list[int] | None = None,
+        params: dict[str, Any] | None = None,
+    ) -> int:
         """Queue one job; it runs when every job in ``after`` is done (and fails if one of them
         failed) and every job in ``uses`` has finished, whichever way (it uses their results
         when there are some)."""
         if kind not in JOB_KINDS:
             raise ValueError(f"kind must be one of {sorted(JOB_KINDS)}, got {kind!r}")
         with self.factory() as db:
-            job = Job(session_id=session_id, kind=kind, params={**(params or {}), "after": after or [], "uses": uses or []})
+            job = Job(
+                session_id=session_id,
+                kind=kind,
+                params={**(params or {}), "after": after or [], "uses": uses or []},
+            )
             db.add(job)
             db.commit()
             job_id = job.id
@@ -77,12 +90,16 @@ class JobRunner:
         """Queue every processing stage of a session in dependency order."""
         ids: dict[str, int] = {}
         for kind, deps, uses in PIPELINE:
-            ids[kind] = self.enqueue(session_id, kind, after=[ids[d] for d in deps], uses=[ids[u] for u in uses])
+            ids[kind] = self.enqueue(
+                session_id, kind, after=[ids[d] for d in deps], uses=[ids[u] for u in uses]
+            )
         return list(ids.values())
 
     def _new_pool(self) -> ProcessPoolExecutor:
         ctx = multiprocessing.get_context("spawn")
-        return ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=keep_arrays_on_heap)
+        return ProcessPoolExecutor(
+            max_workers=self.workers, mp_context=ctx, initializer=keep_arrays_on_heap
+        )
 
     def _loop(self) -> None:
         while not self._stop.is_set():
@@ -95,7 +112,9 @@ class JobRunner:
 
     def _dispatch(self) -> None:
         with self.factory() as db:
-            queued = list(db.scalars(select(Job).where(Job.state == JobState.queued).order_by(Job.id)))
+            queued = list(
+                db.scalars(select(Job).where(Job.state == JobState.queued).order_by(Job.id))
+            )
             for job in queued:
                 if job.id in self._running or len(self._running) >= self.workers:
                     continue
@@ -109,7 +128,9 @@ class JobRunner:
                 if any(d is not None and d.state != JobState.done for d in deps):
                     continue
                 used = [db.get(Job, u) for u in job.params.get("uses", [])]
-                if any(u is not None and u.state not in (JobState.done, JobState.failed) for u in used):
+                if any(
+                    u is not None and u.state not in (JobState.done, JobState.failed) for u in used
+                ):
                     continue
                 self._submit(job.id)
 

@@ -22,7 +22,9 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     px_per_m = float(calib.get("px_per_m", 0)) or None
     T_rc = calib.get("T_robot_camera", [0.0, 0.0, 0.0])
     with ctx.factory() as db:
-        frames = list(db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)))
+        frames = list(
+            db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq))
+        )
     if not frames:
         raise ValueError("the session has no camera frames")
     # frames of another size than most, or whose file is gone, are skipped and reported
@@ -44,13 +46,38 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         robot = np.array([[f.pose_x, f.pose_y, f.pose_yaw] for f in use], dtype=np.float64)
         guess = camera_poses(robot, T_rc, px_per_m)
     source = StoredImages(lambda k: ctx.files.payload(use[k]), len(use))
-    layout, loaded = plan_mosaic(source, guess, px_per_m=px_per_m if with_pose and px_per_m else 1.0,
-                                 progress=lambda f, m: ctx.progress(0.7 * f, m))
+    layout, loaded = plan_mosaic(
+        source,
+        guess,
+        px_per_m=px_per_m if with_pose and px_per_m else 1.0,
+        progress=lambda f, m: ctx.progress(0.7 * f, m),
+    )
     out = ctx.results_dir()
-    world = {"world_referenced": with_pose, "frames": frame_records(layout, [f.seq for f in use]), "skipped_frames": [f.seq for f in skipped]}
-    files = write_mosaic(out, layout, render_bands(layout, loaded, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)), world=world)
-    return {"mosaic_path": str(files.mosaic), "overview_path": str(files.overview), "dzi_path": str(files.dzi) if files.dzi else None,
-            "width_px": layout.width, "height_px": layout.height, "px_per_m": layout.px_per_m, "origin_m": list(layout.origin_m),
-            "world_referenced": with_pose, "frames": len(use), "skipped_frames": [f.seq for f in skipped],
-            "low_confidence_frames": int((~layout.confident).sum()), "pairs": layout.pairs, "rejected_pairs": layout.rejected_pairs,
-            "overview_scale": files.overview_scale, "params": params_record(StitchParams())}
+    world = {
+        "world_referenced": with_pose,
+        "frames": frame_records(layout, [f.seq for f in use]),
+        "skipped_frames": [f.seq for f in skipped],
+    }
+    files = write_mosaic(
+        out,
+        layout,
+        render_bands(layout, loaded, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)),
+        world=world,
+    )
+    return {
+        "mosaic_path": str(files.mosaic),
+        "overview_path": str(files.overview),
+        "dzi_path": str(files.dzi) if files.dzi else None,
+        "width_px": layout.width,
+        "height_px": layout.height,
+        "px_per_m": layout.px_per_m,
+        "origin_m": list(layout.origin_m),
+        "world_referenced": with_pose,
+        "frames": len(use),
+        "skipped_frames": [f.seq for f in skipped],
+        "low_confidence_frames": int((~layout.confident).sum()),
+        "pairs": layout.pairs,
+        "rejected_pairs": layout.rejected_pairs,
+        "overview_scale": files.overview_scale,
+        "params": params_record(StitchParams()),
+    }

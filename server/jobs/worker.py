@@ -28,10 +28,18 @@ from server.storage.models import Job, JobState, utcnow
 log = logging.getLogger(__name__)
 
 # (kind, needs: fails without them, uses: waits for them and uses their results if any)
-PIPELINE: list[tuple[str, list[str], list[str]]] = [("stitch", [], []), ("map", [], ["stitch"]), ("detect", ["stitch"], []),
-                                                    ("export", [], ["stitch", "map", "detect"])]
-JOB_KINDS: dict[str, Callable[[JobContext], dict[str, Any]]] = {"stitch": run_stitch, "map": run_map, "detect": run_detect,
-                                                               "export": run_export}
+PIPELINE: list[tuple[str, list[str], list[str]]] = [
+    ("stitch", [], []),
+    ("map", [], ["stitch"]),
+    ("detect", ["stitch"], []),
+    ("export", [], ["stitch", "map", "detect"]),
+]
+JOB_KINDS: dict[str, Callable[[JobContext], dict[str, Any]]] = {
+    "stitch": run_stitch,
+    "map": run_map,
+    "detect": run_detect,
+    "export": run_export,
+}
 
 
 @lru_cache(maxsize=4)
@@ -59,7 +67,14 @@ def run_job(job_id: int, database_url: str, data_dir: str) -> None:
     _finish(factory, job_id, JobState.done, result=result)
 
 
-def _finish(factory: sessionmaker[Session], job_id: int, state: JobState, *, error: str | None = None, result: dict[str, Any] | None = None) -> None:
+def _finish(
+    factory: sessionmaker[Session],
+    job_id: int,
+    state: JobState,
+    *,
+    error: str | None = None,
+    result: dict[str, Any] | None = None,
+) -> None:
     with factory() as db:
         job = db.get(Job, job_id)
         if job is None:

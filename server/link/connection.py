@@ -64,9 +64,15 @@ class RobotConnection:
         async with self.send_lock:
             await self.ws.send_bytes(data)
 
-    async def send_error(self, sid: uuid.UUID, seq: int, error: str, *, retry: bool = False) -> None:
+    async def send_error(
+        self, sid: uuid.UUID, seq: int, error: str, *, retry: bool = False
+    ) -> None:
         """Tell the robot a message was rejected (``retry``: for now only)."""
-        await self.send(Message(MessageType.ERROR, sid, seq, time.time(), {"error": error[:500], "retry": retry}))
+        await self.send(
+            Message(
+                MessageType.ERROR, sid, seq, time.time(), {"error": error[:500], "retry": retry}
+            )
+        )
 
     def command_sender(self, sid: uuid.UUID):  # type: ignore[no-untyped-def]
         """A coroutine function the hub calls to forward an operator's command."""
@@ -74,7 +80,9 @@ class RobotConnection:
 
         async def send_command(cmd: str, args: dict[str, Any]) -> int:
             seq = hub.next_command_seq(str(sid))
-            await self.send(Message(MessageType.COMMAND, sid, seq, time.time(), {"cmd": cmd, "args": args}))
+            await self.send(
+                Message(MessageType.COMMAND, sid, seq, time.time(), {"cmd": cmd, "args": args})
+            )
             return seq
 
         return send_command
@@ -91,7 +99,11 @@ class RobotConnection:
                     break
                 data = event.get("bytes")
                 if data is None:
-                    await self.send_error(uuid.UUID(int=0), 0, "text messages are not part of the protocol; send binary")
+                    await self.send_error(
+                        uuid.UUID(int=0),
+                        0,
+                        "text messages are not part of the protocol; send binary",
+                    )
                     continue
                 await room.acquire()
                 # handled concurrently (stored by the group-commit writer in arrival order),
@@ -115,18 +127,39 @@ class RobotConnection:
             await self.send_error(uuid.UUID(int=0), _seq_of(data), f"malformed message: {exc}")
             return
         if message.type in (MessageType.ACK, MessageType.ERROR, MessageType.COMMAND):
-            await self.send_error(message.session_id, message.seq, f"{message.type.name} is not sent by robots")
+            await self.send_error(
+                message.session_id, message.seq, f"{message.type.name} is not sent by robots"
+            )
             return
         if message.type is MessageType.VIDEO:  # live preview: relayed, never stored or acknowledged
             if self.bucket.take():
-                self.state.hub.publish_frame({"session_id": str(message.session_id), "seq": message.seq, "t": message.timestamp,
-                                              "video": True}, message.payload)
+                self.state.hub.publish_frame(
+                    {
+                        "session_id": str(message.session_id),
+                        "seq": message.seq,
+                        "t": message.timestamp,
+                        "video": True,
+                    },
+                    message.payload,
+                )
             return
         if message.type is MessageType.COMMAND_ACK:
-            self.state.hub.publish_json({"type": "command_ack", "session_id": str(message.session_id), "seq": message.seq, **message.meta})
+            self.state.hub.publish_json(
+                {
+                    "type": "command_ack",
+                    "session_id": str(message.session_id),
+                    "seq": message.seq,
+                    **message.meta,
+                }
+            )
             return
         if not self.bucket.take():
-            await self.send_error(message.session_id, message.seq, "rate limit: too many messages, send it again shortly", retry=True)
+            await self.send_error(
+                message.session_id,
+                message.seq,
+                "rate limit: too many messages, send it again shortly",
+                retry=True,
+            )
             return
         try:
             result = await self.state.writer.store(message, self.robot_id)
@@ -135,9 +168,21 @@ class RobotConnection:
             return
         except (OSError, SQLAlchemyError) as exc:
             log.exception("ingest: could not store seq %d", message.seq)
-            await self.send_error(message.session_id, message.seq, f"ground station could not store it: {type(exc).__name__}")
+            await self.send_error(
+                message.session_id,
+                message.seq,
+                f"ground station could not store it: {type(exc).__name__}",
+            )
             return
-        await self.send(Message(MessageType.ACK, message.session_id, message.seq, time.time(), {"status": result.status, "of": message.type.name}))
+        await self.send(
+            Message(
+                MessageType.ACK,
+                message.session_id,
+                message.seq,
+                time.time(),
+                {"status": result.status, "of": message.type.name},
+            )
+        )
         sid = str(message.session_id)
         if sid not in senders:
             senders[sid] = self.command_sender(message.session_id)
@@ -154,14 +199,39 @@ class RobotConnection:
         hub = self.state.hub
         sid = str(message.session_id)
         pose = message.meta.get("pose")
-        if self.state.scene is not None and isinstance(pose, dict) and message.type in (MessageType.FRAME, MessageType.TELEMETRY):
+        if (
+            self.state.scene is not None
+            and isinstance(pose, dict)
+            and message.type in (MessageType.FRAME, MessageType.TELEMETRY)
+        ):
             self.state.scene.show_pose(sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"]))
         if message.type is MessageType.FRAME:
-            hub.publish_frame({"session_id": sid, "seq": message.seq, "t": message.timestamp, "pose": message.meta.get("pose")}, message.payload)
+            hub.publish_frame(
+                {
+                    "session_id": sid,
+                    "seq": message.seq,
+                    "t": message.timestamp,
+                    "pose": message.meta.get("pose"),
+                },
+                message.payload,
+            )
         elif message.type is MessageType.TELEMETRY:
-            hub.publish_json({"type": "telemetry", "session_id": sid, "data": {**message.meta, "t": message.timestamp}})
+            hub.publish_json(
+                {
+                    "type": "telemetry",
+                    "session_id": sid,
+                    "data": {**message.meta, "t": message.timestamp},
+                }
+            )
         elif message.type in (MessageType.SESSION_START, MessageType.SESSION_END):
-            hub.publish_json({"type": "session", "session_id": sid, "event": message.type.name.lower(), "robot": self.robot_name})
+            hub.publish_json(
+                {
+                    "type": "session",
+                    "session_id": sid,
+                    "event": message.type.name.lower(),
+                    "robot": self.robot_name,
+                }
+            )
 
 
 @router.websocket("/ws/robot")

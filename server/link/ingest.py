@@ -61,7 +61,10 @@ class Ingest:
         self.engine = factory.kw["bind"]
         self.files = files
         self._owners: dict[str, _Owner] = {}
-        self._inserts = {table: _RawInsert(table, self.engine.dialect) for table in (RECEIVED, FRAMES, CLOUDS, TELEMETRY)}
+        self._inserts = {
+            table: _RawInsert(table, self.engine.dialect)
+            for table in (RECEIVED, FRAMES, CLOUDS, TELEMETRY)
+        }
         self._dbapi_integrity_error: type[Exception] = self.engine.dialect.dbapi.IntegrityError
         self._conn: Connection | None = None
         self._checkpointer: WalCheckpointer | None = None
@@ -74,7 +77,9 @@ class Ingest:
             raise result
         return result
 
-    def store_many(self, items: list[tuple[Message, int | None]], *, check: bool = False) -> list[StoreResult | Exception]:
+    def store_many(
+        self, items: list[tuple[Message, int | None]], *, check: bool = False
+    ) -> list[StoreResult | Exception]:
         """Store several messages in one transaction (group commit), in order; each gets its
         result, or the IngestError/OSError that refused it alone.
 
@@ -93,7 +98,12 @@ class Ingest:
                             results.append(self._stage(conn, message, robot_id, batch))
                         except (IngestError, OSError) as exc:
                             results.append(exc)
-                    for table, rows in batch.rows.items():  # the hot rows as plain executemany: no statement compiling
+                    for (
+                        table,
+                        rows,
+                    ) in (
+                        batch.rows.items()
+                    ):  # the hot rows as plain executemany: no statement compiling
                         if rows:
                             self._inserts[table].execute(conn, rows)
             except (IntegrityError, self._dbapi_integrity_error):
@@ -116,10 +126,14 @@ class Ingest:
         costs as much as the inserts)."""
         if self._conn is None or self._conn.closed:
             self._conn = self.engine.connect()
-            if is_sqlite(self.engine):  # the checkpointer's thread does them, not this one's commits
+            if is_sqlite(
+                self.engine
+            ):  # the checkpointer's thread does them, not this one's commits
                 raw = self._conn.connection.driver_connection
                 raw.execute("PRAGMA wal_autocheckpoint=0")
-                raw.execute(f"PRAGMA journal_size_limit={WAL_SIZE_LIMIT}")  # the log's file is cut back to this after a checkpoint
+                raw.execute(
+                    f"PRAGMA journal_size_limit={WAL_SIZE_LIMIT}"
+                )  # the log's file is cut back to this after a checkpoint
                 if self._checkpointer is None:
                     self._checkpointer = WalCheckpointer(self.engine)
         return self._conn
@@ -136,7 +150,9 @@ class Ingest:
                 self._checkpointer = None
 
     @staticmethod
-    def _stored_already(conn: Connection, items: list[tuple[Message, int | None]]) -> set[tuple[str, int]]:
+    def _stored_already(
+        conn: Connection, items: list[tuple[Message, int | None]]
+    ) -> set[tuple[str, int]]:
         """Which (session, seq) of a batch are stored: one primary-key range query per session
         (a row-value IN over both columns does not use the index in SQLite: 0.7 ms)."""
         by_session: dict[str, list[int]] = defaultdict(list)
@@ -151,13 +167,17 @@ class Ingest:
     def _owner(self, conn: Connection, sid: str, batch: _Batch) -> _Owner | None:
         owner = batch.new_owners.get(sid) or self._owners.get(sid)
         if owner is None:
-            row = conn.execute(select(SESSIONS.c.robot_id, SESSIONS.c.status).where(SESSIONS.c.id == sid)).first()
+            row = conn.execute(
+                select(SESSIONS.c.robot_id, SESSIONS.c.status).where(SESSIONS.c.id == sid)
+            ).first()
             if row is not None:
                 owner = _Owner(row[0], row[1] == SessionStatus.ended)
                 self._owners[sid] = owner
         return owner
 
-    def _stage(self, conn: Connection, message: Message, robot_id: int | None, batch: _Batch) -> StoreResult:
+    def _stage(
+        self, conn: Connection, message: Message, robot_id: int | None, batch: _Batch
+    ) -> StoreResult:
         """Write one message's file and add its rows to the batch."""
         sid = str(message.session_id)
         owner = self._owner(conn, sid, batch)
@@ -171,7 +191,9 @@ class Ingest:
             self._check_owner(sid, owner, robot_id)
         if (sid, message.seq) in batch.seen:
             return StoreResult("duplicate")
-        ended = self._add_rows(conn, message, sid, robot_id, batch)  # the file first: a failed write adds no row
+        ended = self._add_rows(
+            conn, message, sid, robot_id, batch
+        )  # the file first: a failed write adds no row
         batch.seen.add((sid, message.seq))
         return StoreResult("stored", session_ended=ended)
 
@@ -180,35 +202,86 @@ class Ingest:
         if owner.robot_id is not None and robot_id is not None and owner.robot_id != robot_id:
             raise IngestError(f"session {sid} belongs to another robot")
 
-    def _add_rows(self, conn: Connection, message: Message, sid: str, robot_id: int | None, batch: _Batch) -> bool:
+    def _add_rows(
+        self, conn: Connection, message: Message, sid: str, robot_id: int | None, batch: _Batch
+    ) -> bool:
         meta = message.meta
         pose = meta.get("pose") or {}
         mtype = message.type
         rel, offset = None, None
-        if mtype in (MessageType.FRAME, MessageType.CLOUD):  # the payload before the row: a failed write adds nothing
-            rel, offset = self.files.append(sid, "frames" if mtype is MessageType.FRAME else "clouds", message.payload)
+        if mtype in (
+            MessageType.FRAME,
+            MessageType.CLOUD,
+        ):  # the payload before the row: a failed write adds nothing
+            rel, offset = self.files.append(
+                sid, "frames" if mtype is MessageType.FRAME else "clouds", message.payload
+            )
         if mtype is MessageType.SESSION_START:  # at once: the batch's other rows refer to it
-            conn.execute(SESSIONS.insert().values(id=sid, robot_id=robot_id, structure=meta["structure"],
-                                                  operator=meta.get("operator", ""), location=meta.get("location", ""),
-                                                  calibration=meta.get("calibration", {})))
+            conn.execute(
+                SESSIONS.insert().values(
+                    id=sid,
+                    robot_id=robot_id,
+                    structure=meta["structure"],
+                    operator=meta.get("operator", ""),
+                    location=meta.get("location", ""),
+                    calibration=meta.get("calibration", {}),
+                )
+            )
             batch.new_owners[sid] = _Owner(robot_id, False)
-        batch.rows[RECEIVED].append({"session_id": sid, "seq": message.seq, "type": mtype.name, "received_at": utcnow()})
+        batch.rows[RECEIVED].append(
+            {"session_id": sid, "seq": message.seq, "type": mtype.name, "received_at": utcnow()}
+        )
         poses = {"pose_x": pose.get("x"), "pose_y": pose.get("y"), "pose_yaw": pose.get("yaw")}
         if mtype is MessageType.FRAME:
-            batch.rows[FRAMES].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "width": meta["width"],
-                                       "height": meta["height"], "path": rel, "data_offset": offset, "size_bytes": len(message.payload),
-                                       **poses})
+            batch.rows[FRAMES].append(
+                {
+                    "session_id": sid,
+                    "seq": message.seq,
+                    "timestamp": message.timestamp,
+                    "width": meta["width"],
+                    "height": meta["height"],
+                    "path": rel,
+                    "data_offset": offset,
+                    "size_bytes": len(message.payload),
+                    **poses,
+                }
+            )
         elif mtype is MessageType.CLOUD:
             intrinsics = {k: meta[k] for k in ("fx", "fy", "cx", "cy") if k in meta}
-            batch.rows[CLOUDS].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp,
-                                       "encoding": meta["encoding"], "width": meta["width"], "height": meta["height"],
-                                       "intrinsics": intrinsics, "path": rel, "data_offset": offset,
-                                       "size_bytes": len(message.payload), **poses})
+            batch.rows[CLOUDS].append(
+                {
+                    "session_id": sid,
+                    "seq": message.seq,
+                    "timestamp": message.timestamp,
+                    "encoding": meta["encoding"],
+                    "width": meta["width"],
+                    "height": meta["height"],
+                    "intrinsics": intrinsics,
+                    "path": rel,
+                    "data_offset": offset,
+                    "size_bytes": len(message.payload),
+                    **poses,
+                }
+            )
         elif mtype is MessageType.TELEMETRY:
-            batch.rows[TELEMETRY].append({"session_id": sid, "seq": message.seq, "timestamp": message.timestamp, "data": meta})
+            batch.rows[TELEMETRY].append(
+                {
+                    "session_id": sid,
+                    "seq": message.seq,
+                    "timestamp": message.timestamp,
+                    "data": meta,
+                }
+            )
         elif mtype is MessageType.SESSION_END:
-            conn.execute(SESSIONS.update().where(SESSIONS.c.id == sid).values(
-                status=SessionStatus.ended, ended_at=utcnow(), end_reason=meta.get("reason", "completed")))
+            conn.execute(
+                SESSIONS.update()
+                .where(SESSIONS.c.id == sid)
+                .values(
+                    status=SessionStatus.ended,
+                    ended_at=utcnow(),
+                    end_reason=meta.get("reason", "completed"),
+                )
+            )
             self.files.close_session(sid)
             return True
         return False
@@ -219,7 +292,9 @@ RECEIVED = ReceivedMessage.__table__
 FRAMES = Frame.__table__
 CLOUDS = Cloud.__table__
 TELEMETRY = TelemetrySample.__table__
-STORED = select(RECEIVED.c.seq).where(RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.seq.in_(bindparam("seqs", expanding=True)))
+STORED = select(RECEIVED.c.seq).where(
+    RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.seq.in_(bindparam("seqs", expanding=True))
+)
 
 
 class _RawInsert:
@@ -232,8 +307,15 @@ class _RawInsert:
         self.table = table
         columns = [c.name for c in table.columns if c is not table.autoincrement_column]
         marks = {"qmark": "?", "format": "%s", "pyformat": "%s"}.get(dialect.paramstyle)
-        self.sql = None if marks is None else f"INSERT INTO {table.name} ({', '.join(columns)}) VALUES ({', '.join([marks] * len(columns))})"
-        self._convert = [(name, table.c[name].type.dialect_impl(dialect).bind_processor(dialect)) for name in columns]
+        self.sql = (
+            None
+            if marks is None
+            else f"INSERT INTO {table.name} ({', '.join(columns)}) VALUES ({', '.join([marks] * len(columns))})"
+        )
+        self._convert = [
+            (name, table.c[name].type.dialect_impl(dialect).bind_processor(dialect))
+            for name in columns
+        ]
 
     def execute(self, conn: Connection, rows: list[dict[str, Any]]) -> None:
         """Insert rows (dicts by column name; a missing column is NULL) in ``conn``'s
@@ -241,7 +323,10 @@ class _RawInsert:
         if self.sql is None:
             conn.execute(self.table.insert(), rows)
             return
-        values = [tuple(row.get(name) if f is None else f(row.get(name)) for name, f in self._convert) for row in rows]
+        values = [
+            tuple(row.get(name) if f is None else f(row.get(name)) for name, f in self._convert)
+            for row in rows
+        ]
         conn.connection.cursor().executemany(self.sql, values)
 
 
@@ -266,7 +351,10 @@ class GroupCommit:
     def __init__(self, ingest: Ingest, max_batch: int = 128) -> None:
         self.ingest = ingest
         self.max_batch = max_batch
-        self._queue: queue.SimpleQueue[tuple[Message, int | None, asyncio.Future[StoreResult], asyncio.AbstractEventLoop] | None] = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[
+            tuple[Message, int | None, asyncio.Future[StoreResult], asyncio.AbstractEventLoop]
+            | None
+        ] = queue.SimpleQueue()
         self._storing = threading.Lock()  # one transaction at a time: the writer's or an inline one
         self._count = threading.Lock()
         self._pending = 0  # messages queued and not yet stored
@@ -285,14 +373,19 @@ class GroupCommit:
         loop = asyncio.get_running_loop()
         future: asyncio.Future[StoreResult] = loop.create_future()
         with self._count:
-            idle = (self._pending == 0 and time.monotonic() - self._last_store > QUIET_S
-                    and self._storing.acquire(blocking=False))
+            idle = (
+                self._pending == 0
+                and time.monotonic() - self._last_store > QUIET_S
+                and self._storing.acquire(blocking=False)
+            )
             if not idle:
                 self._pending += 1
         if idle:
             try:
                 try:
-                    result: StoreResult | Exception = self.ingest.store_many([(message, robot_id)])[0]
+                    result: StoreResult | Exception = self.ingest.store_many([(message, robot_id)])[
+                        0
+                    ]
                 except Exception as exc:  # the database itself failed  # noqa: BLE001
                     result = exc
             finally:
@@ -326,16 +419,26 @@ class GroupCommit:
                 batch.append(item)
             with self._storing:
                 try:
-                    results: list[StoreResult | Exception] = self.ingest.store_many([(m, r) for m, r, _, _ in batch])
-                except Exception as exc:  # the database itself failed: every message of the batch hears it  # noqa: BLE001
+                    results: list[StoreResult | Exception] = self.ingest.store_many(
+                        [(m, r) for m, r, _, _ in batch]
+                    )
+                except (
+                    Exception
+                ) as exc:  # the database itself failed: every message of the batch hears it  # noqa: BLE001
                     results = [exc] * len(batch)
                 self._last_store = time.monotonic()
             with self._count:
                 self._pending -= len(batch)
-            by_loop: dict[asyncio.AbstractEventLoop, list[tuple[asyncio.Future[StoreResult], StoreResult | Exception]]] = defaultdict(list)
+            by_loop: dict[
+                asyncio.AbstractEventLoop,
+                list[tuple[asyncio.Future[StoreResult], StoreResult | Exception]],
+            ] = defaultdict(list)
             for (_, _, future, loop), result in zip(batch, results):
                 by_loop[loop].append((future, result))
-            for loop, settled in by_loop.items():  # one wake-up of each loop per batch, not one per message
+            for (
+                loop,
+                settled,
+            ) in by_loop.items():  # one wake-up of each loop per batch, not one per message
                 loop.call_soon_threadsafe(_settle_all, settled)
 
 

@@ -48,7 +48,9 @@ class LiveHub:
         self.watchers: set[Watcher] = set()
         self.robots: dict[str, SendCommand] = {}  # session id -> command sender
         self.latest: dict[str, dict[str, Any]] = {}  # session id -> last telemetry
-        self.controllers: dict[str, Watcher] = {}  # session id -> the one browser that drives its robot
+        self.controllers: dict[
+            str, Watcher
+        ] = {}  # session id -> the one browser that drives its robot
         self._command_seq: dict[str, int] = {}
         self._watcher_ids = itertools.count(1)
 
@@ -60,7 +62,9 @@ class LiveHub:
 
     def watch(self, user: str = "") -> Watcher:
         """Register a browser."""
-        watcher = Watcher(queue=asyncio.Queue(maxsize=self.queue_size), id=next(self._watcher_ids), user=user)
+        watcher = Watcher(
+            queue=asyncio.Queue(maxsize=self.queue_size), id=next(self._watcher_ids), user=user
+        )
         self.watchers.add(watcher)
         watcher.offer(json.dumps({"type": "hello", "watcher_id": watcher.id}))
         for sid in self.robots:
@@ -81,7 +85,12 @@ class LiveHub:
 
     def _control_event(self, session_id: str) -> dict[str, Any]:
         w = self.controllers.get(session_id)
-        return {"type": "control", "session_id": session_id, "holder": w.user if w else None, "holder_id": w.id if w else None}
+        return {
+            "type": "control",
+            "session_id": session_id,
+            "holder": w.user if w else None,
+            "holder_id": w.id if w else None,
+        }
 
     def take_control(self, session_id: str, watcher: Watcher, *, force: bool = False) -> str:
         """Make ``watcher`` the one that drives the robot of a session; '' on success, else

@@ -25,8 +25,9 @@ OPTIMISE_EVERY = 10
 _maps: dict[str, Any] = {}  # in the worker process: session id -> IncrementalMap
 
 
-def _place(session_id: str, payload: bytes, meta: dict[str, Any], guess: NDArray[np.float64]
-           ) -> tuple[int, NDArray[np.float32], NDArray[np.float32]]:
+def _place(
+    session_id: str, payload: bytes, meta: dict[str, Any], guess: NDArray[np.float64]
+) -> tuple[int, NDArray[np.float32], NDArray[np.float32]]:
     """In the worker: decode one cloud, add it to its session's map; (clouds, map points,
     sensor positions)."""
     from processing.mapping import IncrementalMap, MapParams
@@ -40,7 +41,11 @@ def _place(session_id: str, payload: bytes, meta: dict[str, Any], guess: NDArray
         live = _maps[session_id] = IncrementalMap(MapParams(), optimise_every=OPTIMISE_EVERY)
     live.add(points, guess, shape=(meta["height"], meta["width"]))
     poses = live.poses
-    return len(poses), display_points(live.points, DISPLAY_POINTS), poses[:, :3, 3].astype(np.float32)
+    return (
+        len(poses),
+        display_points(live.points, DISPLAY_POINTS),
+        poses[:, :3, 3].astype(np.float32),
+    )
 
 
 class LiveMap:
@@ -62,7 +67,11 @@ class LiveMap:
 
             with self.factory() as db:
                 s = db.get(InspectionSession, session_id)
-                T = (s.calibration or {}).get("tof", {}).get("T_robot_tof") if s is not None else None
+                T = (
+                    (s.calibration or {}).get("tof", {}).get("T_robot_tof")
+                    if s is not None
+                    else None
+                )
             self._mounts[session_id] = np.asarray(T, dtype=np.float64) if T is not None else None
         return self._mounts[session_id]
 
@@ -87,13 +96,17 @@ class LiveMap:
         future.add_done_callback(lambda f: self._show(session_id, f))
         return True
 
-    def _show(self, session_id: str, future: Future[tuple[int, NDArray[np.float32], NDArray[np.float32]]]) -> None:
+    def _show(
+        self, session_id: str, future: Future[tuple[int, NDArray[np.float32], NDArray[np.float32]]]
+    ) -> None:
         with self._lock:
             self._pending -= 1
         try:
             clouds, points, trajectory = future.result()
         except Exception:  # the live view is a courtesy: the job builds the real map
-            log.warning("live map: a cloud of session %s could not be placed", session_id, exc_info=True)
+            log.warning(
+                "live map: a cloud of session %s could not be placed", session_id, exc_info=True
+            )
             return
         self.scene.show_live_map(session_id, points, clouds, trajectory)
 

@@ -53,7 +53,9 @@ def height_colours(points: NDArray[np.floating]) -> NDArray[np.uint8]:
     return bgr[:, ::-1].copy()
 
 
-def display_points(points: NDArray[np.floating], limit: int = MAX_DISPLAY_POINTS, seed: int = 0) -> NDArray[np.float32]:
+def display_points(
+    points: NDArray[np.floating], limit: int = MAX_DISPLAY_POINTS, seed: int = 0
+) -> NDArray[np.float32]:
     """At most ``limit`` points of a map for display (a random subset: even coverage)."""
     pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]
@@ -67,8 +69,12 @@ class Scene3D:
 
     def __init__(self, port: int = 0) -> None:
         banner = io.StringIO()
-        with contextlib.redirect_stdout(banner):  # viser prints a banner whatever ``verbose`` says; stdout is the CLI's
-            self.server = viser.ViserServer(host="127.0.0.1", port=port, label="steelscan 3D", verbose=False)
+        with contextlib.redirect_stdout(
+            banner
+        ):  # viser prints a banner whatever ``verbose`` says; stdout is the CLI's
+            self.server = viser.ViserServer(
+                host="127.0.0.1", port=port, label="steelscan 3D", verbose=False
+            )
         log.debug("viser: %s", banner.getvalue())
         self.server.scene.set_up_direction("-z")
         self.session_id: str | None = None
@@ -86,8 +92,14 @@ class Scene3D:
         """Where the viser server listens (loopback)."""
         return int(self.server.get_port())
 
-    def show_session(self, session_id: str, points: NDArray[np.floating] | None, trajectory: NDArray[np.floating] | None,
-                     defects: Sequence[DefectMarker], title: str = "") -> None:
+    def show_session(
+        self,
+        session_id: str,
+        points: NDArray[np.floating] | None,
+        trajectory: NDArray[np.floating] | None,
+        defects: Sequence[DefectMarker],
+        title: str = "",
+    ) -> None:
         """Replace the scene with a session's map, trajectory and defect markers."""
         with self._lock:
             self.session_id = session_id
@@ -97,10 +109,17 @@ class Scene3D:
             self._title.content = f"**{title or session_id}**"
             if points is not None and len(points):
                 pts = display_points(points)
-                scene.add_point_cloud("/map", pts, height_colours(pts), point_size=0.006, precision="float32")
+                scene.add_point_cloud(
+                    "/map", pts, height_colours(pts), point_size=0.006, precision="float32"
+                )
                 self._frame_view(pts)
             if trajectory is not None and len(trajectory) > 1:
-                scene.add_spline_catmull_rom("/trajectory", np.asarray(trajectory, dtype=np.float32), color=(30, 110, 240), thickness=0.004)
+                scene.add_spline_catmull_rom(
+                    "/trajectory",
+                    np.asarray(trajectory, dtype=np.float32),
+                    color=(30, 110, 240),
+                    thickness=0.004,
+                )
             for d in defects:
                 self._add_marker(d)
 
@@ -111,15 +130,23 @@ class Scene3D:
         span = float(np.linalg.norm(hi - lo))
         camera = self.server.initial_camera
         camera.look_at = tuple(float(v) for v in centre)
-        camera.position = (float(centre[0]), float(centre[1] - 0.6 * span), float(centre[2] - 0.7 * span))
+        camera.position = (
+            float(centre[0]),
+            float(centre[1] - 0.6 * span),
+            float(centre[2] - 0.7 * span),
+        )
         for client in self.server.get_clients().values():
             client.camera.look_at = camera.look_at
             client.camera.position = camera.position
 
     def _add_marker(self, d: DefectMarker) -> None:
         handle = self.server.scene.add_icosphere(
-            f"/defects/{d.id}", radius=float(np.clip(d.size / 2, 0.008, 0.06)), color=CLASS_COLOURS.get(d.defect_class, (200, 200, 200)),
-            position=(d.x, d.y, -0.004), opacity=0.8)
+            f"/defects/{d.id}",
+            radius=float(np.clip(d.size / 2, 0.008, 0.06)),
+            color=CLASS_COLOURS.get(d.defect_class, (200, 200, 200)),
+            position=(d.x, d.y, -0.004),
+            opacity=0.8,
+        )
         self.server.scene.add_label(f"/defects/{d.id}/label", f"{d.id}", position=(d.x, d.y, -0.03))
 
         @handle.on_click
@@ -143,17 +170,36 @@ class Scene3D:
                 self.server.scene.reset()
                 self._title.content = f"**Live: {session_id}**"
             q = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
-            self.server.scene.add_frame("/robot", wxyz=q, position=(x, y, -0.05), axes_length=0.08, axes_radius=0.004)
-            self.server.scene.add_camera_frustum("/robot/camera", fov=np.radians(60), aspect=4 / 3, scale=0.06, color=(250, 200, 0),
-                                                 wxyz=(0.0, 1.0, 0.0, 0.0), position=(0.0, 0.0, 0.0))
+            self.server.scene.add_frame(
+                "/robot", wxyz=q, position=(x, y, -0.05), axes_length=0.08, axes_radius=0.004
+            )
+            self.server.scene.add_camera_frustum(
+                "/robot/camera",
+                fov=np.radians(60),
+                aspect=4 / 3,
+                scale=0.06,
+                color=(250, 200, 0),
+                wxyz=(0.0, 1.0, 0.0, 0.0),
+                position=(0.0, 0.0, 0.0),
+            )
             if not self._trail or np.hypot(x - self._trail[-1][0], y - self._trail[-1][1]) > 0.01:
                 self._trail.append((x, y))
                 if len(self._trail) > 1:
                     pts = np.array([[px, py, -0.002] for px, py in self._trail], dtype=np.float32)
-                    self.server.scene.add_line_segments("/live_trail", np.stack([pts[:-1], pts[1:]], axis=1), colors=(250, 200, 0), thickness=0.004)
+                    self.server.scene.add_line_segments(
+                        "/live_trail",
+                        np.stack([pts[:-1], pts[1:]], axis=1),
+                        colors=(250, 200, 0),
+                        thickness=0.004,
+                    )
 
-    def show_live_map(self, session_id: str, points: NDArray[np.floating], clouds: int,
-                      trajectory: NDArray[np.floating] | None = None) -> None:
+    def show_live_map(
+        self,
+        session_id: str,
+        points: NDArray[np.floating],
+        clouds: int,
+        trajectory: NDArray[np.floating] | None = None,
+    ) -> None:
         """Show the map growing during a live session (when that session is on view), with
         the ToF's trajectory as the map's pose graph places it (blue; the odometry's trail
         is yellow)."""
@@ -161,13 +207,21 @@ class Scene3D:
             if self._closed or session_id != self.session_id or not len(points):
                 return
             pts = np.asarray(points, dtype=np.float32)
-            self.server.scene.add_point_cloud("/live_map", pts, height_colours(pts), point_size=0.006, precision="float32")
+            self.server.scene.add_point_cloud(
+                "/live_map", pts, height_colours(pts), point_size=0.006, precision="float32"
+            )
             if trajectory is not None and len(trajectory) > 1:
                 path = np.asarray(trajectory, dtype=np.float32)
-                self.server.scene.add_line_segments("/live_trajectory", np.stack([path[:-1], path[1:]], axis=1), colors=(30, 110, 240),
-                                                    thickness=0.004)
+                self.server.scene.add_line_segments(
+                    "/live_trajectory",
+                    np.stack([path[:-1], path[1:]], axis=1),
+                    colors=(30, 110, 240),
+                    thickness=0.004,
+                )
                 self.live_trajectory_poses = len(path)
-            self._title.content = f"**Live: {session_id}** — map of {clouds} clouds, {len(pts)} points"
+            self._title.content = (
+                f"**Live: {session_id}** — map of {clouds} clouds, {len(pts)} points"
+            )
             if not self.live_map_points:
                 self._frame_view(pts)
             self.live_map_points = len(pts)

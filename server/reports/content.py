@@ -31,7 +31,9 @@ from server.storage.models import (
 STAGES = {"stitch": "mosaic", "map": "3D map", "detect": "defect detection"}
 
 
-def build_report(db: Session, files: SessionFiles, session_id: str, *, base_url: str = "") -> dict[str, Any]:
+def build_report(
+    db: Session, files: SessionFiles, session_id: str, *, base_url: str = ""
+) -> dict[str, Any]:
     """Everything the report of one session shows, as JSON-ready data."""
     s = db.get(InspectionSession, session_id)
     if s is None:
@@ -42,28 +44,61 @@ def build_report(db: Session, files: SessionFiles, session_id: str, *, base_url:
     results_dir = files.results_dir(session_id)
     world = read_json(results_dir / "mosaic.json") if "stitch" in done else None
     listed_source = "mosaic" if world is not None else "frame"
-    defects = list(db.scalars(select(Defect).where(Defect.session_id == session_id, Defect.source == listed_source)
-                              .order_by(Defect.world_y_m.is_(None), Defect.world_y_m, Defect.world_x_m, Defect.id)))
+    defects = list(
+        db.scalars(
+            select(Defect)
+            .where(Defect.session_id == session_id, Defect.source == listed_source)
+            .order_by(Defect.world_y_m.is_(None), Defect.world_y_m, Defect.world_x_m, Defect.id)
+        )
+    )
     records = [_defect_record(d, i + 1, base_url) for i, d in enumerate(defects)]
-    counts = {m.__tablename__: db.scalar(select(func.count()).select_from(m).where(m.session_id == session_id)) or 0
-              for m in (Frame, Cloud, TelemetrySample)}
-    notes = [f"No {label}: {_why_missing(latest.get(kind))}" for kind, label in STAGES.items() if kind not in done]
+    counts = {
+        m.__tablename__: db.scalar(
+            select(func.count()).select_from(m).where(m.session_id == session_id)
+        )
+        or 0
+        for m in (Frame, Cloud, TelemetrySample)
+    }
+    notes = [
+        f"No {label}: {_why_missing(latest.get(kind))}"
+        for kind, label in STAGES.items()
+        if kind not in done
+    ]
     if listed_source == "frame" and defects:
-        notes.append("Defects are listed per camera frame (no mosaic): one defect seen in overlapping frames appears more than once.")
+        notes.append(
+            "Defects are listed per camera frame (no mosaic): one defect seen in overlapping frames appears more than once."
+        )
     return {
         "generator": GENERATOR,
         "generated_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "cover": {"structure": s.structure, "location": s.location, "date": s.started_at.date().isoformat(),
-                  "started_at": _iso(s.started_at), "ended_at": _iso(s.ended_at), "operator": s.operator,
-                  "robot": s.robot.name if s.robot else None, "session_id": s.id, "status": s.status.value,
-                  "end_reason": s.end_reason, "notes": s.notes},
+        "cover": {
+            "structure": s.structure,
+            "location": s.location,
+            "date": s.started_at.date().isoformat(),
+            "started_at": _iso(s.started_at),
+            "ended_at": _iso(s.ended_at),
+            "operator": s.operator,
+            "robot": s.robot.name if s.robot else None,
+            "session_id": s.id,
+            "status": s.status.value,
+            "end_reason": s.end_reason,
+            "notes": s.notes,
+        },
         "summary": _summary(db, s, counts, records, world, results_dir, done),
         "defects": records,
         "defect_source": listed_source,
         "results": {k: j.result for k, j in done.items()},
         "parameters": {k: j.result.get("params", {}) for k, j in done.items() if k in STAGES},
-        "jobs": [{"id": j.id, "kind": j.kind, "state": j.state.value, "error": j.error,
-                  "finished_at": _iso(j.finished_at)} for j in jobs],
+        "jobs": [
+            {
+                "id": j.id,
+                "kind": j.kind,
+                "state": j.state.value,
+                "error": j.error,
+                "finished_at": _iso(j.finished_at),
+            }
+            for j in jobs
+        ],
         "missing": [k for k in STAGES if k not in done],
         "notes": notes,
         "files": _files(results_dir, base_url, session_id),
@@ -91,27 +126,59 @@ def read_json(path: Path) -> dict[str, Any] | None:
 
 
 def _defect_record(d: Defect, number: int, base_url: str) -> dict[str, Any]:
-    mean_width_mm = d.mean_width_px * d.max_width_mm / d.max_width_px if d.max_width_mm and d.max_width_px else None
+    mean_width_mm = (
+        d.mean_width_px * d.max_width_mm / d.max_width_px
+        if d.max_width_mm and d.max_width_px
+        else None
+    )
     rec: dict[str, Any] = {
-        "number": number, "id": d.id, "defect_class": d.defect_class, "source": d.source, "frame_seq": d.frame_seq,
-        "length_mm": d.length_mm, "max_width_mm": d.max_width_mm, "mean_width_mm": mean_width_mm, "area_mm2": d.area_mm2,
-        "world_x_m": d.world_x_m, "world_y_m": d.world_y_m, "world_w_m": d.world_w_m, "world_h_m": d.world_h_m,
-        "bbox_x": d.bbox_x, "bbox_y": d.bbox_y, "bbox_w": d.bbox_w, "bbox_h": d.bbox_h, "area_px": d.area_px,
-        "length_px": d.length_px, "max_width_px": d.max_width_px, "orientation_deg": d.orientation_deg,
-        "review_status": d.review_status, "condition_state": d.condition_state, "comment": d.comment,
-        "reviewed_by": d.reviewed_by, "reviewed_at": _iso(d.reviewed_at),
+        "number": number,
+        "id": d.id,
+        "defect_class": d.defect_class,
+        "source": d.source,
+        "frame_seq": d.frame_seq,
+        "length_mm": d.length_mm,
+        "max_width_mm": d.max_width_mm,
+        "mean_width_mm": mean_width_mm,
+        "area_mm2": d.area_mm2,
+        "world_x_m": d.world_x_m,
+        "world_y_m": d.world_y_m,
+        "world_w_m": d.world_w_m,
+        "world_h_m": d.world_h_m,
+        "bbox_x": d.bbox_x,
+        "bbox_y": d.bbox_y,
+        "bbox_w": d.bbox_w,
+        "bbox_h": d.bbox_h,
+        "area_px": d.area_px,
+        "length_px": d.length_px,
+        "max_width_px": d.max_width_px,
+        "orientation_deg": d.orientation_deg,
+        "review_status": d.review_status,
+        "condition_state": d.condition_state,
+        "comment": d.comment,
+        "reviewed_by": d.reviewed_by,
+        "reviewed_at": _iso(d.reviewed_at),
     }
     rec["thumbnail_url"] = f"{base_url}/api/sessions/{d.session_id}/defects/{d.id}/thumbnail.jpg"
     return rec
 
 
-def _summary(db: Session, s: InspectionSession, counts: dict[str, int], records: list[dict[str, Any]],
-             world: dict[str, Any] | None, results_dir: Path, done: dict[str, Job]) -> dict[str, Any]:
+def _summary(
+    db: Session,
+    s: InspectionSession,
+    counts: dict[str, int],
+    records: list[dict[str, Any]],
+    world: dict[str, Any] | None,
+    results_dir: Path,
+    done: dict[str, Job],
+) -> dict[str, Any]:
     kept = [r for r in records if r["review_status"] != "rejected"]
     cracks = [r for r in kept if r["defect_class"] == "crack"]
     end = s.ended_at or s.started_at
     return {
-        "frames": counts["frames"], "clouds": counts["clouds"], "telemetry_samples": counts["telemetry"],
+        "frames": counts["frames"],
+        "clouds": counts["clouds"],
+        "telemetry_samples": counts["telemetry"],
         "duration_s": max(0.0, (end - s.started_at).total_seconds()),
         "distance_travelled_m": _distance_travelled(db, s.id),
         "area_covered_m2": _area_covered(results_dir, world),
@@ -119,24 +186,53 @@ def _summary(db: Session, s: InspectionSession, counts: dict[str, int], records:
         "map_points": done["map"].result.get("points") if "map" in done else None,
         "defects": len(records),
         "defects_rejected": len(records) - len(kept),
-        "defects_by_class": {c: sum(1 for r in kept if r["defect_class"] == c) for c in ("crack", "corrosion")},
-        "defects_by_condition_state": {cs: sum(1 for r in kept if r["condition_state"] == cs) for cs in CONDITION_STATES}
+        "defects_by_class": {
+            c: sum(1 for r in kept if r["defect_class"] == c) for c in ("crack", "corrosion")
+        },
+        "defects_by_condition_state": {
+            cs: sum(1 for r in kept if r["condition_state"] == cs) for cs in CONDITION_STATES
+        }
         | {"not rated": sum(1 for r in kept if r["condition_state"] is None)},
-        "defects_by_review": {st: sum(1 for r in records if r["review_status"] == st) for st in ("confirmed", "unreviewed", "rejected")},
-        "longest_crack_mm": max((r["length_mm"] for r in cracks if r["length_mm"] is not None), default=None),
-        "widest_crack_mm": max((r["max_width_mm"] for r in cracks if r["max_width_mm"] is not None), default=None),
-        "total_crack_length_mm": sum(r["length_mm"] for r in cracks if r["length_mm"] is not None) if cracks else 0.0,
-        "corroded_area_mm2": sum(r["area_mm2"] or 0.0 for r in kept if r["defect_class"] == "corrosion"),
+        "defects_by_review": {
+            st: sum(1 for r in records if r["review_status"] == st)
+            for st in ("confirmed", "unreviewed", "rejected")
+        },
+        "longest_crack_mm": max(
+            (r["length_mm"] for r in cracks if r["length_mm"] is not None), default=None
+        ),
+        "widest_crack_mm": max(
+            (r["max_width_mm"] for r in cracks if r["max_width_mm"] is not None), default=None
+        ),
+        "total_crack_length_mm": sum(r["length_mm"] for r in cracks if r["length_mm"] is not None)
+        if cracks
+        else 0.0,
+        "corroded_area_mm2": sum(
+            r["area_mm2"] or 0.0 for r in kept if r["defect_class"] == "corrosion"
+        ),
     }
 
 
 def _distance_travelled(db: Session, session_id: str) -> float | None:
     """Length of the odometry path (telemetry poses, else frame poses), metres."""
-    rows = db.execute(select(TelemetrySample.data).where(TelemetrySample.session_id == session_id).order_by(TelemetrySample.seq))
-    xy = [(p["x"], p["y"]) for (data,) in rows if isinstance(p := data.get("pose"), dict) and "x" in p and "y" in p]
+    rows = db.execute(
+        select(TelemetrySample.data)
+        .where(TelemetrySample.session_id == session_id)
+        .order_by(TelemetrySample.seq)
+    )
+    xy = [
+        (p["x"], p["y"])
+        for (data,) in rows
+        if isinstance(p := data.get("pose"), dict) and "x" in p and "y" in p
+    ]
     if len(xy) < 2:
-        xy = [(x, y) for x, y in db.execute(select(Frame.pose_x, Frame.pose_y).where(Frame.session_id == session_id,
-                                                                                     Frame.pose_x.is_not(None)).order_by(Frame.seq))]
+        xy = [
+            (x, y)
+            for x, y in db.execute(
+                select(Frame.pose_x, Frame.pose_y)
+                .where(Frame.session_id == session_id, Frame.pose_x.is_not(None))
+                .order_by(Frame.seq)
+            )
+        ]
     if len(xy) < 2:
         return None
     return float(np.linalg.norm(np.diff(np.asarray(xy, dtype=np.float64), axis=0), axis=1).sum())
@@ -158,10 +254,20 @@ def _area_covered(results_dir: Path, world: dict[str, Any] | None) -> float | No
 
 def _files(results_dir: Path, base_url: str, session_id: str) -> dict[str, str]:
     api = f"{base_url}/api/sessions/{session_id}"
-    out = {"report_pdf": f"{api}/report.pdf", "report_json": f"{api}/report.json", "defects_csv": f"{api}/defects.csv",
-           "defects_json": f"{api}/defects.json", "mcap": f"{api}/export.mcap"}
-    for name, key in (("mosaic_overview.png", "mosaic_overview"), ("mosaic.png", "mosaic"), ("mosaic.dzi", "mosaic_dzi"),
-                      ("map.ply", "map_ply"), ("trajectory.tum", "trajectory_tum")):
+    out = {
+        "report_pdf": f"{api}/report.pdf",
+        "report_json": f"{api}/report.json",
+        "defects_csv": f"{api}/defects.csv",
+        "defects_json": f"{api}/defects.json",
+        "mcap": f"{api}/export.mcap",
+    }
+    for name, key in (
+        ("mosaic_overview.png", "mosaic_overview"),
+        ("mosaic.png", "mosaic"),
+        ("mosaic.dzi", "mosaic_dzi"),
+        ("map.ply", "map_ply"),
+        ("trajectory.tum", "trajectory_tum"),
+    ):
         if (results_dir / name).is_file():
             out[key] = f"{api}/results/{name}"
     return out

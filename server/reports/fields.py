@@ -3,7 +3,31 @@
 GENERATOR = "steelscan 0.1.0"
 CONDITION_STATES = ("CS1", "CS2", "CS3", "CS4")
 CONDITION_MEANING = {"CS1": "good", "CS2": "fair", "CS3": "poor", "CS4": "severe"}
-DEFECT_FIELDS = ("number", "id", "defect_class", "source", "frame_seq", "length_mm", "max_width_mm", "mean_width_mm",
-                 "area_mm2", "world_x_m", "world_y_m", "world_w_m", "world_h_m", "bbox_x", "bbox_y", "bbox_w", "bbox_h",
-                 "area_px", "length_px", "max_width_px", "orientation_deg", "review_status", "condition_state", "comment",
-                 "reviewed_by", "reviewed_at")
+DEFECT_FIELDS = (
+    "number",
+    "id",
+    "defect_class",
+    "source",
+    "frame_seq",
+    "length_mm",
+    "max_width_mm",
+    "mean_width_mm",
+    "area_mm2",
+    "world_x_m",
+    "world_y_m",
+    "world_w_m",
+    "world_h_m",
+    "bbox_x",
+    "bbox_y",
+    "bbox_w",
+    "bbox_h",
+    "area_px",
+    "length_px",
+    "max_width_px",
+    "orientation_deg",
+    "review_status",
+    "condition_state",
+    "comment",
+    "reviewed_by",
+    "reviewed_at",
+)

@@ -74,13 +74,17 @@ def _matrix_quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
     return float(x), float(y), float(z), float(w)
 
 
-def _set_pose(pose: Any, xyz: tuple[float, float, float], q: tuple[float, float, float, float]) -> None:
+def _set_pose(
+    pose: Any, xyz: tuple[float, float, float], q: tuple[float, float, float, float]
+) -> None:
     pose.position.x, pose.position.y, pose.position.z = xyz
     pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = q
 
 
 def _xyz_cloud(points: np.ndarray, frame_id: str, t: float) -> PointCloud:
-    msg = PointCloud(frame_id=frame_id, point_stride=12, data=np.ascontiguousarray(points, dtype="<f4").tobytes())
+    msg = PointCloud(
+        frame_id=frame_id, point_stride=12, data=np.ascontiguousarray(points, dtype="<f4").tobytes()
+    )
     msg.timestamp.FromNanoseconds(_ns(t))
     msg.pose.orientation.w = 1.0
     for i, name in enumerate("xyz"):
@@ -102,25 +106,44 @@ class _Channels:
             if isinstance(message, dict):
                 key = "json"
                 if key not in self.schemas:
-                    self.schemas[key] = self.writer.register_schema("steelscan.Json", "jsonschema", JSON_SCHEMA)
+                    self.schemas[key] = self.writer.register_schema(
+                        "steelscan.Json", "jsonschema", JSON_SCHEMA
+                    )
                 self.ids[topic] = self.writer.register_channel(topic, "json", self.schemas[key])
             else:
                 key = type(message).DESCRIPTOR.full_name
                 if key not in self.schemas:
                     self.schemas[key] = register_schema(self.writer, type(message))
                 self.ids[topic] = self.writer.register_channel(topic, "protobuf", self.schemas[key])
-        data = json.dumps(message).encode() if isinstance(message, dict) else message.SerializeToString()
-        self.writer.add_message(self.ids[topic], log_time=_ns(t), publish_time=_ns(t), data=data, sequence=seq % 2**32)
+        data = (
+            json.dumps(message).encode()
+            if isinstance(message, dict)
+            else message.SerializeToString()
+        )
+        self.writer.add_message(
+            self.ids[topic], log_time=_ns(t), publish_time=_ns(t), data=data, sequence=seq % 2**32
+        )
 
 
 def _rows(db: Session, model: Any, session_id: str) -> Iterator[tuple[float, int, str, Any]]:
-    q = select(model).where(model.session_id == session_id).order_by(model.seq).execution_options(yield_per=200)
+    q = (
+        select(model)
+        .where(model.session_id == session_id)
+        .order_by(model.seq)
+        .execution_options(yield_per=200)
+    )
     for row in db.scalars(q):
         yield row.timestamp, row.seq, model.__tablename__, row
 
 
-def export_session(db: Session, files: SessionFiles, session_id: str, out: BinaryIO, *,
-                   progress: Progress = lambda f, m: None) -> dict[str, int]:
+def export_session(
+    db: Session,
+    files: SessionFiles,
+    session_id: str,
+    out: BinaryIO,
+    *,
+    progress: Progress = lambda f, m: None,
+) -> dict[str, int]:
     """Write a session as MCAP to the binary stream ``out``; counts of what was written."""
     s = db.get(InspectionSession, session_id)
     if s is None:
@@ -130,13 +153,25 @@ def export_session(db: Session, files: SessionFiles, session_id: str, out: Binar
     ch = _Channels(writer)
     writer.add_metadata(METADATA, _session_metadata(s))
     t0 = s.started_at.timestamp()
-    first = db.scalar(select(Frame.timestamp).where(Frame.session_id == session_id).order_by(Frame.seq).limit(1))
+    first = db.scalar(
+        select(Frame.timestamp).where(Frame.session_id == session_id).order_by(Frame.seq).limit(1)
+    )
     t_start = first if first is not None else t0
     _write_mounts(ch, s.calibration, t_start)
-    total = sum(db.query(m).filter(m.session_id == session_id).count() for m in (Frame, Cloud, TelemetrySample)) or 1
+    total = (
+        sum(
+            db.query(m).filter(m.session_id == session_id).count()
+            for m in (Frame, Cloud, TelemetrySample)
+        )
+        or 1
+    )
     counts = {"frames": 0, "clouds": 0, "telemetry": 0}
-    merged = heapq.merge(_rows(db, Frame, session_id), _rows(db, Cloud, session_id), _rows(db, TelemetrySample, session_id),
-                         key=lambda r: (r[0], r[1]))
+    merged = heapq.merge(
+        _rows(db, Frame, session_id),
+        _rows(db, Cloud, session_id),
+        _rows(db, TelemetrySample, session_id),
+        key=lambda r: (r[0], r[1]),
+    )
     t_last = t_start
     for i, (t, seq, table, row) in enumerate(merged):
         t_last = max(t_last, t)
@@ -155,10 +190,21 @@ def export_session(db: Session, files: SessionFiles, session_id: str, out: Binar
 
 
 def _session_metadata(s: InspectionSession) -> dict[str, str]:
-    return {"id": s.id, "structure": s.structure, "operator": s.operator, "location": s.location, "notes": s.notes,
-            "robot": s.robot.name if s.robot else "", "status": s.status.value, "end_reason": s.end_reason or "",
-            "started_at": s.started_at.isoformat(), "ended_at": s.ended_at.isoformat() if s.ended_at else "",
-            "calibration": json.dumps(s.calibration), "exported_at": datetime.now(timezone.utc).isoformat(), "generator": GENERATOR}
+    return {
+        "id": s.id,
+        "structure": s.structure,
+        "operator": s.operator,
+        "location": s.location,
+        "notes": s.notes,
+        "robot": s.robot.name if s.robot else "",
+        "status": s.status.value,
+        "end_reason": s.end_reason or "",
+        "started_at": s.started_at.isoformat(),
+        "ended_at": s.ended_at.isoformat() if s.ended_at else "",
+        "calibration": json.dumps(s.calibration),
+        "exported_at": datetime.now(timezone.utc).isoformat(),
+        "generator": GENERATOR,
+    }
 
 
 def _write_mounts(ch: _Channels, calibration: dict[str, Any], t: float) -> None:
@@ -201,16 +247,25 @@ def _write_cloud(ch: _Channels, files: SessionFiles, c: Cloud) -> None:
     k = c.intrinsics
     # always written: it carries the cloud's organised width × height (K is zero when unknown)
     fx, fy, cx, cy = (float(k.get(n, 0.0)) for n in ("fx", "fy", "cx", "cy"))
-    cal = CameraCalibration(frame_id="tof", width=c.width, height=c.height, distortion_model="plumb_bob", D=[0.0] * 5,
-                            K=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0], R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                            P=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+    cal = CameraCalibration(
+        frame_id="tof",
+        width=c.width,
+        height=c.height,
+        distortion_model="plumb_bob",
+        D=[0.0] * 5,
+        K=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+        R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        P=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+    )
     cal.timestamp.FromNanoseconds(_ns(c.timestamp))
     ch.write("/tof/calibration", cal, c.timestamp, c.seq)
     if c.encoding == "png16_depth_mm":
         depth = CompressedImage(frame_id="tof", format="png", data=payload)
         depth.timestamp.FromNanoseconds(_ns(c.timestamp))
         ch.write("/tof/depth", depth, c.timestamp, c.seq)
-    points = decode_cloud(payload, {"encoding": c.encoding, "width": c.width, "height": c.height, **k})
+    points = decode_cloud(
+        payload, {"encoding": c.encoding, "width": c.width, "height": c.height, **k}
+    )
     ch.write("/tof/points", _xyz_cloud(points, "tof", c.timestamp), c.timestamp, c.seq)
 
 
@@ -220,12 +275,21 @@ def _write_telemetry(ch: _Channels, sample: TelemetrySample) -> None:
         tf = FrameTransform(parent_frame_id="world", child_frame_id="base_link")
         tf.timestamp.FromNanoseconds(_ns(sample.timestamp))
         tf.translation.x, tf.translation.y = float(pose["x"]), float(pose["y"])
-        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = _yaw_quaternion(float(pose["yaw"]))
+        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = _yaw_quaternion(
+            float(pose["yaw"])
+        )
         ch.write("/tf", tf, sample.timestamp, sample.seq)
-    ch.write("/robot/telemetry", {"timestamp": sample.timestamp, **sample.data}, sample.timestamp, sample.seq)
+    ch.write(
+        "/robot/telemetry",
+        {"timestamp": sample.timestamp, **sample.data},
+        sample.timestamp,
+        sample.seq,
+    )
 
 
-def _write_results(ch: _Channels, db: Session, files: SessionFiles, session_id: str, t: float) -> None:
+def _write_results(
+    ch: _Channels, db: Session, files: SessionFiles, session_id: str, t: float
+) -> None:
     from processing.poses import parse_tum
     from server.storage.ply import read_ply_points
 
@@ -242,13 +306,21 @@ def _write_results(ch: _Channels, db: Session, files: SessionFiles, session_id: 
         traj = PosesInFrame(frame_id="world")
         traj.timestamp.FromNanoseconds(_ns(t))
         for T in poses:
-            _set_pose(traj.poses.add(), tuple(float(v) for v in T[:3, 3]), _matrix_quaternion(T[:3, :3]))  # type: ignore[arg-type]
+            _set_pose(
+                traj.poses.add(), tuple(float(v) for v in T[:3, 3]), _matrix_quaternion(T[:3, :3])
+            )  # type: ignore[arg-type]
         ch.write("/map/trajectory", traj, t)
-    defects = list(db.scalars(select(Defect).where(Defect.session_id == session_id).order_by(Defect.id)))
+    defects = list(
+        db.scalars(select(Defect).where(Defect.session_id == session_id).order_by(Defect.id))
+    )
     if defects:
         from server.api.schemas import DefectPublic
 
-        ch.write("/inspection/defects", {"defects": [DefectPublic.model_validate(d).model_dump(mode="json") for d in defects]}, t)
+        ch.write(
+            "/inspection/defects",
+            {"defects": [DefectPublic.model_validate(d).model_dump(mode="json") for d in defects]},
+            t,
+        )
         placed = [d for d in defects if d.source == "mosaic" and d.world_x_m is not None]
         if placed:
             ch.write("/inspection/defect_markers", _defect_markers(placed, t), t)
@@ -266,9 +338,15 @@ def _defect_markers(defects: list[Defect], t: float) -> SceneUpdate:
         _set_pose(cube.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.0), (0.0, 0.0, 0.0, 1.0))
         cube.size.x, cube.size.y, cube.size.z = w, h, 0.004
         cube.color.r, cube.color.g, cube.color.b, cube.color.a = red, green, 0.2, 0.6
-        label = entity.texts.add(billboard=True, font_size=14.0, scale_invariant=True,
-                                 text=f"#{d.id} {d.defect_class} {d.length_mm or 0:.0f} mm {d.condition_state or ''}".strip())
-        _set_pose(label.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.02), (0.0, 0.0, 0.0, 1.0))
+        label = entity.texts.add(
+            billboard=True,
+            font_size=14.0,
+            scale_invariant=True,
+            text=f"#{d.id} {d.defect_class} {d.length_mm or 0:.0f} mm {d.condition_state or ''}".strip(),
+        )
+        _set_pose(
+            label.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.02), (0.0, 0.0, 0.0, 1.0)
+        )
         label.color.r = label.color.g = label.color.b = label.color.a = 1.0
     return update
 

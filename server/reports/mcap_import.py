@@ -40,7 +40,9 @@ class McapImportError(ValueError):
     """The file is not an MCAP session this station can import."""
 
 
-def import_session(db: Session, files: SessionFiles, path: Path, *, progress: Progress = lambda f, m: None) -> dict[str, Any]:
+def import_session(
+    db: Session, files: SessionFiles, path: Path, *, progress: Progress = lambda f, m: None
+) -> dict[str, Any]:
     """Read an MCAP written by :func:`export_session` into a new session (frames and clouds
     byte for byte, telemetry, poses, calibration); nothing is left behind when it fails."""
     session_id = str(uuid.uuid4())
@@ -53,14 +55,21 @@ def import_session(db: Session, files: SessionFiles, path: Path, *, progress: Pr
             counts = _second_pass(db, files, session_id, fh, depth_seqs, calibration, progress)
         for model, topic in ((Frame, "/camera/odometry"), (Cloud, "/tof/odometry")):
             for seq, (x, y, yaw) in poses[topic].items():
-                db.execute(update(model).where(model.session_id == session_id, model.seq == seq)
-                           .values(pose_x=x, pose_y=y, pose_yaw=yaw))
+                db.execute(
+                    update(model)
+                    .where(model.session_id == session_id, model.seq == seq)
+                    .values(pose_x=x, pose_y=y, pose_yaw=yaw)
+                )
         if not any(counts.values()):
-            raise McapImportError("the file holds no camera frames, clouds or telemetry on steelscan's topics")
+            raise McapImportError(
+                "the file holds no camera frames, clouds or telemetry on steelscan's topics"
+            )
         db.commit()
     except (McapError, DecodeError, EOFError, KeyError, struct.error) as exc:
         _discard(db, files, session_id)
-        raise McapImportError(f"{path.name}: not a readable MCAP session ({type(exc).__name__}: {exc})") from None
+        raise McapImportError(
+            f"{path.name}: not a readable MCAP session ({type(exc).__name__}: {exc})"
+        ) from None
     except BaseException:
         _discard(db, files, session_id)
         raise
@@ -85,26 +94,44 @@ def _new_session(session_id: str, meta: dict[str, str], name: str) -> Inspection
         calibration = {}
     note = f"Imported from {name}" + (f" (session {meta['id']})" if meta.get("id") else "")
     return InspectionSession(
-        id=session_id, robot_id=None, structure=meta.get("structure") or Path(name).stem, operator=meta.get("operator", ""),
-        location=meta.get("location", ""), notes="\n".join(n for n in (meta.get("notes", ""), note) if n),
-        status=SessionStatus.ended, started_at=when("started_at") or datetime.now(timezone.utc),
-        ended_at=when("ended_at") or datetime.now(timezone.utc), end_reason=meta.get("end_reason") or "imported",
+        id=session_id,
+        robot_id=None,
+        structure=meta.get("structure") or Path(name).stem,
+        operator=meta.get("operator", ""),
+        location=meta.get("location", ""),
+        notes="\n".join(n for n in (meta.get("notes", ""), note) if n),
+        status=SessionStatus.ended,
+        started_at=when("started_at") or datetime.now(timezone.utc),
+        ended_at=when("ended_at") or datetime.now(timezone.utc),
+        end_reason=meta.get("end_reason") or "imported",
         calibration=calibration if isinstance(calibration, dict) else {},
     )
 
 
-def _first_pass(fh: BinaryIO) -> tuple[dict[str, str], dict[str, dict[int, tuple[float, float, float]]], dict[int, dict[str, float]], set[int]]:
+def _first_pass(
+    fh: BinaryIO,
+) -> tuple[
+    dict[str, str],
+    dict[str, dict[int, tuple[float, float, float]]],
+    dict[int, dict[str, float]],
+    set[int],
+]:
     """Session metadata, odometry and calibration per sequence number, clouds sent as depth PNG."""
     reader = make_reader(fh)
     meta: dict[str, str] = {}
     for record in reader.iter_metadata():
         if record.name == METADATA:
             meta = dict(record.metadata)
-    poses: dict[str, dict[int, tuple[float, float, float]]] = {"/camera/odometry": {}, "/tof/odometry": {}}
+    poses: dict[str, dict[int, tuple[float, float, float]]] = {
+        "/camera/odometry": {},
+        "/tof/odometry": {},
+    }
     calibration: dict[int, dict[str, float]] = {}
     depth: set[int] = set()
-    for _, channel, message in reader.iter_messages(topics=["/camera/odometry", "/tof/odometry", "/tof/calibration", "/tof/depth"],
-                                                    log_time_order=False):
+    for _, channel, message in reader.iter_messages(
+        topics=["/camera/odometry", "/tof/odometry", "/tof/calibration", "/tof/depth"],
+        log_time_order=False,
+    ):
         if channel.topic == "/tof/depth":
             depth.add(message.sequence)
         elif channel.topic == "/tof/calibration":
@@ -116,17 +143,32 @@ def _first_pass(fh: BinaryIO) -> tuple[dict[str, str], dict[str, dict[int, tuple
         else:
             p = PoseInFrame.FromString(message.data).pose
             yaw = 2.0 * float(np.arctan2(p.orientation.z, p.orientation.w))
-            poses[channel.topic][message.sequence] = (p.position.x, p.position.y, float(np.arctan2(np.sin(yaw), np.cos(yaw))))
+            poses[channel.topic][message.sequence] = (
+                p.position.x,
+                p.position.y,
+                float(np.arctan2(np.sin(yaw), np.cos(yaw))),
+            )
     return meta, poses, calibration, depth
 
 
-def _second_pass(db: Session, files: SessionFiles, session_id: str, fh: BinaryIO, depth_seqs: set[int],
-                 calibration: dict[int, dict[str, float]], progress: Progress) -> dict[str, int]:
+def _second_pass(
+    db: Session,
+    files: SessionFiles,
+    session_id: str,
+    fh: BinaryIO,
+    depth_seqs: set[int],
+    calibration: dict[int, dict[str, float]],
+    progress: Progress,
+) -> dict[str, int]:
     reader = make_reader(fh)
     counts = {"frames": 0, "clouds": 0, "telemetry": 0}
     seen: set[tuple[str, int]] = set()
-    for i, (_, channel, m) in enumerate(reader.iter_messages(topics=["/camera/image", "/tof/depth", "/tof/points", "/robot/telemetry"],
-                                                             log_time_order=False)):
+    for i, (_, channel, m) in enumerate(
+        reader.iter_messages(
+            topics=["/camera/image", "/tof/depth", "/tof/points", "/robot/telemetry"],
+            log_time_order=False,
+        )
+    ):
         topic, seq, t = channel.topic, m.sequence, m.log_time / 1e9
         if topic == "/camera/image":
             img = CompressedImage.FromString(m.data)
@@ -136,8 +178,17 @@ def _second_pass(db: Session, files: SessionFiles, session_id: str, fh: BinaryIO
             rel = files.frame_relpath(session_id, seq)
             files.write(rel, img.data)
             w, h = _image_size(img.data)
-            db.add(Frame(session_id=session_id, seq=seq, timestamp=img.timestamp.ToNanoseconds() / 1e9 or t, width=w, height=h,
-                         path=rel, size_bytes=len(img.data)))
+            db.add(
+                Frame(
+                    session_id=session_id,
+                    seq=seq,
+                    timestamp=img.timestamp.ToNanoseconds() / 1e9 or t,
+                    width=w,
+                    height=h,
+                    path=rel,
+                    size_bytes=len(img.data),
+                )
+            )
             counts["frames"] += 1
         elif topic == "/tof/depth" or (topic == "/tof/points" and seq not in depth_seqs):
             if ("cloud", seq) in seen:
@@ -160,7 +211,9 @@ def _second_pass(db: Session, files: SessionFiles, session_id: str, fh: BinaryIO
     return counts
 
 
-def _cloud_row(files: SessionFiles, session_id: str, seq: int, topic: str, data: bytes, cal: dict[str, float]) -> Cloud:
+def _cloud_row(
+    files: SessionFiles, session_id: str, seq: int, topic: str, data: bytes, cal: dict[str, float]
+) -> Cloud:
     intrinsics = {k: cal[k] for k in ("fx", "fy", "cx", "cy") if k in cal}
     if topic == "/tof/depth":
         img = CompressedImage.FromString(data)
@@ -171,7 +224,9 @@ def _cloud_row(files: SessionFiles, session_id: str, seq: int, topic: str, data:
     else:
         cloud = PointCloud.FromString(data)
         fields = [(f.name, f.offset, f.type) for f in cloud.fields][:3]
-        if cloud.point_stride != 12 or fields != [(n, 4 * i, PackedElementField.FLOAT32) for i, n in enumerate("xyz")]:
+        if cloud.point_stride != 12 or fields != [
+            (n, 4 * i, PackedElementField.FLOAT32) for i, n in enumerate("xyz")
+        ]:
             raise McapImportError(f"cloud {seq} is not packed float32 x, y, z")
         payload, encoding, t = cloud.data, "xyz_f32", cloud.timestamp.ToNanoseconds() / 1e9
         count = len(payload) // 12
@@ -180,8 +235,17 @@ def _cloud_row(files: SessionFiles, session_id: str, seq: int, topic: str, data:
             w, h = count, 1
     rel = files.cloud_relpath(session_id, seq, encoding)
     files.write(rel, payload)
-    return Cloud(session_id=session_id, seq=seq, timestamp=t, encoding=encoding, width=w, height=h, intrinsics=intrinsics,
-                 path=rel, size_bytes=len(payload))
+    return Cloud(
+        session_id=session_id,
+        seq=seq,
+        timestamp=t,
+        encoding=encoding,
+        width=w,
+        height=h,
+        intrinsics=intrinsics,
+        path=rel,
+        size_bytes=len(payload),
+    )
 
 
 def _image_size(data: bytes) -> tuple[int, int]:

@@ -53,16 +53,34 @@ Thumbnail = Callable[[dict[str, Any]], np.ndarray | None]
 def _styles() -> dict[str, ParagraphStyle]:
     base = getSampleStyleSheet()
     return {
-        "title": ParagraphStyle("title", parent=base["Title"], fontSize=24, leading=30, spaceAfter=6 * mm),
-        "subtitle": ParagraphStyle("subtitle", parent=base["Normal"], fontSize=12, leading=16, alignment=TA_CENTER,
-                                   textColor=colors.HexColor("#444444")),
-        "h1": ParagraphStyle("h1", parent=base["Heading1"], fontSize=16, spaceBefore=2 * mm, spaceAfter=3 * mm),
-        "h2": ParagraphStyle("h2", parent=base["Heading2"], fontSize=12, spaceBefore=3 * mm, spaceAfter=2 * mm),
+        "title": ParagraphStyle(
+            "title", parent=base["Title"], fontSize=24, leading=30, spaceAfter=6 * mm
+        ),
+        "subtitle": ParagraphStyle(
+            "subtitle",
+            parent=base["Normal"],
+            fontSize=12,
+            leading=16,
+            alignment=TA_CENTER,
+            textColor=colors.HexColor("#444444"),
+        ),
+        "h1": ParagraphStyle(
+            "h1", parent=base["Heading1"], fontSize=16, spaceBefore=2 * mm, spaceAfter=3 * mm
+        ),
+        "h2": ParagraphStyle(
+            "h2", parent=base["Heading2"], fontSize=12, spaceBefore=3 * mm, spaceAfter=2 * mm
+        ),
         "body": ParagraphStyle("body", parent=base["BodyText"], fontSize=9.5, leading=12.5),
         "small": ParagraphStyle("small", parent=base["BodyText"], fontSize=7.5, leading=9.5),
         "cell": ParagraphStyle("cell", parent=base["BodyText"], fontSize=8, leading=10),
         "cover": ParagraphStyle("cover", parent=base["BodyText"], fontSize=10, leading=12.5),
-        "note": ParagraphStyle("note", parent=base["BodyText"], fontSize=9, leading=12, textColor=colors.HexColor("#8a4b00")),
+        "note": ParagraphStyle(
+            "note",
+            parent=base["BodyText"],
+            fontSize=9,
+            leading=12,
+            textColor=colors.HexColor("#8a4b00"),
+        ),
     }
 
 
@@ -85,22 +103,36 @@ def _image(bgr: np.ndarray, width: float, max_height: float | None = None) -> Im
     return Image(io.BytesIO(buf.tobytes()), width=draw_w, height=draw_h)
 
 
-def _table(rows: list[list[Any]], widths: list[float], *, header: bool = True, font_size: float = 8.5) -> Table:
+def _table(
+    rows: list[list[Any]], widths: list[float], *, header: bool = True, font_size: float = 8.5
+) -> Table:
     t = Table(rows, colWidths=widths, repeatRows=1 if header else 0)
-    style = [("FONTSIZE", (0, 0), (-1, -1), font_size), ("VALIGN", (0, 0), (-1, -1), "MIDDLE"),
-             ("GRID", (0, 0), (-1, -1), 0.25, colors.HexColor("#b8c2cc")),
-             ("TOPPADDING", (0, 0), (-1, -1), 2), ("BOTTOMPADDING", (0, 0), (-1, -1), 2)]
+    style = [
+        ("FONTSIZE", (0, 0), (-1, -1), font_size),
+        ("VALIGN", (0, 0), (-1, -1), "MIDDLE"),
+        ("GRID", (0, 0), (-1, -1), 0.25, colors.HexColor("#b8c2cc")),
+        ("TOPPADDING", (0, 0), (-1, -1), 2),
+        ("BOTTOMPADDING", (0, 0), (-1, -1), 2),
+    ]
     if header:
-        style += [("BACKGROUND", (0, 0), (-1, 0), HEADER_BG), ("TEXTCOLOR", (0, 0), (-1, 0), colors.white),
-                  ("FONTNAME", (0, 0), (-1, 0), "Helvetica-Bold")]
+        style += [
+            ("BACKGROUND", (0, 0), (-1, 0), HEADER_BG),
+            ("TEXTCOLOR", (0, 0), (-1, 0), colors.white),
+            ("FONTNAME", (0, 0), (-1, 0), "Helvetica-Bold"),
+        ]
         style += [("BACKGROUND", (0, r), (-1, r), ZEBRA) for r in range(2, len(rows), 2)]
     else:
-        style += [("FONTNAME", (0, 0), (0, -1), "Helvetica-Bold"), ("BACKGROUND", (0, 0), (0, -1), ZEBRA)]
+        style += [
+            ("FONTNAME", (0, 0), (0, -1), "Helvetica-Bold"),
+            ("BACKGROUND", (0, 0), (0, -1), ZEBRA),
+        ]
     t.setStyle(TableStyle(style))
     return t
 
 
-def overview_with_markers(overview: np.ndarray, defects: list[dict[str, Any]], scale: float) -> np.ndarray:
+def overview_with_markers(
+    overview: np.ndarray, defects: list[dict[str, Any]], scale: float
+) -> np.ndarray:
     """The mosaic overview with each defect's box and number drawn (``scale``: overview px per mosaic px)."""
     out = overview.copy()
     line = max(1, round(max(out.shape[:2]) / 700))
@@ -118,14 +150,26 @@ def overview_with_markers(overview: np.ndarray, defects: list[dict[str, Any]], s
     return out
 
 
-def _cover(report: dict[str, Any], st: dict[str, ParagraphStyle], overview: np.ndarray | None) -> list[Any]:
+def _cover(
+    report: dict[str, Any], st: dict[str, ParagraphStyle], overview: np.ndarray | None
+) -> list[Any]:
     c = report["cover"]
-    story: list[Any] = [Spacer(1, 18 * mm), _p("Steel structure inspection report", st["title"]),
-                        _p(c["structure"], st["subtitle"]), Spacer(1, 10 * mm)]
-    rows = [["Structure", _p(c["structure"], st["cover"])], ["Location", _p(c["location"] or "not recorded", st["cover"])],
-            ["Date", c["date"]], ["Started / ended (UTC)", f"{c['started_at']}  /  {c['ended_at'] or 'still live'}"],
-            ["Operator", _p(c["operator"] or "not recorded", st["cover"])], ["Robot", _p(c["robot"] or "unknown", st["cover"])],
-            ["Session", c["session_id"]], ["Report generated", f"{report['generated_at']} by {report['generator']}"]]
+    story: list[Any] = [
+        Spacer(1, 18 * mm),
+        _p("Steel structure inspection report", st["title"]),
+        _p(c["structure"], st["subtitle"]),
+        Spacer(1, 10 * mm),
+    ]
+    rows = [
+        ["Structure", _p(c["structure"], st["cover"])],
+        ["Location", _p(c["location"] or "not recorded", st["cover"])],
+        ["Date", c["date"]],
+        ["Started / ended (UTC)", f"{c['started_at']}  /  {c['ended_at'] or 'still live'}"],
+        ["Operator", _p(c["operator"] or "not recorded", st["cover"])],
+        ["Robot", _p(c["robot"] or "unknown", st["cover"])],
+        ["Session", c["session_id"]],
+        ["Report generated", f"{report['generated_at']} by {report['generator']}"],
+    ]
     story.append(_table(rows, [48 * mm, BODY_W - 48 * mm], header=False, font_size=10))
     if c.get("notes"):
         story += [Spacer(1, 4 * mm), _p(f"Notes: {c['notes']}", st["body"])]
@@ -137,19 +181,45 @@ def _cover(report: dict[str, Any], st: dict[str, ParagraphStyle], overview: np.n
 
 def _summary(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]:
     s = report["summary"]
-    rows = [["Area covered", _num(s["area_covered_m2"], "{:.2f}", " m²")],
-            ["Distance travelled (odometry)", _num(s["distance_travelled_m"], "{:.2f}", " m")],
-            ["Duration", _num(s["duration_s"] / 60 if s["duration_s"] is not None else None, "{:.1f}", " min")],
-            ["Camera frames / ToF clouds / telemetry", f"{s['frames']} / {s['clouds']} / {s['telemetry_samples']}"],
-            ["Defects found (listed)", f"{s['defects']} ({s['defects_rejected']} rejected by review)"],
-            ["Cracks / corrosion areas (not rejected)", f"{s['defects_by_class']['crack']} / {s['defects_by_class']['corrosion']}"],
-            ["Longest / widest crack", f"{_num(s['longest_crack_mm'], unit=' mm')} / {_num(s['widest_crack_mm'], '{:.2f}', ' mm')}"],
-            ["Total crack length", _num(s["total_crack_length_mm"], unit=" mm")],
-            ["Corroded area", _num(s["corroded_area_mm2"] / 100 if s["corroded_area_mm2"] is not None else None, "{:.1f}", " cm²")],
-            ["Review", ", ".join(f"{v} {k}" for k, v in s["defects_by_review"].items())]]
-    story: list[Any] = [_p("Summary", st["h1"]), _table(rows, [75 * mm, BODY_W - 75 * mm], header=False, font_size=9.5)]
+    rows = [
+        ["Area covered", _num(s["area_covered_m2"], "{:.2f}", " m²")],
+        ["Distance travelled (odometry)", _num(s["distance_travelled_m"], "{:.2f}", " m")],
+        [
+            "Duration",
+            _num(s["duration_s"] / 60 if s["duration_s"] is not None else None, "{:.1f}", " min"),
+        ],
+        [
+            "Camera frames / ToF clouds / telemetry",
+            f"{s['frames']} / {s['clouds']} / {s['telemetry_samples']}",
+        ],
+        ["Defects found (listed)", f"{s['defects']} ({s['defects_rejected']} rejected by review)"],
+        [
+            "Cracks / corrosion areas (not rejected)",
+            f"{s['defects_by_class']['crack']} / {s['defects_by_class']['corrosion']}",
+        ],
+        [
+            "Longest / widest crack",
+            f"{_num(s['longest_crack_mm'], unit=' mm')} / {_num(s['widest_crack_mm'], '{:.2f}', ' mm')}",
+        ],
+        ["Total crack length", _num(s["total_crack_length_mm"], unit=" mm")],
+        [
+            "Corroded area",
+            _num(
+                s["corroded_area_mm2"] / 100 if s["corroded_area_mm2"] is not None else None,
+                "{:.1f}",
+                " cm²",
+            ),
+        ],
+        ["Review", ", ".join(f"{v} {k}" for k, v in s["defects_by_review"].items())],
+    ]
+    story: list[Any] = [
+        _p("Summary", st["h1"]),
+        _table(rows, [75 * mm, BODY_W - 75 * mm], header=False, font_size=9.5),
+    ]
     cs = s["defects_by_condition_state"]
-    cs_rows = [["Condition state", "Meaning", "Defects"]] + [[k, CONDITION_MEANING[k], cs[k]] for k in CONDITION_STATES]
+    cs_rows = [["Condition state", "Meaning", "Defects"]] + [
+        [k, CONDITION_MEANING[k], cs[k]] for k in CONDITION_STATES
+    ]
     cs_rows.append(["—", "not rated yet", cs["not rated"]])
     cs_table = _table(cs_rows, [35 * mm, 50 * mm, 25 * mm])
     cs_table.hAlign = "LEFT"
@@ -159,28 +229,63 @@ def _summary(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]
     return story
 
 
-def _defect_table(report: dict[str, Any], st: dict[str, ParagraphStyle], thumbnail: Thumbnail) -> list[Any]:
+def _defect_table(
+    report: dict[str, Any], st: dict[str, ParagraphStyle], thumbnail: Thumbnail
+) -> list[Any]:
     listed = [d for d in report["defects"] if d["review_status"] != "rejected"]
     story: list[Any] = [_p("Defects", st["h1"])]
     if not report["defects"]:
         done = "detect" not in report["missing"]
-        return story + [_p("No defect was found." if done else "Defect detection has not run for this session.", st["body"])]
+        return story + [
+            _p(
+                "No defect was found."
+                if done
+                else "Defect detection has not run for this session.",
+                st["body"],
+            )
+        ]
     rejected = len(report["defects"]) - len(listed)
-    intro = (f"{len(listed)} defects, ordered along the structure; numbers match the markers on the mosaic. "
-             "Position is the defect box's corner on the structure (metres, world frame); sizes from the camera scale.")
+    intro = (
+        f"{len(listed)} defects, ordered along the structure; numbers match the markers on the mosaic. "
+        "Position is the defect box's corner on the structure (metres, world frame); sizes from the camera scale."
+    )
     if rejected:
         intro += f" {rejected} defects rejected in review are not listed (they are in defects.csv)."
     story.append(_p(intro, st["body"]))
     story.append(Spacer(1, 2 * mm))
-    rows: list[list[Any]] = [["#", "Image", "Class", "Length\nmm", "Max w.\nmm", "Area\nmm²", "Position\nx, y (m)", "Review", "CS", "Comment"]]
+    rows: list[list[Any]] = [
+        [
+            "#",
+            "Image",
+            "Class",
+            "Length\nmm",
+            "Max w.\nmm",
+            "Area\nmm²",
+            "Position\nx, y (m)",
+            "Review",
+            "CS",
+            "Comment",
+        ]
+    ]
     for d in listed:
         thumb = thumbnail(d)
         cell = _image(thumb, 24 * mm, 24 * mm) if thumb is not None else "—"
         pos = f"{d['world_x_m']:.3f},\n{d['world_y_m']:.3f}" if d["world_x_m"] is not None else "—"
         review = d["review_status"] + (f"\n{d['reviewed_by']}" if d.get("reviewed_by") else "")
-        rows.append([str(d["number"]), cell, d["defect_class"], _num(d["length_mm"]), _num(d["max_width_mm"], "{:.2f}"),
-                     _num(d["area_mm2"], "{:.0f}"), pos, _p(review, st["cell"]), d["condition_state"] or "—",
-                     _p(d["comment"], st["cell"])])
+        rows.append(
+            [
+                str(d["number"]),
+                cell,
+                d["defect_class"],
+                _num(d["length_mm"]),
+                _num(d["max_width_mm"], "{:.2f}"),
+                _num(d["area_mm2"], "{:.0f}"),
+                pos,
+                _p(review, st["cell"]),
+                d["condition_state"] or "—",
+                _p(d["comment"], st["cell"]),
+            ]
+        )
     widths = [8 * mm, 26 * mm, 17 * mm, 14 * mm, 14 * mm, 14 * mm, 20 * mm, 20 * mm, 9 * mm]
     widths.append(BODY_W - sum(widths))
     story.append(_table(rows, widths, font_size=8))
@@ -196,12 +301,26 @@ def _parameters(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[A
         rows = [["Parameter", "Value"]] + [[k, _p(v, st["small"])] for k, v in flat.items()]
         if len(rows) == 1:
             rows.append(["(defaults)", ""])
-        story += [_p({"stitch": "Mosaic (stitching)", "map": "3D map (ICP)", "detect": "Defect detection"}.get(kind, kind), st["h2"]),
-                  _table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5)]
+        story += [
+            _p(
+                {
+                    "stitch": "Mosaic (stitching)",
+                    "map": "3D map (ICP)",
+                    "detect": "Defect detection",
+                }.get(kind, kind),
+                st["h2"],
+            ),
+            _table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5),
+        ]
     cal = report.get("calibration") or {}
     if cal:
-        rows = [["Calibration", "Value"]] + [[k, _p(v, st["small"])] for k, v in _flatten(cal).items()]
-        story += [_p("Sensor calibration", st["h2"]), _table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5)]
+        rows = [["Calibration", "Value"]] + [
+            [k, _p(v, st["small"])] for k, v in _flatten(cal).items()
+        ]
+        story += [
+            _p("Sensor calibration", st["h2"]),
+            _table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5),
+        ]
     return story
 
 
@@ -228,38 +347,83 @@ def _footer(structure: str) -> Callable[[Any, Any], None]:
     return draw
 
 
-def write_report_pdf(report: dict[str, Any], path: Path, *, overview: np.ndarray | None = None, overview_scale: float = 1.0,
-                     map_snapshot: np.ndarray | None = None, thumbnail: Thumbnail = lambda d: None) -> Path:
+def write_report_pdf(
+    report: dict[str, Any],
+    path: Path,
+    *,
+    overview: np.ndarray | None = None,
+    overview_scale: float = 1.0,
+    map_snapshot: np.ndarray | None = None,
+    thumbnail: Thumbnail = lambda d: None,
+) -> Path:
     """Write the PDF of ``report`` (from :func:`server.reports.content.build_report`) to ``path``
     atomically; images are given as BGR arrays, thumbnails fetched per defect record."""
     st = _styles()
-    marked = overview_with_markers(overview, report["defects"], overview_scale) if overview is not None else None
+    marked = (
+        overview_with_markers(overview, report["defects"], overview_scale)
+        if overview is not None
+        else None
+    )
     story = _cover(report, st, marked)
     story += _summary(report, st)
     story.append(PageBreak())
     story.append(_p("Mosaic of the inspected surface", st["h1"]))
     if marked is not None:
-        story += [_p("The downward camera's frames stitched in world coordinates; red boxes and numbers mark the listed "
-                     "defects (grey: rejected in review).", st["body"]), Spacer(1, 3 * mm),
-                  _image(marked, BODY_W, PAGE_H - 2 * MARGIN - 40 * mm)]
+        story += [
+            _p(
+                "The downward camera's frames stitched in world coordinates; red boxes and numbers mark the listed "
+                "defects (grey: rejected in review).",
+                st["body"],
+            ),
+            Spacer(1, 3 * mm),
+            _image(marked, BODY_W, PAGE_H - 2 * MARGIN - 40 * mm),
+        ]
     else:
-        story.append(_p("No mosaic: " + next((n for n in report["notes"] if n.startswith("No mosaic")), "not available."), st["body"]))
+        story.append(
+            _p(
+                "No mosaic: "
+                + next((n for n in report["notes"] if n.startswith("No mosaic")), "not available."),
+                st["body"],
+            )
+        )
     story.append(PageBreak())
     story += _defect_table(report, st, thumbnail)
     story.append(PageBreak())
     story.append(_p("3D map of the structure", st["h1"]))
     if map_snapshot is not None:
         pts = report["summary"].get("map_points")
-        story += [_p(f"Registered ToF point clouds ({pts or '?'} points after voxel filtering), coloured by height; the black line is the "
-                     "robot's trajectory.", st["body"]), Spacer(1, 3 * mm), KeepTogether(_image(map_snapshot, BODY_W, 150 * mm))]
+        story += [
+            _p(
+                f"Registered ToF point clouds ({pts or '?'} points after voxel filtering), coloured by height; the black line is the "
+                "robot's trajectory.",
+                st["body"],
+            ),
+            Spacer(1, 3 * mm),
+            KeepTogether(_image(map_snapshot, BODY_W, 150 * mm)),
+        ]
     else:
-        story.append(_p("No 3D map: " + next((n for n in report["notes"] if n.startswith("No 3D map")), "not available."), st["body"]))
+        story.append(
+            _p(
+                "No 3D map: "
+                + next((n for n in report["notes"] if n.startswith("No 3D map")), "not available."),
+                st["body"],
+            )
+        )
     story += [Spacer(1, 6 * mm)] + _parameters(report, st)
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     footer = _footer(report["cover"]["structure"])
-    doc = SimpleDocTemplate(str(tmp), pagesize=A4, leftMargin=MARGIN, rightMargin=MARGIN, topMargin=MARGIN, bottomMargin=MARGIN + 4 * mm,
-                            title=f"Inspection report — {report['cover']['structure']}", author=report["cover"]["operator"] or "steelscan",
-                            subject=f"session {report['cover']['session_id']}", creator=report["generator"])
+    doc = SimpleDocTemplate(
+        str(tmp),
+        pagesize=A4,
+        leftMargin=MARGIN,
+        rightMargin=MARGIN,
+        topMargin=MARGIN,
+        bottomMargin=MARGIN + 4 * mm,
+        title=f"Inspection report — {report['cover']['structure']}",
+        author=report["cover"]["operator"] or "steelscan",
+        subject=f"session {report['cover']['session_id']}",
+        creator=report["generator"],
+    )
     try:
         doc.build(story, onFirstPage=footer, onLaterPages=footer)
         tmp.replace(path)
@@ -268,7 +432,9 @@ def write_report_pdf(report: dict[str, Any], path: Path, *, overview: np.ndarray
     return path
 
 
-def write_pdf(db: Session, files: SessionFiles, session_id: str, path: Path, *, base_url: str = "") -> Path:
+def write_pdf(
+    db: Session, files: SessionFiles, session_id: str, path: Path, *, base_url: str = ""
+) -> Path:
     """Build the report of a session and write it as PDF to ``path`` (atomically)."""
     report = build_report(db, files, session_id, base_url=base_url)
     results = files.results_dir(session_id)
@@ -286,7 +452,14 @@ def write_pdf(db: Session, files: SessionFiles, session_id: str, path: Path, *, 
         except (NotFound, KeyError, ValueError, OSError):
             return None
 
-    return write_report_pdf(report, path, overview=overview, overview_scale=scale, map_snapshot=snapshot, thumbnail=thumbnail)
+    return write_report_pdf(
+        report,
+        path,
+        overview=overview,
+        overview_scale=scale,
+        map_snapshot=snapshot,
+        thumbnail=thumbnail,
+    )
 
 
 def map_snapshot(results: Path) -> Any:

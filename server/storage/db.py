@@ -85,7 +85,9 @@ class WalCheckpointer:
             dbapi = conn.connection.driver_connection
             while not self._stop.wait(self.interval_s):
                 try:
-                    dbapi.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchall()  # never waits for writers
+                    dbapi.execute(
+                        "PRAGMA wal_checkpoint(PASSIVE)"
+                    ).fetchall()  # never waits for writers
                 except Exception:  # a busy or closing database: the next round tries again
                     log.debug("WAL checkpoint skipped", exc_info=True)
 

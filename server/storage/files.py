@@ -13,11 +13,15 @@ SEGMENT_BYTES = 512 * 2**20  # payload segment files are closed and a new one st
 class SessionFiles:
     """Paths of one data directory; everything stored in the DB is relative to it."""
 
-    def __init__(self, data_dir: Path, *, fsync: bool = False, segment_bytes: int = SEGMENT_BYTES) -> None:
+    def __init__(
+        self, data_dir: Path, *, fsync: bool = False, segment_bytes: int = SEGMENT_BYTES
+    ) -> None:
         self.data_dir = data_dir.resolve()
         self.fsync = fsync
         self.segment_bytes = segment_bytes
-        self._segments: dict[tuple[str, str], tuple[int, BinaryIO]] = {}  # (session, kind) -> (number, open file)
+        self._segments: dict[
+            tuple[str, str], tuple[int, BinaryIO]
+        ] = {}  # (session, kind) -> (number, open file)
 
     def session_dir(self, session_id: str) -> Path:
         """Folder of one session."""
@@ -46,8 +50,9 @@ class SessionFiles:
         if fh is None:
             folder = self.session_dir(session_id) / kind
             folder.mkdir(parents=True, exist_ok=True)
-            while (folder / f"segment-{number:05d}.bin").is_file() and \
-                    (folder / f"segment-{number:05d}.bin").stat().st_size + len(data) > self.segment_bytes:
+            while (folder / f"segment-{number:05d}.bin").is_file() and (
+                folder / f"segment-{number:05d}.bin"
+            ).stat().st_size + len(data) > self.segment_bytes:
                 number += 1
             fh = open(folder / f"segment-{number:05d}.bin", "ab")  # noqa: SIM115 - kept open across appends
             self._segments[key] = (number, fh)

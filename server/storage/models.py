@@ -123,7 +123,9 @@ class Frame(_PoseColumns, Base):
     height: Mapped[int]
     path: Mapped[str] = mapped_column(String(500))
     size_bytes: Mapped[int]
-    data_offset: Mapped[int | None] = mapped_column(BigInteger)  # where in a segment file; None: the whole file
+    data_offset: Mapped[int | None] = mapped_column(
+        BigInteger
+    )  # where in a segment file; None: the whole file
 
 
 class Cloud(_PoseColumns, Base):
@@ -141,7 +143,9 @@ class Cloud(_PoseColumns, Base):
     intrinsics: Mapped[dict[str, Any]] = mapped_column(default=dict)
     path: Mapped[str] = mapped_column(String(500))
     size_bytes: Mapped[int]
-    data_offset: Mapped[int | None] = mapped_column(BigInteger)  # where in a segment file; None: the whole file
+    data_offset: Mapped[int | None] = mapped_column(
+        BigInteger
+    )  # where in a segment file; None: the whole file
 
 
 class TelemetrySample(Base):

@@ -44,8 +44,14 @@ def _raw_image(path: Path, width: int, height: int, bands: int) -> pyvips.Image:
     return img.copy(interpretation="srgb" if bands == 3 else "b-w")
 
 
-def write_mosaic(out: Path, layout: MosaicLayout, bands: Iterable[Band], *, pyramid: bool = True,
-                 world: dict[str, Any] | None = None) -> MosaicFiles:
+def write_mosaic(
+    out: Path,
+    layout: MosaicLayout,
+    bands: Iterable[Band],
+    *,
+    pyramid: bool = True,
+    world: dict[str, Any] | None = None,
+) -> MosaicFiles:
     """Write the mosaic of ``layout`` from its ``bands`` (top to bottom) into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     scratch = out / ".mosaic-scratch"
@@ -57,7 +63,9 @@ def write_mosaic(out: Path, layout: MosaicLayout, bands: Iterable[Band], *, pyra
         with raw.open("wb") as f_img, cov.open("wb") as f_cov:
             for band in bands:
                 if band.y0 != rows:
-                    raise ValueError(f"band at row {band.y0} arrived out of order (expected {rows})")
+                    raise ValueError(
+                        f"band at row {band.y0} arrived out of order (expected {rows})"
+                    )
                 img = band.image
                 img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 else img
                 f_img.write(np.ascontiguousarray(img).tobytes())
@@ -74,15 +82,27 @@ def write_mosaic(out: Path, layout: MosaicLayout, bands: Iterable[Band], *, pyra
         shutil.rmtree(scratch, ignore_errors=True)
 
 
-def _save_all(out: Path, scratch: Path, image: pyvips.Image, coverage: pyvips.Image, layout: MosaicLayout,
-              pyramid: bool) -> MosaicFiles:
+def _save_all(
+    out: Path,
+    scratch: Path,
+    image: pyvips.Image,
+    coverage: pyvips.Image,
+    layout: MosaicLayout,
+    pyramid: bool,
+) -> MosaicFiles:
     image.pngsave(str(scratch / "mosaic.png"), compression=3)
     coverage.pngsave(str(scratch / "mosaic_coverage.png"), compression=3)
     scale = min(1.0, OVERVIEW_MAX_PX / max(layout.width, layout.height, 1))
     small = image.resize(scale, kernel="linear") if scale < 1.0 else image
     small.pngsave(str(scratch / "mosaic_overview.png"))
     if pyramid:
-        image.dzsave(str(scratch / "mosaic"), tile_size=TILE_SIZE, overlap=TILE_OVERLAP, suffix=".jpg[Q=88]", depth="onepixel")
+        image.dzsave(
+            str(scratch / "mosaic"),
+            tile_size=TILE_SIZE,
+            overlap=TILE_OVERLAP,
+            suffix=".jpg[Q=88]",
+            depth="onepixel",
+        )
     for name in ("mosaic.png", "mosaic_coverage.png", "mosaic_overview.png"):
         (scratch / name).replace(out / name)
     dzi = None
@@ -91,14 +111,29 @@ def _save_all(out: Path, scratch: Path, image: pyvips.Image, coverage: pyvips.Im
         (scratch / "mosaic_files").replace(out / "mosaic_files")
         (scratch / "mosaic.dzi").replace(out / "mosaic.dzi")
         dzi = out / "mosaic.dzi"
-    return MosaicFiles(out / "mosaic.png", out / "mosaic_coverage.png", out / "mosaic_overview.png", scale, dzi, out / "mosaic.json")
+    return MosaicFiles(
+        out / "mosaic.png",
+        out / "mosaic_coverage.png",
+        out / "mosaic_overview.png",
+        scale,
+        dzi,
+        out / "mosaic.json",
+    )
 
 
-def _write_world(path: Path, layout: MosaicLayout, files: MosaicFiles, extra: dict[str, Any]) -> None:
+def _write_world(
+    path: Path, layout: MosaicLayout, files: MosaicFiles, extra: dict[str, Any]
+) -> None:
     doc = {
-        "width_px": layout.width, "height_px": layout.height, "px_per_m": layout.px_per_m, "origin_m": list(layout.origin_m),
-        "overview_scale": files.overview_scale, "pairs": layout.pairs, "rejected_pairs": layout.rejected_pairs,
-        "dzi": files.dzi.name if files.dzi else None, **extra,
+        "width_px": layout.width,
+        "height_px": layout.height,
+        "px_per_m": layout.px_per_m,
+        "origin_m": list(layout.origin_m),
+        "overview_scale": files.overview_scale,
+        "pairs": layout.pairs,
+        "rejected_pairs": layout.rejected_pairs,
+        "dzi": files.dzi.name if files.dzi else None,
+        **extra,
     }
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(doc))
@@ -108,8 +143,17 @@ def _write_world(path: Path, layout: MosaicLayout, files: MosaicFiles, extra: di
 def frame_records(layout: MosaicLayout, names: list[Any]) -> list[dict[str, Any]]:
     """One record per frame: its name or sequence number, centre (mosaic px), rotation
     (degrees), exposure gain and whether image registration placed it."""
-    return [{"frame": name, "x": float(p[0]), "y": float(p[1]), "theta_deg": float(np.degrees(p[2])), "gain": float(g),
-             "confident": bool(c)} for name, p, g, c in zip(names, layout.poses_px, layout.gains, layout.confident)]
+    return [
+        {
+            "frame": name,
+            "x": float(p[0]),
+            "y": float(p[1]),
+            "theta_deg": float(np.degrees(p[2])),
+            "gain": float(g),
+            "confident": bool(c),
+        }
+        for name, p, g, c in zip(names, layout.poses_px, layout.gains, layout.confident)
+    ]
 
 
 class ImageFiles:
@@ -180,9 +224,16 @@ def read_region(results: Path, x: int, y: int, w: int, h: int) -> np.ndarray:
     tiles = results / "mosaic_files"
     if not world.get("dzi") or not tiles.is_dir():
         img = pyvips.Image.new_from_file(str(results / "mosaic.png"), access="sequential")
-        rgb = np.ndarray(buffer=img.crop(x0, y0, x1 - x0, y1 - y0).write_to_memory(), dtype=np.uint8,
-                         shape=(y1 - y0, x1 - x0, img.bands))
-        return cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if img.bands == 3 else cv2.cvtColor(rgb, cv2.COLOR_GRAY2BGR)
+        rgb = np.ndarray(
+            buffer=img.crop(x0, y0, x1 - x0, y1 - y0).write_to_memory(),
+            dtype=np.uint8,
+            shape=(y1 - y0, x1 - x0, img.bands),
+        )
+        return (
+            cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+            if img.bands == 3
+            else cv2.cvtColor(rgb, cv2.COLOR_GRAY2BGR)
+        )
     level = int(np.ceil(np.log2(max(width, height)))) if max(width, height) > 1 else 0
     out = np.zeros((y1 - y0, x1 - x0, 3), np.uint8)
     for row in range(y0 // TILE_SIZE, (y1 - 1) // TILE_SIZE + 1):
@@ -194,5 +245,7 @@ def read_region(results: Path, x: int, y: int, w: int, h: int) -> np.ndarray:
             ty = row * TILE_SIZE - (TILE_OVERLAP if row > 0 else 0)
             cx0, cy0 = max(x0, col * TILE_SIZE), max(y0, row * TILE_SIZE)
             cx1, cy1 = min(x1, (col + 1) * TILE_SIZE), min(y1, (row + 1) * TILE_SIZE)
-            out[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0] = tile[cy0 - ty:cy1 - ty, cx0 - tx:cx1 - tx]
+            out[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0] = tile[
+                cy0 - ty : cy1 - ty, cx0 - tx : cx1 - tx
+            ]
     return out

@@ -12,8 +12,10 @@ from numpy.typing import NDArray
 def ply_bytes(points: NDArray[np.floating]) -> bytes:
     """Binary little-endian PLY of the finite rows of an (N, 3) cloud."""
     pts = np.ascontiguousarray(points[np.isfinite(points).all(axis=1)], dtype="<f4")
-    header = ("ply\nformat binary_little_endian 1.0\ncomment steelscan\n"
-              f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment steelscan\n"
+        f"element vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    )
     return header.encode("ascii") + pts.tobytes()
 
 

@@ -27,9 +27,17 @@ def defect_image(db: Session, files: SessionFiles, defect: Defect, size: int = 2
     """BGR thumbnail (longest side ``size``) of a defect with its bounding box outlined."""
     wx, wy, ww, wh = crop_box(defect.bbox_x, defect.bbox_y, defect.bbox_w, defect.bbox_h)
     if defect.source == "frame":
-        frame = db.scalar(select(Frame).where(Frame.session_id == defect.session_id, Frame.seq == defect.frame_seq))
+        frame = db.scalar(
+            select(Frame).where(
+                Frame.session_id == defect.session_id, Frame.seq == defect.frame_seq
+            )
+        )
         try:
-            image = cv2.imdecode(np.frombuffer(files.payload(frame), np.uint8), cv2.IMREAD_COLOR) if frame is not None else None
+            image = (
+                cv2.imdecode(np.frombuffer(files.payload(frame), np.uint8), cv2.IMREAD_COLOR)
+                if frame is not None
+                else None
+            )
         except OSError:
             image = None
         if image is None:
@@ -45,10 +53,16 @@ def defect_image(db: Session, files: SessionFiles, defect: Defect, size: int = 2
             raise NotFound(f"cannot read the mosaic around defect {defect.id}: {exc}") from None
         ox, oy = max(0, wx), max(0, wy)
     scale = size / max(crop.shape[:2])
-    thumb = cv2.resize(crop, (max(1, round(crop.shape[1] * scale)), max(1, round(crop.shape[0] * scale))),
-                       interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+    thumb = cv2.resize(
+        crop,
+        (max(1, round(crop.shape[1] * scale)), max(1, round(crop.shape[0] * scale))),
+        interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR,
+    )
     p0 = (round((defect.bbox_x - ox) * scale) - 2, round((defect.bbox_y - oy) * scale) - 2)
-    p1 = (round((defect.bbox_x + defect.bbox_w - ox) * scale) + 2, round((defect.bbox_y + defect.bbox_h - oy) * scale) + 2)
+    p1 = (
+        round((defect.bbox_x + defect.bbox_w - ox) * scale) + 2,
+        round((defect.bbox_y + defect.bbox_h - oy) * scale) + 2,
+    )
     cv2.rectangle(thumb, p0, p1, BOX_BGR, 2)
     return thumb
 

@@ -13,11 +13,18 @@ from tests.processing.test_stitching import texture
 def frame_at(tex: np.ndarray, pose: np.ndarray, size: tuple[int, int] = (320, 240)) -> np.ndarray:
     """Grey frame whose centre sits at ``pose`` (x, y, θ) on the texture."""
     A = frame_to_mosaic(pose, size)
-    return cv2.warpAffine(cv2.cvtColor(tex, cv2.COLOR_BGR2GRAY), A[:2], size, flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP).astype(np.float32)
+    return cv2.warpAffine(
+        cv2.cvtColor(tex, cv2.COLOR_BGR2GRAY),
+        A[:2],
+        size,
+        flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+    ).astype(np.float32)
 
 
 @pytest.mark.parametrize("turn", [0.0, np.pi])
-def test_register_pair_recovers_rotation_and_translation_to_a_hundredth_of_a_pixel(turn: float) -> None:
+def test_register_pair_recovers_rotation_and_translation_to_a_hundredth_of_a_pixel(
+    turn: float,
+) -> None:
     tex = texture(4)
     a = np.array([500.0, 400.0, 0.01])
     b = np.array([707.3, 391.6, turn - 0.025])
@@ -42,7 +49,9 @@ def test_register_pair_finds_an_unknown_turn_among_the_search_angles(turn_deg: f
     b = np.array([1010.0, 596.0, np.radians(turn_deg)])
     true = relative_se2(a, b)
     guess = np.array([true[0] + 6.0, true[1] - 5.0, 0.0])
-    found = register_pair(frame_at(tex, a, size), frame_at(tex, b, size), guess, angles=BLIND_ANGLES)
+    found = register_pair(
+        frame_at(tex, a, size), frame_at(tex, b, size), guess, angles=BLIND_ANGLES
+    )
     assert found is not None
     assert np.abs(found[0][:2] - true[:2]).max() < 0.05
     assert abs(float(wrap_angle(found[0][2] - true[2]))) < 2e-4
@@ -62,20 +71,32 @@ def test_levels_are_reusable_across_pairs() -> None:
     levels = [Level.of(frame_at(tex, p)) for p in poses]
     for i, j in ((0, 1), (1, 2)):
         found = register_pair(levels[i], levels[j], relative_se2(poses[i], poses[j]) + (3, 2, 0))
-        assert found is not None and np.abs(found[0][:2] - relative_se2(poses[i], poses[j])[:2]).max() < 0.05
+        assert (
+            found is not None
+            and np.abs(found[0][:2] - relative_se2(poses[i], poses[j])[:2]).max() < 0.05
+        )
 
 
 def test_pose_graph_spreads_a_loop_closure_instead_of_drifting() -> None:
     rng = np.random.default_rng(0)
-    truth = np.array([[200.0 * k, 0.0, 0.0] for k in range(6)] + [[200.0 * (5 - k), 150.0, np.pi] for k in range(6)])
+    truth = np.array(
+        [[200.0 * k, 0.0, 0.0] for k in range(6)]
+        + [[200.0 * (5 - k), 150.0, np.pi] for k in range(6)]
+    )
     meas = []
     for i, j in [(k, k + 1) for k in range(11)] + [(k, 11 - k) for k in range(6)]:
-        delta = relative_se2(truth[i], truth[j]) + np.r_[rng.normal(0, 0.05, 2), rng.normal(0, 1e-4)]
+        delta = (
+            relative_se2(truth[i], truth[j]) + np.r_[rng.normal(0, 0.05, 2), rng.normal(0, 1e-4)]
+        )
         meas.append(PairMeasurement(i, j, delta, 1.0, 100.0, 100.0))
     # a start that has drifted 30 px and 2°
     start = [truth[0]]
     for k in range(11):
-        start.append(compose_se2(start[-1], relative_se2(truth[k], truth[k + 1]) + np.array([3.0, 2.0, 0.003])))
+        start.append(
+            compose_se2(
+                start[-1], relative_se2(truth[k], truth[k + 1]) + np.array([3.0, 2.0, 0.003])
+            )
+        )
     solved = solve_pose_graph(np.array(start), meas, None)
     assert np.allclose(solved[0], truth[0])  # the gauge stays put
     assert np.abs(solved[:, :2] - truth[:, :2]).max() < 0.5
@@ -92,7 +113,10 @@ def test_pose_graph_holds_unmeasured_frames_by_their_priors() -> None:
 
 def test_gains_equalise_overlap_brightness() -> None:
     true = np.array([1.0, 1.25, 0.8, 1.1])
-    meas = [PairMeasurement(k, k + 1, np.zeros(3), 1.0, 100 * true[k], 100 * true[k + 1]) for k in range(3)]
+    meas = [
+        PairMeasurement(k, k + 1, np.zeros(3), 1.0, 100 * true[k], 100 * true[k + 1])
+        for k in range(3)
+    ]
     g = solve_gains(4, meas, sigma_g=10.0)
     fixed = g * true
     assert fixed.std() / fixed.mean() < 0.01

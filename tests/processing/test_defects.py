@@ -12,7 +12,9 @@ def test_measurements_of_a_drawn_line() -> None:
     (d,) = measure_defects(mask > 0, "crack", mm_per_px=0.5)
     assert d.length_px == pytest.approx(150, abs=8)
     assert d.max_width_px == pytest.approx(width, abs=0.5)
-    assert d.orientation_deg == pytest.approx(0, abs=1) or d.orientation_deg == pytest.approx(180, abs=1)
+    assert d.orientation_deg == pytest.approx(0, abs=1) or d.orientation_deg == pytest.approx(
+        180, abs=1
+    )
     assert d.length_mm == pytest.approx(d.length_px * 0.5, abs=0.01)
     assert d.bbox[0] <= 20 and d.bbox[0] + d.bbox[2] >= 170
 
@@ -37,7 +39,10 @@ def test_width_at_half_contrast_ignores_a_blurred_rim() -> None:
     (loose,) = measure_defects(mask, "crack")
     (fwhm,) = measure_defects(mask, "crack", contrast=contrast)
     assert loose.max_width_px > 8
-    assert fwhm.max_width_px == pytest.approx(5, abs=2.0) and fwhm.max_width_px < loose.max_width_px - 2
+    assert (
+        fwhm.max_width_px == pytest.approx(5, abs=2.0)
+        and fwhm.max_width_px < loose.max_width_px - 2
+    )
     assert fwhm.length_px == pytest.approx(loose.length_px, rel=0.1)
 
 
@@ -48,7 +53,9 @@ def test_components_have_opencvs_statistics(threshold: float) -> None:
     rng = np.random.default_rng(4)
     mask = cv2.GaussianBlur(rng.random((400, 500)), (0, 0), 2) > threshold  # sparse to dense
     comps = Components.of(mask)
-    n, labels, stats, centroids = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(
+        mask.astype(np.uint8), connectivity=8
+    )
     assert np.array_equal(comps.labels, labels)
     assert np.array_equal(comps.stats[1:], stats[1:]) and comps.stats[0, 4] == stats[0, 4]
     assert np.allclose(comps.centroids[1:], centroids[1:])

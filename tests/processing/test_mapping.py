@@ -39,7 +39,9 @@ def test_known_motion_is_recovered_from_perturbed_odometry(tof: TofCamera) -> No
     result = register_clouds(clouds, guess)
     assert result.poses.shape == (8, 4, 4)
     assert absolute_trajectory_error(result.poses, truth) < 0.015
-    assert absolute_trajectory_error(result.poses, truth) <= 1.05 * absolute_trajectory_error(guess, truth)
+    assert absolute_trajectory_error(result.poses, truth) <= 1.05 * absolute_trajectory_error(
+        guess, truth
+    )
     assert len(result.points) > 1000
 
 
@@ -57,21 +59,29 @@ def test_without_odometry_the_motion_comes_from_the_geometry() -> None:
     n = 20
     result = register_clouds(sweep.clouds[:n], None, shape=(172, 224))
     standing_still = np.repeat(sweep.truth[:1], n, axis=0)
-    assert absolute_trajectory_error(result.poses, sweep.truth[:n]) < 0.25 * absolute_trajectory_error(standing_still, sweep.truth[:n])
+    assert absolute_trajectory_error(
+        result.poses, sweep.truth[:n]
+    ) < 0.25 * absolute_trajectory_error(standing_still, sweep.truth[:n])
 
 
 def test_a_flat_plate_does_not_slide_ICP_along_itself() -> None:
     rng = np.random.default_rng(2)
     xs, ys = np.meshgrid(np.linspace(-0.4, 0.4, 80), np.linspace(-0.3, 0.3, 60))
-    plate = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.5)])  # a plane in front of the sensor
+    plate = np.column_stack(
+        [xs.ravel(), ys.ravel(), np.full(xs.size, 0.5)]
+    )  # a plane in front of the sensor
     truth = np.repeat(np.eye(4)[None], 4, axis=0)
     truth[:, 0, 3] = [0, 0.05, 0.1, 0.15]
-    clouds = [(plate - T[:3, 3]) + rng.normal(0, 0.002, plate.shape) for T in truth]  # the same plane, seen moving
+    clouds = [
+        (plate - T[:3, 3]) + rng.normal(0, 0.002, plate.shape) for T in truth
+    ]  # the same plane, seen moving
     guess = truth.copy()
     guess[1:, 0, 3] += 0.01  # odometry's own (unobservable) error along the plate
     result = register_clouds(clouds, guess)
     assert (result.degenerate_dims[1:] >= 3).all()  # reported, not hidden
-    assert np.allclose(result.poses[:, 0, 3], guess[:, 0, 3], atol=2e-3)  # odometry holds where geometry cannot
+    assert np.allclose(
+        result.poses[:, 0, 3], guess[:, 0, 3], atol=2e-3
+    )  # odometry holds where geometry cannot
 
 
 def test_clouds_without_points_fall_back_to_odometry() -> None:
@@ -100,7 +110,9 @@ def test_empty_input_and_wrong_pose_count_raise() -> None:
 
 def test_without_refinement_the_given_poses_are_kept_and_fused() -> None:
     sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.6,), x_range_m=(0.4, 0.6), revisit=False, seed=3))
-    result = register_clouds(sweep.clouds, sweep.truth, params=MapParams(refine=False), shape=(172, 224))
+    result = register_clouds(
+        sweep.clouds, sweep.truth, params=MapParams(refine=False), shape=(172, 224)
+    )
     assert np.array_equal(result.poses, sweep.truth) and len(result.points) > 1000
     with pytest.raises(ValueError, match="initial poses"):
         register_clouds(sweep.clouds, None, params=MapParams(refine=False))
@@ -117,12 +129,16 @@ def test_the_live_map_grows_with_every_cloud_and_ends_as_the_batch_map() -> None
     for cloud, guess in zip(sweep.clouds, sweep.odometry):
         live.add(cloud, guess, shape=(172, 224))
         sizes.append(len(live.points))
-    assert sizes[-1] > 4 * sizes[0] and max(sizes[:10]) < sizes[-1]  # (an optimisation may merge some points)
+    assert (
+        sizes[-1] > 4 * sizes[0] and max(sizes[:10]) < sizes[-1]
+    )  # (an optimisation may merge some points)
     batch = register_clouds(sweep.clouds, sweep.odometry, shape=(172, 224))
     ate_live = absolute_trajectory_error(live.poses, sweep.truth)
     ate_batch = absolute_trajectory_error(batch.poses, sweep.truth)
     ate_odo = absolute_trajectory_error(sweep.odometry, sweep.truth)
-    assert live.loop_closures > 0 and ate_live < 0.6 * ate_odo and ate_live < 1.5 * ate_batch + 0.001
+    assert (
+        live.loop_closures > 0 and ate_live < 0.6 * ate_odo and ate_live < 1.5 * ate_batch + 0.001
+    )
 
 
 def test_without_pose_graph_live_and_batch_place_clouds_alike() -> None:
@@ -141,9 +157,15 @@ def test_organised_blocks_are_averaged_over_their_valid_pixels_only() -> None:
     rng = np.random.default_rng(4)
     h, w = 6, 8
     pts = rng.uniform(0.5, 2.0, (h, w, 3)).astype(np.float32)
-    pts[0, 0] = pts[3, 2] = pts[3, 3] = pts[2, 3] = pts[2, 2] = np.nan  # a block with one hole, a block all holes
-    out = filter_organised(pts.reshape(-1, 3), (h, w), median_px=0, stride=2).reshape(h // 2, w // 2, 3)
-    blocks = pts.reshape(h // 2, 2, w // 2, 2, 3).transpose(0, 2, 1, 3, 4).reshape(h // 2, w // 2, 4, 3)
+    pts[0, 0] = pts[3, 2] = pts[3, 3] = pts[2, 3] = pts[2, 2] = (
+        np.nan
+    )  # a block with one hole, a block all holes
+    out = filter_organised(pts.reshape(-1, 3), (h, w), median_px=0, stride=2).reshape(
+        h // 2, w // 2, 3
+    )
+    blocks = (
+        pts.reshape(h // 2, 2, w // 2, 2, 3).transpose(0, 2, 1, 3, 4).reshape(h // 2, w // 2, 4, 3)
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # the all-NaN block's mean
         expected = np.nanmean(blocks, axis=2)
@@ -158,11 +180,15 @@ def test_repeating_stiffeners_and_turns_do_not_break_a_route_without_return() ->
     so no step jumps by 2 cm and the map ends better than odometry."""
     from bench.map import relative_pose_error
 
-    sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.5, 0.62, 0.74), revisit=False, turn_step_deg=0, seed=41))
+    sweep = tof_sweep(
+        TofSweepConfig(lanes_y_m=(0.5, 0.62, 0.74), revisit=False, turn_step_deg=0, seed=41)
+    )
     result = register_clouds(sweep.clouds, sweep.odometry, shape=(172, 224))
     _, worst_step = relative_pose_error(result.poses, sweep.truth)
     assert worst_step < 0.01
-    assert absolute_trajectory_error(result.poses, sweep.truth) < 0.8 * absolute_trajectory_error(sweep.odometry, sweep.truth)
+    assert absolute_trajectory_error(result.poses, sweep.truth) < 0.8 * absolute_trajectory_error(
+        sweep.odometry, sweep.truth
+    )
 
 
 def test_loop_closures_need_views_that_share_most_of_what_they_see(tof: TofCamera) -> None:
@@ -173,15 +199,32 @@ def test_loop_closures_need_views_that_share_most_of_what_they_see(tof: TofCamer
 
     rng = np.random.default_rng(1)
     params = MapParams()
-    poses = {"here": (0.6, 0.5, 0.0), "again": (0.61, 0.51, 0.02), "next_lane": (0.6, 0.74, 0.0), "mid_turn": (0.6, 0.56, 0.7)}
+    poses = {
+        "here": (0.6, 0.5, 0.0),
+        "again": (0.61, 0.51, 0.02),
+        "next_lane": (0.6, 0.74, 0.0),
+        "mid_turn": (0.6, 0.56, 0.7),
+    }
     T = {k: tof.T_world_tof(np.array(p)) for k, p in poses.items()}
-    pcd = {k: select(depth_to_points(tof.render(T[k], rng), tof.fx, tof.fy, tof.cx, tof.cy), params.select, (172, 224)) for k in poses}
+    pcd = {
+        k: select(
+            depth_to_points(tof.render(T[k], rng), tof.fx, tof.fy, tof.cx, tof.cy),
+            params.select,
+            (172, 224),
+        )
+        for k in poses
+    }
 
     def overlap(k: str) -> float:
-        return mutual_overlap(pcd[k], pcd["here"], np.linalg.inv(T["here"]) @ T[k], params.loops.overlap_m)
+        return mutual_overlap(
+            pcd[k], pcd["here"], np.linalg.inv(T["here"]) @ T[k], params.loops.overlap_m
+        )
 
     assert overlap("again") > 0.8 > params.loops.min_overlap
-    assert overlap("next_lane") < params.loops.min_overlap and overlap("mid_turn") < params.loops.min_overlap
+    assert (
+        overlap("next_lane") < params.loops.min_overlap
+        and overlap("mid_turn") < params.loops.min_overlap
+    )
 
 
 def test_odometry_worse_than_configured_is_weighted_by_what_the_data_show() -> None:
@@ -191,13 +234,22 @@ def test_odometry_worse_than_configured_is_weighted_by_what_the_data_show() -> N
     good as configured is left alone."""
     from processing.mapping import IncrementalMap
 
-    poor = tof_sweep(TofSweepConfig(odometry_distance_sigma=0.09, odometry_yaw_sigma_deg=1.8, seed=43))
+    poor = tof_sweep(
+        TofSweepConfig(odometry_distance_sigma=0.09, odometry_yaw_sigma_deg=1.8, seed=43)
+    )
     calibrated = IncrementalMap(MapParams())
     for cloud, guess in zip(poor.clouds, poor.odometry):
         calibrated.add(cloud, guess, shape=(172, 224))
     assert 1.7 < calibrated.odometry_error_scale() < 4
-    fixed = register_clouds(poor.clouds, poor.odometry, params=MapParams(odometry=OdometryParams(calibrate=False)), shape=(172, 224))
-    assert absolute_trajectory_error(calibrated.result().poses, poor.truth) < 0.9 * absolute_trajectory_error(fixed.poses, poor.truth)
+    fixed = register_clouds(
+        poor.clouds,
+        poor.odometry,
+        params=MapParams(odometry=OdometryParams(calibrate=False)),
+        shape=(172, 224),
+    )
+    assert absolute_trajectory_error(
+        calibrated.result().poses, poor.truth
+    ) < 0.9 * absolute_trajectory_error(fixed.poses, poor.truth)
     good = tof_sweep(TofSweepConfig(seed=43))
     as_configured = IncrementalMap(MapParams())
     for cloud, guess in zip(good.clouds, good.odometry):
@@ -211,14 +263,18 @@ def test_a_loop_missed_while_the_estimate_drifted_is_found_from_the_optimised_po
     runs again and closes the loop."""
     from processing.mapping import IncrementalMap
 
-    sweep = tof_sweep(TofSweepConfig(odometry_distance_sigma=0.09, odometry_yaw_sigma_deg=1.8, seed=45))
+    sweep = tof_sweep(
+        TofSweepConfig(odometry_distance_sigma=0.09, odometry_yaw_sigma_deg=1.8, seed=45)
+    )
     graph_map = IncrementalMap(MapParams())
     for cloud, guess in zip(sweep.clouds, sweep.odometry):
         graph_map.add(cloud, guess, shape=(172, 224))
     assert graph_map.loop_closures == 0
     result = graph_map.result()
     assert result.loop_closures > 0
-    assert absolute_trajectory_error(result.poses, sweep.truth) < 0.35 * absolute_trajectory_error(sweep.odometry, sweep.truth)
+    assert absolute_trajectory_error(result.poses, sweep.truth) < 0.35 * absolute_trajectory_error(
+        sweep.odometry, sweep.truth
+    )
 
 
 def test_an_icp_edge_carries_its_information_in_the_source_frame() -> None:
@@ -228,15 +284,23 @@ def test_an_icp_edge_carries_its_information_in_the_source_frame() -> None:
     from processing.mapping import plane_information
 
     rng = np.random.default_rng(0)
-    wall = np.column_stack([rng.uniform(-0.5, 0.5, (400, 2)), np.full(400, 1.0)])  # z = 1 in the source frame
+    wall = np.column_stack(
+        [rng.uniform(-0.5, 0.5, (400, 2)), np.full(400, 1.0)]
+    )  # z = 1 in the source frame
     T_target_source = np.eye(4)
     T_target_source[:3, :3] = Rotation.from_euler("x", 90, degrees=True).as_matrix()
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(wall))
     target = o3d.geometry.PointCloud(source).transform(T_target_source)
-    target.normals = o3d.utility.Vector3dVector(np.tile(T_target_source[:3, :3] @ [0.0, 0.0, 1.0], (400, 1)))
+    target.normals = o3d.utility.Vector3dVector(
+        np.tile(T_target_source[:3, :3] @ [0.0, 0.0, 1.0], (400, 1))
+    )
     result = o3d.pipelines.registration.evaluate_registration(source, target, 0.01, T_target_source)
     translation = plane_information(source, target, result, IcpParams())[3:, 3:]
-    assert translation[2, 2] > 0 and np.allclose(translation[:2, :], 0) and np.allclose(translation[:, :2], 0)
+    assert (
+        translation[2, 2] > 0
+        and np.allclose(translation[:2, :], 0)
+        and np.allclose(translation[:, :2], 0)
+    )
 
 
 def test_the_deck_plate_and_the_web_as_landmarks_keep_lanes_without_return_from_drifting() -> None:
@@ -246,7 +310,12 @@ def test_the_deck_plate_and_the_web_as_landmarks_keep_lanes_without_return_from_
     route: 0.09 % with the landmarks, 0.26 % without)."""
     sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.5, 0.62, 0.74), revisit=False, seed=49))
     with_planes = register_clouds(sweep.clouds, sweep.odometry, shape=(172, 224))
-    without = register_clouds(sweep.clouds, sweep.odometry, params=MapParams(planes=PlaneParams(enabled=False)), shape=(172, 224))
+    without = register_clouds(
+        sweep.clouds,
+        sweep.odometry,
+        params=MapParams(planes=PlaneParams(enabled=False)),
+        shape=(172, 224),
+    )
     assert with_planes.plane_landmarks >= 2 and without.plane_landmarks == 0
     drift = absolute_trajectory_error(with_planes.poses, sweep.truth) / sweep.path_length_m
     assert drift < 0.002

@@ -15,7 +15,10 @@ def test_phase_candidates_find_the_shift_without_any_guess() -> None:
     assert np.abs(best[:2] - relative_se2(a, b)[:2]).max() <= 2.5
     turned = np.array([420.0, 560.0, np.pi])
     best = phase_candidates(frame_at(tex, a), frame_at(tex, turned))[0][0]
-    assert np.abs(best[:2] - relative_se2(a, turned)[:2]).max() <= 2.5 and abs(abs(best[2]) - np.pi) < 1e-6
+    assert (
+        np.abs(best[:2] - relative_se2(a, turned)[:2]).max() <= 2.5
+        and abs(abs(best[2]) - np.pi) < 1e-6
+    )
 
 
 @pytest.mark.parametrize("turn", [0.0, np.pi])

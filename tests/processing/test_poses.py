@@ -10,8 +10,12 @@ def test_image_to_world_follows_the_camera_yaw() -> None:
     assert image_to_world(np.array([[320, 240]]), pose, 100.0, size)[0] == pytest.approx([1.0, 2.0])
     assert image_to_world(np.array([[420, 240]]), pose, 100.0, size)[0] == pytest.approx([2.0, 2.0])
     turned = np.array([1.0, 2.0, np.pi / 2])  # image x now points along world +y
-    assert image_to_world(np.array([[420, 240]]), turned, 100.0, size)[0] == pytest.approx([1.0, 3.0])
-    assert image_to_world(np.array([[320, 340]]), turned, 100.0, size)[0] == pytest.approx([0.0, 2.0])
+    assert image_to_world(np.array([[420, 240]]), turned, 100.0, size)[0] == pytest.approx(
+        [1.0, 3.0]
+    )
+    assert image_to_world(np.array([[320, 340]]), turned, 100.0, size)[0] == pytest.approx(
+        [0.0, 2.0]
+    )
 
 
 def test_tum_roundtrip_and_bad_lines() -> None:
@@ -49,4 +53,6 @@ def test_transfer_correction_carries_a_better_estimate_to_other_instants() -> No
     got = transfer_correction(times, odo, truth, query_t, query_odo)
     assert got[0] == pytest.approx(apply(0.0, query_odo[0]), abs=1e-9)
     assert got[1] == pytest.approx(apply(1.5, query_odo[1]), abs=1e-9)  # interpolated (linear here)
-    assert got[3] == pytest.approx(apply(3.0, query_odo[3]), abs=1e-9)  # held beyond the last reference
+    assert got[3] == pytest.approx(
+        apply(3.0, query_odo[3]), abs=1e-9
+    )  # held beyond the last reference

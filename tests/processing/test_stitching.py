@@ -30,7 +30,9 @@ def cut(tex: np.ndarray, cx: float, cy: float, w: int = 320, h: int = 240) -> np
 
 
 def sweep(frames: int = 12, pattern: str = "lawnmower", seed: int = 5, **kw: object) -> Sweep:
-    cfg = SweepConfig(frames=frames, pattern=pattern, lanes=3, frame_size=(320, 240), seed=seed, **kw)  # type: ignore[arg-type]
+    cfg = SweepConfig(
+        frames=frames, pattern=pattern, lanes=3, frame_size=(320, 240), seed=seed, **kw
+    )  # type: ignore[arg-type]
     need = texture_size_for(cfg)
     return make_sweep(painted_steel((need[1], need[0]), seed=seed), cfg)
 
@@ -46,10 +48,15 @@ def worst_pair_error(est: np.ndarray, truth: np.ndarray, size: tuple[int, int]) 
     worst = 0.0
     for i in range(len(truth)):
         for j in range(i + 1, len(truth)):
-            if abs(truth[j, 0] - truth[i, 0]) < 0.8 * w and abs(truth[j, 1] - truth[i, 1]) < 0.8 * h:
+            if (
+                abs(truth[j, 0] - truth[i, 0]) < 0.8 * w
+                and abs(truth[j, 1] - truth[i, 1]) < 0.8 * h
+            ):
                 e = np.linalg.inv(frame_to_mosaic(est[i], size)) @ frame_to_mosaic(est[j], size)
                 t = np.linalg.inv(frame_to_mosaic(truth[i], size)) @ frame_to_mosaic(truth[j], size)
-                worst = max(worst, float(np.linalg.norm((e @ corners - t @ corners)[:2], axis=0).max()))
+                worst = max(
+                    worst, float(np.linalg.norm((e @ corners - t @ corners)[:2], axis=0).max())
+                )
     return worst
 
 
@@ -70,7 +77,9 @@ def test_frames_stitch_from_images_alone_even_when_lanes_turn_around() -> None:
     assert worst_pair_error(layout.poses_px, s.truth, (320, 240)) < 0.3
 
 
-def test_a_pair_phase_correlation_cannot_place_is_registered_from_its_neighbours_motion(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_pair_phase_correlation_cannot_place_is_registered_from_its_neighbours_motion(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """On a straight run nothing else overlaps a pair: when no phase-correlation guess of
     it verifies (here: they all point elsewhere), the neighbouring pairs' steps are tried."""
     import processing.alignment as alignment
@@ -78,8 +87,11 @@ def test_a_pair_phase_correlation_cannot_place_is_registered_from_its_neighbours
     s = sweep(frames=8, pattern="straight")
     frames = decoded(s)
     genuine = alignment.phase_candidates
+
     def thumbnail(gray: np.ndarray) -> np.ndarray:
-        return cv2.resize(np.asarray(gray, np.float32), (40, 30), interpolation=cv2.INTER_AREA).ravel()
+        return cv2.resize(
+            np.asarray(gray, np.float32), (40, 30), interpolation=cv2.INTER_AREA
+        ).ravel()
 
     fourth = thumbnail(cv2.cvtColor(frames[3], cv2.COLOR_BGR2GRAY))
     misled = []
@@ -98,7 +110,9 @@ def test_a_pair_phase_correlation_cannot_place_is_registered_from_its_neighbours
 
 
 @pytest.mark.parametrize("seed", [4, 6])
-def test_images_only_small_frames_whose_overlap_cannot_hold_the_wide_search_are_placed(seed: int) -> None:
+def test_images_only_small_frames_whose_overlap_cannot_hold_the_wide_search_are_placed(
+    seed: int,
+) -> None:
     """320x240 frames overlap by ~110 px: the images-only search of ±80 px leaves no
     template, so the search narrows instead of being skipped (frames turned by 3.7°
     relative to each other were then refined from no rotation and lost)."""
@@ -153,7 +167,9 @@ def test_mosaic_matches_the_surface_and_maps_to_the_world() -> None:
     # the mosaic shows the surface: a patch between frames 1 and 2, where they are blended
     u, v = mosaic.frame_poses_px[0, :2]
     patch = cv2.getRectSubPix(mosaic.image, (200, 120), (float(u) + 400, float(v))).astype(float)
-    truth = cv2.getRectSubPix(tex, (200, 120), (float(centres[0, 0]) + 400, float(centres[0, 1]))).astype(float)
+    truth = cv2.getRectSubPix(
+        tex, (200, 120), (float(centres[0, 0]) + 400, float(centres[0, 1]))
+    ).astype(float)
     assert np.abs(patch - truth).mean() < 1.5
     # world mapping: frame 0's centre maps back to its odometry position, and back again
     x, y = mosaic.to_world(u, v)
@@ -165,7 +181,9 @@ def test_bands_of_any_height_make_the_same_mosaic() -> None:
     s = sweep(frames=6, pattern="straight")
     frames = decoded(s)
     layout, loaded = plan_mosaic(frames, s.odometry)
-    whole = np.vstack([b.image for b in render_bands(layout, loaded, StitchParams(band_bytes=2**40))])
+    whole = np.vstack(
+        [b.image for b in render_bands(layout, loaded, StitchParams(band_bytes=2**40))]
+    )
     small = StitchParams(band_bytes=1)  # the minimum band height
     bands = list(render_bands(layout, loaded, small))
     assert len(bands) > 3
@@ -178,7 +196,9 @@ def test_every_blend_covers_the_swept_area(blend: str) -> None:
     s = sweep(frames=6, pattern="straight")
     m = stitch_frames(decoded(s), s.odometry, params=StitchParams(blend=blend))  # type: ignore[arg-type]
     assert m.coverage.mean() > 0.85
-    assert (m.image[m.coverage].reshape(-1, 3).mean(axis=1) > 20).mean() > 0.99  # no black holes inside
+    assert (
+        m.image[m.coverage].reshape(-1, 3).mean(axis=1) > 20
+    ).mean() > 0.99  # no black holes inside
 
 
 def test_paper_blend_rule_takes_the_significantly_brighter_pixel() -> None:
@@ -199,7 +219,12 @@ def test_flat_field_recovers_vignetting_and_ignores_texture() -> None:
     rng = np.random.default_rng(0)
     h, w = 240, 320
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    vignette = 1 - 0.15 * (((xx - (w - 1) / 2) / ((w - 1) / 2)) ** 2 + ((yy - (h - 1) / 2) / ((h - 1) / 2)) ** 2) / 2
+    vignette = (
+        1
+        - 0.15
+        * (((xx - (w - 1) / 2) / ((w - 1) / 2)) ** 2 + ((yy - (h - 1) / 2) / ((h - 1) / 2)) ** 2)
+        / 2
+    )
     plain = [cut(tex, *rng.uniform((200, 200), (1400, 700))) for _ in range(16)]
     shaded = [np.clip(f * vignette[..., None], 0, 255).astype(np.uint8) for f in plain]
     flat = estimate_flat_field(shaded)
@@ -267,6 +292,8 @@ def test_feathered_mosaic_reproduces_the_surface_in_colour_and_grey(grey: bool) 
     assert mosaic.ndim == (2 if grey else 3)
     # the mosaic seen from frame 1 (it overlaps frames 0 and 2), away from the borders
     to_mosaic = frame_to_mosaic(layout.poses_px[1], layout.frame_size)[:2]
-    seen = cv2.warpAffine(mosaic, to_mosaic, layout.frame_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    seen = cv2.warpAffine(
+        mosaic, to_mosaic, layout.frame_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    )
     diff = np.abs(seen.astype(int) - frames[1].astype(int))[10:-10, 10:-10]
     assert diff.mean() < 0.5, diff.mean()

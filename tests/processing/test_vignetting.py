@@ -15,7 +15,10 @@ def vignette(size: tuple[int, int], strength: float = 0.15) -> np.ndarray:
 def test_falloff_and_gains_come_out_of_registered_overlaps() -> None:
     s = sweep(frames=12, seed=14)
     v = vignette((320, 240))
-    frames = [np.clip(f * v[..., None] * g, 0, 255).astype(np.uint8) for f, g in zip(decoded(s), np.linspace(0.8, 1.2, 12))]
+    frames = [
+        np.clip(f * v[..., None] * g, 0, 255).astype(np.uint8)
+        for f, g in zip(decoded(s), np.linspace(0.8, 1.2, 12))
+    ]
     grey = [f.mean(axis=2).astype(np.float32) for f in frames]
     pairs = []
     for k in range(11):

@@ -13,20 +13,33 @@ def test_commands_are_never_acted_on_twice_but_stopping_always_is() -> None:
     obeyed: list[tuple[int, str]] = []
 
     async def run() -> None:
-        link = RobotLink("http://127.0.0.1:1", "token", on_command=lambda m: obeyed.append((m.seq, m.meta["cmd"])))
+        link = RobotLink(
+            "http://127.0.0.1:1",
+            "token",
+            on_command=lambda m: obeyed.append((m.seq, m.meta["cmd"])),
+        )
         sid = uuid.uuid4()
 
         def command(seq: int, cmd: str) -> Message:
             return Message(MessageType.COMMAND, sid, seq, time.time(), {"cmd": cmd, "args": {}})
 
-        for seq, cmd in [(10, "resume"), (11, "capture"), (10, "resume"), (5, "capture"), (7, "estop"), (12, "resume")]:
+        for seq, cmd in [
+            (10, "resume"),
+            (11, "capture"),
+            (10, "resume"),
+            (5, "capture"),
+            (7, "estop"),
+            (12, "resume"),
+        ]:
             await link._handle(command(seq, cmd))
 
     asyncio.run(run())
     assert obeyed == [(10, "resume"), (11, "capture"), (7, "estop"), (12, "resume")]
 
 
-def test_the_robot_stops_the_moment_its_link_drops_and_drives_again_only_when_told(live_server) -> None:  # type: ignore[no-untyped-def]
+def test_the_robot_stops_the_moment_its_link_drops_and_drives_again_only_when_told(
+    live_server,
+) -> None:  # type: ignore[no-untyped-def]
     from robot_link.sim.teleop import TeleopSim
     from tests.fault_proxy import FaultProxy
 
@@ -56,7 +69,9 @@ def test_the_robot_stops_the_moment_its_link_drops_and_drives_again_only_when_to
             while sim.v != 0.0 and time.monotonic() - t0 < 2:
                 await asyncio.sleep(0.002)
             stopped_after = time.monotonic() - t0
-            while changes[-1] is not True and time.monotonic() - t0 < 10:  # it reconnects by itself ...
+            while (
+                changes[-1] is not True and time.monotonic() - t0 < 10
+            ):  # it reconnects by itself ...
                 await asyncio.sleep(0.01)
             assert sim.v == 0.0 and sim.w == 0.0  # ... and stays stopped until commanded
         finally:

@@ -18,7 +18,9 @@ def test_a_rotated_ramp_is_sampled_at_the_exact_position() -> None:
     gy, gx = np.mgrid[0:100, 0:120].astype(np.float64)
     qx = M[0, 0] * gx + M[0, 1] * gy + M[0, 2]
     ours = warp_affine_exact(texture, M, (120, 100))
-    opencv = cv2.warpAffine(texture.astype(np.float32), M, (120, 100), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP)
+    opencv = cv2.warpAffine(
+        texture.astype(np.float32), M, (120, 100), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
+    )
     assert np.abs(ours - qx).max() < 1e-3
     assert np.abs(opencv - qx).max() > 5e-3
 
@@ -31,17 +33,33 @@ def test_integer_shifts_copy_pixels_and_reflect_at_the_edges() -> None:
     assert np.array_equal(out, texture[7:17, 5:25].astype(np.float32))
     M = _rotation(0.0, -3.0, -2.0)
     edge = warp_affine_exact(texture, M, (50, 40))
-    want = cv2.warpAffine(texture, M, (50, 40), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
+    want = cv2.warpAffine(
+        texture,
+        M,
+        (50, 40),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REFLECT,
+    )
     assert np.array_equal(edge, want.astype(np.float32))
 
 
 def test_beyond_the_edges_a_constant_border_reads_its_value() -> None:
     texture = np.full((20, 30), 200, np.uint8)
     out = warp_affine_exact(texture, _rotation(0.0, -10.0, 0.0), (30, 20), border=25.0)
-    assert np.allclose(out[:, :8], 25.0) and np.allclose(out[:, 12:], 200.0)  # within 2 px of the edge: blended
-    want = cv2.warpAffine(texture, _rotation(0.0, -10.0, 0.0), (30, 20), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_CONSTANT, borderValue=25)
-    assert np.array_equal(out, want.astype(np.float32))  # an integer shift: taps land on pixels, no blending
+    assert np.allclose(out[:, :8], 25.0) and np.allclose(
+        out[:, 12:], 200.0
+    )  # within 2 px of the edge: blended
+    want = cv2.warpAffine(
+        texture,
+        _rotation(0.0, -10.0, 0.0),
+        (30, 20),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=25,
+    )
+    assert np.array_equal(
+        out, want.astype(np.float32)
+    )  # an integer shift: taps land on pixels, no blending
 
 
 def test_colour_channels_are_warped_alike() -> None:

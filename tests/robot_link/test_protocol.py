@@ -23,19 +23,63 @@ JPEG = b"\xff\xd8\xff\xe0" + b"\x00" * 100
 PNG = b"\x89PNG\r\n\x1a\n" + b"\x00" * 50
 
 
-def raw(mtype: int, meta: object, payload: bytes = b"", *, magic: bytes = MAGIC, version: int = 1, flags: int = 0, seq: int = 1) -> bytes:
+def raw(
+    mtype: int,
+    meta: object,
+    payload: bytes = b"",
+    *,
+    magic: bytes = MAGIC,
+    version: int = 1,
+    flags: int = 0,
+    seq: int = 1,
+) -> bytes:
     m = json.dumps(meta).encode()
-    return HEADER.pack(magic, version, mtype, flags, SID.bytes, seq, time.time(), len(m)) + m + payload
+    return (
+        HEADER.pack(magic, version, mtype, flags, SID.bytes, seq, time.time(), len(m)) + m + payload
+    )
 
 
 @pytest.mark.parametrize(
     "mtype, meta, payload",
     [
-        (MessageType.SESSION_START, {"structure": "G3", "operator": "ana", "calibration": {"camera": {"px_per_m": 3555.5}}}, b""),
-        (MessageType.FRAME, {"encoding": "jpeg", "width": 640, "height": 480, "pose": {"x": 0.1, "y": 0.2, "yaw": 0.3}}, JPEG),
-        (MessageType.CLOUD, {"encoding": "png16_depth_mm", "width": 224, "height": 172, "fx": 195.0, "fy": 195.0, "cx": 111.5, "cy": 85.5}, PNG),
-        (MessageType.CLOUD, {"encoding": "xyz_f32", "width": 2, "height": 1}, struct.pack("<6f", 1, 2, 3, 4, 5, 6)),
-        (MessageType.TELEMETRY, {"ir_range_m": [0.03, 0.03, 0.03, 0.5], "battery_v": {"main": 12.1}}, b""),
+        (
+            MessageType.SESSION_START,
+            {"structure": "G3", "operator": "ana", "calibration": {"camera": {"px_per_m": 3555.5}}},
+            b"",
+        ),
+        (
+            MessageType.FRAME,
+            {
+                "encoding": "jpeg",
+                "width": 640,
+                "height": 480,
+                "pose": {"x": 0.1, "y": 0.2, "yaw": 0.3},
+            },
+            JPEG,
+        ),
+        (
+            MessageType.CLOUD,
+            {
+                "encoding": "png16_depth_mm",
+                "width": 224,
+                "height": 172,
+                "fx": 195.0,
+                "fy": 195.0,
+                "cx": 111.5,
+                "cy": 85.5,
+            },
+            PNG,
+        ),
+        (
+            MessageType.CLOUD,
+            {"encoding": "xyz_f32", "width": 2, "height": 1},
+            struct.pack("<6f", 1, 2, 3, 4, 5, 6),
+        ),
+        (
+            MessageType.TELEMETRY,
+            {"ir_range_m": [0.03, 0.03, 0.03, 0.5], "battery_v": {"main": 12.1}},
+            b"",
+        ),
         (MessageType.COMMAND, {"cmd": "drive", "args": {"v": 0.1}}, b""),
         (MessageType.ACK, {"status": "stored", "of": "FRAME"}, b""),
         (MessageType.SESSION_END, {"reason": "done", "frames": 3, "clouds": 3}, b""),
@@ -44,7 +88,13 @@ def raw(mtype: int, meta: object, payload: bytes = b"", *, magic: bytes = MAGIC,
 def test_roundtrip_keeps_every_field(mtype: MessageType, meta: dict, payload: bytes) -> None:
     msg = Message(mtype, SID, 42, 1700000000.5, meta, payload)
     out = decode_message(encode_message(msg))
-    assert (out.type, out.session_id, out.seq, out.timestamp, out.payload) == (mtype, SID, 42, 1700000000.5, payload)
+    assert (out.type, out.session_id, out.seq, out.timestamp, out.payload) == (
+        mtype,
+        SID,
+        42,
+        1700000000.5,
+        payload,
+    )
     for key, value in meta.items():
         assert out.meta[key] == value
 
@@ -63,7 +113,10 @@ def test_roundtrip_keeps_every_field(mtype: MessageType, meta: dict, payload: by
         (HEADER.pack(MAGIC, 1, 5, 0, SID.bytes, 1, 0.0, 999) + b"{}", "does not fit"),
         (raw(3, {"width": 640, "height": 480}, b"GIF89a"), "not a JPEG"),
         (raw(3, {"width": -1, "height": 480}, JPEG), "width"),
-        (raw(4, {"encoding": "xyz_f32", "width": 3, "height": 1}, b"\x00" * 12), "expected width*height*12"),
+        (
+            raw(4, {"encoding": "xyz_f32", "width": 3, "height": 1}, b"\x00" * 12),
+            "expected width*height*12",
+        ),
         (raw(4, {"encoding": "png16_depth_mm", "width": 3, "height": 1}, PNG), "needs fx"),
         (raw(5, {}, b"junk"), "carry no payload"),
         (raw(6, {"cmd": "self_destruct"}), "cmd"),
@@ -92,7 +145,9 @@ def test_decoder_raises_only_protocol_errors_on_random_bytes(data: bytes) -> Non
 @settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=120), st.integers(0, 255), st.integers(0, 300))
 def test_decoder_survives_mutated_valid_messages(tail: bytes, byte: int, pos: int) -> None:
-    good = bytearray(encode_message(Message(MessageType.FRAME, SID, 7, 1.0, {"width": 4, "height": 4}, JPEG)))
+    good = bytearray(
+        encode_message(Message(MessageType.FRAME, SID, 7, 1.0, {"width": 4, "height": 4}, JPEG))
+    )
     good[pos % len(good)] = byte
     try:
         decode_message(bytes(good) + tail)

@@ -66,7 +66,9 @@ def test_camera_frame_shows_the_texture_at_its_pose(structure) -> None:
     img = cam.render(structure, np.array([0.5, 0.4, 0.0]), np.random.default_rng(0))
     assert img.shape == (480, 640, 3)
     # centre pixel of the frame = texture at world (0.5, 0.4)
-    tex = structure.texture[int(round(0.4 / structure.m_per_px)), int(round(0.5 / structure.m_per_px))]
+    tex = structure.texture[
+        int(round(0.4 / structure.m_per_px)), int(round(0.5 / structure.m_per_px))
+    ]
     assert np.abs(img[240, 320].astype(int) - tex.astype(int)).max() < 25
 
 
@@ -74,7 +76,9 @@ def test_defects_have_ground_truth_inside_the_plate(structure) -> None:
     assert {d.defect_class for d in structure.defects} == {"crack", "corrosion"}
     for d in structure.defects:
         x, y, w, h = d.bbox_m
-        assert 0 < x < x + w < structure.plate_size_m[0] and 0 < y < y + h < structure.plate_size_m[1]
+        assert (
+            0 < x < x + w < structure.plate_size_m[0] and 0 < y < y + h < structure.plate_size_m[1]
+        )
     assert structure.crack_mask.any() and structure.corrosion_mask.any()
 
 
@@ -97,11 +101,20 @@ def test_the_girder_runs_on_beyond_the_plate_with_repeating_stiffeners(structure
     T = tof.T_world_tof(np.array([1.5, 0.7, 0.0]))
     depth = tof.render(T, np.random.default_rng(0))
     v, u = np.nonzero(np.isfinite(depth))
-    rays = np.column_stack([(u - tof.cx) / tof.fx, (v - tof.cy) / tof.fy, np.ones(len(u))]) * depth[v, u][:, None]
+    rays = (
+        np.column_stack([(u - tof.cx) / tof.fx, (v - tof.cy) / tof.fy, np.ones(len(u))])
+        * depth[v, u][:, None]
+    )
     world = rays @ T[:3, :3].T + T[:3, 3]
     beyond = world[world[:, 0] > structure.plate_size_m[0] + 0.05]
-    assert len(beyond) > 500 and (beyond[:, 1] > structure.plate_size_m[1] - 0.125).all()  # no plate there: girder only
+    assert (
+        len(beyond) > 500 and (beyond[:, 1] > structure.plate_size_m[1] - 0.125).all()
+    )  # no plate there: girder only
     stiffener_faces = beyond[np.abs(beyond[:, 1] - (structure.plate_size_m[1] - 0.06)) < 0.05]
-    assert len(np.unique(np.round(stiffener_faces[:, 0] / 0.5))) >= 2  # more than one stiffener ahead
+    assert (
+        len(np.unique(np.round(stiffener_faces[:, 0] / 0.5))) >= 2
+    )  # more than one stiffener ahead
     bare = make_structure(3, girder_overhang_m=0.0)
-    assert bare.mesh.get_axis_aligned_bounding_box().get_max_bound()[0] == pytest.approx(structure.plate_size_m[0])
+    assert bare.mesh.get_axis_aligned_bounding_box().get_max_bound()[0] == pytest.approx(
+        structure.plate_size_m[0]
+    )

@@ -33,9 +33,13 @@ def test_spool_keeps_messages_on_disk_in_order_within_its_bound(tmp_path: Path) 
     assert not list((tmp_path / "s").glob("*.tmp"))
 
 
-def test_a_restarted_robot_resends_what_was_never_acknowledged(live_server: LiveServer, tmp_path: Path) -> None:
+def test_a_restarted_robot_resends_what_was_never_acknowledged(
+    live_server: LiveServer, tmp_path: Path
+) -> None:
     async def before_crash() -> uuid.UUID:
-        link = RobotLink(live_server.url, live_server.token, spool=Spool(tmp_path / "spool", fsync=False))
+        link = RobotLink(
+            live_server.url, live_server.token, spool=Spool(tmp_path / "spool", fsync=False)
+        )
         # never connected: the messages only reach the spool before the computer "dies"
         await link.send(MessageType.SESSION_START, {"structure": "spooled"})
         for i in range(5):
@@ -43,7 +47,9 @@ def test_a_restarted_robot_resends_what_was_never_acknowledged(live_server: Live
         return link.session_id
 
     async def after_restart() -> RobotLink:
-        link = RobotLink(live_server.url, live_server.token, spool=Spool(tmp_path / "spool", fsync=False))
+        link = RobotLink(
+            live_server.url, live_server.token, spool=Spool(tmp_path / "spool", fsync=False)
+        )
         await link.start()
         await link.send(MessageType.FRAME, {"width": 640, "height": 480}, JPEG + b"new")
         await link.flush(timeout_s=30)
@@ -53,7 +59,9 @@ def test_a_restarted_robot_resends_what_was_never_acknowledged(live_server: Live
     sid = asyncio.run(before_crash())
     link = asyncio.run(after_restart())
     assert link.session_id == sid  # the same session resumes
-    assert session_json(live_server, sid)["frames"] == 6  # 5 from before the restart, 1 after, none twice
+    assert (
+        session_json(live_server, sid)["frames"] == 6
+    )  # 5 from before the restart, 1 after, none twice
     assert link.spool is not None and len(link.spool) == 0 and link.stats.spool_bytes == 0
 
 
@@ -64,7 +72,9 @@ def test_an_outage_longer_than_the_window_loses_nothing(tmp_path: Path) -> None:
     url = f"http://127.0.0.1:{port}"
 
     async def run() -> uuid.UUID:
-        link = RobotLink(url, token, window=4, max_backoff_s=0.2, spool=Spool(tmp_path / "spool", fsync=False))
+        link = RobotLink(
+            url, token, window=4, max_backoff_s=0.2, spool=Spool(tmp_path / "spool", fsync=False)
+        )
         await link.start()  # the ground station is not up yet
         await link.send(MessageType.SESSION_START, {"structure": "long outage"})
         for i in range(40):  # ten times the window: a spooling link does not block on it

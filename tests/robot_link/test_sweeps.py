@@ -22,7 +22,11 @@ def test_lawnmower_sweep_overlaps_as_configured_and_turns_at_lane_ends() -> None
     step = relative_se2(s.truth[0], s.truth[1])
     assert step[0] == pytest.approx(0.65 * 160, abs=6)
     assert abs(abs(s.truth[3, 2]) - np.pi) < np.radians(3)  # second lane driven turned around
-    assert cv2.imdecode(np.frombuffer(s.frames[0], np.uint8), cv2.IMREAD_COLOR).shape == (120, 160, 3)
+    assert cv2.imdecode(np.frombuffer(s.frames[0], np.uint8), cv2.IMREAD_COLOR).shape == (
+        120,
+        160,
+        3,
+    )
     assert ((s.gains >= 0.8) & (s.gains <= 1.2)).all()
 
 
@@ -30,7 +34,13 @@ def test_odometry_drifts_but_each_step_stays_close() -> None:
     cfg = SweepConfig(frames=30, pattern="straight", frame_size=(160, 120), seed=2)
     need = texture_size_for(cfg)
     s = make_sweep(painted_steel((need[1], need[0])), cfg)
-    steps = np.array([relative_se2(s.odometry[k], s.odometry[k + 1]) - relative_se2(s.truth[k], s.truth[k + 1]) for k in range(29)])
+    steps = np.array(
+        [
+            relative_se2(s.odometry[k], s.odometry[k + 1])
+            - relative_se2(s.truth[k], s.truth[k + 1])
+            for k in range(29)
+        ]
+    )
     assert np.abs(steps[:, :2]).max() < 0.1 * 104  # a step is off by a few percent
     assert np.linalg.norm(s.odometry[-1, :2] - s.truth[-1, :2]) > 5  # ... but errors add up
 
@@ -44,7 +54,9 @@ def test_texture_from_images_lays_each_image_once() -> None:
     imgs = [np.full((20, 30), v, np.uint8) for v in (10, 20, 30)]
     tex = texture_from_images(imgs, columns=2, cell=(30, 20))
     assert tex.shape == (40, 60, 3)
-    assert tex[5, 5, 0] == 10 and tex[5, 35, 0] == 20 and tex[25, 5, 0] == 30 and tex[25, 35, 0] == 0
+    assert (
+        tex[5, 5, 0] == 10 and tex[5, 35, 0] == 20 and tex[25, 5, 0] == 30 and tex[25, 35, 0] == 0
+    )
 
 
 def test_lazy_sweep_is_deterministic_and_continuous_across_tiles() -> None:

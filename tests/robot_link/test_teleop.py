@@ -33,7 +33,9 @@ def robot(live_server: LiveServer) -> Iterator[TeleopRobot]:
 
 
 def browser(live_server: LiveServer) -> ClientConnection:
-    return connect(live_server.url.replace("http", "ws") + "/ws/live", max_size=2**22, close_timeout=0.5)
+    return connect(
+        live_server.url.replace("http", "ws") + "/ws/live", max_size=2**22, close_timeout=0.5
+    )
 
 
 def events(ws: ClientConnection, until: float) -> Iterator[dict | bytes]:
@@ -47,7 +49,12 @@ def events(ws: ClientConnection, until: float) -> Iterator[dict | bytes]:
 
 def wait_for_robot(ws: ClientConnection, sid: str) -> None:
     for e in events(ws, time.monotonic() + 20):
-        if isinstance(e, dict) and e.get("type") == "robot" and e["session_id"] == sid and e["connected"]:
+        if (
+            isinstance(e, dict)
+            and e.get("type") == "robot"
+            and e["session_id"] == sid
+            and e["connected"]
+        ):
             return
     raise AssertionError("the robot never attached")
 
@@ -55,12 +62,21 @@ def wait_for_robot(ws: ClientConnection, sid: str) -> None:
 def drive(ws: ClientConnection, sid: str, seconds: float, v: float = 0.1) -> None:
     end = time.monotonic() + seconds
     while time.monotonic() < end:
-        ws.send(json.dumps({"session_id": sid, "cmd": "drive", "args": {"linear_mps": v, "angular_radps": 0.0,
-                                                                          "sent_ms": time.time() * 1000}}))
+        ws.send(
+            json.dumps(
+                {
+                    "session_id": sid,
+                    "cmd": "drive",
+                    "args": {"linear_mps": v, "angular_radps": 0.0, "sent_ms": time.time() * 1000},
+                }
+            )
+        )
         time.sleep(0.05)
 
 
-def test_drives_while_commanded_and_stops_within_the_deadman_bound(live_server: LiveServer, robot: TeleopRobot) -> None:
+def test_drives_while_commanded_and_stops_within_the_deadman_bound(
+    live_server: LiveServer, robot: TeleopRobot
+) -> None:
     with browser(live_server) as ws:
         wait_for_robot(ws, robot.session_id)
         x0 = float(robot.sim.robot.odom[0])
@@ -70,15 +86,24 @@ def test_drives_while_commanded_and_stops_within_the_deadman_bound(live_server: 
         assert robot.sim.v == 0.0
         moved = float(robot.sim.robot.odom[0]) - x0
         assert 0.07 < moved < 0.14  # about a second at 0.1 m/s
-        assert robot.sim.log.deadman_stops_ms and max(robot.sim.log.deadman_stops_ms) <= DEADMAN_BOUND_MS
+        assert (
+            robot.sim.log.deadman_stops_ms
+            and max(robot.sim.log.deadman_stops_ms) <= DEADMAN_BOUND_MS
+        )
         assert min(robot.sim.log.deadman_stops_ms) >= DRIVE_HOLD_S * 1000
-        assert robot.sim.log.command_latency_ms and sorted(robot.sim.log.command_latency_ms)[len(robot.sim.log.command_latency_ms) // 2] < 50
+        assert (
+            robot.sim.log.command_latency_ms
+            and sorted(robot.sim.log.command_latency_ms)[len(robot.sim.log.command_latency_ms) // 2]
+            < 50
+        )
         # live video and telemetry reach the browser
         video, telemetry = 0, None
         for e in events(ws, time.monotonic() + 2):
             if isinstance(e, bytes):
-                header = json.loads(e[4:4 + struct.unpack("<I", e[:4])[0]])
-                video += bool(header.get("video")) and e[4 + struct.unpack("<I", e[:4])[0]:].startswith(b"\xff\xd8")
+                header = json.loads(e[4 : 4 + struct.unpack("<I", e[:4])[0]])
+                video += bool(header.get("video")) and e[
+                    4 + struct.unpack("<I", e[:4])[0] :
+                ].startswith(b"\xff\xd8")
             elif e.get("type") == "telemetry" and e["session_id"] == robot.session_id:
                 telemetry = e["data"]
         assert video >= 10 and telemetry is not None
@@ -100,15 +125,25 @@ def test_estop_holds_until_resume(live_server: LiveServer, robot: TeleopRobot) -
         assert robot.sim.v > 0
 
 
-def test_one_operator_drives_others_watch_and_the_robot_stops_when_the_driver_leaves(live_server: LiveServer, robot: TeleopRobot) -> None:
+def test_one_operator_drives_others_watch_and_the_robot_stops_when_the_driver_leaves(
+    live_server: LiveServer, robot: TeleopRobot
+) -> None:
     with browser(live_server) as watcher:
         wait_for_robot(watcher, robot.session_id)
         driver = browser(live_server)
         wait_for_robot(driver, robot.session_id)
         drive(driver, robot.session_id, 0.3)
         # the second browser may not drive, but may stop
-        watcher.send(json.dumps({"session_id": robot.session_id, "cmd": "drive", "args": {"linear_mps": -0.1}}))
-        refusal = next(e for e in events(watcher, time.monotonic() + 5) if isinstance(e, dict) and e.get("type") == "command_result")
+        watcher.send(
+            json.dumps(
+                {"session_id": robot.session_id, "cmd": "drive", "args": {"linear_mps": -0.1}}
+            )
+        )
+        refusal = next(
+            e
+            for e in events(watcher, time.monotonic() + 5)
+            if isinstance(e, dict) and e.get("type") == "command_result"
+        )
         assert not refusal["ok"] and "driven by" in refusal["error"]
         # the driver's page goes away mid-drive: the station stops the robot at once
         drive(driver, robot.session_id, 0.3)
@@ -117,7 +152,11 @@ def test_one_operator_drives_others_watch_and_the_robot_stops_when_the_driver_le
         while robot.sim.v != 0.0:
             assert time.monotonic() - t0 < DEADMAN_BOUND_MS / 1000
             time.sleep(0.005)
-        control = [e for e in events(watcher, time.monotonic() + 1) if isinstance(e, dict) and e.get("type") == "control"]
+        control = [
+            e
+            for e in events(watcher, time.monotonic() + 1)
+            if isinstance(e, dict) and e.get("type") == "control"
+        ]
         assert control and control[-1]["holder"] is None
         # now the watcher may take over
         drive(watcher, robot.session_id, 0.2)

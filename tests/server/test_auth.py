@@ -35,30 +35,69 @@ def login(server: LiveServer, name: str, password: str = "correct horse") -> dic
 def test_open_until_the_first_account_then_401_and_403(live_server: LiveServer) -> None:
     url = live_server.url
     sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
         ws.send(start(sid))
         ws.recv(timeout=10)
     assert httpx.get(f"{url}/api/sessions").status_code == 200  # no accounts yet: open
     add_user(live_server, "vera", Role.viewer)
     add_user(live_server, "otto", Role.operator)
-    for path in ("/api/sessions", f"/api/sessions/{sid}", "/api/health", "/api/auth/me", "/api/jobs/1"):
+    for path in (
+        "/api/sessions",
+        f"/api/sessions/{sid}",
+        "/api/health",
+        "/api/auth/me",
+        "/api/jobs/1",
+    ):
         r = httpx.get(url + path)
         assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer", path
-    assert httpx.get(f"{url}/api/sessions", headers={"Authorization": "Bearer forged"}).status_code == 401
-    assert httpx.post(f"{url}/api/auth/token", data={"username": "vera", "password": "wrong"}).status_code == 401
-    assert httpx.post(f"{url}/api/auth/token", data={"username": "nobody", "password": "x"}).status_code == 401
+    assert (
+        httpx.get(f"{url}/api/sessions", headers={"Authorization": "Bearer forged"}).status_code
+        == 401
+    )
+    assert (
+        httpx.post(
+            f"{url}/api/auth/token", data={"username": "vera", "password": "wrong"}
+        ).status_code
+        == 401
+    )
+    assert (
+        httpx.post(
+            f"{url}/api/auth/token", data={"username": "nobody", "password": "x"}
+        ).status_code
+        == 401
+    )
     viewer, operator = login(live_server, "vera"), login(live_server, "otto")
     assert httpx.get(f"{url}/api/sessions/{sid}", headers=viewer).json()["frames"] == 0
-    assert httpx.get(f"{url}/api/auth/me", headers=viewer).json() == {"name": "vera", "role": "viewer"}
+    assert httpx.get(f"{url}/api/auth/me", headers=viewer).json() == {
+        "name": "vera",
+        "role": "viewer",
+    }
     job = {"kind": "stitch"}
     assert httpx.post(f"{url}/api/sessions/{sid}/jobs", json=job, headers=viewer).status_code == 403
-    assert httpx.post(f"{url}/api/sessions/{sid}/jobs", json=job, headers=operator).status_code == 202
+    assert (
+        httpx.post(f"{url}/api/sessions/{sid}/jobs", json=job, headers=operator).status_code == 202
+    )
     # viewers read reports but may not change what they say
     assert httpx.get(f"{url}/api/sessions/{sid}/report.json", headers=viewer).status_code == 200
     assert httpx.get(f"{url}/api/sessions/{sid}/defects.csv").status_code == 401
-    assert httpx.patch(f"{url}/api/sessions/{sid}", json={"location": "x"}, headers=viewer).status_code == 403
-    assert httpx.patch(f"{url}/api/sessions/{sid}", json={"location": "x"}, headers=operator).status_code == 200
-    assert httpx.patch(f"{url}/api/sessions/{sid}/defects/1", json={"comment": "x"}, headers=viewer).status_code == 403
+    assert (
+        httpx.patch(f"{url}/api/sessions/{sid}", json={"location": "x"}, headers=viewer).status_code
+        == 403
+    )
+    assert (
+        httpx.patch(
+            f"{url}/api/sessions/{sid}", json={"location": "x"}, headers=operator
+        ).status_code
+        == 200
+    )
+    assert (
+        httpx.patch(
+            f"{url}/api/sessions/{sid}/defects/1", json={"comment": "x"}, headers=viewer
+        ).status_code
+        == 403
+    )
     # static pages and the OpenAPI document stay reachable
     assert httpx.get(f"{url}/").status_code == 200
     assert httpx.get(f"{url}/static/js/main.js").status_code == 200
@@ -83,26 +122,58 @@ def test_live_socket_needs_a_token_and_viewers_cannot_command(live_server: LiveS
 
 
 def test_create_user_reads_the_password_from_stdin(tmp_path) -> None:
-    cmd = [sys.executable, "-m", "server.cli", "admin", "create-user", "ana", "--role", "operator", "--data-dir", str(tmp_path)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "server.cli",
+        "admin",
+        "create-user",
+        "ana",
+        "--role",
+        "operator",
+        "--data-dir",
+        str(tmp_path),
+    ]
     proc = subprocess.run(cmd, input="s3cret-pass\n", capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     again = subprocess.run(cmd, input="s3cret-pass\n", capture_output=True, text=True, timeout=120)
-    assert again.returncode != 0 and "already exists" in again.stderr and "Traceback" not in again.stderr
-    short = subprocess.run(cmd[:5] + ["bo"] + cmd[6:], input="short\n", capture_output=True, text=True, timeout=120)
+    assert (
+        again.returncode != 0
+        and "already exists" in again.stderr
+        and "Traceback" not in again.stderr
+    )
+    short = subprocess.run(
+        cmd[:5] + ["bo"] + cmd[6:], input="short\n", capture_output=True, text=True, timeout=120
+    )
     assert short.returncode != 0 and "at least 8" in short.stderr
 
 
-def test_password_guessing_is_throttled_and_the_right_password_still_works_later(live_server: LiveServer) -> None:
+def test_password_guessing_is_throttled_and_the_right_password_still_works_later(
+    live_server: LiveServer,
+) -> None:
     add_user(live_server, "vera", Role.viewer)
     url = f"{live_server.url}/api/auth/token"
     for _ in range(5):
-        assert httpx.post(url, data={"username": "vera", "password": f"guess-{uuid.uuid4()}"}).status_code == 401
+        assert (
+            httpx.post(
+                url, data={"username": "vera", "password": f"guess-{uuid.uuid4()}"}
+            ).status_code
+            == 401
+        )
     refused = httpx.post(url, data={"username": "vera", "password": "correct horse"})
-    assert refused.status_code == 429 and int(refused.headers["retry-after"]) > 0 and "try again" in refused.json()["detail"]
-    assert httpx.post(url, data={"username": "otto", "password": "whatever"}).status_code == 401  # other users unaffected
+    assert (
+        refused.status_code == 429
+        and int(refused.headers["retry-after"]) > 0
+        and "try again" in refused.json()["detail"]
+    )
+    assert (
+        httpx.post(url, data={"username": "otto", "password": "whatever"}).status_code == 401
+    )  # other users unaffected
     live_server.app.state.steelscan.logins.window_s = 0.2  # the window passes
     time.sleep(0.3)
-    assert httpx.post(url, data={"username": "vera", "password": "correct horse"}).status_code == 200
+    assert (
+        httpx.post(url, data={"username": "vera", "password": "correct horse"}).status_code == 200
+    )
 
 
 def test_login_throttle_forgets_on_success_and_stays_bounded() -> None:
@@ -131,7 +202,9 @@ def test_another_sites_page_cannot_open_the_live_socket(live_server: LiveServer)
         ws.send(json.dumps({"session_id": str(uuid.uuid4()), "cmd": "stop"}))
 
 
-def test_a_browser_flooding_or_sending_huge_messages_is_refused_but_can_always_stop(live_server: LiveServer) -> None:
+def test_a_browser_flooding_or_sending_huge_messages_is_refused_but_can_always_stop(
+    live_server: LiveServer,
+) -> None:
     live = live_server.url.replace("http://", "ws://") + "/ws/live"
     sid = str(uuid.uuid4())
 
@@ -151,5 +224,7 @@ def test_a_browser_flooding_or_sending_huge_messages_is_refused_but_can_always_s
         flood = results(ws, 200)
         limited = [r for r in flood if "too many messages" in r.get("error", "")]
         assert 50 <= len(limited) < 200
-        ws.send(json.dumps({"session_id": sid, "cmd": "estop"}))  # the bucket is empty: e-stop still goes through
+        ws.send(
+            json.dumps({"session_id": sid, "cmd": "estop"})
+        )  # the bucket is empty: e-stop still goes through
         assert "too many" not in results(ws, 1)[0].get("error", "")

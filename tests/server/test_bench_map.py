@@ -23,8 +23,15 @@ def test_only_clouds_with_points_off_the_plate_see_structure() -> None:
     raised = np.eye(4)
     raised[2, 3] = -0.1  # a sensor 10 cm above the plate: its points are 10 cm further along its z
     plate_seen_from_above = plate + [0, 0, 0.1]
-    seen = sees_structure([_cloud(plate), _cloud(np.vstack([plate, wall])), _cloud(plate_seen_from_above), _cloud(np.zeros((0, 3)))],
-                          np.stack([np.eye(4), np.eye(4), raised, np.eye(4)]))
+    seen = sees_structure(
+        [
+            _cloud(plate),
+            _cloud(np.vstack([plate, wall])),
+            _cloud(plate_seen_from_above),
+            _cloud(np.zeros((0, 3))),
+        ],
+        np.stack([np.eye(4), np.eye(4), raised, np.eye(4)]),
+    )
     assert seen.tolist() == [False, True, False, False]
 
 
@@ -36,4 +43,8 @@ def test_the_oracle_takes_true_steps_only_between_clouds_that_see_structure() ->
     none_seen = oracle_poses(truth, odometry, np.zeros(20, bool))
     assert np.allclose(none_seen, odometry)
     half = oracle_poses(truth, odometry, np.arange(20) < 10)
-    assert absolute_trajectory_error(all_seen, truth) < absolute_trajectory_error(half, truth) < absolute_trajectory_error(odometry, truth)
+    assert (
+        absolute_trajectory_error(all_seen, truth)
+        < absolute_trajectory_error(half, truth)
+        < absolute_trajectory_error(odometry, truth)
+    )

@@ -16,7 +16,9 @@ DATASET = Path(__file__).resolve().parents[3] / "shared" / "datasets" / "deepcra
 
 
 def steelscan(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "server.cli", *args], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "server.cli", *args], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def assert_clean_error(proc: subprocess.CompletedProcess[str], fragment: str) -> None:
@@ -36,7 +38,17 @@ def test_create_robot_prints_a_token_alone(tmp_path: Path) -> None:
 
 
 def test_sim_streams_one_route_and_reports_what_it_sent(live_server: LiveServer) -> None:
-    proc = steelscan("sim", "--server", live_server.url, f"--token={live_server.token}", "--exit-when-done", "--lanes", "1", "--time-scale", "0")
+    proc = steelscan(
+        "sim",
+        "--server",
+        live_server.url,
+        f"--token={live_server.token}",
+        "--exit-when-done",
+        "--lanes",
+        "1",
+        "--time-scale",
+        "0",
+    )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     s = httpx.get(f"{live_server.url}/api/sessions/{summary['session_id']}").json()
@@ -45,7 +57,17 @@ def test_sim_streams_one_route_and_reports_what_it_sent(live_server: LiveServer)
 
 
 def test_sim_with_a_wrong_token_fails_cleanly(live_server: LiveServer) -> None:
-    proc = steelscan("sim", "--server", live_server.url, "--token", "nope", "--exit-when-done", "--lanes", "1", timeout=60)
+    proc = steelscan(
+        "sim",
+        "--server",
+        live_server.url,
+        "--token",
+        "nope",
+        "--exit-when-done",
+        "--lanes",
+        "1",
+        timeout=60,
+    )
     assert_clean_error(proc, "refused the robot token")
 
 
@@ -54,13 +76,23 @@ def test_detect_writes_masks_and_defects(tmp_path: Path) -> None:
     img += np.random.default_rng(0).integers(0, 8, img.shape, dtype=np.uint8)
     cv2.line(img, (10, 20), (150, 100), (40, 40, 40), 2)
     cv2.imwrite(str(tmp_path / "plate.png"), img)
-    proc = steelscan("detect", str(tmp_path / "plate.png"), "--out", str(tmp_path / "out"), "--px-per-mm", "4")
+    proc = steelscan(
+        "detect", str(tmp_path / "plate.png"), "--out", str(tmp_path / "out"), "--px-per-mm", "4"
+    )
     assert proc.returncode == 0, proc.stderr
     mask = cv2.imread(str(tmp_path / "out" / "plate.png"), cv2.IMREAD_UNCHANGED)
     assert mask.shape == (120, 160) and mask.dtype == np.uint8 and set(np.unique(mask)) <= {0, 255}
     defects = json.loads((tmp_path / "out" / "defects.json").read_text())
     assert len(defects) == 1 and defects[0]["image"] == "plate.png"
-    assert {"id", "bbox", "area_px", "length_px", "max_width_px", "length_mm", "max_width_mm"} <= defects[0].keys()
+    assert {
+        "id",
+        "bbox",
+        "area_px",
+        "length_px",
+        "max_width_px",
+        "length_mm",
+        "max_width_mm",
+    } <= defects[0].keys()
     assert defects[0]["length_mm"] == pytest.approx(defects[0]["length_px"] / 4, abs=0.01)
 
 
@@ -69,17 +101,32 @@ def test_detect_runs_on_a_real_crack_image(tmp_path: Path) -> None:
     image = sorted((DATASET / "images").glob("*.jpg"))[0]
     proc = steelscan("detect", str(image), "--out", str(tmp_path), "--method", "sauvola")
     assert proc.returncode == 0, proc.stderr
-    assert cv2.imread(str(tmp_path / f"{image.stem}.png")).shape[:2] == cv2.imread(str(image)).shape[:2]
+    assert (
+        cv2.imread(str(tmp_path / f"{image.stem}.png")).shape[:2]
+        == cv2.imread(str(image)).shape[:2]
+    )
 
 
 def test_bad_inputs_give_one_line_errors_and_no_output(tmp_path: Path) -> None:
     (tmp_path / "corrupt.jpg").write_bytes(b"\xff\xd8 not really")
-    assert_clean_error(steelscan("detect", str(tmp_path / "missing.png"), "--out", str(tmp_path / "o1")), "no such file")
-    assert_clean_error(steelscan("detect", str(tmp_path / "corrupt.jpg"), "--out", str(tmp_path / "o2")), "not an image")
+    assert_clean_error(
+        steelscan("detect", str(tmp_path / "missing.png"), "--out", str(tmp_path / "o1")),
+        "no such file",
+    )
+    assert_clean_error(
+        steelscan("detect", str(tmp_path / "corrupt.jpg"), "--out", str(tmp_path / "o2")),
+        "not an image",
+    )
     assert not (tmp_path / "o2" / "defects.json").exists()
     (tmp_path / "empty").mkdir()
-    assert_clean_error(steelscan("stitch", str(tmp_path / "empty"), "--out", str(tmp_path / "o3")), "no image files")
-    assert_clean_error(steelscan("map", str(tmp_path / "empty"), "--out", str(tmp_path / "o4")), "no point cloud files")
+    assert_clean_error(
+        steelscan("stitch", str(tmp_path / "empty"), "--out", str(tmp_path / "o3")),
+        "no image files",
+    )
+    assert_clean_error(
+        steelscan("map", str(tmp_path / "empty"), "--out", str(tmp_path / "o4")),
+        "no point cloud files",
+    )
 
 
 def test_stitch_folder_with_odometry_writes_mosaic_pyramid_and_poses(tmp_path: Path) -> None:
@@ -91,28 +138,57 @@ def test_stitch_folder_with_odometry_writes_mosaic_pyramid_and_poses(tmp_path: P
     frames.mkdir()
     for i, jpeg in enumerate(s.frames):
         (frames / f"f{i:03d}.jpg").write_bytes(jpeg)
-    T = np.array([se2_to_se3(p[0] / 100, p[1] / 100, p[2]) for p in s.odometry])  # metres at 100 px/m
+    T = np.array(
+        [se2_to_se3(p[0] / 100, p[1] / 100, p[2]) for p in s.odometry]
+    )  # metres at 100 px/m
     (tmp_path / "odo.tum").write_text(format_tum(np.arange(8, dtype=float), T))
     out = tmp_path / "out"
-    proc = steelscan("stitch", str(frames), "--out", str(out), "--odometry", str(tmp_path / "odo.tum"), "--px-per-m", "100")
+    proc = steelscan(
+        "stitch",
+        str(frames),
+        "--out",
+        str(out),
+        "--odometry",
+        str(tmp_path / "odo.tum"),
+        "--px-per-m",
+        "100",
+    )
     assert proc.returncode == 0, proc.stderr
     rows = (out / "poses.csv").read_text().splitlines()
     assert rows[0] == "frame,x,y,theta_deg" and len(rows) == 9
     est = np.array([[float(v) for v in r.split(",")[1:]] for r in rows[1:]])
     est[:, 2] = np.radians(est[:, 2])
     for k in range(7):  # consecutive frames placed as they truly are, rotation included
-        assert np.abs(relative_se2(est[k], est[k + 1]) - relative_se2(s.truth[k], s.truth[k + 1]))[:2].max() < 0.2
+        assert (
+            np.abs(relative_se2(est[k], est[k + 1]) - relative_se2(s.truth[k], s.truth[k + 1]))[
+                :2
+            ].max()
+            < 0.2
+        )
     mosaic = cv2.imread(str(out / "mosaic.png"))
     assert mosaic.shape[0] > 240 and mosaic.shape[1] > 320
     world = json.loads((out / "mosaic.json").read_text())
-    assert world["width_px"] == mosaic.shape[1] and len(world["frames"]) == 8 and world["world_referenced"]
+    assert (
+        world["width_px"] == mosaic.shape[1]
+        and len(world["frames"]) == 8
+        and world["world_referenced"]
+    )
     dzi = (out / "mosaic.dzi").read_text()
     assert f'Width="{mosaic.shape[1]}"' in dzi and 'TileSize="254"' in dzi
     top = max(int(p.name) for p in (out / "mosaic_files").iterdir() if p.is_dir())
     assert cv2.imread(str(out / "mosaic_files" / str(top) / "0_0.jpg")) is not None
     assert cv2.imread(str(out / "mosaic_files" / "0" / "0_0.jpg")).shape[:2] == (1, 1)
     (tmp_path / "short.tum").write_text("0 0 0 0 0 0 0 1\n")
-    bad = steelscan("stitch", str(frames), "--out", str(tmp_path / "o5"), "--odometry", str(tmp_path / "short.tum"), "--px-per-m", "100")
+    bad = steelscan(
+        "stitch",
+        str(frames),
+        "--out",
+        str(tmp_path / "o5"),
+        "--odometry",
+        str(tmp_path / "short.tum"),
+        "--px-per-m",
+        "100",
+    )
     assert_clean_error(bad, "1 poses for 8 frames")
 
 
@@ -133,7 +209,9 @@ def test_map_folder_of_organised_clouds_with_odometry_beats_the_odometry(tmp_pat
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c.astype(np.float64)))
         assert o3d.io.write_point_cloud(str(clouds / f"c{i:03d}.ply"), pcd, write_ascii=False)
     (clouds / "sensor.json").write_text(json.dumps(sweep.intrinsics))
-    (tmp_path / "odo.tum").write_text(format_tum(np.arange(len(sweep.clouds), dtype=float), sweep.odometry))
+    (tmp_path / "odo.tum").write_text(
+        format_tum(np.arange(len(sweep.clouds), dtype=float), sweep.odometry)
+    )
     out = tmp_path / "out"
     proc = steelscan("map", str(clouds), "--out", str(out), "--odometry", str(tmp_path / "odo.tum"))
     assert proc.returncode == 0, proc.stderr
@@ -154,7 +232,10 @@ def test_stitch_refuses_corrupt_or_mismatched_frames_and_writes_nothing(tmp_path
     assert_clean_error(steelscan("stitch", str(frames), "--out", str(tmp_path / "o1")), "f3.png")
     (frames / "f3.png").unlink()
     cv2.imwrite(str(frames / "f3.png"), np.full((61, 80, 3), 100, np.uint8))
-    assert_clean_error(steelscan("stitch", str(frames), "--out", str(tmp_path / "o2")), "differs from the first frame")
+    assert_clean_error(
+        steelscan("stitch", str(frames), "--out", str(tmp_path / "o2")),
+        "differs from the first frame",
+    )
     cv2.imwrite(str(frames / "f3.png"), np.full((60, 80), 4000, np.uint16))
     assert_clean_error(steelscan("stitch", str(frames), "--out", str(tmp_path / "o3")), "8-bit")
     assert not any((tmp_path / name).exists() for name in ("o1", "o2", "o3"))
@@ -166,7 +247,12 @@ def test_bench_detect_prints_json_lines_with_baselines() -> None:
     assert proc.returncode == 0, proc.stderr
     results = [json.loads(line) for line in proc.stdout.splitlines()]
     names = {r["name"] for r in results}
-    assert {"detect.proposed.dsc_tol2", "detect.sauvola_tuned.dsc_tol2", "detect.proposed.time_per_480x320", "detect.peak_detection_per_histogram"} <= names
+    assert {
+        "detect.proposed.dsc_tol2",
+        "detect.sauvola_tuned.dsc_tol2",
+        "detect.proposed.time_per_480x320",
+        "detect.peak_detection_per_histogram",
+    } <= names
     for r in results:
         assert {"name", "value", "unit"} <= r.keys()
         if "baseline" in r:
@@ -184,13 +270,23 @@ def test_detect_handles_sixteen_bit_tiny_and_constant_images(tmp_path: Path) -> 
     cv2.imwrite(str(tmp_path / "tiny.png"), np.full((2, 3), 99, np.uint8))
     cv2.imwrite(str(tmp_path / "flat.png"), np.full((50, 60, 3), 128, np.uint8))
     (tmp_path / "empty.png").write_bytes(b"")
-    proc = steelscan("detect", *(str(tmp_path / n) for n in ("deep.png", "tiny.png", "flat.png")), "--out", str(tmp_path / "out"))
+    proc = steelscan(
+        "detect",
+        *(str(tmp_path / n) for n in ("deep.png", "tiny.png", "flat.png")),
+        "--out",
+        str(tmp_path / "out"),
+    )
     assert proc.returncode == 0, proc.stderr
     for name, shape in (("deep", (90, 120)), ("tiny", (2, 3)), ("flat", (50, 60))):
-        assert cv2.imread(str(tmp_path / "out" / f"{name}.png"), cv2.IMREAD_UNCHANGED).shape == shape
+        assert (
+            cv2.imread(str(tmp_path / "out" / f"{name}.png"), cv2.IMREAD_UNCHANGED).shape == shape
+        )
     defects = json.loads((tmp_path / "out" / "defects.json").read_text())
     assert {d["image"] for d in defects} <= {"deep.png"}
-    assert_clean_error(steelscan("detect", str(tmp_path / "empty.png"), "--out", str(tmp_path / "o")), "not an image")
+    assert_clean_error(
+        steelscan("detect", str(tmp_path / "empty.png"), "--out", str(tmp_path / "o")),
+        "not an image",
+    )
 
 
 def test_bench_stitch_and_map_measure_against_baselines() -> None:
@@ -199,14 +295,26 @@ def test_bench_stitch_and_map_measure_against_baselines() -> None:
     results = {r["name"]: r for r in map(json.loads, proc.stdout.splitlines())}
     for surface in ("textured", "painted_steel"):
         mean = results[f"stitch.{surface}.lawnmower.mean_overlap_error"]
-        assert mean["value"] < 0.5 and mean["value"] < mean["baseline"]  # far better than odometry alone
-        assert results[f"stitch.{surface}.lawnmower.ms_per_frame"]["baseline_is"] == "cv2.Stitcher SCANS"
+        assert (
+            mean["value"] < 0.5 and mean["value"] < mean["baseline"]
+        )  # far better than odometry alone
+        assert (
+            results[f"stitch.{surface}.lawnmower.ms_per_frame"]["baseline_is"]
+            == "cv2.Stitcher SCANS"
+        )
         assert f"stitch.{surface}.lawnmower.images_only.end_drift" in results
-        ecc = results[f"stitch.{surface}.straight.ecc_end_drift"]  # OpenCV's ECC refinement on the same pairs
+        ecc = results[
+            f"stitch.{surface}.straight.ecc_end_drift"
+        ]  # OpenCV's ECC refinement on the same pairs
         assert ecc["mean_overlap_error"] < 0.5 and ecc["ms_per_pair"] > 0
     spread = results["stitch.straight_runs.end_drift_rms"]
     assert spread["runs"] == len(spread["drifts"]) == len(spread["baseline_drifts"]) >= 8
-    assert {"map.sweep31.ate", "map.sweep31.drift", "map.sweep31.rpe", "map.sweep31.ms_per_cloud"} <= results.keys()
+    assert {
+        "map.sweep31.ate",
+        "map.sweep31.drift",
+        "map.sweep31.rpe",
+        "map.sweep31.ms_per_cloud",
+    } <= results.keys()
     assert results["map.sweep31.ate"]["value"] < 0.05
 
 
@@ -216,4 +324,6 @@ def test_bench_ingest_counts_every_frame_it_sends() -> None:
     results = {r["name"]: r for r in map(json.loads, proc.stdout.splitlines())}
     assert results["ingest.lost"]["value"] == 0 and results["ingest.lost"]["acked"] > 0
     assert results["ingest.frames_per_second"]["baseline_is"] == "bare websockets echo on loopback"
-    assert results["ingest.ack_latency_p99"]["value"] >= results["ingest.ack_latency_p50"]["value"] > 0
+    assert (
+        results["ingest.ack_latency_p99"]["value"] >= results["ingest.ack_latency_p50"]["value"] > 0
+    )

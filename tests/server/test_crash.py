@@ -31,11 +31,15 @@ def test_sigkill_mid_session_loses_nothing(tmp_path: Path) -> None:
     frames = 60
 
     async def robot() -> tuple[str, subprocess.Popen, RobotLink]:
-        link = RobotLink(url, token, max_backoff_s=0.3, spool=Spool(tmp_path / "spool", fsync=False))
+        link = RobotLink(
+            url, token, max_backoff_s=0.3, spool=Spool(tmp_path / "spool", fsync=False)
+        )
         await link.start()
         await link.send(MessageType.SESSION_START, {"structure": "killed station"})
         for i in range(frames):
-            await link.send(MessageType.FRAME, {"width": 640, "height": 480}, JPEG + i.to_bytes(2, "little"))
+            await link.send(
+                MessageType.FRAME, {"width": 640, "height": 480}, JPEG + i.to_bytes(2, "little")
+            )
             if i == frames // 2:
                 await asyncio.sleep(0.3)  # some of it acknowledged, some in flight...
                 first.send_signal(signal.SIGKILL)  # ...when the station dies without warning
@@ -56,13 +60,17 @@ def test_sigkill_mid_session_loses_nothing(tmp_path: Path) -> None:
         second.wait(timeout=30)
     db = sqlite3.connect(data / "steelscan.db")
     assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
-    rows = db.execute("SELECT COUNT(*), COUNT(DISTINCT seq) FROM frames WHERE session_id = ?", (sid,)).fetchone()
+    rows = db.execute(
+        "SELECT COUNT(*), COUNT(DISTINCT seq) FROM frames WHERE session_id = ?", (sid,)
+    ).fetchone()
     assert rows == (frames, frames)
     # every row's payload is where the row says: a JPEG of the stored size in its segment file
     # (bytes of an append the crash cut short may follow, but no row points at them)
     from server.storage.files import SessionFiles
 
     store = SessionFiles(data)
-    for path, offset, size in db.execute("SELECT path, data_offset, size_bytes FROM frames WHERE session_id = ?", (sid,)):
+    for path, offset, size in db.execute(
+        "SELECT path, data_offset, size_bytes FROM frames WHERE session_id = ?", (sid,)
+    ):
         payload = store.read(path, offset, size)
         assert payload.startswith(b"\xff\xd8") and len(payload) == size

@@ -29,6 +29,12 @@ def test_inspection_through_a_faulty_link_stores_every_frame_once(live_server: L
     summary, proxy, link = asyncio.run(run())
     assert proxy.cuts >= 2 and proxy.stalls >= 2  # the link really was bad
     assert link.stats.reconnects >= 2 and link.stats.resent >= 1
-    session = httpx.get(f"{live_server.url}/api/sessions/{summary['session_id']}").raise_for_status().json()
-    assert session["frames"] == summary["frames_sent"] > 0  # every frame stored, none twice (unique per seq)
+    session = (
+        httpx.get(f"{live_server.url}/api/sessions/{summary['session_id']}")
+        .raise_for_status()
+        .json()
+    )
+    assert (
+        session["frames"] == summary["frames_sent"] > 0
+    )  # every frame stored, none twice (unique per seq)
     assert session["clouds"] == summary["clouds_sent"] > 0

@@ -31,7 +31,13 @@ def start(sid: uuid.UUID) -> bytes:
 
 
 def frame(sid: uuid.UUID, seq: int) -> bytes:
-    return msg(sid, seq, MessageType.FRAME, {"width": 640, "height": 480, "pose": {"x": 0.1 * seq, "y": 0, "yaw": 0}}, JPEG + bytes([seq % 256]))
+    return msg(
+        sid,
+        seq,
+        MessageType.FRAME,
+        {"width": 640, "height": 480, "pose": {"x": 0.1 * seq, "y": 0, "yaw": 0}},
+        JPEG + bytes([seq % 256]),
+    )
 
 
 def session_json(server: LiveServer, sid: uuid.UUID) -> dict:
@@ -46,7 +52,19 @@ def test_robot_link_stores_everything_once_and_acks(live_server: LiveServer) -> 
         for i in range(5):
             await link.send(MessageType.FRAME, {"width": 640, "height": 480}, JPEG + bytes([i]))
         depth = np.full((4, 6), 1.5, np.float32)
-        await link.send(MessageType.CLOUD, {"encoding": "png16_depth_mm", "width": 6, "height": 4, "fx": 5.0, "fy": 5.0, "cx": 2.5, "cy": 1.5}, encode_depth_png(depth))
+        await link.send(
+            MessageType.CLOUD,
+            {
+                "encoding": "png16_depth_mm",
+                "width": 6,
+                "height": 4,
+                "fx": 5.0,
+                "fy": 5.0,
+                "cx": 2.5,
+                "cy": 1.5,
+            },
+            encode_depth_png(depth),
+        )
         await link.send(MessageType.TELEMETRY, {"battery_v": {"main": 12.2}})
         await link.flush(timeout_s=20)
         assert link.stats.acked == 8 and link.pending == 0
@@ -62,9 +80,18 @@ def test_robot_link_stores_everything_once_and_acks(live_server: LiveServer) -> 
 
 def test_resent_messages_are_acknowledged_but_stored_once(live_server: LiveServer) -> None:
     sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
         statuses = []
-        for data in [start(sid), frame(sid, 2), frame(sid, 3), start(sid), frame(sid, 2), frame(sid, 3)]:
+        for data in [
+            start(sid),
+            frame(sid, 2),
+            frame(sid, 3),
+            start(sid),
+            frame(sid, 2),
+            frame(sid, 3),
+        ]:
             ws.send(data)
             reply = decode_message(ws.recv(timeout=10))
             assert reply.type is MessageType.ACK
@@ -75,11 +102,22 @@ def test_resent_messages_are_acknowledged_but_stored_once(live_server: LiveServe
 
 def test_malformed_messages_get_errors_and_lose_nothing(live_server: LiveServer) -> None:
     sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}, max_size=None) as ws:
+    with connect(
+        ws_url(live_server),
+        additional_headers={"Authorization": f"Bearer {live_server.token}"},
+        max_size=None,
+    ) as ws:
         ws.send(start(sid))
         ws.send(frame(sid, 2))
-        assert [decode_message(ws.recv(timeout=10)).meta["status"] for _ in range(2)] == ["stored", "stored"]
-        bad = [b"garbage", frame(sid, 3)[:-300].replace(b"\xff\xd8", b"\x00\x00", 1), b"STLS" + b"\x09" * 60]
+        assert [decode_message(ws.recv(timeout=10)).meta["status"] for _ in range(2)] == [
+            "stored",
+            "stored",
+        ]
+        bad = [
+            b"garbage",
+            frame(sid, 3)[:-300].replace(b"\xff\xd8", b"\x00\x00", 1),
+            b"STLS" + b"\x09" * 60,
+        ]
         for data in bad:
             ws.send(data)
             reply = decode_message(ws.recv(timeout=10))
@@ -97,7 +135,11 @@ def test_malformed_messages_get_errors_and_lose_nothing(live_server: LiveServer)
 def test_huge_message_is_refused_and_the_server_keeps_running(live_server: LiveServer) -> None:
     sid = uuid.uuid4()
     limit = live_server.settings.max_message_bytes
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}, max_size=None) as ws:
+    with connect(
+        ws_url(live_server),
+        additional_headers={"Authorization": f"Bearer {live_server.token}"},
+        max_size=None,
+    ) as ws:
         ws.send(start(sid))
         decode_message(ws.recv(timeout=10))
         # the station closes as soon as the frame header announces the size (1009, message
@@ -105,7 +147,9 @@ def test_huge_message_is_refused_and_the_server_keeps_running(live_server: LiveS
         with pytest.raises((ConnectionClosed, OSError)):
             ws.send(frame(sid, 2)[:60] + b"\x00" * (limit + 4096))
             ws.recv(timeout=10)
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
         ws.send(frame(sid, 3))
         assert decode_message(ws.recv(timeout=10)).meta["status"] == "stored"
     assert session_json(live_server, sid)["frames"] == 1
@@ -123,7 +167,10 @@ def test_rest_errors_are_json_with_the_right_status(live_server: LiveServer) -> 
     r = httpx.get(f"{live_server.url}/api/sessions/nope")
     assert r.status_code == 404 and "not found" in r.json()["detail"]
     assert httpx.get(f"{live_server.url}/api/jobs/999").status_code == 404
-    assert httpx.get(f"{live_server.url}/openapi.json").json()["info"]["title"] == "steelscan ground station"
+    assert (
+        httpx.get(f"{live_server.url}/openapi.json").json()["info"]["title"]
+        == "steelscan ground station"
+    )
 
 
 def test_link_reconnects_and_resends_without_duplicates(live_server: LiveServer) -> None:
@@ -144,12 +191,19 @@ def test_link_reconnects_and_resends_without_duplicates(live_server: LiveServer)
     assert session_json(live_server, sid)["frames"] == 30
 
 
-def test_browser_command_reaches_the_robot_and_frames_reach_the_browser(live_server: LiveServer) -> None:
+def test_browser_command_reaches_the_robot_and_frames_reach_the_browser(
+    live_server: LiveServer,
+) -> None:
     import json as _json
 
     sid = uuid.uuid4()
     live_url = live_server.url.replace("http://", "ws://") + "/ws/live"
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as robot, connect(live_url) as browser:
+    with (
+        connect(
+            ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+        ) as robot,
+        connect(live_url) as browser,
+    ):
         robot.send(start(sid))
         decode_message(robot.recv(timeout=10))
         robot.send(frame(sid, 2))
@@ -160,7 +214,9 @@ def test_browser_command_reaches_the_robot_and_frames_reach_the_browser(live_ser
             if isinstance(item, bytes):
                 head_len = int.from_bytes(item[:4], "little")
                 header = _json.loads(item[4 : 4 + head_len])
-                assert header["session_id"] == str(sid) and item[4 + head_len :].startswith(b"\xff\xd8")
+                assert header["session_id"] == str(sid) and item[4 + head_len :].startswith(
+                    b"\xff\xd8"
+                )
                 got_frame = True
                 break
         assert got_frame
@@ -194,11 +250,14 @@ def test_a_robot_over_its_rate_limit_is_slowed_not_lost(tmp_path) -> None:
     from server.loopback import BackgroundServer, free_port
     from tests.conftest import make_token
 
-    settings = Settings(data_dir=tmp_path / "data", job_workers=1, robot_messages_per_s=100, robot_message_burst=10)
+    settings = Settings(
+        data_dir=tmp_path / "data", job_workers=1, robot_messages_per_s=100, robot_message_burst=10
+    )
     token = make_token(settings)
     server = BackgroundServer(settings, free_port())
     server.start()
     try:
+
         async def run() -> RobotLink:
             link = RobotLink(server.url, token, window=64)
             await link.start()
@@ -252,8 +311,12 @@ def test_group_commit_stores_a_lone_message_at_once_and_batches_under_load(tmp_p
     from sqlalchemy import func, select
 
     from server.storage.models import Frame
+
     with factory() as db:
-        assert db.scalar(select(func.count()).select_from(Frame).where(Frame.session_id == str(sid))) == 40
+        assert (
+            db.scalar(select(func.count()).select_from(Frame).where(Frame.session_id == str(sid)))
+            == 40
+        )
 
 
 def _ingest(tmp_path):  # type: ignore[no-untyped-def]
@@ -265,7 +328,11 @@ def _ingest(tmp_path):  # type: ignore[no-untyped-def]
     settings = Settings(data_dir=tmp_path / "data")
     upgrade(settings.resolved_database_url())
     factory = make_sessionmaker(make_engine(settings.resolved_database_url()))
-    return factory, Ingest(factory, SessionFiles(settings.data_dir)), settings.resolved_database_url().removeprefix("sqlite:///")
+    return (
+        factory,
+        Ingest(factory, SessionFiles(settings.data_dir)),
+        settings.resolved_database_url().removeprefix("sqlite:///"),
+    )
 
 
 def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -277,25 +344,61 @@ def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(tmp_path)
     sid = uuid.uuid4()
     intrinsics = {"fx": 195.0, "fy": 196.5, "cx": 111.5, "cy": 85.5}
     try:
-        for raw in (start(sid), frame(sid, 2),
-                    msg(sid, 3, MessageType.CLOUD, {"encoding": "png16_depth_mm", "width": 6, "height": 4, **intrinsics,
-                                                   "pose": {"x": 1.25, "y": -0.5, "yaw": 0.1}},
-                        encode_depth_png(np.full((4, 6), 1.5, np.float32))),
-                    msg(sid, 4, MessageType.TELEMETRY, {"battery_v": {"main": 12.2}, "ir_edge": [True, False, False, True]})):
+        for raw in (
+            start(sid),
+            frame(sid, 2),
+            msg(
+                sid,
+                3,
+                MessageType.CLOUD,
+                {
+                    "encoding": "png16_depth_mm",
+                    "width": 6,
+                    "height": 4,
+                    **intrinsics,
+                    "pose": {"x": 1.25, "y": -0.5, "yaw": 0.1},
+                },
+                encode_depth_png(np.full((4, 6), 1.5, np.float32)),
+            ),
+            msg(
+                sid,
+                4,
+                MessageType.TELEMETRY,
+                {"battery_v": {"main": 12.2}, "ir_edge": [True, False, False, True]},
+            ),
+        ):
             assert ingest.store(decode_message(raw), None).status == "stored"
-        assert ingest.store(decode_message(frame(sid, 2)), None).status == "duplicate"  # the primary key still catches resends
+        assert (
+            ingest.store(decode_message(frame(sid, 2)), None).status == "duplicate"
+        )  # the primary key still catches resends
     finally:
         ingest.close()
     with factory() as db:
         f = db.scalars(select(Frame).where(Frame.session_id == str(sid))).one()
         c = db.scalars(select(Cloud).where(Cloud.session_id == str(sid))).one()
         t = db.scalars(select(TelemetrySample).where(TelemetrySample.session_id == str(sid))).one()
-        received = db.scalars(select(ReceivedMessage).where(ReceivedMessage.session_id == str(sid)).order_by(ReceivedMessage.seq)).all()
-    assert (f.seq, f.width, f.height, f.pose_x, f.size_bytes) == (2, 640, 480, pytest.approx(0.2), len(JPEG) + 1)
-    assert c.intrinsics == intrinsics and (c.encoding, c.pose_x, c.pose_y) == ("png16_depth_mm", 1.25, -0.5)
+        received = db.scalars(
+            select(ReceivedMessage)
+            .where(ReceivedMessage.session_id == str(sid))
+            .order_by(ReceivedMessage.seq)
+        ).all()
+    assert (f.seq, f.width, f.height, f.pose_x, f.size_bytes) == (
+        2,
+        640,
+        480,
+        pytest.approx(0.2),
+        len(JPEG) + 1,
+    )
+    assert c.intrinsics == intrinsics and (c.encoding, c.pose_x, c.pose_y) == (
+        "png16_depth_mm",
+        1.25,
+        -0.5,
+    )
     assert t.data["battery_v"] == {"main": 12.2} and t.data["ir_edge"] == [True, False, False, True]
     assert [r.type for r in received] == ["SESSION_START", "FRAME", "CLOUD", "TELEMETRY"]
-    assert all(abs((r.received_at - received[0].received_at).total_seconds()) < 60 for r in received)  # datetimes, not strings
+    assert all(
+        abs((r.received_at - received[0].received_at).total_seconds()) < 60 for r in received
+    )  # datetimes, not strings
 
 
 def test_the_write_ahead_log_is_checkpointed_off_the_ingest_path(tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -318,7 +421,10 @@ def test_the_write_ahead_log_is_checkpointed_off_the_ingest_path(tmp_path) -> No
         for seq in range(2, 52):
             ingest.store(decode_message(frame(sid, seq)), None)
         conn = ingest._connection()
-        assert conn.connection.driver_connection.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 0  # not in its commits
+        assert (
+            conn.connection.driver_connection.execute("PRAGMA wal_autocheckpoint").fetchone()[0]
+            == 0
+        )  # not in its commits
         deadline = time.monotonic() + 10
         while frames_in_main_file() < 50 and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -326,4 +432,7 @@ def test_the_write_ahead_log_is_checkpointed_off_the_ingest_path(tmp_path) -> No
     finally:
         ingest.close()
     with factory.kw["bind"].connect() as other:  # the pool never hands out ingest's connection
-        assert other.connection.driver_connection.execute("PRAGMA wal_autocheckpoint").fetchone()[0] == 1000
+        assert (
+            other.connection.driver_connection.execute("PRAGMA wal_autocheckpoint").fetchone()[0]
+            == 1000
+        )

@@ -26,7 +26,9 @@ def wait_job(url: str, job_id: int, timeout_s: float = 120) -> dict:
 
 def test_a_failing_job_is_marked_failed_with_its_reason(live_server: LiveServer) -> None:
     sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
         ws.send(start(sid))
         ws.send(frame(sid, 2))  # not a decodable image: the stitcher must say so
         for _ in range(2):
@@ -36,9 +38,13 @@ def test_a_failing_job_is_marked_failed_with_its_reason(live_server: LiveServer)
     assert created.status_code == 202
     job = wait_job(url, created.json()["id"])
     assert job["state"] == "failed" and "no ToF clouds" in job["error"]
-    job = wait_job(url, httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "stitch"}).json()["id"])
+    job = wait_job(
+        url, httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "stitch"}).json()["id"]
+    )
     assert job["state"] == "failed" and "could be read" in job["error"]
-    detect = wait_job(url, httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "detect"}).json()["id"])
+    detect = wait_job(
+        url, httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "detect"}).json()["id"]
+    )
     assert detect["state"] == "failed" and "depends on failed" in detect["error"]
     assert httpx.get(f"{url}/api/health").json() == {"status": "ok"}
     jobs = httpx.get(f"{url}/api/sessions/{sid}/jobs").json()
@@ -47,7 +53,9 @@ def test_a_failing_job_is_marked_failed_with_its_reason(live_server: LiveServer)
 
 def test_unknown_job_kind_is_a_422(live_server: LiveServer) -> None:
     sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
         ws.send(start(sid))
         decode_message(ws.recv(timeout=10))
     r = httpx.post(f"{live_server.url}/api/sessions/{sid}/jobs", json={"kind": "teleport"})
@@ -61,11 +69,22 @@ def test_stitch_job_serves_a_deep_zoom_pyramid_of_the_session(live_server: LiveS
     s = sweep(frames=6, pattern="straight", seed=21)
     sid = uuid.uuid4()
     calib = {"camera": {"px_per_m": 1000.0, "T_robot_camera": [0.0, 0.0, 0.0]}}
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
-        ws.send(msg(sid, 1, MessageType.SESSION_START, {"structure": "plate", "operator": "t", "calibration": calib}))
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
+        ws.send(
+            msg(
+                sid,
+                1,
+                MessageType.SESSION_START,
+                {"structure": "plate", "operator": "t", "calibration": calib},
+            )
+        )
         for k, (jpeg, p) in enumerate(zip(s.frames, s.odometry), 2):
             pose = {"x": p[0] / 1000, "y": p[1] / 1000, "yaw": p[2]}
-            ws.send(msg(sid, k, MessageType.FRAME, {"width": 320, "height": 240, "pose": pose}, jpeg))
+            ws.send(
+                msg(sid, k, MessageType.FRAME, {"width": 320, "height": 240, "pose": pose}, jpeg)
+            )
         for _ in range(7):
             decode_message(ws.recv(timeout=10))
     url = f"{live_server.url}/api/sessions/{sid}"
@@ -77,7 +96,10 @@ def test_stitch_job_serves_a_deep_zoom_pyramid_of_the_session(live_server: LiveS
     top = int(np.ceil(np.log2(max(job["result"]["width_px"], job["result"]["height_px"]))))
     tile = httpx.get(f"{url}/mosaic_files/{top}/0_0.jpg")
     assert tile.status_code == 200 and tile.headers["content-type"] == "image/jpeg"
-    assert cv2.imdecode(np.frombuffer(tile.content, np.uint8), cv2.IMREAD_COLOR).shape[:2] == (255, 255)
+    assert cv2.imdecode(np.frombuffer(tile.content, np.uint8), cv2.IMREAD_COLOR).shape[:2] == (
+        255,
+        255,
+    )
     assert httpx.get(f"{url}/mosaic_files/{top}/99_99.jpg").status_code == 404
     assert httpx.get(f"{url}/mosaic_files/..%2F..%2Fmosaic/0_0.jpg").status_code in (404, 422)
     world = httpx.get(f"{url}/results/mosaic.json").json()
@@ -99,23 +121,54 @@ def test_map_job_on_tof_clouds_alone_beats_the_odometry(live_server: LiveServer)
     mount = tof_mount()
     h, w = int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"])
     sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}, max_size=2**22) as ws:
-        ws.send(msg(sid, 1, MessageType.SESSION_START, {"structure": "girder", "calibration": {"tof": {**sweep.intrinsics, "T_robot_tof": mount.tolist()}}}))
+    with connect(
+        ws_url(live_server),
+        additional_headers={"Authorization": f"Bearer {live_server.token}"},
+        max_size=2**22,
+    ) as ws:
+        ws.send(
+            msg(
+                sid,
+                1,
+                MessageType.SESSION_START,
+                {
+                    "structure": "girder",
+                    "calibration": {"tof": {**sweep.intrinsics, "T_robot_tof": mount.tolist()}},
+                },
+            )
+        )
         for k, (cloud, T) in enumerate(zip(sweep.clouds, sweep.odometry)):
             robot = T @ np.linalg.inv(mount)
-            pose = {"x": float(robot[0, 3]), "y": float(robot[1, 3]), "yaw": float(np.arctan2(robot[1, 0], robot[0, 0]))}
-            ws.send(msg(sid, k + 2, MessageType.CLOUD, {"encoding": "png16_depth_mm", **sweep.intrinsics, "pose": pose},
-                        encode_depth_png(cloud[:, 2].reshape(h, w))))
+            pose = {
+                "x": float(robot[0, 3]),
+                "y": float(robot[1, 3]),
+                "yaw": float(np.arctan2(robot[1, 0], robot[0, 0])),
+            }
+            ws.send(
+                msg(
+                    sid,
+                    k + 2,
+                    MessageType.CLOUD,
+                    {"encoding": "png16_depth_mm", **sweep.intrinsics, "pose": pose},
+                    encode_depth_png(cloud[:, 2].reshape(h, w)),
+                )
+            )
         for _ in range(len(sweep.clouds) + 1):
             assert decode_message(ws.recv(timeout=10)).type is MessageType.ACK
     url = live_server.url
-    job = wait_job(url, httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "map"}).json()["id"])
+    job = wait_job(
+        url, httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "map"}).json()["id"]
+    )
     assert job["state"] == "done", job
     result = job["result"]
-    assert result["clouds"] + len(result["skipped_clouds"]) == len(sweep.clouds)  # those that saw nothing: skipped, listed
+    assert result["clouds"] + len(result["skipped_clouds"]) == len(
+        sweep.clouds
+    )  # those that saw nothing: skipped, listed
     assert not result["guided_by_mosaic"] and result["loop_closures"] >= 1
     assert 0 < result["clouds_with_unobservable_directions"] <= result["clouds"]  # said, not hidden
-    _, poses = parse_tum(httpx.get(f"{url}/api/sessions/{sid}/results/trajectory.tum").raise_for_status().text)
+    _, poses = parse_tum(
+        httpx.get(f"{url}/api/sessions/{sid}/results/trajectory.tum").raise_for_status().text
+    )
     kept = np.array(result["cloud_seqs"]) - 2
     ate = absolute_trajectory_error(poses, sweep.truth[kept])
     assert ate < 0.75 * absolute_trajectory_error(sweep.odometry[kept], sweep.truth[kept])

@@ -20,7 +20,10 @@ from tests.server.test_ingest import frame, start
 
 
 def test_redact_masks_tokens_passwords_and_bearer_credentials() -> None:
-    assert redact('"GET /viser/?token=eyJ.a-b_c HTTP/1.1" 200') == f'"GET /viser/?token={MASK} HTTP/1.1" 200'
+    assert (
+        redact('"GET /viser/?token=eyJ.a-b_c HTTP/1.1" 200')
+        == f'"GET /viser/?token={MASK} HTTP/1.1" 200'
+    )
     assert redact("/api/x?a=1&access_token=abc&b=2") == f"/api/x?a=1&access_token={MASK}&b=2"
     assert redact("login ?password=hunter2") == f"login ?password={MASK}"
     assert redact("Authorization: Bearer abc.def-ghi") == f"Authorization: Bearer {MASK}"
@@ -29,10 +32,21 @@ def test_redact_masks_tokens_passwords_and_bearer_credentials() -> None:
 
 
 def test_the_filter_keeps_uvicorn_style_arguments_and_masks_them() -> None:
-    record = logging.LogRecord("uvicorn.access", logging.INFO, __file__, 1, '%s - "%s %s HTTP/%s" %d',
-                               ("127.0.0.1:5", "GET", "/viser/?token=s3cret", "1.1", 200), None)
+    record = logging.LogRecord(
+        "uvicorn.access",
+        logging.INFO,
+        __file__,
+        1,
+        '%s - "%s %s HTTP/%s" %d',
+        ("127.0.0.1:5", "GET", "/viser/?token=s3cret", "1.1", 200),
+        None,
+    )
     assert RedactSecrets().filter(record)
-    assert isinstance(record.args, tuple) and "s3cret" not in record.getMessage() and f"token={MASK}" in record.getMessage()
+    assert (
+        isinstance(record.args, tuple)
+        and "s3cret" not in record.getMessage()
+        and f"token={MASK}" in record.getMessage()
+    )
     record = logging.LogRecord("server", logging.INFO, __file__, 1, "token=%s", ("s3cret",), None)
     RedactSecrets().filter(record)
     assert record.getMessage() == f"token={MASK}"
@@ -49,15 +63,32 @@ def test_a_session_with_accounts_logs_no_secret(tmp_path: Path) -> None:
         engine.dispose()
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    proc = serve_process(data, port, log=log, STEELSCAN_AUTO_PROCESS="false", STEELSCAN_VIEW3D="false")
+    proc = serve_process(
+        data, port, log=log, STEELSCAN_AUTO_PROCESS="false", STEELSCAN_VIEW3D="false"
+    )
     try:
-        assert httpx.post(f"{url}/api/auth/token", data={"username": "ada", "password": wrong}).status_code == 401
-        bearer = httpx.post(f"{url}/api/auth/token", data={"username": "ada", "password": password}).json()["access_token"]
-        assert httpx.get(f"{url}/api/sessions", headers={"Authorization": f"Bearer {bearer}"}).status_code == 200
+        assert (
+            httpx.post(
+                f"{url}/api/auth/token", data={"username": "ada", "password": wrong}
+            ).status_code
+            == 401
+        )
+        bearer = httpx.post(
+            f"{url}/api/auth/token", data={"username": "ada", "password": password}
+        ).json()["access_token"]
+        assert (
+            httpx.get(
+                f"{url}/api/sessions", headers={"Authorization": f"Bearer {bearer}"}
+            ).status_code
+            == 200
+        )
         assert httpx.get(f"{url}/api/sessions?token={bearer}").status_code in (200, 401)
         httpx.get(f"{url}/viser/?token={bearer}")
         sid = uuid.uuid4()
-        with connect(f"ws://127.0.0.1:{port}/ws/robot", additional_headers={"Authorization": f"Bearer {robot_token}"}) as ws:
+        with connect(
+            f"ws://127.0.0.1:{port}/ws/robot",
+            additional_headers={"Authorization": f"Bearer {robot_token}"},
+        ) as ws:
             ws.send(start(sid))
             ws.send(frame(sid, 2))
             ws.recv(timeout=10)

@@ -5,7 +5,18 @@ from sqlalchemy import create_engine, inspect, text
 from server.storage.db import downgrade, make_engine, upgrade
 from server.storage.models import Base
 
-TABLES = {"robots", "users", "auth_tokens", "inspection_sessions", "received_messages", "frames", "clouds", "telemetry", "jobs", "defects"}
+TABLES = {
+    "robots",
+    "users",
+    "auth_tokens",
+    "inspection_sessions",
+    "received_messages",
+    "frames",
+    "clouds",
+    "telemetry",
+    "jobs",
+    "defects",
+}
 
 
 def tables(url: str) -> set[str]:

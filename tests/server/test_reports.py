@@ -36,16 +36,21 @@ from tests.server.test_jobs import wait_job
 @pytest.fixture(scope="module")
 def inspected(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveServer, str]]:
     """A live server that holds one simulated inspection, fully processed."""
-    settings = Settings(data_dir=tmp_path_factory.mktemp("reports") / "data", job_workers=2, view3d=False)
+    settings = Settings(
+        data_dir=tmp_path_factory.mktemp("reports") / "data", job_workers=2, view3d=False
+    )
     token = make_token(settings)
     server = BackgroundServer(settings, free_port())
     server.start()
     try:
+
         async def run() -> str:
             link = RobotLink(server.url, token)
             await link.start()
             try:
-                return (await InspectionSim(link, SimConfig(seed=11, lanes=2, time_scale=0.0)).run()).session_id
+                return (
+                    await InspectionSim(link, SimConfig(seed=11, lanes=2, time_scale=0.0)).run()
+                ).session_id
             finally:
                 await link.close()
 
@@ -57,7 +62,12 @@ def inspected(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveSe
                 break
             assert time.monotonic() < deadline, jobs
             time.sleep(0.3)
-        assert {j["kind"]: j["state"] for j in jobs} == {"stitch": "done", "map": "done", "detect": "done", "export": "done"}, jobs
+        assert {j["kind"]: j["state"] for j in jobs} == {
+            "stitch": "done",
+            "map": "done",
+            "detect": "done",
+            "export": "done",
+        }, jobs
         yield LiveServer(server.url, settings, token, server.server.config.app), sid
     finally:
         server.stop()
@@ -66,7 +76,11 @@ def inspected(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveSe
 def test_report_json_summarises_the_session(inspected: tuple[LiveServer, str]) -> None:
     live, sid = inspected
     report = httpx.get(f"{live.url}/api/sessions/{sid}/report.json").raise_for_status().json()
-    assert report["cover"]["structure"] and report["cover"]["location"] and report["cover"]["operator"] == "demo"
+    assert (
+        report["cover"]["structure"]
+        and report["cover"]["location"]
+        and report["cover"]["operator"] == "demo"
+    )
     s = report["summary"]
     assert s["frames"] > 20 and s["clouds"] > 5
     assert 0.1 < s["area_covered_m2"] < 2.0 and 1.0 < s["distance_travelled_m"] < 20.0
@@ -83,15 +97,28 @@ def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, 
     api = f"{live.url}/api/sessions/{sid}"
     defects = httpx.get(f"{api}/defects", params={"source": "mosaic"}).json()["data"]
     first, second = defects[0]["id"], defects[1]["id"]
-    r = httpx.patch(f"{api}/defects/{first}", json={"review_status": "confirmed", "condition_state": "CS3",
-                                                    "comment": "=HYPERLINK(\"x\") Riß at weld toe, re-inspect"})
+    r = httpx.patch(
+        f"{api}/defects/{first}",
+        json={
+            "review_status": "confirmed",
+            "condition_state": "CS3",
+            "comment": '=HYPERLINK("x") Riß at weld toe, re-inspect',
+        },
+    )
     assert r.status_code == 200 and r.json()["condition_state"] == "CS3" and r.json()["reviewed_by"]
-    assert httpx.patch(f"{api}/defects/{second}", json={"review_status": "rejected"}).status_code == 200
+    assert (
+        httpx.patch(f"{api}/defects/{second}", json={"review_status": "rejected"}).status_code
+        == 200
+    )
     assert httpx.patch(f"{api}/defects/{first}", json={"condition_state": "CS9"}).status_code == 422
-    assert httpx.patch(f"{api}/defects/999999", json={"review_status": "confirmed"}).status_code == 404
+    assert (
+        httpx.patch(f"{api}/defects/999999", json={"review_status": "confirmed"}).status_code == 404
+    )
     confirmed = httpx.get(f"{api}/defects", params={"review_status": "confirmed"}).json()
     assert [d["id"] for d in confirmed["data"]] == [first]
-    by_length = httpx.get(f"{api}/defects", params={"source": "mosaic", "sort": "-length_mm"}).json()["data"]
+    by_length = httpx.get(
+        f"{api}/defects", params={"source": "mosaic", "sort": "-length_mm"}
+    ).json()["data"]
     lengths = [d["length_mm"] for d in by_length]
     assert lengths == sorted(lengths, reverse=True)
 
@@ -102,7 +129,9 @@ def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, 
     assert len(rows) == len(defects)
     row = next(r for r in rows if int(r["id"]) == first)
     assert row["condition_state"] == "CS3" and row["review_status"] == "confirmed"
-    assert row["comment"].startswith("'=HYPERLINK") and "Riß" in row["comment"]  # no formula injection, accents intact
+    assert (
+        row["comment"].startswith("'=HYPERLINK") and "Riß" in row["comment"]
+    )  # no formula injection, accents intact
     assert float(row["length_mm"]) > 0
 
     report = httpx.get(f"{api}/report.json").json()
@@ -113,9 +142,20 @@ def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, 
     assert pdf.status_code == 200 and pdf.headers["content-type"] == "application/pdf"
     doc = pypdfium2.PdfDocument(pdf.content)
     assert len(doc) >= 5
-    text = " ".join(" ".join(doc[i].get_textpage().get_text_range() for i in range(len(doc))).split())
-    for expected in ("Steel structure inspection report", report["cover"]["structure"], "Summary", "Defects",
-                     "3D map of the structure", "Processing parameters", "CS3", "Riß at weld toe", "confirmed"):
+    text = " ".join(
+        " ".join(doc[i].get_textpage().get_text_range() for i in range(len(doc))).split()
+    )
+    for expected in (
+        "Steel structure inspection report",
+        report["cover"]["structure"],
+        "Summary",
+        "Defects",
+        "3D map of the structure",
+        "Processing parameters",
+        "CS3",
+        "Riß at weld toe",
+        "confirmed",
+    ):
         assert expected in text, expected
     for i in range(len(doc)):  # every page renders and has something on it
         page = np.asarray(doc[i].render(scale=0.5).to_pil().convert("L"))
@@ -130,14 +170,26 @@ def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, 
 def test_rerunning_detection_keeps_the_reviews(inspected: tuple[LiveServer, str]) -> None:
     live, sid = inspected
     api = f"{live.url}/api/sessions/{sid}"
-    d = httpx.get(f"{api}/defects", params={"source": "mosaic", "sort": "-length_mm", "limit": 1}).json()["data"][0]
-    httpx.patch(f"{api}/defects/{d['id']}", json={"review_status": "confirmed", "condition_state": "CS2", "comment": "kept"}).raise_for_status()
+    d = httpx.get(
+        f"{api}/defects", params={"source": "mosaic", "sort": "-length_mm", "limit": 1}
+    ).json()["data"][0]
+    httpx.patch(
+        f"{api}/defects/{d['id']}",
+        json={"review_status": "confirmed", "condition_state": "CS2", "comment": "kept"},
+    ).raise_for_status()
     job = wait_job(live.url, httpx.post(f"{api}/jobs", json={"kind": "detect"}).json()["id"])
     assert job["state"] == "done" and job["result"]["reviews_carried_over"] >= 1
-    again = [x for x in httpx.get(f"{api}/defects", params={"source": "mosaic"}).json()["data"]
-             if (x["bbox_x"], x["bbox_y"]) == (d["bbox_x"], d["bbox_y"])]
+    again = [
+        x
+        for x in httpx.get(f"{api}/defects", params={"source": "mosaic"}).json()["data"]
+        if (x["bbox_x"], x["bbox_y"]) == (d["bbox_x"], d["bbox_y"])
+    ]
     assert again  # the same defect found again (a new row; SQLite may reuse the id)
-    assert (again[0]["review_status"], again[0]["condition_state"], again[0]["comment"]) == ("confirmed", "CS2", "kept")
+    assert (again[0]["review_status"], again[0]["condition_state"], again[0]["comment"]) == (
+        "confirmed",
+        "CS2",
+        "kept",
+    )
 
 
 def test_defect_thumbnail_and_cloud_downloads(inspected: tuple[LiveServer, str]) -> None:
@@ -160,7 +212,9 @@ def test_defect_thumbnail_and_cloud_downloads(inspected: tuple[LiveServer, str])
     assert httpx.get(f"{api}/clouds/99999999/raw").status_code == 404
 
 
-def test_mcap_opens_with_foxglove_schemas_and_reimports_losslessly(inspected: tuple[LiveServer, str], tmp_path: Path) -> None:
+def test_mcap_opens_with_foxglove_schemas_and_reimports_losslessly(
+    inspected: tuple[LiveServer, str], tmp_path: Path
+) -> None:
     live, sid = inspected
     api = f"{live.url}/api/sessions/{sid}"
     path = tmp_path / "session.mcap"
@@ -177,38 +231,81 @@ def test_mcap_opens_with_foxglove_schemas_and_reimports_losslessly(inspected: tu
         summary = reader.get_summary()
         assert summary is not None
         schemas = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
-        counts = {summary.channels[cid].topic: n for cid, n in summary.statistics.channel_message_counts.items()}
+        counts = {
+            summary.channels[cid].topic: n
+            for cid, n in summary.statistics.channel_message_counts.items()
+        }
     assert schemas["/camera/image"] == "foxglove.CompressedImage"
-    assert schemas["/tof/points"] == "foxglove.PointCloud" and schemas["/tf"] == "foxglove.FrameTransform"
-    assert schemas["/camera/odometry"] == "foxglove.PoseInFrame" and schemas["/map/points"] == "foxglove.PointCloud"
+    assert (
+        schemas["/tof/points"] == "foxglove.PointCloud"
+        and schemas["/tf"] == "foxglove.FrameTransform"
+    )
+    assert (
+        schemas["/camera/odometry"] == "foxglove.PoseInFrame"
+        and schemas["/map/points"] == "foxglove.PointCloud"
+    )
     assert schemas["/inspection/defect_markers"] == "foxglove.SceneUpdate"
     session = httpx.get(api).json()
-    assert counts["/camera/image"] == session["frames"] and counts["/tof/points"] == session["clouds"]
+    assert (
+        counts["/camera/image"] == session["frames"] and counts["/tof/points"] == session["clouds"]
+    )
     assert counts["/robot/telemetry"] == session["telemetry"]
 
-    out = subprocess.run([sys.executable, "-m", "server.cli", "import", str(path), "--data-dir", str(live.settings.data_dir)],
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "server.cli",
+            "import",
+            str(path),
+            "--data-dir",
+            str(live.settings.data_dir),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
     new = result["session_id"]
-    assert new != sid and result["frames"] == session["frames"] and result["clouds"] == session["clouds"]
+    assert (
+        new != sid
+        and result["frames"] == session["frames"]
+        and result["clouds"] == session["clouds"]
+    )
     copy = httpx.get(f"{live.url}/api/sessions/{new}").json()
-    assert copy["structure"] == session["structure"] and copy["calibration"] == session["calibration"]
+    assert (
+        copy["structure"] == session["structure"] and copy["calibration"] == session["calibration"]
+    )
     a = httpx.get(f"{api}/frames", params={"limit": 1000}).json()["data"]
     b = httpx.get(f"{live.url}/api/sessions/{new}/frames", params={"limit": 1000}).json()["data"]
     assert a == b  # sequence numbers, timestamps, sizes and odometry poses
     for f in a[:: max(1, len(a) // 8)]:
-        assert httpx.get(f"{api}/frames/{f['seq']}/image").content == httpx.get(f"{live.url}/api/sessions/{new}/frames/{f['seq']}/image").content
+        assert (
+            httpx.get(f"{api}/frames/{f['seq']}/image").content
+            == httpx.get(f"{live.url}/api/sessions/{new}/frames/{f['seq']}/image").content
+        )
     with path.open("rb") as fh:  # the same through REST
-        up = httpx.post(f"{live.url}/api/sessions/import", files={"file": ("session.mcap", fh)}, timeout=120)
-    assert up.status_code == 201 and up.json()["frames"] == session["frames"] and up.json()["session_id"] not in (sid, new)
-    bad = httpx.post(f"{live.url}/api/sessions/import", files={"file": ("x.mcap", b"not an mcap at all")})
+        up = httpx.post(
+            f"{live.url}/api/sessions/import", files={"file": ("session.mcap", fh)}, timeout=120
+        )
+    assert (
+        up.status_code == 201
+        and up.json()["frames"] == session["frames"]
+        and up.json()["session_id"] not in (sid, new)
+    )
+    bad = httpx.post(
+        f"{live.url}/api/sessions/import", files={"file": ("x.mcap", b"not an mcap at all")}
+    )
     assert bad.status_code == 422 and "x.mcap" in bad.json()["detail"]
     ca = httpx.get(f"{api}/clouds", params={"limit": 1000}).json()["data"]
     cb = httpx.get(f"{live.url}/api/sessions/{new}/clouds", params={"limit": 1000}).json()["data"]
     assert ca == cb
     for c in ca[:: max(1, len(ca) // 5)]:
-        assert httpx.get(f"{api}/clouds/{c['seq']}/raw").content == httpx.get(f"{live.url}/api/sessions/{new}/clouds/{c['seq']}/raw").content
+        assert (
+            httpx.get(f"{api}/clouds/{c['seq']}/raw").content
+            == httpx.get(f"{live.url}/api/sessions/{new}/clouds/{c['seq']}/raw").content
+        )
 
 
 def test_import_refuses_a_file_that_is_not_an_mcap_session(tmp_path: Path) -> None:
@@ -216,17 +313,25 @@ def test_import_refuses_a_file_that_is_not_an_mcap_session(tmp_path: Path) -> No
     bad.write_bytes(b"\x89MCAP0\r\n" + b"garbage" * 100)
     data = tmp_path / "data"
     for target in (bad, tmp_path / "missing.mcap"):
-        out = subprocess.run([sys.executable, "-m", "server.cli", "import", str(target), "--data-dir", str(data)],
-                             capture_output=True, text=True, timeout=120)
+        out = subprocess.run(
+            [sys.executable, "-m", "server.cli", "import", str(target), "--data-dir", str(data)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert out.returncode != 0 and out.stderr.strip().splitlines()[-1].startswith("error: ")
         assert "Traceback" not in out.stderr
-    assert not (data / "sessions").exists() or not list((data / "sessions").glob("*"))  # nothing left behind
+    assert not (data / "sessions").exists() or not list(
+        (data / "sessions").glob("*")
+    )  # nothing left behind
 
 
 def empty_session(live_server: LiveServer) -> uuid.UUID:
     """A session the robot started and sent nothing else to."""
     sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
         ws.send(start(sid))
         decode_message(ws.recv(timeout=10))
     return sid
@@ -265,7 +370,9 @@ def test_session_cover_fields_can_be_corrected(live_server: LiveServer) -> None:
     assert httpx.get(f"{api}/report.json").json()["cover"]["notes"] == "wind 8 m/s"
 
 
-def test_banded_detection_matches_the_one_pass_result(inspected: tuple[LiveServer, str], tmp_path: Path) -> None:
+def test_banded_detection_matches_the_one_pass_result(
+    inspected: tuple[LiveServer, str], tmp_path: Path
+) -> None:
     """Bounded-memory detection (bands of 200 rows, defects crossing seams joined) finds the
     same defects as the in-memory pass on the session's mosaic."""
     import shutil as sh

@@ -15,7 +15,9 @@ def test_no_request_makes_a_server_error(live_server: LiveServer) -> None:
     for operation in operations:
 
         @given(operation.as_strategy())
-        @settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+        @settings(
+            max_examples=12, deadline=None, suppress_health_check=list(HealthCheck), database=None
+        )
         def fuzz(case: schemathesis.Case) -> None:
             case.call_and_validate(checks=[not_a_server_error])
 

@@ -15,7 +15,9 @@ from tests.server.test_ingest import frame, start, ws_url
 
 def test_resolve_refuses_paths_that_leave_the_data_directory(tmp_path: Path) -> None:
     files = SessionFiles(tmp_path)
-    assert files.resolve("sessions/x/frames/0.seg") == (tmp_path / "sessions/x/frames/0.seg").resolve()
+    assert (
+        files.resolve("sessions/x/frames/0.seg") == (tmp_path / "sessions/x/frames/0.seg").resolve()
+    )
     for bad in ("../secret", "sessions/../../secret", "/etc/passwd"):
         with pytest.raises(ValueError, match="leaves the data directory"):
             files.resolve(bad)
@@ -23,7 +25,9 @@ def test_resolve_refuses_paths_that_leave_the_data_directory(tmp_path: Path) -> 
 
 def test_no_route_serves_a_file_through_a_traversal(live_server: LiveServer) -> None:
     sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
         ws.send(start(sid))
         ws.send(frame(sid, 2))
         ws.recv(timeout=10)
@@ -52,4 +56,6 @@ def test_no_route_serves_a_file_through_a_traversal(live_server: LiveServer) -> 
             assert 400 <= r.status_code < 500, (path, r.status_code)
             assert b"TOP-SECRET" not in r.content and not r.content.startswith(db_head), path
             assert b"[project]" not in r.content and b"BaseSettings" not in r.content, path
-        assert client.get(f"/api/sessions/{sid}/frames/2/image").status_code == 200  # the real thing is served
+        assert (
+            client.get(f"/api/sessions/{sid}/frames/2/image").status_code == 200
+        )  # the real thing is served

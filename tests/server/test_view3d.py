@@ -24,7 +24,9 @@ def add_user(server: LiveServer) -> str:
     engine = make_engine(server.settings.resolved_database_url())
     create_user(make_sessionmaker(engine), "ada", "correct horse", Role.viewer)
     engine.dispose()
-    r = httpx.post(f"{server.url}/api/auth/token", data={"username": "ada", "password": "correct horse"})
+    r = httpx.post(
+        f"{server.url}/api/auth/token", data={"username": "ada", "password": "correct horse"}
+    )
     return r.raise_for_status().json()["access_token"]
 
 
@@ -35,15 +37,23 @@ def test_view_needs_a_token_and_then_keeps_a_cookie(live_server: LiveServer) -> 
         page = client.get(f"{live_server.url}/viser/", params={"token": token})
         assert page.status_code == 200 and "<title>Viser</title>" in page.text
         cookie = page.headers["set-cookie"]
-        assert "httponly" in cookie.lower() and "samesite=strict" in cookie.lower() and "path=/viser" in cookie.lower()
-        assert client.get(f"{live_server.url}/viser/").status_code == 200  # the cookie is enough now
+        assert (
+            "httponly" in cookie.lower()
+            and "samesite=strict" in cookie.lower()
+            and "path=/viser" in cookie.lower()
+        )
+        assert (
+            client.get(f"{live_server.url}/viser/").status_code == 200
+        )  # the cookie is enough now
     with pytest.raises(InvalidStatus):
         connect(view_ws(live_server), subprotocols=[f"viser-v{viser.__version__}"])  # type: ignore[list-item]
 
 
 def test_view_websocket_passes_through_to_viser(live_server: LiveServer) -> None:
     token = add_user(live_server)
-    with connect(f"{view_ws(live_server)}?token={token}", subprotocols=[f"viser-v{viser.__version__}"]) as ws:  # type: ignore[list-item]
+    with connect(
+        f"{view_ws(live_server)}?token={token}", subprotocols=[f"viser-v{viser.__version__}"]
+    ) as ws:  # type: ignore[list-item]
         assert ws.subprotocol == f"viser-v{viser.__version__}"
         first = ws.recv(timeout=10)
         assert isinstance(first, bytes) and len(first) > 0  # viser's scene state, msgpack
@@ -52,7 +62,9 @@ def test_view_websocket_passes_through_to_viser(live_server: LiveServer) -> None
 
 def test_live_poses_move_the_robot_and_sessions_can_be_shown(live_server: LiveServer) -> None:
     sid = uuid.uuid4()
-    with connect(ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}) as ws:
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
         ws.send(start(sid))
         ws.send(msg(sid, 2, MessageType.TELEMETRY, {"pose": {"x": 0.3, "y": 0.4, "yaw": 0.1}}))
         for _ in range(2):
@@ -60,7 +72,13 @@ def test_live_poses_move_the_robot_and_sessions_can_be_shown(live_server: LiveSe
     scene = live_server.app.state.steelscan.scene
     assert scene.session_id == str(sid)  # the live session took over the view
     shown = httpx.post(f"{live_server.url}/api/sessions/{sid}/view3d").raise_for_status().json()
-    assert shown == {"session_id": str(sid), "points": 0, "trajectory_poses": 0, "defects": 0, "url": "/viser/"}
+    assert shown == {
+        "session_id": str(sid),
+        "points": 0,
+        "trajectory_poses": 0,
+        "defects": 0,
+        "url": "/viser/",
+    }
     assert httpx.post(f"{live_server.url}/api/sessions/{uuid.uuid4()}/view3d").status_code == 404
 
 
@@ -84,7 +102,9 @@ def test_the_map_grows_live_during_a_session(live_server: LiveServer) -> None:
     asyncio.run(run())
     scene = live_server.app.state.steelscan.scene
     deadline = time.monotonic() + 60
-    while scene.live_map_points == 0 or scene.live_trajectory_poses < 2:  # with the pose graph's trajectory
+    while (
+        scene.live_map_points == 0 or scene.live_trajectory_poses < 2
+    ):  # with the pose graph's trajectory
         assert time.monotonic() < deadline, "the live map never showed"
         time.sleep(0.2)
     assert scene.live_map_points > 1000

@@ -19,9 +19,19 @@ import pytest
 from tests.conftest import LiveServer
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-pytestmark = [pytest.mark.browser, pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed")]
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync"]
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed"),
+]
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 SHOTS = Path(__file__).resolve().parent.parent.parent / "test-output" / "screenshots"
 
 
@@ -33,8 +43,15 @@ def shot(page, name: str) -> None:  # type: ignore[no-untyped-def]
 def watch_errors(page, errors: list[str], foreign: list[str]) -> None:  # type: ignore[no-untyped-def]
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-    page.on("request", lambda r: foreign.append(r.url) if urlparse(r.url).hostname not in ("127.0.0.1", None)
-            and not r.url.startswith(("data:", "blob:")) else None)
+    page.on(
+        "request",
+        lambda r: (
+            foreign.append(r.url)
+            if urlparse(r.url).hostname not in ("127.0.0.1", None)
+            and not r.url.startswith(("data:", "blob:"))
+            else None
+        ),
+    )
 
 
 def open_dashboard(pw, url: str, errors: list[str], foreign: list[str]):  # type: ignore[no-untyped-def]
@@ -50,13 +67,28 @@ def sim(live_server: LiveServer, *args: str, log: Path | None = None) -> subproc
     """``steelscan sim`` as a subprocess; a long-running one logs to a file (a pipe nobody
     reads would fill up and stall it)."""
     out = log.open("w") if log is not None else subprocess.PIPE
-    return subprocess.Popen([sys.executable, "-m", "server.cli", "sim", "--server", live_server.url, f"--token={live_server.token}", *args],
-                            stdout=out, stderr=subprocess.STDOUT if log is not None else subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "server.cli",
+            "sim",
+            "--server",
+            live_server.url,
+            f"--token={live_server.token}",
+            *args,
+        ],
+        stdout=out,
+        stderr=subprocess.STDOUT if log is not None else subprocess.PIPE,
+        text=True,
+    )
 
 
 def latest_telemetry(url: str, sid: str) -> dict:
     count = httpx.get(f"{url}/api/sessions/{sid}/telemetry", params={"limit": 1}).json()["count"]
-    return httpx.get(f"{url}/api/sessions/{sid}/telemetry", params={"skip": max(0, count - 1), "limit": 1}).json()["data"][0]["data"]
+    return httpx.get(
+        f"{url}/api/sessions/{sid}/telemetry", params={"skip": max(0, count - 1), "limit": 1}
+    ).json()["data"][0]["data"]
 
 
 def wait_until(predicate, timeout_s: float, what: str) -> float:  # type: ignore[no-untyped-def]
@@ -67,7 +99,9 @@ def wait_until(predicate, timeout_s: float, what: str) -> float:  # type: ignore
     return time.monotonic() - t0
 
 
-def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: LiveServer, tmp_path: Path) -> None:
+def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
+    live_server: LiveServer, tmp_path: Path
+) -> None:
     from playwright.sync_api import sync_playwright
 
     errors: list[str] = []
@@ -77,7 +111,9 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: Live
         page.wait_for_selector("#link-state.ok", timeout=15000)
         robot = sim(live_server, "--exit-when-done", "--lanes", "1", "--time-scale", "4")
         try:
-            page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 2", timeout=120000)
+            page.wait_for_function(
+                "Number(document.querySelector('#camera').dataset.frames || 0) >= 2", timeout=120000
+            )
             page.wait_for_selector("#telemetry dt", timeout=20000)
             assert "battery" in page.inner_text("#telemetry")
             shot(page, "drive-route")
@@ -85,12 +121,19 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: Live
             _, err = robot.communicate(timeout=120)
         assert robot.returncode == 0, err[-2000:]
         page.goto(live_server.url + "/#/sessions")
-        page.wait_for_function("document.querySelector('#sessions tbody')?.textContent.includes('detect ✓')", timeout=120000)
+        page.wait_for_function(
+            "document.querySelector('#sessions tbody')?.textContent.includes('detect ✓')",
+            timeout=120000,
+        )
         shot(page, "sessions")
         page.click("#sessions tbody tr:first-child")
         page.wait_for_selector("#defects tr[data-defect]", timeout=20000)
-        page.wait_for_selector("#mosaic-viewer[data-ready]", timeout=20000)  # OpenSeadragon over the tile pyramid
-        assert page.locator(".defect-box").count() == page.locator("#defects tr[data-defect]").count()
+        page.wait_for_selector(
+            "#mosaic-viewer[data-ready]", timeout=20000
+        )  # OpenSeadragon over the tile pyramid
+        assert (
+            page.locator(".defect-box").count() == page.locator("#defects tr[data-defect]").count()
+        )
         assert "crack" in page.inner_text("#defects") or "corrosion" in page.inner_text("#defects")
         # keyboard review: next defect, confirm, condition state 3; then a comment
         page.keyboard.press("j")
@@ -101,10 +144,17 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: Live
         row.locator("input[name=comment]").fill("check weld toe")
         row.locator("input[name=comment]").press("Tab")
         page.wait_for_selector(f"#defects tr[data-defect='{defect_id}'] input.saved", timeout=10000)
-        page.wait_for_selector(f"#defects tr[data-defect='{defect_id}'] select[name=condition_state].saved", timeout=10000)
+        page.wait_for_selector(
+            f"#defects tr[data-defect='{defect_id}'] select[name=condition_state].saved",
+            timeout=10000,
+        )
         sid = page.inner_text("#session-detail h3").split(" — ")[-1]
         stored = httpx.get(f"{live_server.url}/api/sessions/{sid}/defects/{defect_id}").json()
-        assert (stored["review_status"], stored["condition_state"], stored["comment"]) == ("confirmed", "CS3", "check weld toe")
+        assert (stored["review_status"], stored["condition_state"], stored["comment"]) == (
+            "confirmed",
+            "CS3",
+            "check weld toe",
+        )
         # the review survives a reload of the page
         page.reload()
         page.wait_for_selector(f"#defects tr[data-defect='{defect_id}']", timeout=20000)
@@ -118,7 +168,11 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: Live
         page.select_option("#filter-review", "")
         page.click("#defects th:has-text('length')")
         page.click("#defects th:has-text('length')")  # descending
-        lengths = [float(t) for t in page.locator("#defects tr[data-defect] td:nth-child(3)").all_inner_texts() if t != "–"]
+        lengths = [
+            float(t)
+            for t in page.locator("#defects tr[data-defect] td:nth-child(3)").all_inner_texts()
+            if t != "–"
+        ]
         assert lengths == sorted(lengths, reverse=True)
         shot(page, "session-review")
         # downloads from the page
@@ -146,11 +200,14 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(live_server: Live
 
 
 @pytest.fixture
-def teleop_robot(live_server: LiveServer, tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
+def teleop_robot(
+    live_server: LiveServer, tmp_path: Path
+) -> Iterator[tuple[subprocess.Popen[str], str]]:
     """A teleoperated simulated robot, connected, and its session id."""
     log = tmp_path / "teleop-robot.log"
     robot = sim(live_server, "--teleop", "--duration", "120", "--exit-when-done", log=log)
     try:
+
         def session() -> str | None:
             rows = httpx.get(f"{live_server.url}/api/sessions").json()["data"]
             return rows[0]["id"] if rows else None
@@ -167,7 +224,9 @@ def teleop_robot(live_server: LiveServer, tmp_path: Path) -> Iterator[tuple[subp
         robot.wait(timeout=30)
 
 
-def test_drive_by_keyboard_with_deadman_estop_and_one_driver(live_server: LiveServer, teleop_robot: tuple) -> None:
+def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
+    live_server: LiveServer, teleop_robot: tuple
+) -> None:
     from playwright.sync_api import sync_playwright
 
     _, sid = teleop_robot
@@ -176,16 +235,24 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(live_server: LiveSe
     foreign: list[str] = []
     with sync_playwright() as pw:
         browser, page = open_dashboard(pw, url, errors, foreign)
-        page.wait_for_function("Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000)  # live video
+        page.wait_for_function(
+            "Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000
+        )  # live video
         x0 = latest_telemetry(url, sid)["pose"]["x"]
         # a held key drives the robot and the telemetry shows it
         page.keyboard.down("ArrowUp")
-        page.wait_for_function("document.querySelector('#telemetry').textContent.includes('0.08 · turn')", timeout=5000)
+        page.wait_for_function(
+            "document.querySelector('#telemetry').textContent.includes('0.08 · turn')", timeout=5000
+        )
         time.sleep(1.0)
         assert page.inner_text("#control-state") == "you drive"
         shot(page, "drive-teleop")
         page.keyboard.up("ArrowUp")
-        stopped = wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0, 2, "the robot to stop on key release")
+        stopped = wait_until(
+            lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0,
+            2,
+            "the robot to stop on key release",
+        )
         assert latest_telemetry(url, sid)["pose"]["x"] > x0 + 0.05
         assert stopped < 1.0
         # e-stop: the robot stops and refuses to drive until the e-stop is reset
@@ -197,7 +264,10 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(live_server: LiveSe
         page.keyboard.down("ArrowUp")
         time.sleep(0.5)
         assert latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0
-        page.wait_for_function("document.querySelector('#command-result').textContent.includes('emergency stop')", timeout=5000)
+        page.wait_for_function(
+            "document.querySelector('#command-result').textContent.includes('emergency stop')",
+            timeout=5000,
+        )
         page.keyboard.up("ArrowUp")
         page.click("button[data-cmd=resume]")
         wait_until(lambda: not latest_telemetry(url, sid)["estop"], 2, "the e-stop reset")
@@ -205,25 +275,41 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(live_server: LiveSe
         other = browser.new_page()
         watch_errors(other, errors, foreign)
         other.goto(url + "/")
-        other.wait_for_function("document.querySelector('#control-state').textContent.startsWith('driven by')", timeout=20000)
+        other.wait_for_function(
+            "document.querySelector('#control-state').textContent.startsWith('driven by')",
+            timeout=20000,
+        )
         other.focus("body")
         other.keyboard.down("ArrowUp")
-        other.wait_for_function("document.querySelector('#command-result').textContent.includes('driven by')", timeout=5000)
+        other.wait_for_function(
+            "document.querySelector('#command-result').textContent.includes('driven by')",
+            timeout=5000,
+        )
         other.keyboard.up("ArrowUp")
         assert latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0
         # the driver's page closes while driving: the robot stops
         page.keyboard.down("ArrowUp")
-        wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] > 0, 3, "driving again")
+        wait_until(
+            lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] > 0, 3, "driving again"
+        )
         page.close()
-        wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0, 2, "the robot to stop when its driver's page closed")
-        other.wait_for_function("document.querySelector('#control-state').textContent === 'nobody drives'", timeout=5000)
+        wait_until(
+            lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0,
+            2,
+            "the robot to stop when its driver's page closed",
+        )
+        other.wait_for_function(
+            "document.querySelector('#control-state').textContent === 'nobody drives'", timeout=5000
+        )
         other.close()
         browser.close()
     assert errors == []
     assert foreign == []
 
 
-def test_a_gamepad_drives_and_its_b_button_stops(live_server: LiveServer, teleop_robot: tuple) -> None:
+def test_a_gamepad_drives_and_its_b_button_stops(
+    live_server: LiveServer, teleop_robot: tuple
+) -> None:
     """The Gamepad API, faked in the page before it loads: the left stick pushed forward
     drives the robot, letting go stops it."""
     from playwright.sync_api import sync_playwright
@@ -238,15 +324,35 @@ def test_a_gamepad_drives_and_its_b_button_stops(live_server: LiveServer, teleop
             navigator.getGamepads = () => [window.fakePad];
         """)
         page.goto(url + "/")
-        page.wait_for_function("document.querySelector('#robot-state').textContent.startsWith('robot:')", timeout=30000)
+        page.wait_for_function(
+            "document.querySelector('#robot-state').textContent.startsWith('robot:')", timeout=30000
+        )
         page.evaluate("window.fakePad.axes[1] = -1")  # stick forward
-        wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] > 0.05, 3, "the gamepad to drive")
+        wait_until(
+            lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] > 0.05,
+            3,
+            "the gamepad to drive",
+        )
         page.evaluate("window.fakePad.axes[1] = 0")  # let go
-        wait_until(lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0, 2, "the robot to stop when the stick is let go")
+        wait_until(
+            lambda: latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0,
+            2,
+            "the robot to stop when the stick is let go",
+        )
         page.evaluate("window.fakePad.axes[0] = -1")  # stick left: turn left
-        wait_until(lambda: latest_telemetry(url, sid)["drive"]["angular_radps"] > 0.1, 3, "the gamepad to turn")
-        page.evaluate("window.fakePad.buttons[1].pressed = true")  # B: stop, whatever the stick says
-        wait_until(lambda: latest_telemetry(url, sid)["drive"]["angular_radps"] == 0.0, 2, "B to stop the robot")
+        wait_until(
+            lambda: latest_telemetry(url, sid)["drive"]["angular_radps"] > 0.1,
+            3,
+            "the gamepad to turn",
+        )
+        page.evaluate(
+            "window.fakePad.buttons[1].pressed = true"
+        )  # B: stop, whatever the stick says
+        wait_until(
+            lambda: latest_telemetry(url, sid)["drive"]["angular_radps"] == 0.0,
+            2,
+            "B to stop the robot",
+        )
         browser.close()
 
 
@@ -270,11 +376,15 @@ def test_sign_in_when_accounts_exist(live_server: LiveServer) -> None:
         page.fill("input[name=username]", "otto")
         page.fill("input[name=password]", "wrong password")
         page.click("#login button")
-        page.wait_for_function("document.querySelector('#login-error').textContent.length > 0", timeout=10000)
+        page.wait_for_function(
+            "document.querySelector('#login-error').textContent.length > 0", timeout=10000
+        )
         errors.clear()  # the refused sign-in is a 401 by design
         page.fill("input[name=password]", "correct horse")
         page.click("#login button")
-        page.wait_for_function("document.querySelector('#who').textContent.includes('otto (operator)')", timeout=10000)
+        page.wait_for_function(
+            "document.querySelector('#who').textContent.includes('otto (operator)')", timeout=10000
+        )
         page.wait_for_selector("#link-state.ok", timeout=15000)
         browser.close()
     assert errors == []

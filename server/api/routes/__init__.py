@@ -14,4 +14,19 @@ from server.api.routes import (
     view3d,
 )
 
-ROUTERS = [r.router for r in (auth, sessions, frames, clouds, telemetry, defects, results, reports, jobs, live, view3d)]
+ROUTERS = [
+    r.router
+    for r in (
+        auth,
+        sessions,
+        frames,
+        clouds,
+        telemetry,
+        defects,
+        results,
+        reports,
+        jobs,
+        live,
+        view3d,
+    )
+]

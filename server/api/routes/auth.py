@@ -27,18 +27,29 @@ class UserPublic(BaseModel):
 
 
 @router.post("/token", response_model=TokenPublic)
-async def create_token(state: StateDep, request: Request, form: Annotated[OAuth2PasswordRequestForm, Depends()]) -> TokenPublic:
+async def create_token(
+    state: StateDep, request: Request, form: Annotated[OAuth2PasswordRequestForm, Depends()]
+) -> TokenPublic:
     """Exchange a user name and password for a bearer token (429 after repeated wrong
     passwords from one client for one user, until the throttle's window has passed)."""
     client = request.client.host if request.client else "?"
     wait = state.logins.retry_after(client, form.username)
     if wait > 0:
-        raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, f"too many wrong passwords; try again in {wait:.0f} s",
-                            headers={"Retry-After": str(max(1, round(wait)))})
-    issued = await anyio.to_thread.run_sync(issue_token, state.factory, form.username, form.password)
+        raise HTTPException(
+            status.HTTP_429_TOO_MANY_REQUESTS,
+            f"too many wrong passwords; try again in {wait:.0f} s",
+            headers={"Retry-After": str(max(1, round(wait)))},
+        )
+    issued = await anyio.to_thread.run_sync(
+        issue_token, state.factory, form.username, form.password
+    )
     if issued is None:
         state.logins.failed(client, form.username)
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "wrong user name or password", headers={"WWW-Authenticate": "Bearer"})
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            "wrong user name or password",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
     state.logins.succeeded(client, form.username)
     token, user = issued
     return TokenPublic(access_token=token, role=user.role.value)

@@ -28,22 +28,37 @@ from server.api.schemas import (
 from server.storage.models import Defect, utcnow
 from server.storage.thumbnails import defect_image, encode_jpeg
 
-router = APIRouter(prefix="/api/sessions", tags=["defects"], dependencies=[Depends(get_current_user)])
+router = APIRouter(
+    prefix="/api/sessions", tags=["defects"], dependencies=[Depends(get_current_user)]
+)
 DEFECT_SORT = "^-?(" + "|".join(DEFECT_SORT_KEYS) + ")$"
 
 
 @router.get("/{session_id}/defects", response_model=DefectsPublic)
-def read_defects(db: SessionDep, session_id: str, defect_class: str | None = None,
-                 source: Annotated[str | None, Query(pattern="^(mosaic|frame)$")] = None,
-                 review_status: ReviewStatus | None = None, condition_state: ConditionState | None = None,
-                 sort: Annotated[str, Query(pattern=DEFECT_SORT, description="a column, '-' before it for descending")] = "id",
-                 skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0,
-                 limit: Annotated[int, Query(ge=1, le=5000)] = 1000) -> DefectsPublic:
+def read_defects(
+    db: SessionDep,
+    session_id: str,
+    defect_class: str | None = None,
+    source: Annotated[str | None, Query(pattern="^(mosaic|frame)$")] = None,
+    review_status: ReviewStatus | None = None,
+    condition_state: ConditionState | None = None,
+    sort: Annotated[
+        str, Query(pattern=DEFECT_SORT, description="a column, '-' before it for descending")
+    ] = "id",
+    skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0,
+    limit: Annotated[int, Query(ge=1, le=5000)] = 1000,
+) -> DefectsPublic:
     """Defects found in a session, filtered by class, source (mosaic or frame), review status
     or condition state, sorted by a column."""
     get_session_or_404(db, session_id)
-    q = defects_query(session_id, defect_class=defect_class, source=source, review_status=review_status,
-                      condition_state=condition_state, sort=sort)
+    q = defects_query(
+        session_id,
+        defect_class=defect_class,
+        source=source,
+        review_status=review_status,
+        condition_state=condition_state,
+        sort=sort,
+    )
     rows = db.scalars(q.offset(skip).limit(limit))
     return DefectsPublic(data=list(rows), count=count_query(db, q))  # type: ignore[arg-type]
 
@@ -55,7 +70,9 @@ def read_defect(db: SessionDep, session_id: str, defect_id: DefectId) -> Defect:
 
 
 @router.patch("/{session_id}/defects/{defect_id}", response_model=DefectPublic)
-def review_defect(db: SessionDep, session_id: str, defect_id: DefectId, body: DefectReview, user: OperatorUser) -> Defect:
+def review_defect(
+    db: SessionDep, session_id: str, defect_id: DefectId, body: DefectReview, user: OperatorUser
+) -> Defect:
     """Record an inspector's review of a defect: confirm or reject, condition state CS1–CS4,
     comment (operator role). Who and when is kept for the report."""
     defect = get_defect_or_404(db, session_id, defect_id)
@@ -73,9 +90,18 @@ def review_defect(db: SessionDep, session_id: str, defect_id: DefectId, body: De
 
 
 @router.get("/{session_id}/defects/{defect_id}/thumbnail.jpg", response_class=Response)
-async def read_defect_thumbnail(db: SessionDep, state: StateDep, session_id: str, defect_id: DefectId,
-                                size: Annotated[int, Query(ge=32, le=1024)] = 256) -> Response:
+async def read_defect_thumbnail(
+    db: SessionDep,
+    state: StateDep,
+    session_id: str,
+    defect_id: DefectId,
+    size: Annotated[int, Query(ge=32, le=1024)] = 256,
+) -> Response:
     """The defect's neighbourhood (from its frame or the mosaic) with its box drawn, as JPEG."""
     defect = get_defect_or_404(db, session_id, defect_id)
     image = await run_in_threadpool(defect_image, db, state.files, defect, size)
-    return Response(encode_jpeg(image), media_type="image/jpeg", headers={"Cache-Control": "private, max-age=60"})
+    return Response(
+        encode_jpeg(image),
+        media_type="image/jpeg",
+        headers={"Cache-Control": "private, max-age=60"},
+    )

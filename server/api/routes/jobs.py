@@ -23,13 +23,21 @@ def read_session_jobs(db: SessionDep, session_id: str) -> list[Job]:
     return list(db.scalars(select(Job).where(Job.session_id == session_id).order_by(Job.id)))
 
 
-@router.post("/sessions/{session_id}/jobs", response_model=JobPublic, status_code=status.HTTP_202_ACCEPTED)
-def create_job(db: SessionDep, state: StateDep, session_id: str, body: JobCreate, _: OperatorUser) -> Job:
+@router.post(
+    "/sessions/{session_id}/jobs", response_model=JobPublic, status_code=status.HTTP_202_ACCEPTED
+)
+def create_job(
+    db: SessionDep, state: StateDep, session_id: str, body: JobCreate, _: OperatorUser
+) -> Job:
     """Queue a processing job (stitch, map, detect, or export: the session as MCAP) for a session (operator role)."""
     get_session_or_404(db, session_id)
     after: list[int] = []
     if body.kind == "detect":
-        last_stitch = db.scalar(select(Job.id).where(Job.session_id == session_id, Job.kind == "stitch").order_by(Job.id.desc()))
+        last_stitch = db.scalar(
+            select(Job.id)
+            .where(Job.session_id == session_id, Job.kind == "stitch")
+            .order_by(Job.id.desc())
+        )
         if last_stitch is not None:
             after = [last_stitch]
     job_id = state.jobs.enqueue(session_id, body.kind, after=after)

@@ -29,9 +29,14 @@ async def live_socket(websocket: WebSocket) -> None:
     state = websocket.app.state.steelscan
     hub = state.hub
     if not same_origin(websocket, state.settings.allowed_origins):
-        await websocket.close(code=1008, reason="cross-site websocket refused: open the dashboard from the station itself")
+        await websocket.close(
+            code=1008,
+            reason="cross-site websocket refused: open the dashboard from the station itself",
+        )
         return
-    user = await anyio.to_thread.run_sync(_browser_user, state.factory, websocket.query_params.get("token"))
+    user = await anyio.to_thread.run_sync(
+        _browser_user, state.factory, websocket.query_params.get("token")
+    )
     if user is None:
         await websocket.close(code=1008, reason="a valid token is required")
         return
@@ -54,14 +59,30 @@ async def live_socket(websocket: WebSocket) -> None:
             text = await websocket.receive_text()
             size = len(text.encode())
             if size > settings.max_browser_message_bytes:
-                await _reply(websocket, ok=False, error=f"a message of {size} bytes is refused: at most {settings.max_browser_message_bytes}")
+                await _reply(
+                    websocket,
+                    ok=False,
+                    error=f"a message of {size} bytes is refused: at most {settings.max_browser_message_bytes}",
+                )
                 continue
             if not bucket.take() and not is_stop(text):  # stopping the robot is never rate-limited
-                await _reply(websocket, ok=False, error=f"too many messages: at most {settings.browser_messages_per_s:g} a second "
-                                                        "(stop and e-stop always pass)")
+                await _reply(
+                    websocket,
+                    ok=False,
+                    error=f"too many messages: at most {settings.browser_messages_per_s:g} a second "
+                    "(stop and e-stop always pass)",
+                )
                 continue
             if not has_role(user, Role.operator):
-                await websocket.send_text(json.dumps({"type": "command_result", "ok": False, "error": f"commands need the operator role; you are {user.role.value}"}))
+                await websocket.send_text(
+                    json.dumps(
+                        {
+                            "type": "command_result",
+                            "ok": False,
+                            "error": f"commands need the operator role; you are {user.role.value}",
+                        }
+                    )
+                )
                 continue
             await _handle_browser_message(websocket, hub, watcher, user, text)
     except (WebSocketDisconnect, RuntimeError):
@@ -85,7 +106,9 @@ async def _reply(websocket: WebSocket, **fields: Any) -> None:
     await websocket.send_text(json.dumps({"type": "command_result", **fields}))
 
 
-async def _handle_browser_message(websocket: WebSocket, hub: Any, watcher: Any, user: User, text: str) -> None:
+async def _handle_browser_message(
+    websocket: WebSocket, hub: Any, watcher: Any, user: User, text: str
+) -> None:
     """One operator message (:mod:`server.live.messages`). Anyone with the operator role may
     stop or e-stop; other commands come only from the one browser that drives the robot
     (the first to command a free robot takes it)."""
@@ -108,8 +131,11 @@ async def _handle_browser_message(websocket: WebSocket, hub: Any, watcher: Any, 
         await _reply(websocket, ok=False, cmd=cmd, error="no robot is connected for that session")
         return
     if cmd not in STOP_COMMANDS:
-        refused = hub.take_control(sid, watcher) if hub.controller(sid) in (None, watcher) else \
-            f"the robot is driven by {hub.controller(sid).user or 'another operator'}; you can watch, stop or e-stop it"
+        refused = (
+            hub.take_control(sid, watcher)
+            if hub.controller(sid) in (None, watcher)
+            else f"the robot is driven by {hub.controller(sid).user or 'another operator'}; you can watch, stop or e-stop it"
+        )
         if refused:
             await _reply(websocket, ok=False, cmd=cmd, error=refused)
             return

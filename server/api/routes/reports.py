@@ -18,7 +18,9 @@ from server.reports.pdf import write_pdf
 from server.reports.tables import defects_csv
 from server.storage.models import InspectionSession, Job, JobState, SessionStatus
 
-router = APIRouter(prefix="/api/sessions", tags=["reports"], dependencies=[Depends(get_current_user)])
+router = APIRouter(
+    prefix="/api/sessions", tags=["reports"], dependencies=[Depends(get_current_user)]
+)
 MCAP_NAME = "session.mcap"
 
 
@@ -27,38 +29,54 @@ def _base_url(request: Request) -> str:
 
 
 def _filename(s: InspectionSession, suffix: str) -> str:
-    safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in s.structure)[:60].strip("_") or "session"
+    safe = (
+        "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in s.structure)[:60].strip("_")
+        or "session"
+    )
     return f"{safe}-{s.started_at:%Y%m%d}-{s.id[:8]}{suffix}"
 
 
 @router.get("/{session_id}/report.json")
-def read_report_json(db: SessionDep, state: StateDep, request: Request, session_id: str) -> dict[str, Any]:
+def read_report_json(
+    db: SessionDep, state: StateDep, request: Request, session_id: str
+) -> dict[str, Any]:
     """The inspection report as data: cover, summary, defects, results, parameters, notes on what is missing."""
     get_session_or_404(db, session_id)
     return build_report(db, state.files, session_id, base_url=_base_url(request))
 
 
 @router.get("/{session_id}/report.pdf", response_class=FileResponse)
-async def read_report_pdf(db: SessionDep, state: StateDep, request: Request, session_id: str) -> FileResponse:
+async def read_report_pdf(
+    db: SessionDep, state: StateDep, request: Request, session_id: str
+) -> FileResponse:
     """The inspection report as PDF, made fresh (it shows the latest review)."""
     s = get_session_or_404(db, session_id)
     out = state.files.results_dir(session_id)
     out.mkdir(parents=True, exist_ok=True)
-    path = await run_in_threadpool(write_pdf, db, state.files, session_id, out / "report.pdf", base_url=_base_url(request))
+    path = await run_in_threadpool(
+        write_pdf, db, state.files, session_id, out / "report.pdf", base_url=_base_url(request)
+    )
     return FileResponse(path, media_type="application/pdf", filename=_filename(s, "-report.pdf"))
 
 
 @router.get("/{session_id}/defects.csv", response_class=StreamingResponse)
-def read_defects_csv(db: SessionDep, state: StateDep, request: Request, session_id: str) -> StreamingResponse:
+def read_defects_csv(
+    db: SessionDep, state: StateDep, request: Request, session_id: str
+) -> StreamingResponse:
     """The report's defects as CSV (UTF-8 with BOM, one row per defect, sizes in mm, position in m)."""
     s = get_session_or_404(db, session_id)
     records = build_report(db, state.files, session_id, base_url=_base_url(request))["defects"]
-    return StreamingResponse(defects_csv(records), media_type="text/csv; charset=utf-8",
-                             headers={"Content-Disposition": f'attachment; filename="{_filename(s, "-defects.csv")}"'})
+    return StreamingResponse(
+        defects_csv(records),
+        media_type="text/csv; charset=utf-8",
+        headers={"Content-Disposition": f'attachment; filename="{_filename(s, "-defects.csv")}"'},
+    )
 
 
 @router.get("/{session_id}/defects.json")
-def read_defects_json(db: SessionDep, state: StateDep, request: Request, session_id: str) -> list[dict[str, Any]]:
+def read_defects_json(
+    db: SessionDep, state: StateDep, request: Request, session_id: str
+) -> list[dict[str, Any]]:
     """The report's defects as a JSON list (the rows of defects.csv)."""
     get_session_or_404(db, session_id)
     return build_report(db, state.files, session_id, base_url=_base_url(request))["defects"]
@@ -68,16 +86,32 @@ def _mcap_fresh(db: SessionDep, s: InspectionSession) -> Job | None:
     """The export job whose MCAP is still current, if any: the session has ended and no
     processing job finished after it."""
     jobs = list(db.scalars(select(Job).where(Job.session_id == s.id).order_by(Job.id)))
-    exports = [j for j in jobs if j.kind == "export" and j.state == JobState.done and j.finished_at is not None]
+    exports = [
+        j
+        for j in jobs
+        if j.kind == "export" and j.state == JobState.done and j.finished_at is not None
+    ]
     if not exports or s.status != SessionStatus.ended:
         return None
     last = exports[-1]
-    later = [j for j in jobs if j.kind != "export" and j.finished_at is not None and j.finished_at > last.finished_at]
+    later = [
+        j
+        for j in jobs
+        if j.kind != "export" and j.finished_at is not None and j.finished_at > last.finished_at
+    ]
     return None if later else last
 
 
-@router.get("/{session_id}/export.mcap", response_class=FileResponse,
-            responses={202: {"model": JobPublic, "description": "the export is being made: poll the job, then ask again"}})
+@router.get(
+    "/{session_id}/export.mcap",
+    response_class=FileResponse,
+    responses={
+        202: {
+            "model": JobPublic,
+            "description": "the export is being made: poll the job, then ask again",
+        }
+    },
+)
 def read_session_mcap(db: SessionDep, state: StateDep, session_id: str) -> Any:
     """The whole session as an MCAP file (Foxglove schemas: images, clouds, poses, telemetry),
     streamed from disk. When it is not made yet or is out of date, an export job is queued
@@ -85,19 +119,34 @@ def read_session_mcap(db: SessionDep, state: StateDep, session_id: str) -> Any:
     s = get_session_or_404(db, session_id)
     path = state.files.results_dir(session_id) / MCAP_NAME
     if _mcap_fresh(db, s) is not None and path.is_file():
-        return FileResponse(path, media_type="application/octet-stream", filename=_filename(s, ".mcap"))
-    pending = db.scalar(select(Job).where(Job.session_id == session_id, Job.kind == "export",
-                                          Job.state.in_([JobState.queued, JobState.running])).order_by(Job.id.desc()))
+        return FileResponse(
+            path, media_type="application/octet-stream", filename=_filename(s, ".mcap")
+        )
+    pending = db.scalar(
+        select(Job)
+        .where(
+            Job.session_id == session_id,
+            Job.kind == "export",
+            Job.state.in_([JobState.queued, JobState.running]),
+        )
+        .order_by(Job.id.desc())
+    )
     if pending is None:
         job_id = state.jobs.enqueue(session_id, "export")
         pending = db.get(Job, job_id)
     assert pending is not None
     body = JobPublic.model_validate(pending).model_dump(mode="json")
-    return JSONResponse(body, status_code=status.HTTP_202_ACCEPTED, headers={"Retry-After": "2", "Location": f"/api/jobs/{pending.id}"})
+    return JSONResponse(
+        body,
+        status_code=status.HTTP_202_ACCEPTED,
+        headers={"Retry-After": "2", "Location": f"/api/jobs/{pending.id}"},
+    )
 
 
 @router.post("/import", status_code=status.HTTP_201_CREATED)
-async def import_mcap(db: SessionDep, state: StateDep, file: UploadFile, _: OperatorUser) -> dict[str, Any]:
+async def import_mcap(
+    db: SessionDep, state: StateDep, file: UploadFile, _: OperatorUser
+) -> dict[str, Any]:
     """Import a session's MCAP log (as exported by this station) into a new session (operator
     role); frames and clouds are stored byte for byte."""
     from server.reports.mcap_import import McapImportError, import_session
@@ -111,12 +160,16 @@ async def import_mcap(db: SessionDep, state: StateDep, file: UploadFile, _: Oper
             while chunk := await file.read(1 << 20):
                 size += len(chunk)
                 if size > state.settings.max_import_bytes:
-                    raise HTTPException(status.HTTP_413_REQUEST_ENTITY_TOO_LARGE,
-                                        f"the file is larger than the import limit of {state.settings.max_import_bytes} bytes")
+                    raise HTTPException(
+                        status.HTTP_413_REQUEST_ENTITY_TOO_LARGE,
+                        f"the file is larger than the import limit of {state.settings.max_import_bytes} bytes",
+                    )
                 fh.write(chunk)
         try:
             return await run_in_threadpool(import_session, db, state.files, tmp)
         except McapImportError as exc:
-            raise HTTPException(422, str(exc).replace(tmp.name, file.filename or "upload")) from None
+            raise HTTPException(
+                422, str(exc).replace(tmp.name, file.filename or "upload")
+            ) from None
     finally:
         tmp.unlink(missing_ok=True)

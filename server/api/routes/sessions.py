@@ -12,15 +12,25 @@ from server.api.queries import MAX_INT, get_session_or_404, session_public
 from server.api.schemas import SessionPublic, SessionsPublic, SessionUpdate
 from server.storage.models import InspectionSession
 
-router = APIRouter(prefix="/api/sessions", tags=["sessions"], dependencies=[Depends(get_current_user)])
+router = APIRouter(
+    prefix="/api/sessions", tags=["sessions"], dependencies=[Depends(get_current_user)]
+)
 
 
 @router.get("", response_model=SessionsPublic)
-def read_sessions(db: SessionDep, skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0,
-                  limit: Annotated[int, Query(ge=1, le=500)] = 100) -> SessionsPublic:
+def read_sessions(
+    db: SessionDep,
+    skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0,
+    limit: Annotated[int, Query(ge=1, le=500)] = 100,
+) -> SessionsPublic:
     """List inspection sessions, newest first."""
     count = db.scalar(select(func.count()).select_from(InspectionSession)) or 0
-    rows = db.scalars(select(InspectionSession).order_by(InspectionSession.started_at.desc()).offset(skip).limit(limit))
+    rows = db.scalars(
+        select(InspectionSession)
+        .order_by(InspectionSession.started_at.desc())
+        .offset(skip)
+        .limit(limit)
+    )
     return SessionsPublic(data=[session_public(db, s) for s in rows], count=count)
 
 
@@ -31,7 +41,9 @@ def read_session(db: SessionDep, session_id: str) -> SessionPublic:
 
 
 @router.patch("/{session_id}", response_model=SessionPublic)
-def update_session(db: SessionDep, session_id: str, body: SessionUpdate, _: OperatorUser) -> SessionPublic:
+def update_session(
+    db: SessionDep, session_id: str, body: SessionUpdate, _: OperatorUser
+) -> SessionPublic:
     """Correct a session's structure, location, operator or notes (operator role)."""
     s = get_session_or_404(db, session_id)
     for name, value in body.model_dump(exclude_none=True).items():

@@ -53,10 +53,20 @@ async def read_view(request: Request, state: StateDep) -> Response:
     query_token = request.query_params.get("token")
     token = query_token or request.cookies.get(COOKIE)
     if not await anyio.to_thread.run_sync(_allowed, state, token):
-        return Response("a valid token is required: open /viser/?token=<bearer token>", status_code=401, media_type="text/plain")
+        return Response(
+            "a valid token is required: open /viser/?token=<bearer token>",
+            status_code=401,
+            media_type="text/plain",
+        )
     async with httpx.AsyncClient(timeout=30) as client:
-        upstream = await client.get(f"http://127.0.0.1:{scene.port}/", headers={"Accept-Encoding": "identity"})
-    response = Response(upstream.content, status_code=upstream.status_code, media_type=upstream.headers.get("content-type"))
+        upstream = await client.get(
+            f"http://127.0.0.1:{scene.port}/", headers={"Accept-Encoding": "identity"}
+        )
+    response = Response(
+        upstream.content,
+        status_code=upstream.status_code,
+        media_type=upstream.headers.get("content-type"),
+    )
     if query_token:
         response.set_cookie(COOKIE, query_token, httponly=True, samesite="strict", path="/viser")
     return response
@@ -77,9 +87,17 @@ async def view_socket(websocket: WebSocket) -> None:
     if not await anyio.to_thread.run_sync(_allowed, state, token):
         await websocket.close(code=1008, reason="a valid token is required")
         return
-    protocols = [p.strip() for p in websocket.headers.get("sec-websocket-protocol", "").split(",") if p.strip()]
-    async with connect(f"ws://127.0.0.1:{state.scene.port}/", subprotocols=protocols or None,  # type: ignore[arg-type]
-                       max_size=None, compression=None) as upstream:
+    protocols = [
+        p.strip()
+        for p in websocket.headers.get("sec-websocket-protocol", "").split(",")
+        if p.strip()
+    ]
+    async with connect(
+        f"ws://127.0.0.1:{state.scene.port}/",
+        subprotocols=protocols or None,  # type: ignore[arg-type]
+        max_size=None,
+        compression=None,
+    ) as upstream:
         await websocket.accept(subprotocol=upstream.subprotocol)
 
         async def down() -> None:
@@ -94,7 +112,11 @@ async def view_socket(websocket: WebSocket) -> None:
                 message = await websocket.receive()
                 if message["type"] == "websocket.disconnect":
                     return
-                await upstream.send(message["bytes"] if message.get("bytes") is not None else message.get("text", ""))
+                await upstream.send(
+                    message["bytes"]
+                    if message.get("bytes") is not None
+                    else message.get("text", "")
+                )
 
         tasks = [asyncio.create_task(down()), asyncio.create_task(up())]
         try:
@@ -125,19 +147,37 @@ def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
     if (results / "trajectory.tum").is_file():
         _, poses = parse_tum((results / "trajectory.tum").read_text())
         trajectory = poses[:, :3, 3] if len(poses) else None
-    rows = db.scalars(select(Defect).where(Defect.session_id == session_id, Defect.world_x_m.is_not(None)))
+    rows = db.scalars(
+        select(Defect).where(Defect.session_id == session_id, Defect.world_x_m.is_not(None))
+    )
     rows = list(rows)
     mosaic_rows = [d for d in rows if d.source == "mosaic"]
     markers = []
     for d in mosaic_rows or rows:
         size = max(d.world_w_m or 0.0, d.world_h_m or 0.0)
-        text = (f"**Defect {d.id}** — {d.defect_class}  \nlength {d.length_mm or 0:.1f} mm, max width {d.max_width_mm or 0:.2f} mm  \n"
-                f"at x {d.world_x_m + (d.world_w_m or 0) / 2:.3f} m, y {d.world_y_m + (d.world_h_m or 0) / 2:.3f} m ({d.source})")
-        markers.append(DefectMarker(d.id, d.defect_class, d.world_x_m + (d.world_w_m or 0) / 2, d.world_y_m + (d.world_h_m or 0) / 2, size, text))
+        text = (
+            f"**Defect {d.id}** — {d.defect_class}  \nlength {d.length_mm or 0:.1f} mm, max width {d.max_width_mm or 0:.2f} mm  \n"
+            f"at x {d.world_x_m + (d.world_w_m or 0) / 2:.3f} m, y {d.world_y_m + (d.world_h_m or 0) / 2:.3f} m ({d.source})"
+        )
+        markers.append(
+            DefectMarker(
+                d.id,
+                d.defect_class,
+                d.world_x_m + (d.world_w_m or 0) / 2,
+                d.world_y_m + (d.world_h_m or 0) / 2,
+                size,
+                text,
+            )
+        )
     title = f"{s.structure or 'session'} — {session_id[:8]}" if s is not None else session_id
     state.scene.show_session(session_id, points, trajectory, markers, title)  # type: ignore[union-attr]
-    return {"session_id": session_id, "points": 0 if points is None else len(points),
-            "trajectory_poses": 0 if trajectory is None else len(trajectory), "defects": len(markers), "url": "/viser/"}
+    return {
+        "session_id": session_id,
+        "points": 0 if points is None else len(points),
+        "trajectory_poses": 0 if trajectory is None else len(trajectory),
+        "defects": len(markers),
+        "url": "/viser/",
+    }
 
 
 @router.post("/api/sessions/{session_id}/view3d", dependencies=[Depends(get_current_user)])
