@@ -65,7 +65,8 @@ def _nearest_measured(
 BLIND_ANGLES = tuple(
     np.radians([-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0])
 )  # turns searched when there is no odometry (climbed from 0)
-SURE_MATCH = 0.9  # a verified guess this good ends the search (true matches ≥ 0.98, false ones ≤ 0.88, measured)
+# a verified guess this good ends the search (true matches ≥ 0.98, false ones ≤ 0.88, measured)
+SURE_MATCH = 0.9
 
 
 class _PairRegistrar:

@@ -109,7 +109,9 @@ class PhaseView:
 PHASE_TILTS = tuple(
     np.radians([0.0, 6.0, -6.0])
 )  # small turns tried where frame b, as it is, finds nothing sure
-SURE_OVERLAP = 0.15  # a candidate ends the search only if its overlap is this share of the frame (tiny ones correlate by chance)
+# a candidate ends the search only if its overlap is this share of the frame (tiny ones correlate by
+# chance)
+SURE_OVERLAP = 0.15
 
 
 def phase_candidates(

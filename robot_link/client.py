@@ -238,15 +238,14 @@ class RobotLink:
         while not self._closing:
             try:
                 headers = {"Authorization": f"Bearer {self.token}"}
-                async with (
-                    connect(
-                        self.url,
-                        additional_headers=headers,
-                        max_size=2**20,
-                        open_timeout=10,
-                        compression=None,  # JPEG and PNG payloads do not deflate: compression only costs CPU
-                    ) as ws
-                ):
+                async with connect(
+                    self.url,
+                    additional_headers=headers,
+                    max_size=2**20,
+                    open_timeout=10,
+                    # JPEG and PNG payloads do not deflate: compression only costs CPU
+                    compression=None,
+                ) as ws:
                     self._ws = ws
                     backoff = 0.1
                     await self._resend_all(ws)
@@ -387,7 +386,8 @@ class RobotLink:
         elif message.type is MessageType.COMMAND and self.on_command is not None:
             cmd = message.meta.get("cmd")
             if message.seq <= self._last_command_seq and cmd not in STOP_COMMANDS:
-                # an old command delivered again (a replay): never act on it twice; stopping is always safe
+                # an old command delivered again (a replay): never act on it twice; stopping is
+                # always safe
                 log.warning(
                     "link: ignoring command %r with stale seq %d (last %d)",
                     cmd,

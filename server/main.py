@@ -114,7 +114,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
 
     app.mount("/static", StaticFiles(directory=web_dir), name="static")
-    # front-end libraries installed from npm by scripts/setup.sh (web/package-lock.json): served here, never from a CDN
+    # front-end libraries installed from npm by scripts/setup.sh (web/package-lock.json): served
+    # here, never from a CDN
     for name, folder in (
         ("openseadragon", "openseadragon/build/openseadragon"),
         ("uplot", "uplot/dist"),

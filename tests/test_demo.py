@@ -9,7 +9,10 @@ import sys
 from pathlib import Path
 
 import httpx
+import pytest
 from mcap.reader import make_reader
+
+pytestmark = pytest.mark.slow  # an end-to-end run
 
 
 def test_demo_runs_end_to_end(tmp_path: Path) -> None:

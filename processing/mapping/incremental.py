@@ -80,7 +80,9 @@ class IncrementalMap:
         ] = {}  # cloud -> configured (rotation rad, translation m) of its odometry edge
         self._heading_gaps: list[
             float
-        ] = []  # ICP's heading step minus the odometry's, where the structure fixes it, over its configured error
+            # ICP's heading step minus the odometry's, where the structure fixes it, over its configured
+            # error
+        ] = []
         self._planes: list[list[Plane]] = []  # large planes of each cloud (sensor frame)
         self._landmarks: list[
             list[tuple[int, int]]

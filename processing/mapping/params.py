@@ -27,13 +27,17 @@ class IcpParams:
     tukey_m: float = 0.03
     relative_fitness: float = 1e-4
     relative_rmse: float = 1e-4
-    max_iterations: int = 10  # from the odometry or the current estimate ICP converges in a few (more: no better, measured)
+    # from the odometry or the current estimate ICP converges in a few (more: no better, measured)
+    max_iterations: int = 10
     max_correction_m: float = 0.10
     max_correction_deg: float = 10.0
-    min_fitness: float = 0.6  # below it (mid-turn views that barely overlap) ICP lands centimetres off: odometry instead
+    # below it (mid-turn views that barely overlap) ICP lands centimetres off: odometry instead
+    min_fitness: float = 0.6
     min_points: int = 10  # clouds with fewer points (after selection) are placed by odometry
     degenerate_ratio: float = 0.1
-    icp_sigma_m: float = 0.06  # effective error of one point-to-plane residual (neighbouring residuals are correlated: > the noise)
+    # effective error of one point-to-plane residual (neighbouring residuals are correlated: > the
+    # noise)
+    icp_sigma_m: float = 0.06
 
 
 @dataclass(frozen=True)
@@ -70,7 +74,8 @@ class OdometryParams:
     sigma_frac: float = 0.05  # odometry error per step: this fraction of its length ...
     sigma_deg_per_m: float = 15.0  # ... and this heading error per metre driven
     sigma_floor_m: float = 0.002
-    calibrate: bool = True  # raise the odometry's errors (heading and distance) to the heading error measured against ICP
+    # raise the odometry's errors (heading and distance) to the heading error measured against ICP
+    calibrate: bool = True
 
 
 @dataclass(frozen=True)

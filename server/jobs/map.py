@@ -85,9 +85,11 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         "odometry_fallbacks": int(result.used_odometry.sum()),
         # clouds whose view left some directions to the odometry (a flat plate: sliding along it)
         "clouds_with_unobservable_directions": int((result.degenerate_dims > 0).sum()),
-        # the odometry's heading error measured against ICP, over the configured one (1: as configured)
+        # the odometry's heading error measured against ICP, over the configured one (1: as
+        # configured)
         "odometry_error_scale": round(result.odometry_error_scale, 2),
-        "plane_landmarks": result.plane_landmarks,  # large planes (deck plate, web) tying the clouds that see them
+        # large planes (deck plate, web) tying the clouds that see them
+        "plane_landmarks": result.plane_landmarks,
         "mean_fitness": float(result.fitness.mean()),
         "params": params_record(params),
     }

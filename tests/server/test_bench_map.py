@@ -1,8 +1,11 @@
 import numpy as np
 import open3d as o3d
+import pytest
 
 from bench.map import oracle_poses, sees_structure
 from processing.metrics import absolute_trajectory_error
+
+pytestmark = pytest.mark.slow  # an end-to-end run
 
 
 def _pose(x: float, yaw: float) -> np.ndarray:

@@ -8,6 +8,7 @@ import subprocess
 from pathlib import Path
 
 import httpx
+import pytest
 
 from robot_link.client import RobotLink
 from robot_link.protocol import MessageType
@@ -16,6 +17,8 @@ from server.config import Settings
 from server.loopback import free_port, serve_process
 from tests.conftest import make_token
 from tests.server.test_ingest import JPEG
+
+pytestmark = pytest.mark.slow  # an end-to-end run
 
 
 def serve(data_dir: Path, port: int) -> subprocess.Popen:

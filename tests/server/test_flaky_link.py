@@ -4,11 +4,14 @@ nothing stored twice."""
 import asyncio
 
 import httpx
+import pytest
 
 from robot_link.client import RobotLink
 from robot_link.sim.inspection import InspectionSim, SimConfig
 from tests.conftest import LiveServer
 from tests.fault_proxy import FaultProxy
+
+pytestmark = pytest.mark.slow  # an end-to-end run
 
 
 def test_inspection_through_a_faulty_link_stores_every_frame_once(live_server: LiveServer) -> None:

@@ -392,7 +392,10 @@ def test_banded_detection_matches_the_one_pass_result(
     assert on_surface(mosaic, coverage, level).any()
     banded = detect_banded(results, defect_masks, 0.25, level, rows=200)
     assert mosaic.shape[0] > 400  # several bands, so defects cross seams
-    key = lambda d: (d.defect_class, d.bbox)
+
+    def key(d):
+        return (d.defect_class, d.bbox)
+
     assert sorted(map(key, banded)) == sorted(map(key, one))
     by_box = {key(d): d for d in one}
     for d in banded:

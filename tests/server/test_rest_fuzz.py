@@ -1,11 +1,14 @@
 """The REST API fuzzed against its own OpenAPI schema (schemathesis): no request, however
 odd, makes the station answer with a server error."""
 
+import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 from schemathesis.checks import not_a_server_error
 
 from tests.conftest import LiveServer
+
+pytestmark = pytest.mark.slow  # an end-to-end run
 
 
 def test_no_request_makes_a_server_error(live_server: LiveServer) -> None:
