@@ -315,7 +315,7 @@ def proposed_cracks(
     gray: NDArray[np.uint8], params: CrackParams = CrackParams()
 ) -> NDArray[np.bool_]:
     """The improved pipeline: illumination normalisation, scale-normalised Hessian line
-    emphasis (eq. 14 with σ_i²), then region growing from strong line seeds (the paper's
+    emphasis (eq. (14) with σ_i²), then region growing from strong line seeds (the paper's
     enhanced segmentation) over pixels that are line-like or locally dark (Sauvola), small
     components removed, and only the crack's own dark pixels kept."""
     return _proposed(gray, params)[0]

@@ -1,4 +1,4 @@
-"""Accuracy metrics: the paper's PI, SI, DSC (eqs. 18-20), ATE, and defect matching."""
+"""Accuracy metrics: the paper's PI, SI, DSC (eqs. (18)–(20)), ATE, and defect matching."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ class SegmentationScores:
 def segmentation_scores(
     pred: NDArray[np.bool_], truth: NDArray[np.bool_], *, tolerance_px: int = 0
 ) -> SegmentationScores:
-    """PI = TP/(TP+FP), SI = TP/(TP+FN), DSC = 2TP/(2TP+FP+FN) (paper eqs. 18-20).
+    """PI = TP/(TP+FP), SI = TP/(TP+FN), DSC = 2TP/(2TP+FP+FN) (paper eqs. (18)–(20)).
 
     With ``tolerance_px`` > 0 a predicted pixel counts as true within that distance of a
     true pixel, and a true pixel as found within that distance of a predicted one.

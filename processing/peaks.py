@@ -1,4 +1,4 @@
-"""Automatic histogram peak detection and valley-emphasis Otsu (paper §3.3.1, eqs. 3-9, 16-17).
+"""Automatic histogram peak detection and valley-emphasis Otsu (paper §3.3.1, eqs. (3)–(9), 16-17).
 
 The "lost mountain explorer" strategy: smooth the histogram, take its local maxima as a
 draft plan, then keep as dominant the peaks whose crossover index stands above both
@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 
 def smooth_histogram(hist: NDArray[np.floating]) -> NDArray[np.float64]:
-    """3-tap moving average h(i) = [h(i-1) + h(i) + h(i+1)] / 3 (eq. 3), edges replicated."""
+    """3-tap moving average h(i) = [h(i-1) + h(i) + h(i+1)] / 3 (eq. (3)), edges replicated."""
     h = np.asarray(hist, dtype=np.float64)
     if h.ndim != 1 or h.size < 3:
         raise ValueError(f"hist must be 1-D with at least 3 bins, got shape {h.shape}")
@@ -23,7 +23,7 @@ def smooth_histogram(hist: NDArray[np.floating]) -> NDArray[np.float64]:
 
 
 def initial_peaks(h: NDArray[np.floating]) -> NDArray[np.intp]:
-    """Indices δ with h(δ) > h(δ-1) and h(δ) > h(δ+1) (eq. 4); plateaus count once (left edge)."""
+    """Indices δ with h(δ) > h(δ-1) and h(δ) > h(δ+1) (eq. (4)); plateaus count once (left edge)."""
     h = np.asarray(h, dtype=np.float64)
     n = len(h)
     # for each bin, the next bin whose value differs (so a flat-topped peak is still found)
@@ -48,7 +48,7 @@ def _neighbours(n: int) -> NDArray[np.intp]:
 
 
 def offset_distances(h: NDArray[np.floating], delta: NDArray[np.intp]) -> NDArray[np.float64]:
-    """Offset distance L(δ(k)) from each peak to its observing location (eq. 6).
+    """Offset distance L(δ(k)) from each peak to its observing location (eq. (6)).
 
     L = h(δk)·[g(δk+1) - g(δk)] / |h(δk+1) - h(δk)|, or with (k+1)/k·h(δk+1) in the
     denominator when the two heights are equal. The last peak uses its left neighbour.
@@ -69,7 +69,7 @@ def offset_distances(h: NDArray[np.floating], delta: NDArray[np.intp]) -> NDArra
 def crossover_indices(
     h: NDArray[np.floating], delta: NDArray[np.intp], L: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    """Crossover index θ(δk) = d(δk) / L(δk), d = h(δk) - min(h(δk), h(δk+1)) / 2 (eq. 8)."""
+    """Crossover index θ(δk) = d(δk) / L(δk), d = h(δk) - min(h(δk), h(δk+1)) / 2 (eq. (8))."""
     h = np.asarray(h, dtype=np.float64)
     n = len(delta)
     j = _neighbours(n) if n > 1 else np.zeros(1, np.intp)
@@ -88,10 +88,10 @@ class PeakResult:
 
 
 def dominant_peaks(hist: NDArray[np.floating]) -> PeakResult:
-    """Algorithm 2: dominant peaks of a histogram by the crossover-index search (eqs. 3-9).
+    """Algorithm 2: dominant peaks of a histogram by the crossover-index search (eqs. (3)–(9)).
 
-    A peak j is dominant when θ(δj) > θ(δj-1) and θ(δj) > θ(δj+1) (eq. 9); after each
-    one the observing location moves to g(δj) - L(δj) (eq. 7), its index is reset and the
+    A peak j is dominant when θ(δj) > θ(δj-1) and θ(δj) > θ(δj+1) (eq. (9)); after each
+    one the observing location moves to g(δj) - L(δj) (eq. (7)), its index is reset and the
     search goes on from the next peak. If the search finds none, the highest peak is
     the single dominant one.
     """
@@ -120,7 +120,7 @@ def dominant_peaks(hist: NDArray[np.floating]) -> PeakResult:
 
 
 def valley_emphasis_threshold(hist: NDArray[np.floating]) -> int:
-    """Valley-emphasis Otsu: t* = argmax (1 - p_t)(ω1 μ1² + ω2 μ2²) (eqs. 16-17)."""
+    """Valley-emphasis Otsu: t* = argmax (1 - p_t)(ω1 μ1² + ω2 μ2²) (eqs. (16)–(17))."""
     h = np.asarray(hist, dtype=np.float64)
     total = h.sum()
     if total <= 0:

@@ -1,4 +1,4 @@
-"""Region growing from the boundaries of detected regions (paper §3.3.3, eq. 15)."""
+"""Region growing from the boundaries of detected regions (paper §3.3.3, eq. (15))."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ def grow_regions(
     """Grow each connected region of ``seeds`` over 8-neighbours similar to it.
 
     A neighbour N joins the region S it touches when e = |g_S - g_N| < ``max_diff``
-    (eq. 15), g_S being the region's current mean intensity; regions' boundary pixels
+    (eq. (15)), g_S being the region's current mean intensity; regions' boundary pixels
     are the seeds, and growth stops when no pixel joins or after ``max_iter`` rounds.
 
     Parameters

@@ -1,4 +1,4 @@
-"""Multi-scale Hessian line emphasis of Sato et al. and Fujita et al. (paper eqs. 10-14)."""
+"""Multi-scale Hessian line emphasis of Sato et al. and Fujita et al. (paper eqs. (10)–(14))."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ def _hessian(
     image: NDArray[np.float32], sigma: float
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
     """Half trace (Ixx + Iyy)/2, half difference (Ixx − Iyy)/2 and Ixy of the
-    Gaussian-smoothed image (eqs. 10, 11), each (M, N) float32."""
+    Gaussian-smoothed image (eqs. (10), 11), each (M, N) float32."""
     if sigma <= 0:
         raise ValueError(f"sigma must be positive, got {sigma}")
     ksize = int(2 * round(3 * sigma) + 1)
@@ -29,7 +29,7 @@ def _hessian(
 def hessian_eigenvalues(
     image: NDArray[np.floating], sigma: float
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Eigenvalues λ1 ≥ λ2 of the Gaussian-smoothed Hessian (eqs. 10, 11, 13), each (M, N)."""
+    """Eigenvalues λ1 ≥ λ2 of the Gaussian-smoothed Hessian (eqs. (10), 11, 13), each (M, N)."""
     half_trace, half_diff, ixy = _hessian(np.asarray(image, dtype=np.float32), sigma)
     root = cv2.magnitude(half_diff, ixy)
     return cv2.add(half_trace, root), cv2.subtract(half_trace, root)
@@ -117,7 +117,7 @@ def line_emphasis(
     normalise: bool = False,
     half_resolution_from: float | None = None,
 ) -> NDArray[np.float32]:
-    """Multi-scale line filter R(x) = max_i σ_1² λ12(x; σ_i), σ_i = s^(i-1) σ_1 (eq. 14).
+    """Multi-scale line filter R(x) = max_i σ_1² λ12(x; σ_i), σ_i = s^(i-1) σ_1 (eq. (14)).
 
     Parameters
     ----------

@@ -1,5 +1,5 @@
 """The simulated robot: skid-steer motion with wheel slip, Hall-sensor odometry, IR edge
-sensors with the paper's edge avoidance (Algorithm 1), batteries and adhesion (eq. 1)."""
+sensors with the paper's edge avoidance (Algorithm 1), batteries and adhesion (eq. (1))."""
 
 from __future__ import annotations
 
