@@ -102,7 +102,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run the ground station, the simulated robot and the jobs; print the summary."""
-    from server.loopback import run_demo
+    from server.demo import run_demo
 
     settings = _settings(args)
     return run_demo(
