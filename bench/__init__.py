@@ -35,12 +35,17 @@ DEFAULT = [
 
 
 def run_benchmarks(
-    names: list[str], *, dataset: Path | None = None, limit: int | None = None
+    names: list[str],
+    *,
+    dataset: Path | None = None,
+    limit: int | None = None,
+    models: Path | None = None,
 ) -> None:
     """Run the named benchmarks (all when empty), printing one JSON object per line."""
     unknown = [n for n in names if n not in BENCHMARKS]
     if unknown:
         raise CommandError(f"unknown benchmark(s) {unknown}; known: {sorted(BENCHMARKS)}")
     for name in names or DEFAULT:
-        for result in BENCHMARKS[name](dataset=dataset, limit=limit):
+        extra = {"models": models} if name == "detect" else {}
+        for result in BENCHMARKS[name](dataset=dataset, limit=limit, **extra):
             print(json.dumps(result), flush=True)

@@ -1,11 +1,16 @@
-"""``steelscan bench detect``: crack segmentation (PI, SI, DSC) of every method over the
-development split, in normal and low light, and the detector's speed."""
+"""``steelscan bench detect``: crack segmentation (PI, SI, DSC, eqs. (18)–(20)) of every
+method on every crack dataset, in normal and in uneven low light; corrosion on the rust
+sets; the detectors' speed per image and on a mosaic.
+
+``--models DIR`` scores each set with ``DIR/<set>.onnx``, a network trained without that
+set (``steelscan train-detector --leave-one-out``); without it the shipped network is used,
+and results say ``"left_out": false`` for sets it was trained on.
+"""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -13,160 +18,170 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bench.common import Result
-from processing.detection import detect_cracks
-from processing.peaks import dominant_peaks
+from processing.detection import detect_corrosion, detect_cracks, to_gray
+from processing.learned import MODEL_PATH, LearnedParams, learned_cracks, load_model
+from processing.learning.data import Sample, load_dataset
+from processing.metrics import PooledCounts
 from server.config import PROJECT_ROOT
 from server.errors import CommandError
 
-DEFAULT_CRACK_DATASET = PROJECT_ROOT.parent / "shared" / "datasets" / "deepcrack-train"
+DATASETS_ROOT = PROJECT_ROOT.parent / "shared" / "datasets"
+CRACK_METHODS = ("sauvola", "otsu", "paper", "proposed", "learned")
+Detector = Callable[[NDArray[np.uint8]], NDArray[np.bool_]]
 
 
-@dataclass
-class Pooled:
-    """Pixel counts pooled over a set of images, strict and with a tolerance."""
-
-    tp_p: int = 0
-    fp: int = 0
-    tp_t: int = 0
-    fn: int = 0
-
-    def add(self, pred: NDArray[np.bool_], truth: NDArray[np.bool_], tolerance_px: int) -> None:
-        """Accumulate one image's counts."""
-        if tolerance_px:
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * tolerance_px + 1,) * 2)
-            t_near = cv2.dilate(truth.astype(np.uint8), k) > 0
-            p_near = cv2.dilate(pred.astype(np.uint8), k) > 0
-        else:
-            t_near, p_near = truth, pred
-        self.tp_p += int((pred & t_near).sum())
-        self.fp += int((pred & ~t_near).sum())
-        self.tp_t += int((truth & p_near).sum())
-        self.fn += int((truth & ~p_near).sum())
-
-    def scores(self) -> tuple[float, float, float]:
-        """PI, SI, DSC (paper eqs. 18-20) of the pooled counts."""
-        pi = self.tp_p / max(self.tp_p + self.fp, 1)
-        si = self.tp_t / max(self.tp_t + self.fn, 1)
-        dsc = 2 * pi * si / (pi + si) if pi + si else 0.0
-        return round(pi, 4), round(si, 4), round(dsc, 4)
+def is_corrosion_set(root: Path) -> bool:
+    """Whether a dataset folder holds corrosion (area) labels: its README's title says so."""
+    readme = root / "README.md"
+    title = readme.read_text(errors="replace").splitlines()[0].lower() if readme.is_file() else ""
+    return "rust" in title or "corrosion" in title
 
 
-def low_light(image: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np.uint8]:
-    """Uneven low light: illumination falling to ~20 % across the frame, gamma, sensor noise."""
-    gray = image.astype(np.float32) / 255.0
-    h, w = gray.shape[:2]
+def find_datasets(root: Path = DATASETS_ROOT) -> list[Path]:
+    """Dataset folders (with ``images/`` and ``masks/``) under ``root``, by name."""
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.iterdir() if (p / "images").is_dir() and (p / "masks").is_dir())
+
+
+def low_light(gray: NDArray[np.uint8], rng: np.random.Generator) -> NDArray[np.uint8]:
+    """Uneven low light: illumination falling to ~20 % across the frame, gamma 1.4, noise."""
+    x = gray.astype(np.float32) / 255.0
+    h, w = x.shape
     angle = rng.uniform(0, 2 * np.pi)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
     t = np.cos(angle) * xx / w + np.sin(angle) * yy / h
     t = (t - t.min()) / max(float(t.max() - t.min()), 1e-6)
-    light = 1.0 - 0.8 * t
-    out = (gray * (light if gray.ndim == 2 else light[..., None])) ** 1.4
-    out = out * 255 + rng.normal(0, 4, out.shape)
+    out = (x * (1.0 - 0.8 * t)) ** 1.4 * 255 + rng.normal(0, 4, x.shape)
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
-def load_crack_dataset(
-    root: Path, limit: int | None
-) -> list[tuple[str, NDArray[np.uint8], NDArray[np.bool_]]]:
-    """(name, image, truth) pairs of a folder with ``images/`` and ``masks/``."""
-    images = sorted((root / "images").glob("*.jpg")) + sorted((root / "images").glob("*.png"))
-    if not images:
-        raise CommandError(f"{root}: no images/ with .jpg or .png files (use --dataset)")
-    out = []
-    for p in images[:limit]:
+def _detector(method: str, model: Path | None) -> Detector:
+    if method == "learned":
+        params = LearnedParams(model_path=model or MODEL_PATH)
+        return lambda gray: learned_cracks(gray, params)
+    return lambda gray: detect_cracks(gray, method=method)  # type: ignore[arg-type]
+
+
+def score_set(samples: list[Sample], detect: Detector) -> dict:
+    """Pooled tolerant (2 px) and strict scores of one detector on one set, and how many
+    images with a crack got an empty mask."""
+    tol, strict, empty = PooledCounts(2), PooledCounts(0), 0
+    for s in samples:
+        pred = detect(s.gray)
+        tol.add(pred, s.truth)
+        strict.add(pred, s.truth)
+        empty += int(s.truth.any() and not pred.any())
+    t, st = tol.scores(), strict.scores()
+    return {
+        "value": t.dsc,
+        "pi": t.pi,
+        "si": t.si,
+        "strict": {"pi": st.pi, "si": st.si, "dsc": st.dsc},
+        "empty_masks": empty,
+    }
+
+
+def bench_detect(
+    dataset: Path | None = None, limit: int | None = None, models: Path | None = None
+) -> Iterator[Result]:
+    """Every crack method on every crack set (and its low-light variant) against the
+    paper's Sauvola baseline; corrosion on the rust sets; speed."""
+    roots = [dataset] if dataset is not None else find_datasets()
+    if not roots:
+        raise CommandError(f"no datasets under {DATASETS_ROOT} (use --dataset)")
+    trained_on = set(load_model().record.get("datasets", {}))
+    rng = np.random.default_rng(0)
+    for root in roots:
+        samples = load_dataset(root, limit)
+        if not samples:
+            raise CommandError(f"{root}: no image/mask pairs")
+        if is_corrosion_set(root):
+            yield from _corrosion(root, limit)
+            continue
+        model = models / f"{root.name}.onnx" if models is not None else None
+        if model is not None and not model.is_file():
+            model = None
+        dim = [Sample(s.name, low_light(s.gray, rng), s.truth) for s in samples]
+        for variant, items in (("", samples), ("lowlight.", dim)):
+            baseline = None
+            for method in CRACK_METHODS:
+                scores = score_set(items, _detector(method, model))
+                baseline = baseline if baseline is not None else scores["value"]
+                extra = {}
+                if method == "learned":
+                    extra["left_out"] = model is not None or root.name not in trained_on
+                yield {
+                    "name": f"detect.{root.name}.{variant}{method}.dsc_tol2",
+                    "unit": "dsc",
+                    **scores,
+                    "baseline": baseline,
+                    "ratio": round(scores["value"] / max(baseline, 1e-9), 3),
+                    "images": len(items),
+                    **extra,
+                }
+    yield from _speed(load_dataset(roots[0], min(limit or 40, 40)))
+    yield from _mosaic_throughput()
+
+
+def _corrosion(root: Path, limit: int | None) -> Iterator[Result]:
+    """The rust detector's pooled scores (strict: rust is an area) against Otsu on the
+    saturation channel."""
+    ours, base = PooledCounts(0), PooledCounts(0)
+    paths = sorted((root / "images").glob("*"))[:limit]
+    for p in paths:
         img = cv2.imread(str(p), cv2.IMREAD_COLOR)
         mask = cv2.imread(str(root / "masks" / f"{p.stem}.png"), cv2.IMREAD_GRAYSCALE)
-        if img is None or mask is None:
+        if img is None or mask is None or mask.shape != img.shape[:2]:
             continue
-        out.append((p.name, img, mask > 127))
-    return out
+        truth = mask > 127
+        ours.add(detect_corrosion(img), truth)
+        sat = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)[..., 1]
+        _, otsu = cv2.threshold(sat, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        base.add(otsu > 0, truth)
+    o, b = ours.scores(), base.scores()
+    yield {
+        "name": f"detect.{root.name}.corrosion.dsc",
+        "value": o.dsc,
+        "unit": "dsc",
+        "pi": o.pi,
+        "si": o.si,
+        "baseline": b.dsc,
+        "ratio": round(o.dsc / max(b.dsc, 1e-9), 3),
+        "what": "rust colour detector vs Otsu on saturation",
+        "images": len(paths),
+    }
 
 
-def sauvola_tuned(image: NDArray[np.uint8]) -> NDArray[np.bool_]:
-    """The strongest Sauvola baseline found on the dev split: window 61, k 0.4, components
-    under 300 px removed (scikit-image's implementation)."""
-    from skimage.filters import threshold_sauvola
-
-    from processing.detection import to_gray
-    from processing.thresholds import remove_small
-
-    gray = to_gray(image)
-    return remove_small(gray < threshold_sauvola(gray, window_size=61, k=0.4), 300)
-
-
-def _method(name: str) -> Callable[[NDArray[np.uint8]], NDArray[np.bool_]]:
-    if name == "sauvola_tuned":
-        return sauvola_tuned
-    return lambda img: detect_cracks(img, method=name)  # type: ignore[arg-type]
-
-
-def bench_detect(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
-    """Pooled PI/SI/DSC (strict and 2-px tolerant) of every method on the dataset and on a
-    low-light variant, against the tuned Sauvola baseline; time per 480x320 image against
-    scikit-image's Sauvola; mosaic throughput; peak detection time per histogram."""
-    data = load_crack_dataset(dataset or DEFAULT_CRACK_DATASET, limit)
-    rng = np.random.default_rng(0)
-    variants = {"": data, "lowlight_": [(n, low_light(i, rng), t) for n, i, t in data]}
-    for prefix, items in variants.items():
-        baseline = 0.0
-        for method in ("sauvola_tuned", "sauvola", "otsu", "paper", "proposed"):
-            strict, tol = Pooled(), Pooled()
-            fn = _method(method)
-            for _, img, truth in items:
-                pred = fn(img)
-                strict.add(pred, truth, 0)
-                tol.add(pred, truth, 2)
-            pi, si, dsc = tol.scores()
-            spi, ssi, sdsc = strict.scores()
-            baseline = baseline or dsc
-            yield {
-                "name": f"detect.{prefix}{method}.dsc_tol2",
-                "value": dsc,
-                "unit": "dsc",
-                "baseline": baseline,
-                "ratio": round(dsc / max(baseline, 1e-9), 3),
-                "pi": pi,
-                "si": si,
-                "strict": {"pi": spi, "si": ssi, "dsc": sdsc},
-                "images": len(items),
-            }
-    small = [cv2.resize(i, (480, 320), interpolation=cv2.INTER_AREA) for _, i, _ in data[:60]]
-    times = {}
-    for method in ("sauvola", "proposed", "paper"):
-        fn = _method(method)
+def _speed(samples: list[Sample]) -> Iterator[Result]:
+    """Milliseconds per 544×384 image of each method, against the paper's Sauvola."""
+    images = [cv2.resize(s.gray, (544, 384), interpolation=cv2.INTER_AREA) for s in samples]
+    times: dict[str, float] = {}
+    for method in ("sauvola", "proposed", "paper", "learned"):
+        detect = _detector(method, None)
+        detect(images[0])  # warm-up: model load, compiled kernels
         t0 = time.perf_counter()
-        for img in small:
-            fn(img)
-        times[method] = 1000 * (time.perf_counter() - t0) / len(small)
+        for img in images:
+            detect(img)
+        times[method] = 1000 * (time.perf_counter() - t0) / len(images)
         yield {
-            "name": f"detect.{method}.time_per_480x320",
+            "name": f"detect.{method}.time_per_544x384",
             "value": round(times[method], 2),
             "unit": "ms",
             "baseline": round(times["sauvola"], 2),
             "ratio": round(times[method] / times["sauvola"], 3),
         }
-    yield from _mosaic_throughput()
-    hists = [
-        np.bincount(cv2.cvtColor(i, cv2.COLOR_BGR2GRAY).ravel(), minlength=256)
-        for _, i, _ in data[:50]
-    ]
-    t0 = time.perf_counter()
-    for h in hists:
-        dominant_peaks(h)
-    yield {
-        "name": "detect.peak_detection_per_histogram",
-        "value": round(1000 * (time.perf_counter() - t0) / len(hists), 3),
-        "unit": "ms",
-    }
 
 
 def _mosaic_throughput() -> Iterator[Result]:
     """Megapixels per second of the detect job's whole mosaic pass on a simulated
     9-megapixel mosaic (surface mask, crack and rust masks with seams, every defect
-    measured), against scikit-image's Sauvola on the same image; and the crack filter alone."""
+    measured) with each crack method, against scikit-image's Sauvola on the same image;
+    and each crack filter alone."""
     from skimage.filters import threshold_sauvola
 
     from processing.detection import detect_cracks_tiled
+    from processing.learned import crack_probability
     from processing.surface import on_surface
     from robot_link.sim.structure import make_structure
     from server.jobs.detect import detect_in
@@ -177,36 +192,43 @@ def _mosaic_throughput() -> Iterator[Result]:
     coverage = np.full((h, w), 255, np.uint8)
     seams = np.zeros((h, w), bool)
     seams[::400, :] = seams[:, ::500] = True  # where frames would meet
-    detect_in(mosaic[:512, :512], 0.25)  # warm-up: compiled kernels, thread pools
     t0 = time.perf_counter()
-    gray = cv2.cvtColor(mosaic, cv2.COLOR_BGR2GRAY)
+    gray = to_gray(mosaic)
     _ = gray < threshold_sauvola(gray, window_size=25, k=0.2)
     base = mp / (time.perf_counter() - t0)
-    runs = []
-    for _ in range(3):
+    for method in ("proposed", "learned"):
+        detect_in(mosaic[:512, :512], 0.25, method=method)  # warm-up
+        runs = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            _, _, found = detect_in(
+                mosaic, 0.25, on_surface(mosaic, coverage), seams, method=method
+            )
+            runs.append(time.perf_counter() - t0)
+        ours = mp / float(np.median(runs))
+        yield {
+            "name": f"detect.{method}.mosaic_throughput",
+            "value": round(ours, 2),
+            "unit": "MP/s",
+            "baseline": round(base, 2),
+            "ratio": round(ours / base, 3),
+            "megapixels": round(mp, 1),
+            "defects": len(found),
+            "what": "surface mask + crack and rust masks (seams) + measurement, 2 threads",
+        }
+    filters: dict[str, Callable[[], object]] = {
+        "proposed": lambda: detect_cracks_tiled(mosaic),
+        "learned": lambda: crack_probability(gray),
+    }
+    for method, run in filters.items():
         t0 = time.perf_counter()
-        _, _, found = detect_in(mosaic, 0.25, on_surface(mosaic, coverage), seams)
-        runs.append(time.perf_counter() - t0)
-    ours = mp / float(np.median(runs))
-    yield {
-        "name": "detect.mosaic_throughput",
-        "value": round(ours, 2),
-        "unit": "MP/s",
-        "baseline": round(base, 2),
-        "ratio": round(ours / base, 3),
-        "megapixels": round(mp, 1),
-        "defects": len(found),
-        "target": 20.0,
-        "what": "surface mask + crack and rust masks (seams) + measurement, 2 threads",
-    }
-    t0 = time.perf_counter()
-    detect_cracks_tiled(mosaic)
-    cracks = mp / (time.perf_counter() - t0)
-    yield {
-        "name": "detect.crack_filter_throughput",
-        "value": round(cracks, 2),
-        "unit": "MP/s",
-        "baseline": round(base, 2),
-        "ratio": round(cracks / base, 3),
-        "megapixels": round(mp, 1),
-    }
+        run()
+        rate = mp / (time.perf_counter() - t0)
+        yield {
+            "name": f"detect.{method}.crack_filter_throughput",
+            "value": round(rate, 2),
+            "unit": "MP/s",
+            "baseline": round(base, 2),
+            "ratio": round(rate / base, 3),
+            "megapixels": round(mp, 1),
+        }

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bench.common import Result, rigid_align_2d, similarity_align_2d
-from bench.detect import DEFAULT_CRACK_DATASET
+from bench.detect import DATASETS_ROOT
 from processing.metrics import mosaic_overlap_errors
 from processing.poses import chain_se2, delta_of_map, frame_i_to_j, relative_se2
 from processing.registration import overlap_rect
@@ -56,7 +56,7 @@ class _Jpegs:
 
 def real_texture(need: tuple[int, int], dataset: Path | None) -> tuple[NDArray[np.uint8], str]:
     """A texture of photographs at least ``need`` (w, h) large, and where it came from."""
-    root = (dataset or DEFAULT_CRACK_DATASET) / "images"
+    root = (dataset or DATASETS_ROOT / "deepcrack-train") / "images"
     paths = sorted(root.glob("*.jpg"))
     cell = (544, 384)
     cols, rows = -(-need[0] // cell[0]), -(-need[1] // cell[1])

@@ -49,6 +49,42 @@ def segmentation_scores(
     return SegmentationScores(round(pi, 6), round(si, 6), round(dsc, 6))
 
 
+@dataclass
+class PooledCounts:
+    """Pixel counts pooled over many images (the benchmark's way of scoring a set):
+    predicted pixels near truth / not, true pixels found / missed."""
+
+    tolerance_px: int = 0
+    tp_pred: int = 0
+    fp: int = 0
+    tp_true: int = 0
+    fn: int = 0
+
+    def add(self, pred: NDArray[np.bool_], truth: NDArray[np.bool_]) -> None:
+        """Accumulate one (H, W) prediction against its (H, W) truth."""
+        if pred.shape != truth.shape:
+            raise ValueError(f"pred {pred.shape} and truth {truth.shape} differ in shape")
+        p, t = pred.astype(bool), truth.astype(bool)
+        if self.tolerance_px > 0:
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * self.tolerance_px + 1,) * 2)
+            t_near = cv2.dilate(t.view(np.uint8), k) > 0
+            p_near = cv2.dilate(p.view(np.uint8), k) > 0
+        else:
+            t_near, p_near = t, p
+        self.tp_pred += int(np.count_nonzero(p & t_near))
+        self.fp += int(np.count_nonzero(p & ~t_near))
+        self.tp_true += int(np.count_nonzero(t & p_near))
+        self.fn += int(np.count_nonzero(t & ~p_near))
+
+    def scores(self) -> SegmentationScores:
+        """PI, SI and DSC (eqs. (18)–(20)) of the pooled counts; DSC as the harmonic mean
+        of PI and SI, which equals eq. (20) when there is no tolerance."""
+        pi = self.tp_pred / max(self.tp_pred + self.fp, 1)
+        si = self.tp_true / max(self.tp_true + self.fn, 1)
+        dsc = 2 * pi * si / (pi + si) if pi + si else 0.0
+        return SegmentationScores(round(pi, 4), round(si, 4), round(dsc, 4))
+
+
 def umeyama_alignment(src: NDArray[np.floating], dst: NDArray[np.floating]) -> NDArray[np.float64]:
     """4x4 rigid transform (no scale) minimising ||T·src - dst|| over (N, 3) point sets."""
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)

@@ -176,6 +176,31 @@ def cmd_detect(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train_detector(args: argparse.Namespace) -> int:
+    """Train the crack network on dataset folders and export it to ONNX."""
+    try:
+        from processing.learning.train import TrainParams, leave_one_out, train_from_folders
+    except ImportError as exc:
+        raise CommandError(
+            f"training needs PyTorch and onnx ({exc.name} is missing): "
+            "pip install 'steelscan[train]'"
+        ) from None
+    roots = [Path(d) for d in args.datasets]
+    for r in roots:
+        if not (r / "images").is_dir() or not (r / "masks").is_dir():
+            raise CommandError(f"{r}: not a dataset folder (needs images/ and masks/)")
+    params = TrainParams(
+        iterations=args.iterations, batch=args.batch, seed=args.seed, threads=args.threads
+    )
+    if args.leave_one_out:
+        records = leave_one_out(roots, Path(args.out), params, args.limit)
+        print(json.dumps({k: v["threshold"] for k, v in records.items()}))
+    else:
+        record = train_from_folders(roots, Path(args.out), params, args.limit)
+        print(json.dumps({k: record[k] for k in ("threshold", "parameters", "train_seconds")}))
+    return 0
+
+
 def cmd_stitch(args: argparse.Namespace) -> int:
     """Stitch a folder of frames."""
     from server.commands import stitch_folder
@@ -291,7 +316,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from bench import run_benchmarks
 
     run_benchmarks(
-        args.names, dataset=Path(args.dataset) if args.dataset else None, limit=args.limit
+        args.names,
+        dataset=Path(args.dataset) if args.dataset else None,
+        limit=args.limit,
+        models=Path(args.models) if args.models else None,
     )
     return 0
 
@@ -355,9 +383,28 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("detect", help="crack/defect segmentation of images")
     s.add_argument("images", nargs="+")
     s.add_argument("--out", required=True)
-    s.add_argument("--method", default="proposed", choices=["proposed", "paper", "otsu", "sauvola"])
+    s.add_argument(
+        "--method", default="proposed", choices=["proposed", "learned", "paper", "otsu", "sauvola"]
+    )
     s.add_argument("--px-per-mm", type=float)
     s.set_defaults(func=cmd_detect, image_work=True)
+
+    s = sub.add_parser(
+        "train-detector", help="train the crack network on dataset folders, export it as ONNX"
+    )
+    s.add_argument("datasets", nargs="+", help="folders with images/ and masks/ (255 = crack)")
+    s.add_argument("--out", required=True, help="model file (.onnx); with --leave-one-out a folder")
+    s.add_argument("--iterations", type=int, default=5000)
+    s.add_argument("--batch", type=int, default=12)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--threads", type=int, default=2)
+    s.add_argument("--limit", type=int, help="use at most this many images of each set")
+    s.add_argument(
+        "--leave-one-out",
+        action="store_true",
+        help="one model per dataset trained on the others, as OUT/<dataset>.onnx",
+    )
+    s.set_defaults(func=cmd_train_detector)
 
     s = sub.add_parser("stitch", help="stitch a folder of downward-camera frames")
     s.add_argument("frames_dir")
@@ -378,7 +425,12 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="*",
         help="benchmarks to run: detect, stitch, map, ingest, teleop (the default set), stitch-scale",
     )
-    s.add_argument("--dataset", help="crack dataset folder with images/ and masks/ (detect)")
+    s.add_argument(
+        "--dataset", help="one dataset folder with images/ and masks/ (detect; default: all)"
+    )
+    s.add_argument(
+        "--models", help="folder of leave-one-out networks, <dataset>.onnx (detect: learned)"
+    )
     s.add_argument("--limit", type=int, help="use at most this many images")
     s.set_defaults(func=cmd_bench, image_work=True)
 

@@ -64,7 +64,7 @@ def detect_images(images: list[Path], out: Path, *, method: str, px_per_mm: floa
                 if big
                 else detect_cracks(img, method=method)
             )  # type: ignore[arg-type]
-        except ValueError as exc:
+        except (ValueError, FileNotFoundError) as exc:
             raise CommandError(f"{path}: {exc}") from None
         mm_per_px = 1.0 / px_per_mm if px_per_mm else None
         for d in measure_defects(mask, "crack", mm_per_px=mm_per_px, first_id=len(records) + 1):

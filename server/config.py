@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -41,6 +42,10 @@ class Settings(BaseSettings):
     fsync: bool = Field(default=False, description="fsync every stored file (power-loss safety)")
     job_workers: int = Field(default=2, ge=1, description="worker processes for processing jobs")
     auto_process: bool = Field(default=True, description="run jobs when a session ends")
+    detect_method: Literal["proposed", "learned"] = Field(
+        default="proposed",
+        description="crack detector of the detect job: the filter pipeline or the shipped network",
+    )
     web_dir: Path = PROJECT_ROOT / "web"
     live_queue: int = Field(default=8, description="frames buffered per watching browser")
     allowed_origins: list[str] = Field(

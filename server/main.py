@@ -37,7 +37,13 @@ def build_state(settings: Settings) -> AppState:
     engine = db.make_engine(url)
     factory = db.make_sessionmaker(engine)
     files = SessionFiles(settings.data_dir, fsync=settings.fsync)
-    runner = JobRunner(factory, url, str(settings.data_dir.resolve()), settings.job_workers)
+    runner = JobRunner(
+        factory,
+        url,
+        str(settings.data_dir.resolve()),
+        settings.job_workers,
+        defaults={"detect": {"method": settings.detect_method}},
+    )
     ingest = Ingest(factory, files)
     return AppState(
         settings,

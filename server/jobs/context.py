@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -17,12 +17,14 @@ from server.storage.models import InspectionSession, Job
 
 @dataclass
 class JobContext:
-    """What a job body gets: its row's ids, the database and the data directory."""
+    """What a job body gets: its row's ids and parameters, the database and the data
+    directory."""
 
     job_id: int
     session_id: str
     factory: sessionmaker[Session]
     files: SessionFiles
+    params: dict[str, Any] = field(default_factory=dict)
 
     def progress(self, fraction: float, message: str = "") -> None:
         """Record progress (0-1) and a short message."""

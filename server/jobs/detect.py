@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,15 @@ from sqlalchemy import delete, select
 
 from processing.defects import Defect as Defect_
 from processing.defects import measure_defects
-from processing.detection import CorrosionParams, CrackParams, defect_masks
+from processing.detection import (
+    CorrosionParams,
+    CrackMethod,
+    CrackParams,
+    Spreads,
+    defect_masks,
+    measure_spreads,
+)
+from processing.learned import load_model
 from processing.poses import compose_se2, world_box
 from processing.surface import on_surface, surface_level
 from server.jobs.banded import detect_banded
@@ -67,9 +76,11 @@ def detect_in(
     valid: np.ndarray | None = None,
     seams: np.ndarray | None = None,
     workers: int = 2,
+    method: CrackMethod = "proposed",
+    spreads: Spreads | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
-    """Crack and rust masks of one image and its measured defects."""
-    masks = defect_masks(image, valid, seams, workers=workers)
+    """Crack (by ``method``) and rust masks of one image and its measured defects."""
+    masks = defect_masks(image, valid, seams, crack_method=method, spreads=spreads, workers=workers)
     with ThreadPoolExecutor(max_workers=workers) as pool:  # labelling and distances release the GIL
         rust = pool.submit(
             measure_defects,
@@ -107,7 +118,8 @@ def _detect_frames(ctx: JobContext) -> list[Defect]:
             return None
         if img is None:
             return None
-        return (img.shape[1], img.shape[0]), detect_in(img, mm_per_px, workers=1)[2]
+        found = detect_in(img, mm_per_px, workers=1, method=_method(ctx))[2]
+        return (img.shape[1], img.shape[0]), found
 
     rows: list[Defect] = []
     with ThreadPoolExecutor(
@@ -153,11 +165,12 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     referenced = bool(world.get("world_referenced"))
     mm_per_px = 1000.0 / px_per_m if referenced else None
     ctx.progress(0.6, "mosaic")
+    spreads = _frame_spreads(ctx)
     if int(world["width_px"]) * int(world["height_px"]) > MOSAIC_IN_MEMORY_PX:
-        found = _detect_mosaic_banded(ctx, out, mm_per_px)
+        found = _detect_mosaic_banded(ctx, out, mm_per_px, spreads)
     else:
-        found = _detect_mosaic(out, mm_per_px)
-    mosaic_rows = []
+        found = _detect_mosaic(out, mm_per_px, _method(ctx), spreads)
+    mosaic_rows: list[Defect] = []
     for d in found:
         x, y, w, h = d.bbox
         placed = (
@@ -183,17 +196,58 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
         "defects": len(found),
         "by_class": by_class,
         "frame_defects": len(frame_rows),
-        "method": "proposed",
+        "method": _method(ctx),
         "reviews_carried_over": kept,
         "crack_mask": str(out / "crack_mask.png"),
         "params": {
-            "crack": params_record(CrackParams()),
+            "crack": _crack_record(_method(ctx)),
             "corrosion": params_record(CorrosionParams()),
         },
     }
 
 
-def _detect_mosaic(out: Path, mm_per_px: float | None) -> list[Defect_]:
+def _frame_spreads(ctx: JobContext, n: int = 9) -> Spreads | None:
+    """The camera's surface statistics for ``proposed`` on the mosaic, pooled over up to
+    ``n`` frames spread through the session (None without readable frames), so that every
+    tile and band of the mosaic is thresholded alike."""
+    with ctx.factory() as db:
+        frames = list(
+            db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq))
+        )
+    found = []
+    for i in np.unique(np.linspace(0, len(frames) - 1, n).astype(int)) if frames else []:
+        try:
+            data = np.frombuffer(ctx.files.payload(frames[i]), np.uint8)
+        except OSError:
+            continue
+        gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+        if gray is not None and min(gray.shape) >= 3 and gray.std() > 0:
+            found.append(measure_spreads(gray))
+    return Spreads.pooled(found) if found else None
+
+
+def _method(ctx: JobContext) -> CrackMethod:
+    method = ctx.params.get("method", "proposed")
+    if method not in ("proposed", "learned"):
+        raise ValueError(f"detect method must be 'proposed' or 'learned', got {method!r}")
+    return method
+
+
+def _crack_record(method: CrackMethod) -> dict[str, Any]:
+    """The crack detector's parameters; for the network, its training record's summary."""
+    if method == "proposed":
+        return params_record(CrackParams())
+    record = load_model().record
+    keys = ("format", "datasets", "threshold", "parameters", "train_seconds")
+    return {"method": "learned", **{k: record.get(k) for k in keys}}
+
+
+def _detect_mosaic(
+    out: Path,
+    mm_per_px: float | None,
+    method: CrackMethod = "proposed",
+    spreads: Spreads | None = None,
+) -> list[Defect_]:
     """Defects of a mosaic that fits in memory, found in one pass; writes the mask PNGs."""
     mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
     if mosaic is None:
@@ -207,21 +261,25 @@ def _detect_mosaic(out: Path, mm_per_px: float | None) -> list[Defect_]:
         else None
     )
     seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
-    cracks, rust, found = detect_in(mosaic, mm_per_px, on_surface(mosaic, coverage), seams)
+    valid = on_surface(mosaic, coverage)
+    cracks, rust, found = detect_in(mosaic, mm_per_px, valid, seams, method=method, spreads=spreads)
     write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
     write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
     return found
 
 
-def _detect_mosaic_banded(ctx: JobContext, out: Path, mm_per_px: float | None) -> list[Defect_]:
+def _detect_mosaic_banded(
+    ctx: JobContext, out: Path, mm_per_px: float | None, spreads: Spreads | None
+) -> list[Defect_]:
     """Defects of a mosaic too large for memory, band by band (:mod:`server.jobs.banded`);
     the surface's brightness level comes from the overview."""
     overview = cv2.imread(str(out / "mosaic_overview.png"), cv2.IMREAD_COLOR)
     if overview is None:
         raise ValueError("mosaic_overview.png cannot be read")
     level = surface_level(overview, np.any(overview > 0, axis=2))
+    masks = partial(defect_masks, crack_method=_method(ctx), spreads=spreads)
     return detect_banded(
-        out, defect_masks, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m)
+        out, masks, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m)
     )
 
 

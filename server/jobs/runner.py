@@ -27,9 +27,16 @@ class JobRunner:
     """
 
     def __init__(
-        self, factory: sessionmaker[Session], database_url: str, data_dir: str, workers: int
+        self,
+        factory: sessionmaker[Session],
+        database_url: str,
+        data_dir: str,
+        workers: int,
+        defaults: dict[str, dict[str, Any]] | None = None,
     ) -> None:
+        """``defaults``: parameters per job kind, under those a caller gives."""
         self.factory = factory
+        self.defaults = defaults or {}
         self.database_url = database_url
         self.data_dir = data_dir
         self.workers = workers
@@ -78,7 +85,12 @@ class JobRunner:
             job = Job(
                 session_id=session_id,
                 kind=kind,
-                params={**(params or {}), "after": after or [], "uses": uses or []},
+                params={
+                    **self.defaults.get(kind, {}),
+                    **(params or {}),
+                    "after": after or [],
+                    "uses": uses or [],
+                },
             )
             db.add(job)
             db.commit()

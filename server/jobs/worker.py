@@ -56,8 +56,8 @@ def run_job(job_id: int, database_url: str, data_dir: str) -> None:
             return
         job.state, job.started_at, job.progress, job.error = JobState.running, utcnow(), 0.0, None
         db.commit()
-        kind, session_id = job.kind, job.session_id
-    ctx = JobContext(job_id, session_id, factory, SessionFiles(Path(data_dir)))
+        kind, session_id, params = job.kind, job.session_id, dict(job.params or {})
+    ctx = JobContext(job_id, session_id, factory, SessionFiles(Path(data_dir)), params)
     try:
         result = JOB_KINDS[kind](ctx)
     except Exception as exc:  # a job's failure is recorded, never raised into the runner

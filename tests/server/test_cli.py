@@ -243,15 +243,16 @@ def test_stitch_refuses_corrupt_or_mismatched_frames_and_writes_nothing(tmp_path
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason="shared dataset not present")
 def test_bench_detect_prints_json_lines_with_baselines() -> None:
-    proc = steelscan("bench", "detect", "--limit", "2")
+    proc = steelscan("bench", "detect", "--dataset", str(DATASET), "--limit", "2")
     assert proc.returncode == 0, proc.stderr
     results = [json.loads(line) for line in proc.stdout.splitlines()]
     names = {r["name"] for r in results}
+    set_name = DATASET.name
     assert {
-        "detect.proposed.dsc_tol2",
-        "detect.sauvola_tuned.dsc_tol2",
-        "detect.proposed.time_per_480x320",
-        "detect.peak_detection_per_histogram",
+        *(f"detect.{set_name}.{m}.dsc_tol2" for m in ("sauvola", "paper", "proposed", "learned")),
+        f"detect.{set_name}.lowlight.learned.dsc_tol2",
+        "detect.learned.time_per_544x384",
+        "detect.learned.mosaic_throughput",
     } <= names
     for r in results:
         assert {"name", "value", "unit"} <= r.keys()

@@ -1,0 +1,149 @@
+"""Crack datasets and the training crops drawn from them (NumPy and OpenCV only).
+
+A dataset is a folder with ``images/<stem>.<ext>`` and ``masks/<stem>.png`` (255 = defect),
+the layout of the sets in ``shared/datasets``. Images are read as 8-bit grey: cracks are
+darker than their surroundings whatever the colour of the surface, and one channel makes
+the network indifferent to paint and lighting colour.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One labelled image: (H, W) uint8 grey and (H, W) bool truth."""
+
+    name: str
+    gray: NDArray[np.uint8]
+    truth: NDArray[np.bool_]
+
+
+def load_dataset(root: Path, limit: int | None = None) -> list[Sample]:
+    """Every image of ``root/images`` with its ``root/masks/<stem>.png``, sorted by name;
+    pairs whose files are missing, unreadable or of different sizes are skipped."""
+    paths = sorted(p for p in (root / "images").glob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+    out: list[Sample] = []
+    for p in paths[:limit]:
+        gray = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        mask = cv2.imread(str(root / "masks" / f"{p.stem}.png"), cv2.IMREAD_GRAYSCALE)
+        if gray is None or mask is None or gray.shape != mask.shape:
+            continue
+        out.append(Sample(p.name, gray, mask > 127))
+    return out
+
+
+def split_holdout(samples: list[Sample], every: int = 10) -> tuple[list[Sample], list[Sample]]:
+    """(train, holdout): every ``every``-th sample (by name order) held out for choosing the
+    probability threshold; the rest for fitting."""
+    hold = [s for i, s in enumerate(samples) if i % every == every // 2]
+    fit = [s for i, s in enumerate(samples) if i % every != every // 2]
+    return fit, hold
+
+
+@dataclass(frozen=True)
+class AugmentParams:
+    """Ranges of the random changes made to each training crop.
+
+    Scale and rotation cover cracks of other widths and directions than the sets hold;
+    gain, gamma, uneven light, blur, noise and JPEG re-compression cover the camera.
+    """
+
+    crop_px: int = 256
+    scale: tuple[float, float] = (0.6, 1.6)
+    gain: tuple[float, float] = (0.5, 1.3)
+    gamma: tuple[float, float] = (0.6, 1.6)
+    uneven_light: float = 0.6
+    blur_sigma: tuple[float, float] = (0.0, 1.2)
+    noise_sigma: tuple[float, float] = (0.0, 8.0)
+    jpeg_quality: tuple[int, int] = (40, 95)
+    crack_fraction: float = 0.8
+
+
+def random_crop(
+    sample: Sample, rng: np.random.Generator, params: AugmentParams = AugmentParams()
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """One augmented (crop, crop) pair: grey in [0, 1] and truth in {0, 1}, float32.
+
+    A random similarity transform (log-uniform scale, any rotation, a flip) maps a window
+    of the image onto the crop, centred on a crack pixel with probability
+    ``params.crack_fraction``; borders are mirrored. Photometric changes follow.
+    """
+    n = params.crop_px
+    h, w = sample.gray.shape
+    s = math.exp(rng.uniform(*np.log(params.scale)))
+    angle = rng.uniform(0.0, 360.0)
+    ys, xs = np.nonzero(sample.truth)
+    if len(ys) and rng.random() < params.crack_fraction:
+        k = rng.integers(len(ys))
+        cy, cx = float(ys[k]), float(xs[k])
+        cy += rng.uniform(-0.3, 0.3) * n / s
+        cx += rng.uniform(-0.3, 0.3) * n / s
+    else:
+        cy, cx = rng.uniform(0, h), rng.uniform(0, w)
+    m = cv2.getRotationMatrix2D((cx, cy), angle, s)
+    m[:, 2] += (n / 2 - cx, n / 2 - cy)
+    if rng.random() < 0.5:
+        m[0] = -m[0]
+        m[0, 2] += n - 1
+    interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
+    gray = cv2.warpAffine(sample.gray, m, (n, n), flags=interp, borderMode=cv2.BORDER_REFLECT_101)
+    truth = cv2.warpAffine(
+        sample.truth.astype(np.float32),
+        m,
+        (n, n),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REFLECT_101,
+    )
+    return photometric(gray, rng, params), (truth > 0.35).astype(np.float32)
+
+
+def photometric(
+    gray: NDArray[np.uint8], rng: np.random.Generator, params: AugmentParams = AugmentParams()
+) -> NDArray[np.float32]:
+    """(H, W) float32 in [0, 1]: gain, gamma, a linear light ramp, blur, sensor noise and
+    JPEG re-compression of an (H, W) uint8 image, each drawn from ``params``."""
+    h, w = gray.shape
+    if rng.random() < 0.5:
+        q = int(rng.integers(*params.jpeg_quality))
+        ok, buf = cv2.imencode(".jpg", gray, [cv2.IMWRITE_JPEG_QUALITY, q])
+        if ok:
+            gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    x = gray.astype(np.float32) / 255.0
+    sigma = rng.uniform(*params.blur_sigma)
+    if sigma > 0.3:
+        x = cv2.GaussianBlur(x, (0, 0), sigma)
+    x = np.clip(x, 0, 1) ** rng.uniform(*params.gamma)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    a = rng.uniform(0, 2 * np.pi)
+    ramp = (np.cos(a) * xx + np.sin(a) * yy) / max(h, w)
+    light = 1.0 - params.uneven_light * rng.random() * (ramp - ramp.min())
+    x = x * light * rng.uniform(*params.gain) + rng.uniform(-0.1, 0.1)
+    x = x + rng.normal(0.0, rng.uniform(*params.noise_sigma) / 255.0, x.shape)
+    return np.clip(x, 0.0, 1.0).astype(np.float32)
+
+
+def balanced_batch(
+    sets: list[list[Sample]],
+    batch: int,
+    rng: np.random.Generator,
+    params: AugmentParams = AugmentParams(),
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """(B, 1, N, N) images and truths, each drawn from a set chosen uniformly, so that a
+    large set does not outweigh a small one."""
+    xs, ys = [], []
+    for _ in range(batch):
+        group = sets[int(rng.integers(len(sets)))]
+        x, y = random_crop(group[int(rng.integers(len(group)))], rng, params)
+        xs.append(x)
+        ys.append(y)
+    return np.stack(xs)[:, None], np.stack(ys)[:, None]
