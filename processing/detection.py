@@ -10,7 +10,7 @@ crack network, :mod:`processing.learned`), and the paper's baselines ``otsu`` an
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import astuple, dataclass
+from dataclasses import astuple, dataclass, replace
 from typing import Literal
 
 import cv2
@@ -85,11 +85,14 @@ class CrackParams:
 
 @dataclass(frozen=True)
 class CorrosionParams:
-    """Options of the rust detector."""
+    """Options of the rust detector: rust's hues (OpenCV's 0–180 scale, red wrapping round
+    through 180) and the least saturation; above that, the image's own split between
+    saturated and grey pixels (Otsu on saturation) decides, so that on a colourful surface
+    only the clearly rust-coloured part counts."""
 
-    hue_min: int = 0
-    hue_max: int = 22
-    min_saturation: int = 90
+    hue_max: int = 30
+    hue_wrap_from: int = 170
+    min_saturation: int = 40
     min_area_px: int = 400
 
 
@@ -148,14 +151,14 @@ def detect_cracks_tiled(
         return detect_cracks(image, method=method)
     out = np.zeros(image.shape[:2], bool)
     gray = to_gray(image)
-    spreads = sample_spreads(gray, window_px=tile_px) if method == "proposed" else None
+    surface = sample_surface(gray, window_px=tile_px) if method == "proposed" else None
 
     def run(tile: tuple[slice, slice, slice, slice]) -> None:
         rows, cols, cr, cc = tile
         part = gray[rows, cols]
         mask = (
-            proposed_cracks(part, spreads=spreads)
-            if spreads is not None
+            proposed_cracks(part, surface=surface)
+            if surface is not None
             else detect_cracks(part, method=method)
         )
         out[tile_core(*tile)] = mask[cr, cc]
@@ -184,7 +187,7 @@ def defect_masks(
     seams: NDArray[np.bool_] | None = None,
     *,
     crack_method: CrackMethod = "proposed",
-    spreads: Spreads | None = None,
+    surface: SurfaceStats | None = None,
     crack_params: CrackParams = CrackParams(),
     corrosion_params: CorrosionParams = CorrosionParams(),
     tile_px: int = 1024,
@@ -195,7 +198,7 @@ def defect_masks(
     ``workers`` threads; only ``valid`` pixels count; components lying along ``seams``
     (exposure steps where mosaic frames meet: straight dark edges) are not cracks, nor
     are cracks on a rust patch's rim (counted as corrosion). ``proposed`` measures its
-    thresholds in ``spreads`` (sampled from the image when not given), the same in every
+    thresholds in ``surface`` (sampled from the image when not given), the same in every
     tile."""
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise ValueError(f"image must be (H, W, 3) uint8 BGR, got {image.shape} {image.dtype}")
@@ -216,13 +219,18 @@ def defect_masks(
             mask, dark_by = learned_cracks(gray), cv2.subtract(background, smooth)
             cracks[core], contrast[core] = mask[cr, cc], dark_by[cr, cc]
         elif min(gray.shape) >= 3:
-            mask, dark_by = _proposed(gray, crack_params, spreads)
+            mask, dark_by = _proposed(gray, crack_params, surface)
             cracks[core], contrast[core] = mask[cr, cc], dark_by[cr, cc]
-        rust[core] = corrosion_candidates(part, corrosion_params)[cr, cc]
+        rust[core] = corrosion_candidates(part, corrosion_params, rust_sat)[cr, cc]
 
     tiles = tile_cores(shape, tile_px, overlap_px)
-    if spreads is None and crack_method == "proposed" and len(tiles) > 1:
-        spreads = sample_spreads(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), crack_params, tile_px)
+    if surface is None and crack_method == "proposed" and len(tiles) > 1:
+        surface = sample_surface(image, crack_params, tile_px)
+    rust_sat = (
+        surface.rust_saturation
+        if surface is not None and surface.rust_saturation is not None
+        else rust_saturation(image, corrosion_params)
+    )
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(tiles)))) as pool:
         list(pool.map(run, tiles))
     if valid is not None:
@@ -313,28 +321,32 @@ def estimate_background(
 
 
 @dataclass(frozen=True)
-class Spreads:
+class SurfaceStats:
     """The surface's own statistics that the ``proposed`` thresholds are measured in: the
     median and spread (1.4826 · median absolute deviation) of the line response and of the
-    normalised brightness. Measured on each image, or once for a whole mosaic (from its
-    frames, or a sample of it) so that every tile and band uses the same."""
+    normalised brightness; and the saturation above which a rust-hued pixel is rust (colour
+    images). Measured on each image, or once for a whole mosaic (from its frames, or a
+    sample of it) so that every tile and band uses the same."""
 
     line_median: float
     line_spread: float
     light_median: float
     light_spread: float
+    rust_saturation: float | None = None
 
     @classmethod
-    def of(cls, line: NDArray[np.float32], light: NDArray[np.float32]) -> Spreads:
+    def of(cls, line: NDArray[np.float32], light: NDArray[np.float32]) -> SurfaceStats:
         """Statistics of (H, W) line response and normalised brightness arrays."""
         lm, ls = _median_spread(line)
         bm, bs = _median_spread(light)
         return cls(lm, ls, bm, bs)
 
     @classmethod
-    def pooled(cls, many: list[Spreads]) -> Spreads:
+    def pooled(cls, many: list[SurfaceStats]) -> SurfaceStats:
         """The median of each statistic over several images (a mosaic's frames)."""
-        return cls(*np.median([astuple(s) for s in many], axis=0).tolist())
+        crack = np.median([astuple(s)[:4] for s in many], axis=0).tolist()
+        rust = [s.rust_saturation for s in many if s.rust_saturation is not None]
+        return cls(*crack, rust_saturation=float(np.median(rust)) if rust else None)
 
 
 def _median_spread(values: NDArray[np.float32]) -> tuple[float, float]:
@@ -362,44 +374,51 @@ def _line_and_light(
     return R, norm, cv2.subtract(background, smooth)
 
 
-def measure_spreads(gray: NDArray[np.uint8], params: CrackParams = CrackParams()) -> Spreads:
-    """The :class:`Spreads` of an (H, W) uint8 image."""
+def measure_surface(image: NDArray[np.uint8], params: CrackParams = CrackParams()) -> SurfaceStats:
+    """The :class:`SurfaceStats` of an (H, W) grey or (H, W, 3) BGR uint8 image (the rust
+    saturation only for colour)."""
+    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
     R, norm, _ = _line_and_light(gray, params)
-    return Spreads.of(R, norm)
+    stats = SurfaceStats.of(R, norm)
+    if image.ndim == 3:
+        stats = replace(stats, rust_saturation=rust_saturation(image))
+    return stats
 
 
-def sample_spreads(
+def sample_surface(
     gray: NDArray[np.uint8], params: CrackParams = CrackParams(), window_px: int = 1024
-) -> Spreads:
-    """The :class:`Spreads` of a large image, pooled over up to nine windows spread over it
-    (every tile of a tiled pass then uses the same)."""
-    h, w = gray.shape
+) -> SurfaceStats:
+    """The :class:`SurfaceStats` of a large grey or BGR image, pooled over up to nine
+    windows spread over it (every tile of a tiled pass then uses the same)."""
+    h, w = gray.shape[:2]
     if h <= window_px and w <= window_px:
-        return measure_spreads(gray, params)
+        return measure_surface(gray, params)
     ys = np.linspace(0, max(h - window_px, 0), 3).astype(int)
     xs = np.linspace(0, max(w - window_px, 0), 3).astype(int)
     windows = [gray[y : y + window_px, x : x + window_px] for y in ys for x in xs]
-    found = [measure_spreads(win, params) for win in windows if win.std() > 0]
-    return Spreads.pooled(found) if found else measure_spreads(windows[0], params)
+    found = [measure_surface(win, params) for win in windows if win.std() > 0]
+    return SurfaceStats.pooled(found) if found else measure_surface(windows[0], params)
 
 
 def proposed_cracks(
-    gray: NDArray[np.uint8], params: CrackParams = CrackParams(), spreads: Spreads | None = None
+    gray: NDArray[np.uint8],
+    params: CrackParams = CrackParams(),
+    surface: SurfaceStats | None = None,
 ) -> NDArray[np.bool_]:
     """The improved pipeline: illumination normalised (image / background), scale-
     normalised multi-scale Hessian line emphasis (eq. (14) with σ_i²), line response and
-    darkness each in units of the surface's own spread (``spreads``, measured on the image
+    darkness each in units of the surface's own spread (``surface``, measured on the image
     when not given), then the connected regions of line-like dark pixels that are elongated
     and significant (see :class:`CrackParams`)."""
-    return _proposed(gray, params, spreads)[0]
+    return _proposed(gray, params, surface)[0]
 
 
 def _proposed(
-    gray: NDArray[np.uint8], params: CrackParams, spreads: Spreads | None = None
+    gray: NDArray[np.uint8], params: CrackParams, surface: SurfaceStats | None = None
 ) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
     """``proposed_cracks`` and each pixel's darkness below its background (grey levels)."""
     R, norm, contrast = _line_and_light(gray, params)
-    sp = spreads if spreads is not None else Spreads.of(R, norm)
+    sp = surface if surface is not None else SurfaceStats.of(R, norm)
     z = (R - np.float32(sp.line_median)) * np.float32(1.0 / sp.line_spread)
     dark = (np.float32(sp.light_median) - norm) * np.float32(1.0 / sp.light_spread)
     candidates = (z > params.grow_spreads) & (dark > params.dark_spreads)
@@ -418,13 +437,29 @@ def _proposed(
     return select_components(labels, stats, keep), contrast
 
 
+def rust_saturation(image: NDArray[np.uint8], params: CorrosionParams = CorrosionParams()) -> float:
+    """The saturation above which a rust-hued pixel of a BGR image is rust: Otsu's split of
+    the image's saturation (on at most ~1 MP of it), at least ``params.min_saturation``."""
+    h, w = image.shape[:2]
+    step = max(1, int(np.sqrt(h * w / 1e6)))
+    hsv = cv2.cvtColor(image[::step, ::step], cv2.COLOR_BGR2HSV)
+    t, _ = cv2.threshold(hsv[..., 1], 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    return float(max(t, params.min_saturation))
+
+
 def corrosion_candidates(
-    image: NDArray[np.uint8], params: CorrosionParams = CorrosionParams()
+    image: NDArray[np.uint8],
+    params: CorrosionParams = CorrosionParams(),
+    saturation: float | None = None,
 ) -> NDArray[np.bool_]:
-    """Rust-coloured pixels of a BGR image (hue and saturation), cleaned by an opening and
-    a closing; components of any size."""
+    """Rust-coloured pixels of a BGR image (rust hue, saturation above ``saturation``, by
+    default :func:`rust_saturation` of the image), cleaned by an opening and a closing;
+    components of any size."""
+    sat = rust_saturation(image, params) if saturation is None else saturation
     hsv = cv2.cvtColor(cv2.GaussianBlur(image, (5, 5), 0), cv2.COLOR_BGR2HSV)
-    mask = cv2.inRange(hsv, (params.hue_min, params.min_saturation, 0), (params.hue_max, 255, 255))
+    low = int(np.floor(sat)) + 1
+    mask = cv2.inRange(hsv, (0, low, 0), (params.hue_max, 255, 255))
+    mask |= cv2.inRange(hsv, (params.hue_wrap_from, low, 0), (180, 255, 255))
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
     return cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((9, 9), np.uint8)) > 0
 

@@ -21,9 +21,9 @@ from processing.detection import (
     CorrosionParams,
     CrackMethod,
     CrackParams,
-    Spreads,
+    SurfaceStats,
     defect_masks,
-    measure_spreads,
+    measure_surface,
 )
 from processing.learned import load_model
 from processing.poses import compose_se2, world_box
@@ -77,10 +77,10 @@ def detect_in(
     seams: np.ndarray | None = None,
     workers: int = 2,
     method: CrackMethod = "proposed",
-    spreads: Spreads | None = None,
+    surface: SurfaceStats | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
     """Crack (by ``method``) and rust masks of one image and its measured defects."""
-    masks = defect_masks(image, valid, seams, crack_method=method, spreads=spreads, workers=workers)
+    masks = defect_masks(image, valid, seams, crack_method=method, surface=surface, workers=workers)
     with ThreadPoolExecutor(max_workers=workers) as pool:  # labelling and distances release the GIL
         rust = pool.submit(
             measure_defects,
@@ -165,11 +165,11 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     referenced = bool(world.get("world_referenced"))
     mm_per_px = 1000.0 / px_per_m if referenced else None
     ctx.progress(0.6, "mosaic")
-    spreads = _frame_spreads(ctx)
+    surface = _frame_surface(ctx)
     if int(world["width_px"]) * int(world["height_px"]) > MOSAIC_IN_MEMORY_PX:
-        found = _detect_mosaic_banded(ctx, out, mm_per_px, spreads)
+        found = _detect_mosaic_banded(ctx, out, mm_per_px, surface)
     else:
-        found = _detect_mosaic(out, mm_per_px, _method(ctx), spreads)
+        found = _detect_mosaic(out, mm_per_px, _method(ctx), surface)
     mosaic_rows: list[Defect] = []
     for d in found:
         x, y, w, h = d.bbox
@@ -206,7 +206,7 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     }
 
 
-def _frame_spreads(ctx: JobContext, n: int = 9) -> Spreads | None:
+def _frame_surface(ctx: JobContext, n: int = 9) -> SurfaceStats | None:
     """The camera's surface statistics for ``proposed`` on the mosaic, pooled over up to
     ``n`` frames spread through the session (None without readable frames), so that every
     tile and band of the mosaic is thresholded alike."""
@@ -220,10 +220,10 @@ def _frame_spreads(ctx: JobContext, n: int = 9) -> Spreads | None:
             data = np.frombuffer(ctx.files.payload(frames[i]), np.uint8)
         except OSError:
             continue
-        gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
-        if gray is not None and min(gray.shape) >= 3 and gray.std() > 0:
-            found.append(measure_spreads(gray))
-    return Spreads.pooled(found) if found else None
+        image = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        if image is not None and min(image.shape[:2]) >= 3 and image.std() > 0:
+            found.append(measure_surface(image))
+    return SurfaceStats.pooled(found) if found else None
 
 
 def _method(ctx: JobContext) -> CrackMethod:
@@ -246,7 +246,7 @@ def _detect_mosaic(
     out: Path,
     mm_per_px: float | None,
     method: CrackMethod = "proposed",
-    spreads: Spreads | None = None,
+    surface: SurfaceStats | None = None,
 ) -> list[Defect_]:
     """Defects of a mosaic that fits in memory, found in one pass; writes the mask PNGs."""
     mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
@@ -262,14 +262,14 @@ def _detect_mosaic(
     )
     seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
     valid = on_surface(mosaic, coverage)
-    cracks, rust, found = detect_in(mosaic, mm_per_px, valid, seams, method=method, spreads=spreads)
+    cracks, rust, found = detect_in(mosaic, mm_per_px, valid, seams, method=method, surface=surface)
     write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
     write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
     return found
 
 
 def _detect_mosaic_banded(
-    ctx: JobContext, out: Path, mm_per_px: float | None, spreads: Spreads | None
+    ctx: JobContext, out: Path, mm_per_px: float | None, surface: SurfaceStats | None
 ) -> list[Defect_]:
     """Defects of a mosaic too large for memory, band by band (:mod:`server.jobs.banded`);
     the surface's brightness level comes from the overview."""
@@ -277,7 +277,7 @@ def _detect_mosaic_banded(
     if overview is None:
         raise ValueError("mosaic_overview.png cannot be read")
     level = surface_level(overview, np.any(overview > 0, axis=2))
-    masks = partial(defect_masks, crack_method=_method(ctx), spreads=spreads)
+    masks = partial(defect_masks, crack_method=_method(ctx), surface=surface)
     return detect_banded(
         out, masks, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m)
     )

@@ -378,7 +378,7 @@ def test_banded_detection_matches_the_one_pass_result(
     same defects as the in-memory pass on the session's mosaic."""
     import shutil as sh
 
-    from processing.detection import defect_masks, sample_spreads
+    from processing.detection import defect_masks, sample_surface
     from processing.surface import on_surface, surface_level
     from server.jobs.banded import detect_banded
     from server.jobs.detect import _detect_mosaic
@@ -387,12 +387,12 @@ def test_banded_detection_matches_the_one_pass_result(
     results = tmp_path / "results"
     sh.copytree(live.settings.data_dir / "sessions" / sid / "results", results)
     mosaic = cv2.imread(str(results / "mosaic.png"), cv2.IMREAD_COLOR)
-    spreads = sample_spreads(cv2.cvtColor(mosaic, cv2.COLOR_BGR2GRAY))
-    one = _detect_mosaic(results, 0.25, spreads=spreads)
+    surface = sample_surface(mosaic)
+    one = _detect_mosaic(results, 0.25, surface=surface)
     coverage = cv2.imread(str(results / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     level = surface_level(mosaic, coverage)
     assert on_surface(mosaic, coverage, level).any()
-    masks = partial(defect_masks, spreads=spreads)
+    masks = partial(defect_masks, surface=surface)
     banded = detect_banded(results, masks, 0.25, level, rows=200)
     assert mosaic.shape[0] > 400  # several bands, so defects cross seams
 
