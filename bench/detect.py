@@ -18,7 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bench.common import Result
-from processing.detection import detect_corrosion, detect_cracks, to_gray
+from processing.corrosion import detect_corrosion
+from processing.detection import detect_cracks, to_gray
 from processing.learned import MODEL_PATH, LearnedParams, learned_cracks, load_model
 from processing.learning.data import Sample, load_dataset
 from processing.metrics import PooledCounts

@@ -10,7 +10,7 @@ crack network, :mod:`processing.learned`), and the paper's baselines ``otsu`` an
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import astuple, dataclass, replace
+from dataclasses import dataclass
 from typing import Literal
 
 import cv2
@@ -18,6 +18,15 @@ import numpy as np
 from numpy.typing import NDArray
 from skimage.filters import threshold_sauvola
 
+from processing.corrosion import CorrosionParams, corrosion_candidates, rust_saturation
+from processing.crack_filter import (
+    CrackParams,
+    SurfaceStats,
+    estimate_background,
+    proposed_cracks,
+    proposed_with_contrast,
+    sample_surface,
+)
 from processing.defects import Components
 from processing.learned import learned_cracks
 from processing.peaks import dominant_peaks, smooth_histogram, valley_emphasis_threshold
@@ -45,55 +54,6 @@ class PaperParams:
     mu: float = 0.5
     min_area_px: int = 30
     grow_iterations: int = 50
-
-
-@dataclass(frozen=True)
-class CrackParams:
-    """Options of the ``proposed`` crack detector.
-
-    Nothing here is a crack width, an image size or a grey level: the line filter's scales
-    span hairlines to wide cracks (σ from ``sigma1`` in steps of ``scale_factor``), and the
-    thresholds are in units of the image's own spread (median absolute deviation) of the
-    line response and of the darkness, so textured and noisy surfaces raise them and clean
-    ones lower them. A component is kept when it is elongated (length² / area ≥
-    ``elongation``) and significant: its mean response, in spreads, times the square root
-    of its length, at least ``significance`` (a long faint crack passes, a short faint
-    speck does not).
-
-    Chosen by leave-one-dataset-out over five public crack sets (pavement, concrete,
-    masonry, ceramic tiles, drone imagery of concrete) for the largest worst-case ratio to
-    the paper's Sauvola baseline; docs/benchmarks.md has the per-set scores.
-    """
-
-    sigma1: float = 0.8
-    scale_factor: float = 2**0.5
-    n_scales: int = 6
-    mu: float = 0.5
-    half_resolution_from: float | None = 2.0
-    light_sigma: float = 0.6
-    grow_spreads: float = 2.5
-    dark_spreads: float = 2.0
-    significance: float = 20.0
-    elongation: float = 6.0
-
-    @property
-    def background_px(self) -> int:
-        """Side of the closing that removes the widest crack the filter looks for."""
-        sigma_max = self.sigma1 * self.scale_factor ** (self.n_scales - 1)
-        return int(2 * np.ceil(3 * sigma_max) + 1)
-
-
-@dataclass(frozen=True)
-class CorrosionParams:
-    """Options of the rust detector: rust's hues (OpenCV's 0–180 scale, red wrapping round
-    through 180) and the least saturation; above that, the image's own split between
-    saturated and grey pixels (Otsu on saturation) decides, so that on a colourful surface
-    only the clearly rust-coloured part counts."""
-
-    hue_max: int = 30
-    hue_wrap_from: int = 170
-    min_saturation: int = 40
-    min_area_px: int = 400
 
 
 def to_gray(image: NDArray[np.generic]) -> NDArray[np.uint8]:
@@ -219,7 +179,7 @@ def defect_masks(
             mask, dark_by = learned_cracks(gray), cv2.subtract(background, smooth)
             cracks[core], contrast[core] = mask[cr, cc], dark_by[cr, cc]
         elif min(gray.shape) >= 3:
-            mask, dark_by = _proposed(gray, crack_params, surface)
+            mask, dark_by = proposed_with_contrast(gray, crack_params, surface)
             cracks[core], contrast[core] = mask[cr, cc], dark_by[cr, cc]
         rust[core] = corrosion_candidates(part, corrosion_params, rust_sat)[cr, cc]
 
@@ -304,170 +264,3 @@ def _off_lines(
     keep = on <= max_fraction * np.maximum(comps.stats[:, cv2.CC_STAT_AREA], 1)
     keep[0] = False
     return keep
-
-
-def estimate_background(
-    gray: NDArray[np.uint8], background_px: int, light_sigma: float = 0.6
-) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Lightly smoothed image and its background (a grey closing, which erases dark thin
-    structures, then smoothed), both float32."""
-    k = max(3, background_px | 1)
-    smooth = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), light_sigma)
-    # a square element: OpenCV separates it into two 1-D passes (an ellipse costs ~10x more)
-    background = cv2.morphologyEx(
-        smooth, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
-    )
-    return smooth, cv2.GaussianBlur(background, (0, 0), k / 4)
-
-
-@dataclass(frozen=True)
-class SurfaceStats:
-    """The surface's own statistics that the ``proposed`` thresholds are measured in: the
-    median and spread (1.4826 · median absolute deviation) of the line response and of the
-    normalised brightness; and the saturation above which a rust-hued pixel is rust (colour
-    images). Measured on each image, or once for a whole mosaic (from its frames, or a
-    sample of it) so that every tile and band uses the same."""
-
-    line_median: float
-    line_spread: float
-    light_median: float
-    light_spread: float
-    rust_saturation: float | None = None
-
-    @classmethod
-    def of(cls, line: NDArray[np.float32], light: NDArray[np.float32]) -> SurfaceStats:
-        """Statistics of (H, W) line response and normalised brightness arrays."""
-        lm, ls = _median_spread(line)
-        bm, bs = _median_spread(light)
-        return cls(lm, ls, bm, bs)
-
-    @classmethod
-    def pooled(cls, many: list[SurfaceStats]) -> SurfaceStats:
-        """The median of each statistic over several images (a mosaic's frames)."""
-        crack = np.median([astuple(s)[:4] for s in many], axis=0).tolist()
-        rust = [s.rust_saturation for s in many if s.rust_saturation is not None]
-        return cls(*crack, rust_saturation=float(np.median(rust)) if rust else None)
-
-
-def _median_spread(values: NDArray[np.float32]) -> tuple[float, float]:
-    sample = values[:: max(1, values.shape[0] // 256), :: max(1, values.shape[1] // 256)]
-    med = float(np.median(sample))
-    return med, 1.4826 * float(np.median(np.abs(sample - med))) + 1e-6
-
-
-def _line_and_light(
-    gray: NDArray[np.uint8], params: CrackParams
-) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
-    """Line response R (eq. (14), scale-normalised) of the illumination-normalised image,
-    that image (brightness / background) and the darkness below background (grey levels)."""
-    smooth, background = estimate_background(gray, params.background_px, params.light_sigma)
-    norm = cv2.divide(smooth, cv2.max(background, 1.0))
-    R = line_emphasis(
-        norm,
-        sigma1=params.sigma1,
-        scale_factor=params.scale_factor,
-        n_scales=params.n_scales,
-        mu=params.mu,
-        normalise=True,
-        half_resolution_from=params.half_resolution_from,
-    )
-    return R, norm, cv2.subtract(background, smooth)
-
-
-def measure_surface(image: NDArray[np.uint8], params: CrackParams = CrackParams()) -> SurfaceStats:
-    """The :class:`SurfaceStats` of an (H, W) grey or (H, W, 3) BGR uint8 image (the rust
-    saturation only for colour)."""
-    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-    R, norm, _ = _line_and_light(gray, params)
-    stats = SurfaceStats.of(R, norm)
-    if image.ndim == 3:
-        stats = replace(stats, rust_saturation=rust_saturation(image))
-    return stats
-
-
-def sample_surface(
-    gray: NDArray[np.uint8], params: CrackParams = CrackParams(), window_px: int = 1024
-) -> SurfaceStats:
-    """The :class:`SurfaceStats` of a large grey or BGR image, pooled over up to nine
-    windows spread over it (every tile of a tiled pass then uses the same)."""
-    h, w = gray.shape[:2]
-    if h <= window_px and w <= window_px:
-        return measure_surface(gray, params)
-    ys = np.linspace(0, max(h - window_px, 0), 3).astype(int)
-    xs = np.linspace(0, max(w - window_px, 0), 3).astype(int)
-    windows = [gray[y : y + window_px, x : x + window_px] for y in ys for x in xs]
-    found = [measure_surface(win, params) for win in windows if win.std() > 0]
-    return SurfaceStats.pooled(found) if found else measure_surface(windows[0], params)
-
-
-def proposed_cracks(
-    gray: NDArray[np.uint8],
-    params: CrackParams = CrackParams(),
-    surface: SurfaceStats | None = None,
-) -> NDArray[np.bool_]:
-    """The improved pipeline: illumination normalised (image / background), scale-
-    normalised multi-scale Hessian line emphasis (eq. (14) with σ_i²), line response and
-    darkness each in units of the surface's own spread (``surface``, measured on the image
-    when not given), then the connected regions of line-like dark pixels that are elongated
-    and significant (see :class:`CrackParams`)."""
-    return _proposed(gray, params, surface)[0]
-
-
-def _proposed(
-    gray: NDArray[np.uint8], params: CrackParams, surface: SurfaceStats | None = None
-) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
-    """``proposed_cracks`` and each pixel's darkness below its background (grey levels)."""
-    R, norm, contrast = _line_and_light(gray, params)
-    sp = surface if surface is not None else SurfaceStats.of(R, norm)
-    z = (R - np.float32(sp.line_median)) * np.float32(1.0 / sp.line_spread)
-    dark = (np.float32(sp.light_median) - norm) * np.float32(1.0 / sp.light_spread)
-    candidates = (z > params.grow_spreads) & (dark > params.dark_spreads)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(
-        candidates.view(np.uint8), connectivity=8
-    )
-    if n <= 1:
-        return candidates, contrast
-    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
-    length = np.hypot(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
-    mean_z = np.bincount(labels.ravel(), weights=z.ravel(), minlength=n) / np.maximum(area, 1)
-    keep = (mean_z * np.sqrt(length) >= params.significance) & (
-        length**2 >= params.elongation * area
-    )
-    keep[0] = False
-    return select_components(labels, stats, keep), contrast
-
-
-def rust_saturation(image: NDArray[np.uint8], params: CorrosionParams = CorrosionParams()) -> float:
-    """The saturation above which a rust-hued pixel of a BGR image is rust: Otsu's split of
-    the image's saturation (on at most ~1 MP of it), at least ``params.min_saturation``."""
-    h, w = image.shape[:2]
-    step = max(1, int(np.sqrt(h * w / 1e6)))
-    hsv = cv2.cvtColor(image[::step, ::step], cv2.COLOR_BGR2HSV)
-    t, _ = cv2.threshold(hsv[..., 1], 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    return float(max(t, params.min_saturation))
-
-
-def corrosion_candidates(
-    image: NDArray[np.uint8],
-    params: CorrosionParams = CorrosionParams(),
-    saturation: float | None = None,
-) -> NDArray[np.bool_]:
-    """Rust-coloured pixels of a BGR image (rust hue, saturation above ``saturation``, by
-    default :func:`rust_saturation` of the image), cleaned by an opening and a closing;
-    components of any size."""
-    sat = rust_saturation(image, params) if saturation is None else saturation
-    hsv = cv2.cvtColor(cv2.GaussianBlur(image, (5, 5), 0), cv2.COLOR_BGR2HSV)
-    low = int(np.floor(sat)) + 1
-    mask = cv2.inRange(hsv, (0, low, 0), (params.hue_max, 255, 255))
-    mask |= cv2.inRange(hsv, (params.hue_wrap_from, low, 0), (180, 255, 255))
-    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
-    return cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((9, 9), np.uint8)) > 0
-
-
-def detect_corrosion(
-    image: NDArray[np.generic], *, params: CorrosionParams = CorrosionParams()
-) -> NDArray[np.bool_]:
-    """Boolean (H, W) mask of rust-coloured areas (needs a BGR image; gray gives none)."""
-    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-        return np.zeros(image.shape[:2], bool)
-    return remove_small(corrosion_candidates(image, params), params.min_area_px)

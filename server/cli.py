@@ -394,7 +394,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("datasets", nargs="+", help="folders with images/ and masks/ (255 = crack)")
     s.add_argument("--out", required=True, help="model file (.onnx); with --leave-one-out a folder")
-    s.add_argument("--iterations", type=int, default=5000)
+    s.add_argument("--iterations", type=int, default=6000)
     s.add_argument("--batch", type=int, default=12)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--threads", type=int, default=2)

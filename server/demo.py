@@ -29,7 +29,8 @@ from server.storage.models import Role
 log = logging.getLogger(__name__)
 
 
-def _boxes(defects: list[dict[str, Any]]) -> list[Box]:
+def world_boxes(defects: list[dict[str, Any]]) -> list[Box]:
+    """Boxes on the structure of the defects (REST rows) that have a world position."""
     return [
         Box(d["defect_class"], d["world_x_m"], d["world_y_m"], d["world_w_m"], d["world_h_m"])
         for d in defects
@@ -51,11 +52,11 @@ def score(
     out: dict[str, Any] = {
         "defects_found": len(defects),
         "defects_true": len(truth),
-        "defects_matched": match_defects(_boxes(defects), truth),
+        "defects_matched": match_defects(world_boxes(defects), truth),
     }
     if frame_defects is not None:
         out["frame_defects_found"] = len(frame_defects)
-        out["frame_defects_matched"] = match_defects(_boxes(frame_defects), truth)
+        out["frame_defects_matched"] = match_defects(world_boxes(frame_defects), truth)
     out["map_ate_m"] = None
     map_job = next(
         (j for j in session["jobs"] if j["kind"] == "map" and j["state"] == "done"), None

@@ -55,7 +55,9 @@ class AugmentParams:
     """Ranges of the random changes made to each training crop.
 
     Scale and rotation cover cracks of other widths and directions than the sets hold;
-    gain, gamma, uneven light, blur, noise and JPEG re-compression cover the camera.
+    gain, gamma, uneven light, blur, noise and JPEG re-compression cover the camera; thin
+    bright lines (scratches through paint to bare metal, reflections) drawn on a share
+    ``bright_lines`` of the crops teach that a crack is dark.
     """
 
     crop_px: int = 256
@@ -67,6 +69,7 @@ class AugmentParams:
     noise_sigma: tuple[float, float] = (0.0, 8.0)
     jpeg_quality: tuple[int, int] = (40, 95)
     crack_fraction: float = 0.8
+    bright_lines: float = 0.3
 
 
 def random_crop(
@@ -104,7 +107,27 @@ def random_crop(
         flags=cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REFLECT_101,
     )
+    if rng.random() < params.bright_lines:
+        add_bright_lines(gray, rng)
     return photometric(gray, rng, params), (truth > 0.35).astype(np.float32)
+
+
+def add_bright_lines(gray: NDArray[np.uint8], rng: np.random.Generator) -> None:
+    """Draw one to three thin straight lines brighter than the surface into ``gray``."""
+    n = gray.shape[0]
+    level = float(np.median(gray))
+    for _ in range(int(rng.integers(1, 4))):
+        p = rng.uniform(0, n, 2)
+        q = p + rng.normal(size=2) * rng.uniform(0.1, 0.6) * n
+        value = int(min(255, level + rng.uniform(20, 70)))
+        cv2.line(
+            gray,
+            (int(p[0]), int(p[1])),
+            (int(q[0]), int(q[1])),
+            value,
+            int(rng.integers(1, 3)),
+            cv2.LINE_AA,
+        )
 
 
 def photometric(

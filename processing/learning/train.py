@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -40,7 +41,7 @@ MODEL_FORMAT = "steelscan-crack-net/1"
 class TrainParams:
     """Options of one training run."""
 
-    iterations: int = 5000
+    iterations: int = 6000
     batch: int = 12
     learning_rate: float = 4e-3
     weight_decay: float = 1e-4
@@ -171,16 +172,18 @@ def export_onnx(model: CrackNet, record: dict, path: Path) -> None:
 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.onnx")
-    torch.onnx.export(
-        model.eval(),
-        torch.zeros(1, 1, 64, 64),
-        str(tmp),
-        input_names=["image"],
-        output_names=["logits"],
-        dynamic_axes={"image": {0: "batch", 2: "height", 3: "width"}, "logits": {0: "batch"}},
-        opset_version=17,
-        dynamo=False,
-    )
+    with warnings.catch_warnings():  # the exporter's notices of its own deprecations
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            model.eval(),
+            torch.zeros(1, 1, 64, 64),
+            str(tmp),
+            input_names=["image"],
+            output_names=["logits"],
+            dynamic_axes={"image": {0: "batch", 2: "height", 3: "width"}, "logits": {0: "batch"}},
+            opset_version=17,
+            dynamo=False,
+        )
     proto = onnx.load(str(tmp))
     entry = proto.metadata_props.add()
     entry.key, entry.value = "steelscan", json.dumps(record)

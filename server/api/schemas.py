@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class ORM(BaseModel):
@@ -28,6 +28,16 @@ class JobPublic(ORM):
 
 class JobCreate(BaseModel):
     kind: Literal["stitch", "map", "detect", "export"]
+    method: Literal["proposed", "learned"] | None = Field(
+        default=None,
+        description="detect only: the crack detector (default: the station's detect_method)",
+    )
+
+    @model_validator(mode="after")
+    def _method_for_detect_only(self) -> JobCreate:
+        if self.method is not None and self.kind != "detect":
+            raise ValueError("method applies to detect jobs only")
+        return self
 
 
 class SessionPublic(ORM):

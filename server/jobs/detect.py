@@ -15,16 +15,11 @@ import numpy as np
 from numpy.typing import NDArray
 from sqlalchemy import delete, select
 
+from processing.corrosion import CorrosionParams
+from processing.crack_filter import CrackParams, SurfaceStats, measure_surface
 from processing.defects import Defect as Defect_
 from processing.defects import measure_defects
-from processing.detection import (
-    CorrosionParams,
-    CrackMethod,
-    CrackParams,
-    SurfaceStats,
-    defect_masks,
-    measure_surface,
-)
+from processing.detection import CrackMethod, defect_masks
 from processing.learned import load_model
 from processing.poses import compose_se2, world_box
 from processing.surface import on_surface, surface_level

@@ -2,7 +2,8 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.detection import detect_corrosion, detect_cracks
+from processing.corrosion import detect_corrosion
+from processing.detection import detect_cracks
 
 
 def plate_with_crack(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -70,17 +71,6 @@ def test_proposed_is_insensitive_to_uneven_low_light() -> None:
     assert (dim_mask & ~truth).sum() < 0.05 * truth.size
 
 
-def test_hysteresis_keeps_regions_with_a_strong_seed_only() -> None:
-    from skimage.filters import apply_hysteresis_threshold
-
-    from processing.thresholds import hysteresis
-
-    rng = np.random.default_rng(0)
-    r = cv2.GaussianBlur(rng.random((60, 80)).astype(np.float32), (0, 0), 2)
-    ours = hysteresis(r, 0.5, 0.55)
-    assert np.array_equal(ours, apply_hysteresis_threshold(r, 0.5, 0.55) & (r > 0.5))
-
-
 def test_tiled_detection_matches_whole_image_detection_away_from_tile_seams() -> None:
     from processing.detection import detect_cracks_tiled
 
@@ -109,12 +99,25 @@ def test_select_components_equals_a_lookup_whatever_the_share_kept(fraction: flo
     assert np.array_equal(select_components(labels, stats, keep), expected)
 
 
-def test_fused_sauvola_comparison_equals_the_threshold_map() -> None:
-    from processing.thresholds import below_sauvola, sauvola_threshold
+@pytest.mark.parametrize("seed", [21, 22, 23])
+def test_proposed_finds_a_hairline_on_textured_paint(seed: int) -> None:
+    from tests.processing.test_learned import textured_plate
 
-    rng = np.random.default_rng(6)
-    gray = cv2.GaussianBlur(rng.integers(0, 256, (120, 170)).astype(np.uint8), (5, 5), 2)
-    t = sauvola_threshold(gray, 25, 0.3)
-    fused = below_sauvola(gray, 25, 0.3)
-    near = np.abs(gray - t) < 1e-3  # float rounding may differ exactly at the threshold
-    assert np.array_equal(fused[~near], (gray < t)[~near])
+    gray, truth = textured_plate((320, 480), seed, width=1, depth=35)
+    mask = detect_cracks(gray)
+    k = np.ones((5, 5), np.uint8)
+    recall = ((cv2.dilate(mask.view(np.uint8), k) > 0) & truth).sum() / truth.sum()
+    precision = (mask & (cv2.dilate(truth.view(np.uint8), k) > 0)).sum() / max(mask.sum(), 1)
+    assert recall > 0.6 and precision > 0.5, (recall, precision)
+
+
+def test_surface_statistics_of_frames_apply_to_a_mosaic_of_them() -> None:
+    from processing.crack_filter import SurfaceStats, measure_surface, proposed_cracks
+    from tests.processing.test_learned import textured_plate
+
+    frames = [textured_plate((240, 320), s, width=2, depth=30)[0] for s in range(3)]
+    pooled = SurfaceStats.pooled([measure_surface(f) for f in frames])
+    own = measure_surface(frames[0])
+    assert abs(pooled.line_spread - own.line_spread) < 0.5 * own.line_spread
+    gray, truth = textured_plate((240, 320), 9, width=2, depth=30)
+    assert (proposed_cracks(gray, surface=pooled) & truth).sum() > 0.5 * truth.sum()

@@ -378,7 +378,8 @@ def test_banded_detection_matches_the_one_pass_result(
     same defects as the in-memory pass on the session's mosaic."""
     import shutil as sh
 
-    from processing.detection import defect_masks, sample_surface
+    from processing.crack_filter import sample_surface
+    from processing.detection import defect_masks
     from processing.surface import on_surface, surface_level
     from server.jobs.banded import detect_banded
     from server.jobs.detect import _detect_mosaic
@@ -407,3 +408,39 @@ def test_banded_detection_matches_the_one_pass_result(
         assert abs(d.max_width_px - ref.max_width_px) <= 1.0  # contrast kept as whole grey levels
     masks = cv2.imread(str(results / "crack_mask.png"), cv2.IMREAD_GRAYSCALE)
     assert masks.shape == mosaic.shape[:2] and set(np.unique(masks)) <= {0, 255}
+
+
+def test_detect_job_with_the_network_finds_the_simulated_cracks_and_keeps_reviews(
+    inspected: tuple[LiveServer, str],
+) -> None:
+    live, sid = inspected
+    url = live.url
+    mosaic = {"source": "mosaic", "limit": 500}
+    first = httpx.get(f"{url}/api/sessions/{sid}/defects", params=mosaic).json()["data"]
+    crack = max((d for d in first if d["defect_class"] == "crack"), key=lambda d: d["length_px"])
+    httpx.patch(
+        f"{url}/api/sessions/{sid}/defects/{crack['id']}", json={"review_status": "confirmed"}
+    ).raise_for_status()
+    bad = httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "map", "method": "learned"})
+    assert bad.status_code == 422
+    job = httpx.post(
+        f"{url}/api/sessions/{sid}/jobs", json={"kind": "detect", "method": "learned"}
+    ).json()
+    deadline = time.monotonic() + 240
+    while job["state"] not in ("done", "failed"):
+        assert time.monotonic() < deadline
+        time.sleep(0.3)
+        job = httpx.get(f"{url}/api/jobs/{job['id']}").json()
+    assert job["state"] == "done", job
+    assert job["result"]["method"] == "learned"
+    assert job["result"]["params"]["crack"]["threshold"] > 0
+    assert job["result"]["reviews_carried_over"] >= 1
+    from processing.metrics import Box, match_defects
+    from robot_link.sim.structure import make_structure
+    from server.demo import world_boxes
+
+    truth = [Box(d.defect_class, *d.bbox_m) for d in make_structure(11).defects]
+    again = httpx.get(f"{url}/api/sessions/{sid}/defects", params=mosaic).json()["data"]
+    by_proposed = match_defects(world_boxes(first), truth)
+    by_network = match_defects(world_boxes(again), truth)
+    assert by_network >= max(1, by_proposed - 1), (by_network, by_proposed)

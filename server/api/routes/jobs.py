@@ -40,7 +40,8 @@ def create_job(
         )
         if last_stitch is not None:
             after = [last_stitch]
-    job_id = state.jobs.enqueue(session_id, body.kind, after=after)
+    params = {"method": body.method} if body.method is not None else None
+    job_id = state.jobs.enqueue(session_id, body.kind, after=after, params=params)
     job = db.get(Job, job_id)
     assert job is not None
     return job
