@@ -1,5 +1,6 @@
 """``steelscan bench detect``: crack segmentation (PI, SI, DSC, eqs. (18)–(20)) of every
-method on every crack dataset, in normal and in uneven low light; corrosion on the rust
+method on every crack dataset, in normal and in uneven low light; ``proposed`` with its
+parameters chosen leaving each set out (:mod:`bench.detect_loo`); corrosion on the rust
 sets; the detectors' speed per image and on a mosaic.
 
 ``--models DIR`` scores each set with ``DIR/<set>.onnx``, a network trained without that
@@ -18,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bench.common import Result
+from bench.detect_loo import leave_one_out_proposed
 from processing.corrosion import detect_corrosion
 from processing.detection import detect_cracks, to_gray
 from processing.learned import MODEL_PATH, LearnedParams, learned_cracks, load_model
@@ -93,6 +95,8 @@ def bench_detect(
         raise CommandError(f"no datasets under {DATASETS_ROOT} (use --dataset)")
     trained_on = set(load_model().record.get("datasets", {}))
     rng = np.random.default_rng(0)
+    crack_sets: dict[str, list[Sample]] = {}
+    sauvola: dict[str, float] = {}
     for root in roots:
         samples = load_dataset(root, limit)
         if not samples:
@@ -103,12 +107,15 @@ def bench_detect(
         model = models / f"{root.name}.onnx" if models is not None else None
         if model is not None and not model.is_file():
             model = None
+        crack_sets[root.name] = samples
         dim = [Sample(s.name, low_light(s.gray, rng), s.truth) for s in samples]
         for variant, items in (("", samples), ("lowlight.", dim)):
             baseline = None
             for method in CRACK_METHODS:
                 scores = score_set(items, _detector(method, model))
                 baseline = baseline if baseline is not None else scores["value"]
+                if not variant and method == "sauvola":
+                    sauvola[root.name] = scores["value"]
                 extra = {}
                 if method == "learned":
                     extra["left_out"] = model is not None or root.name not in trained_on
@@ -121,6 +128,8 @@ def bench_detect(
                     "images": len(items),
                     **extra,
                 }
+    if len(crack_sets) >= 2:
+        yield from leave_one_out_proposed(crack_sets, sauvola)
     yield from _speed(load_dataset(roots[0], min(limit or 40, 40)))
     yield from _mosaic_throughput()
 

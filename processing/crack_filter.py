@@ -162,16 +162,36 @@ def proposed_with_contrast(
     gray: NDArray[np.uint8], params: CrackParams, surface: SurfaceStats | None = None
 ) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
     """``proposed_cracks`` and each pixel's darkness below its background (grey levels)."""
+    z, dark, contrast = line_and_dark_spreads(gray, params, surface)
+    return select_cracks(z, dark, params), contrast
+
+
+def line_and_dark_spreads(
+    gray: NDArray[np.uint8],
+    params: CrackParams = CrackParams(),
+    surface: SurfaceStats | None = None,
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
+    """Each pixel's line response and darkness in spreads of the surface (``surface``, or
+    measured on the image), and its darkness below background in grey levels; each (H, W)."""
     R, norm, contrast = _line_and_light(gray, params)
     sp = surface if surface is not None else SurfaceStats.of(R, norm)
     z = (R - np.float32(sp.line_median)) * np.float32(1.0 / sp.line_spread)
     dark = (np.float32(sp.light_median) - norm) * np.float32(1.0 / sp.light_spread)
+    return z, dark, contrast
+
+
+def select_cracks(
+    z: NDArray[np.float32], dark: NDArray[np.float32], params: CrackParams = CrackParams()
+) -> NDArray[np.bool_]:
+    """The connected regions of pixels with line response over ``params.grow_spreads`` and
+    darkness over ``params.dark_spreads`` (both (H, W), in spreads) that are elongated and
+    significant (see :class:`CrackParams`)."""
     candidates = (z > params.grow_spreads) & (dark > params.dark_spreads)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(
         candidates.view(np.uint8), connectivity=8
     )
     if n <= 1:
-        return candidates, contrast
+        return candidates
     area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
     length = np.hypot(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
     mean_z = np.bincount(labels.ravel(), weights=z.ravel(), minlength=n) / np.maximum(area, 1)
@@ -179,4 +199,4 @@ def proposed_with_contrast(
         length**2 >= params.elongation * area
     )
     keep[0] = False
-    return select_components(labels, stats, keep), contrast
+    return select_components(labels, stats, keep)

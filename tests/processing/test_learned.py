@@ -136,3 +136,26 @@ def test_train_detector_command_trains_and_detect_uses_the_result(tmp_path: Path
     assert CrackModel(out).record["datasets"] == {"set": 6}
     bad = steelscan("train-detector", str(tmp_path), "--out", str(out))
     assert bad.returncode == 2 and "not a dataset folder" in bad.stderr
+
+
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "datasets"
+
+
+@pytest.mark.parametrize("name", ["cracksc", "uav75"])
+def test_thin_crack_photographs_get_masks_that_beat_sauvola(name: str) -> None:
+    if not (SHARED / name / "images").is_dir():
+        pytest.skip(f"public crack set {name} not present")
+    from processing.detection import detect_cracks
+    from processing.learning.data import load_dataset
+    from processing.metrics import PooledCounts
+
+    samples = load_dataset(SHARED / name)[::10]
+    ours, sauvola, empty = PooledCounts(2), PooledCounts(2), 0
+    for s in samples:
+        mask = detect_cracks(s.gray, method="learned")
+        empty += int(s.truth.any() and not mask.any())
+        ours.add(mask, s.truth)
+        sauvola.add(detect_cracks(s.gray, method="sauvola"), s.truth)
+    assert empty <= len(samples) // 10
+    assert ours.scores().si > 0.4
+    assert ours.scores().dsc > 1.5 * sauvola.scores().dsc
