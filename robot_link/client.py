@@ -26,7 +26,8 @@ from robot_link.spool import Spool
 
 log = logging.getLogger(__name__)
 SEQ_BLOCK = 1024  # sequence numbers reserved on disk at a time by a spooling link
-RETRY_S = 0.2  # wait before sending again a message the station could not store yet
+RETRY_S = 0.2  # wait before sending again a message the station could not store yet (doubled
+# with each such answer in a row, up to ``max_backoff_s``)
 
 CommandHandler = Callable[[Message], Awaitable[None] | None]
 
@@ -112,6 +113,7 @@ class RobotLink:
         self._last_command_seq = 0
         self._reserved = 0
         self._warned_full = False
+        self._retry_streak = 0  # "retry later" answers since the last ACK
         if spool is not None:
             resumed = spool.load_session()
             if resumed is not None:
@@ -202,14 +204,18 @@ class RobotLink:
 
     async def flush(self, timeout_s: float = 60.0) -> None:
         """Wait until every message sent so far is acknowledged."""
-        async with self._space:
-            ok = await asyncio.wait_for(
-                self._space.wait_for(lambda: not self._unacked or self._fatal is not None),
-                timeout_s,
-            )
+        try:
+            async with self._space:
+                await asyncio.wait_for(
+                    self._space.wait_for(lambda: not self._unacked or self._fatal is not None),
+                    timeout_s,
+                )
+        except TimeoutError:
+            raise LinkError(
+                f"{len(self._unacked)} messages still unacknowledged after {timeout_s:g} s"
+                + (" (kept in the spool)" if self.spool is not None else "")
+            ) from None
         self._raise_if_failed()
-        if not ok:
-            raise LinkError(f"{len(self._unacked)} messages still unacknowledged")
 
     @property
     def pending(self) -> int:
@@ -345,6 +351,7 @@ class RobotLink:
 
     async def _handle(self, message: Message) -> None:
         if message.type is MessageType.ACK:
+            self._retry_streak = 0
             entry = self._unacked.pop(message.seq, None)
             self._transmitted.discard(message.seq)
             if self.spool is not None:
@@ -363,13 +370,16 @@ class RobotLink:
             and message.seq in self._unacked
         ):
             self.stats.errors += 1
+            delay = min(RETRY_S * 2**self._retry_streak, self.max_backoff_s)
+            self._retry_streak = min(self._retry_streak + 1, 16)
             log.info(
-                "link: seq %d not stored yet (%s); sending it again",
+                "link: seq %d not stored yet (%s); sending it again in %.1f s",
                 message.seq,
                 message.meta.get("error"),
+                delay,
             )
             asyncio.get_running_loop().call_later(
-                RETRY_S, lambda seq=message.seq: asyncio.ensure_future(self._retry(seq))
+                delay, lambda seq=message.seq: asyncio.ensure_future(self._retry(seq))
             )
         elif message.type is MessageType.ERROR:
             self.stats.errors += 1

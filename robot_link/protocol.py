@@ -7,7 +7,7 @@ Layout (little-endian), see ``docs/protocol.md``::
     type           u8   (MessageType)
     flags          u16  (reserved, must be 0)
     session_id     16 bytes (UUID)
-    seq            u64  (per session, assigned by the sender)
+    seq            u64  (per session, assigned by the sender; below 2**63)
     timestamp      f64  (sender clock, seconds since the Unix epoch)
     meta_len       u32
     meta           meta_len bytes of UTF-8 JSON object
@@ -32,6 +32,7 @@ HEADER = struct.Struct("<4sBBH16sQdI")
 HEADER_BYTES = HEADER.size
 MAX_MESSAGE_BYTES = 8 * 1024 * 1024
 MAX_META_BYTES = 64 * 1024
+SEQ_LIMIT = 2**63  # seq is a u64 on the wire whose top bit is clear (a signed 64-bit key)
 
 
 class ProtocolError(ValueError):
@@ -173,14 +174,17 @@ class Message:
     payload: bytes = b""
 
 
-def encode_message(message: Message) -> bytes:
-    """Serialise a message to its binary form (validating its meta first)."""
+def encode_message(message: Message, *, max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
+    """Serialise a message to its binary form (validating its meta, seq and size first: a
+    message the station would refuse is never sent)."""
     meta = _validate_meta(message.type, message.meta)
     meta_bytes = json.dumps(meta, separators=(",", ":")).encode()
     if len(meta_bytes) > MAX_META_BYTES:
         raise ProtocolError(f"meta is {len(meta_bytes)} bytes, more than {MAX_META_BYTES}")
-    if not 0 <= message.seq < 2**64:
-        raise ProtocolError(f"seq must fit in u64, got {message.seq}")
+    _check_seq(message.type, message.seq)
+    size = HEADER_BYTES + len(meta_bytes) + len(message.payload)
+    if size > max_bytes:
+        raise ProtocolError(f"message is {size} bytes, more than the limit of {max_bytes}")
     header = HEADER.pack(
         MAGIC,
         PROTOCOL_VERSION,
@@ -218,6 +222,7 @@ def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Messag
         raise ProtocolError(f"unknown message type {type_code}") from None
     if flags != 0:
         raise ProtocolError(f"flags must be 0 in version {PROTOCOL_VERSION}, got {flags}")
+    _check_seq(mtype, seq)
     if meta_len > MAX_META_BYTES or HEADER_BYTES + meta_len > len(data):
         raise ProtocolError(f"meta length {meta_len} does not fit in a {len(data)}-byte message")
     if not math.isfinite(timestamp) or abs(timestamp) > 1e11:
@@ -233,6 +238,15 @@ def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Messag
     payload = data[HEADER_BYTES + meta_len :]
     _check_payload(mtype, meta, payload)
     return Message(mtype, uuid.UUID(bytes=sid), seq, timestamp, meta, payload)
+
+
+def _check_seq(mtype: MessageType, seq: int) -> None:
+    """A seq is below 2**63 (a signed 64-bit key); an ERROR echoes the refused message's."""
+    if mtype is MessageType.ERROR:
+        if not 0 <= seq < 2**64:
+            raise ProtocolError(f"seq must fit in u64, got {seq}")
+    elif not 0 <= seq < SEQ_LIMIT:
+        raise ProtocolError(f"seq {seq} is not in [0, 2**63)")
 
 
 def _validate_meta(mtype: MessageType, meta: dict[str, Any]) -> dict[str, Any]:

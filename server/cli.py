@@ -41,7 +41,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
         port=port,
         log_level="info",
         log_config=uvicorn_log_config(),
-        ws_max_size=settings.max_message_bytes + 1024,
+        ws_max_size=settings.ws_max_bytes,
         ws_per_message_deflate=False,
     )  # media does not deflate: compression would only cost CPU
     return 0
@@ -57,7 +57,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
         raise CommandError(
             "a robot token is needed: --token or STEELSCAN_ROBOT_TOKEN (make one with 'steelscan admin create-robot NAME')"
         )
-    config = SimConfig(seed=args.seed, lanes=args.lanes, time_scale=args.time_scale)
+    config = SimConfig(
+        seed=args.seed,
+        lanes=args.lanes,
+        time_scale=args.time_scale,
+        flush_timeout_s=args.flush_timeout,
+    )
 
     async def main() -> dict:
         from robot_link.spool import Spool
@@ -365,6 +370,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--spool", help="durable spool folder: unacknowledged messages survive outages and restarts"
     )
     s.add_argument("--spool-max-mb", type=float, default=2048.0, help="size bound of the spool")
+    s.add_argument(
+        "--flush-timeout",
+        type=float,
+        default=120.0,
+        help="seconds to wait at the end for every acknowledgement (unacknowledged: exit 2, "
+        "the spool keeps them)",
+    )
     s.add_argument("--time-scale", type=float, default=20.0)
     s.add_argument("--lanes", type=int, default=5)
     s.add_argument("--seed", type=int, default=7)

@@ -39,6 +39,12 @@ class Settings(BaseSettings):
     max_browser_message_bytes: int = Field(
         default=16 * 1024, description="largest message a browser may send (commands are small)"
     )
+    min_free_bytes: int = Field(
+        default=256 * 1024 * 1024,
+        ge=0,
+        description="free disk space kept in the data directory: below it robots are told "
+        "to send again later",
+    )
     fsync: bool = Field(default=False, description="fsync every stored file (power-loss safety)")
     job_workers: int = Field(default=2, ge=1, description="worker processes for processing jobs")
     auto_process: bool = Field(default=True, description="run jobs when a session ends")
@@ -63,6 +69,13 @@ class Settings(BaseSettings):
         default=True,
         description="grow the 3D map during a session (ICP in a worker process) and show it",
     )
+
+    @property
+    def ws_max_bytes(self) -> int:
+        """Largest websocket message read: twice the protocol limit, so a message somewhat
+        over it is answered with the protocol's ERROR (naming its seq, which the robot then
+        drops); beyond this the connection is closed (1009) before it is read."""
+        return 2 * self.max_message_bytes + 2**16
 
     def resolved_database_url(self) -> str:
         """The database URL, SQLite in the data directory unless set."""

@@ -37,7 +37,7 @@ class BackgroundServer:
             port=port,
             log_level="warning",
             log_config=uvicorn_log_config(),
-            ws_max_size=settings.max_message_bytes + 1024,
+            ws_max_size=settings.ws_max_bytes,
             ws_per_message_deflate=False,
             lifespan="on",
         )

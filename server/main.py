@@ -25,6 +25,7 @@ from server.live.scene3d import Scene3D
 from server.state import AppState
 from server.storage import db
 from server.storage.files import SessionFiles
+from server.storage.space import DiskReserve
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +45,8 @@ def build_state(settings: Settings) -> AppState:
         settings.job_workers,
         defaults={"detect": {"method": settings.detect_method}},
     )
-    ingest = Ingest(factory, files)
+    reserve = DiskReserve(settings.data_dir, settings.min_free_bytes)
+    ingest = Ingest(factory, files, reserve)
     return AppState(
         settings,
         engine,
@@ -98,9 +100,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"detail": str(exc)}, status_code=409)
 
     @app.get("/api/health", tags=["health"], dependencies=[Depends(get_current_user)])
-    def read_health() -> dict[str, str]:
-        """Liveness check."""
-        return {"status": "ok"}
+    def read_health(request: Request) -> dict[str, object]:
+        """Liveness, and the data directory's free space: below the reserve robot data is
+        refused with "retry later" (``accepting`` false)."""
+        space = request.app.state.steelscan.ingest.reserve.status()
+        return {
+            "status": "ok",
+            "storage": {
+                "free_bytes": space.free_bytes,
+                "reserve_bytes": space.reserve_bytes,
+                "accepting": space.accepting,
+            },
+        }
 
     app.include_router(robot_router)
     for router in ROUTERS:

@@ -53,6 +53,7 @@ class SimConfig:
     location: str = "Steelscan test yard (simulated)"
     inclination_deg: float = 90.0
     ir_eps_m: float = 0.02
+    flush_timeout_s: float = 120.0  # wait this long at the end for every ACK
 
 
 @dataclass
@@ -188,7 +189,7 @@ class InspectionSim:
                 "clouds": self.result.clouds_sent,
             },
         )
-        await self.link.flush(timeout_s=120)
+        await self.link.flush(timeout_s=self.cfg.flush_timeout_s)
         return self.result
 
     def _report(self, lanes_done: int) -> None:

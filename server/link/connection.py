@@ -11,7 +11,6 @@ from typing import Any
 
 import anyio
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
-from sqlalchemy.exc import SQLAlchemyError
 
 from robot_link.protocol import (
     HEADER,
@@ -166,12 +165,13 @@ class RobotConnection:
         except IngestError as exc:
             await self.send_error(message.session_id, message.seq, str(exc), retry=exc.retry)
             return
-        except (OSError, SQLAlchemyError) as exc:
+        except Exception as exc:  # noqa: BLE001  the station's own fault: never "dropped"
             log.exception("ingest: could not store seq %d", message.seq)
             await self.send_error(
                 message.session_id,
                 message.seq,
-                f"ground station could not store it: {type(exc).__name__}",
+                f"ground station could not store it ({type(exc).__name__}): retry later",
+                retry=True,
             )
             return
         await self.send(

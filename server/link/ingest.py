@@ -18,6 +18,7 @@ from robot_link.protocol import Message, MessageType
 from server.errors import IngestError
 from server.storage.db import WalCheckpointer, is_sqlite
 from server.storage.files import SessionFiles
+from server.storage.space import DiskReserve
 from server.storage.models import (
     Cloud,
     Frame,
@@ -56,10 +57,16 @@ class Ingest:
     resend). One transaction at a time.
     """
 
-    def __init__(self, factory: sessionmaker[Session], files: SessionFiles) -> None:
+    def __init__(
+        self,
+        factory: sessionmaker[Session],
+        files: SessionFiles,
+        reserve: DiskReserve | None = None,
+    ) -> None:
         self.factory = factory
         self.engine = factory.kw["bind"]
         self.files = files
+        self.reserve = reserve
         self._owners: dict[str, _Owner] = {}
         self._inserts = {
             table: _RawInsert(table, self.engine.dialect)
@@ -86,7 +93,8 @@ class Ingest:
         Optimistic first: resends are rare, so the batch goes in without asking which of it
         is stored already; the primary key of ``received_messages`` refuses a duplicate, and
         then the batch is stored again with that check (``check``), message by message if
-        the commit still fails."""
+        the commit still fails. Any other failure of the transaction is isolated the same
+        way: each message is stored alone, so one that cannot be stored fails only itself."""
         results: list[StoreResult | Exception] = []
         with self._lock:
             try:
@@ -113,10 +121,12 @@ class Ingest:
                 if len(items) == 1:
                     return [StoreResult("duplicate")]
                 return [self.store_many([item], check=True)[0] for item in items]
-            except BaseException:
+            except Exception as exc:
                 self._owners.clear()
                 self.close()  # a fresh connection next time
-                raise
+                if len(items) == 1:
+                    return [exc]
+                return [self.store_many([item])[0] for item in items]
             for sid, owner in batch.new_owners.items():
                 self._owners[sid] = owner
             return results
@@ -191,6 +201,8 @@ class Ingest:
             self._check_owner(sid, owner, robot_id)
         if (sid, message.seq) in batch.seen:
             return StoreResult("duplicate")
+        if self.reserve is not None:
+            self.reserve.claim(len(message.payload) + ROW_BYTES)
         ended = self._add_rows(
             conn, message, sid, robot_id, batch
         )  # the file first: a failed write adds no row
@@ -339,6 +351,7 @@ class _Batch:
     rows: dict[Any, list[dict[str, Any]]] = field(default_factory=lambda: defaultdict(list))
 
 
+ROW_BYTES = 4096  # what a message's rows may take on disk besides its payload (a page)
 WAL_SIZE_LIMIT = 64 * 2**20  # bytes of write-ahead log kept on disk once checkpointed
 QUIET_S = 0.002  # no transaction for this long: the station is not under load
 

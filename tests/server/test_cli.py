@@ -243,7 +243,7 @@ def test_stitch_refuses_corrupt_or_mismatched_frames_and_writes_nothing(tmp_path
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason="shared dataset not present")
 def test_bench_detect_prints_json_lines_with_baselines() -> None:
-    proc = steelscan("bench", "detect", "--dataset", str(DATASET), "--limit", "2")
+    proc = steelscan("bench", "detect", "--dataset", str(DATASET), "--limit", "6")
     assert proc.returncode == 0, proc.stderr
     results = [json.loads(line) for line in proc.stdout.splitlines()]
     names = {r["name"] for r in results}
@@ -251,6 +251,7 @@ def test_bench_detect_prints_json_lines_with_baselines() -> None:
     assert {
         *(f"detect.{set_name}.{m}.dsc_tol2" for m in ("sauvola", "paper", "proposed", "learned")),
         f"detect.{set_name}.lowlight.learned.dsc_tol2",
+        f"detect.{set_name}.learned_held_back.dsc_tol2",
         "detect.learned.time_per_544x384",
         "detect.learned.mosaic_throughput",
     } <= names

@@ -8,6 +8,18 @@ import { initTelemetry } from "./telemetry.js";
 
 let started = false;
 
+// The station refuses robot data (robots keep it and send it again) while its disk is below
+// the reserve: say so in the header.
+async function watchStorage() {
+  const pill = document.getElementById("storage-state");
+  try {
+    const { storage } = await apiJSON("/api/health");
+    pill.hidden = storage.accepting;
+    const mib = (b) => `${Math.round(b / 2 ** 20)} MiB`;
+    text(pill, `storage full: ${mib(storage.free_bytes)} free (reserve ${mib(storage.reserve_bytes)}); robots hold their data`);
+  } catch { /* the link pill already says the station is unreachable */ }
+}
+
 function showLogin() {
   document.getElementById("login").hidden = false;
   document.querySelectorAll("main.view").forEach((m) => { m.hidden = true; });
@@ -48,6 +60,8 @@ async function start() {
   connect();
   on("event", (ev) => { if (ev.type === "session" && location.hash === "#/sessions") loadSessions().catch(() => {}); });
   setInterval(() => { if (location.hash === "#/sessions") loadSessions().catch(() => {}); }, 3000);
+  watchStorage();
+  setInterval(watchStorage, 5000);
   window.addEventListener("hashchange", route);
   route();
 }

@@ -1,0 +1,68 @@
+"""Free space of the data directory, kept above a reserve: below it the station refuses new
+robot data with "retry later" before SQLite or the filesystem fail half-way."""
+
+from __future__ import annotations
+
+import shutil
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from server.errors import IngestError
+
+MIB = 2**20
+
+
+@dataclass(frozen=True)
+class SpaceStatus:
+    """What ``GET /api/health`` reports of the data directory's disk."""
+
+    free_bytes: int
+    reserve_bytes: int
+
+    @property
+    def accepting(self) -> bool:
+        return self.free_bytes > self.reserve_bytes
+
+
+class DiskReserve:
+    """Watches the free bytes of the filesystem holding ``path``.
+
+    ``statvfs`` is asked at most every ``interval_s``; between two asks the bytes the
+    station has let through are subtracted, so a burst cannot run past the reserve."""
+
+    def __init__(self, path: Path, reserve_bytes: int, interval_s: float = 0.5) -> None:
+        self.path = path
+        self.reserve_bytes = reserve_bytes
+        self.interval_s = interval_s
+        self._lock = threading.Lock()
+        self._free = 0
+        self._asked = -float("inf")
+
+    def status(self) -> SpaceStatus:
+        with self._lock:
+            return SpaceStatus(self._free_now(), self.reserve_bytes)
+
+    def claim(self, size: int) -> None:
+        """Let ``size`` bytes be stored, or raise a retryable IngestError if they would
+        leave less than the reserve free."""
+        with self._lock:
+            free = self._free_now()
+            if free - size < self.reserve_bytes:
+                raise IngestError(
+                    f"ground station storage is full ({free / MIB:.0f} MiB free, "
+                    f"{self.reserve_bytes / MIB:.0f} MiB reserve): retry later",
+                    retry=True,
+                )
+            self._free = free - size
+
+    def _free_now(self) -> int:
+        now = time.monotonic()
+        if now - self._asked >= self.interval_s:
+            try:
+                self._free = shutil.disk_usage(self.path).free
+            except OSError:
+                self._free = 0  # the data directory is gone or unreadable: store nothing
+            self._asked = now
+        return self._free
