@@ -18,7 +18,6 @@ from robot_link.protocol import Message, MessageType
 from server.errors import IngestError
 from server.storage.db import WalCheckpointer, is_sqlite
 from server.storage.files import SessionFiles
-from server.storage.space import DiskReserve
 from server.storage.models import (
     Cloud,
     Frame,
@@ -28,6 +27,7 @@ from server.storage.models import (
     TelemetrySample,
     utcnow,
 )
+from server.storage.space import DiskReserve
 
 StoreStatus = Literal["stored", "duplicate"]
 

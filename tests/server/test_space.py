@@ -103,7 +103,9 @@ def _can_mount_tmpfs() -> bool:
     if shutil.which("unshare") is None:
         return False
     probe = "d=$(mktemp -d) && mount -t tmpfs -o size=1m tmpfs $d"
-    return subprocess.run(["unshare", "-rm", "sh", "-c", probe], capture_output=True).returncode == 0
+    return (
+        subprocess.run(["unshare", "-rm", "sh", "-c", probe], capture_output=True).returncode == 0
+    )
 
 
 @pytest.mark.slow
