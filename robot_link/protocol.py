@@ -232,6 +232,10 @@ def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Messag
         meta_obj = json.loads(raw_meta.decode("utf-8")) if meta_len else {}
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ProtocolError(f"meta is not valid UTF-8 JSON: {exc}") from None
+    except RecursionError:
+        raise ProtocolError("meta is nested too deeply") from None
+    except ValueError as exc:  # an integer of more digits than Python converts
+        raise ProtocolError(f"meta has a value out of range: {exc}") from None
     if not isinstance(meta_obj, dict):
         raise ProtocolError(f"meta must be a JSON object, got {type(meta_obj).__name__}")
     meta = _validate_meta(mtype, meta_obj)
@@ -256,7 +260,10 @@ def _validate_meta(mtype: MessageType, meta: dict[str, Any]) -> dict[str, Any]:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "meta"
         raise ProtocolError(f"{mtype.name} meta field '{where}': {first['msg']}") from None
-    return model.model_dump(mode="json", exclude_none=True)
+    try:
+        return model.model_dump(mode="json", exclude_none=True)
+    except (ValueError, RecursionError) as exc:  # nested deeper than it can be written
+        raise ProtocolError(f"{mtype.name} meta cannot be stored: {exc}") from None
 
 
 def _check_payload(mtype: MessageType, meta: dict[str, Any], payload: bytes) -> None:

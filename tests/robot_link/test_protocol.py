@@ -99,6 +99,11 @@ def test_roundtrip_keeps_every_field(mtype: MessageType, meta: dict, payload: by
         assert out.meta[key] == value
 
 
+def _meta_bytes(mtype: int, meta: bytes) -> bytes:
+    """A message whose meta is exactly these bytes."""
+    return HEADER.pack(MAGIC, 1, mtype, 0, SID.bytes, 1, time.time(), len(meta)) + meta
+
+
 @pytest.mark.parametrize(
     "data, fragment",
     [
@@ -120,6 +125,10 @@ def test_roundtrip_keeps_every_field(mtype: MessageType, meta: dict, payload: by
         (raw(4, {"encoding": "png16_depth_mm", "width": 3, "height": 1}, PNG), "needs fx"),
         (raw(5, {}, b"junk"), "carry no payload"),
         (raw(6, {"cmd": "self_destruct"}), "cmd"),
+        (raw(5, {"x": 2**64}, seq=2**63), "2**63"),
+        (_meta_bytes(5, b'{"x":' + b"[" * 600 + b"]" * 600 + b"}"), "cannot be stored"),
+        (_meta_bytes(5, b'{"x":' + b"[" * 5000 + b"]" * 5000 + b"}"), "nested too deeply"),
+        (_meta_bytes(5, b'{"x":' + b"7" * 5000 + b"}"), "out of range"),
     ],
 )
 def test_malformed_messages_get_a_clear_error(data: bytes, fragment: str) -> None:
