@@ -18,7 +18,8 @@ from server.config import Settings
 from server.errors import Conflict, NotFound
 from server.jobs.runner import JobRunner
 from server.link.connection import router as robot_router
-from server.link.ingest import GroupCommit, Ingest
+from server.link.group_commit import GroupCommit
+from server.link.ingest import Ingest
 from server.live.hub import LiveHub
 from server.live.live_map import LiveMap
 from server.live.scene3d import Scene3D

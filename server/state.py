@@ -10,7 +10,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.api.accounts import LoginThrottle
 from server.config import Settings
 from server.jobs.runner import JobRunner
-from server.link.ingest import GroupCommit, Ingest
+from server.link.group_commit import GroupCommit
+from server.link.ingest import Ingest
 from server.live.hub import LiveHub
 from server.live.live_map import LiveMap
 from server.live.scene3d import Scene3D

@@ -53,7 +53,8 @@ class RobotConnection:
         self.robot_name = robot_name
         self.state = websocket.app.state.steelscan
         self.send_lock = asyncio.Lock()
-        self.session_ids: set[str] = set()
+        self.owned: set[str] = set()  # sessions this robot recorded
+        self.refused: dict[str, float] = {}  # sessions it did not: when last looked up
         settings = self.state.settings
         self.bucket = TokenBucket(settings.robot_messages_per_s, settings.robot_message_burst)
 
@@ -130,6 +131,10 @@ class RobotConnection:
                 message.session_id, message.seq, f"{message.type.name} is not sent by robots"
             )
             return
+        if message.type in (MessageType.VIDEO, MessageType.COMMAND_ACK) and not await self.owns(
+            str(message.session_id)
+        ):  # another robot's live channel: never relayed
+            return
         if message.type is MessageType.VIDEO:  # live preview: relayed, never stored or acknowledged
             if self.bucket.take():
                 self.state.hub.publish_frame(
@@ -184,6 +189,7 @@ class RobotConnection:
             )
         )
         sid = str(message.session_id)
+        self.owned.add(sid)  # ingest checked the owner
         if sid not in senders:
             senders[sid] = self.command_sender(message.session_id)
             self.state.hub.attach_robot(sid, senders[sid])
@@ -193,6 +199,24 @@ class RobotConnection:
             live_map.offer(sid, message.payload, message.meta)
         if result.session_ended and self.state.settings.auto_process:
             await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, sid)
+
+    async def owns(self, sid: str) -> bool:
+        """Whether this robot recorded session ``sid`` (looked up at most once a second for
+        a session it did not)."""
+        if sid in self.owned:
+            return True
+        if time.monotonic() - self.refused.get(sid, -1.0) < 1.0:
+            return False
+        robot = await anyio.to_thread.run_sync(self.state.ingest.robot_of, sid)
+        if robot == self.robot_id:
+            self.owned.add(sid)
+            return True
+        if sid not in self.refused:
+            log.warning(
+                "robot %s: live messages for session %s, not its own, dropped", self.robot_name, sid
+            )
+        self.refused[sid] = time.monotonic()
+        return False
 
     def relay(self, message: Message) -> None:
         """Show the message to watching browsers."""

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import asyncio
-import queue
 import threading
-import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -44,8 +41,8 @@ class StoreResult:
 class _Owner:
     """What ingest needs to know of a stored session (cached: only ingest changes it)."""
 
-    robot_id: int | None
-    ended: bool
+    robot_id: int | None  # None: imported, not recorded by a robot
+    end_seq: int | None  # the SESSION_END's seq once ended
 
 
 class Ingest:
@@ -131,6 +128,14 @@ class Ingest:
                 self._owners[sid] = owner
             return results
 
+    def robot_of(self, sid: str) -> int | None:
+        """The robot that recorded a session (None: unknown, or imported)."""
+        owner = self._owners.get(sid)
+        if owner is not None:
+            return owner.robot_id
+        with self.engine.connect() as conn:
+            return conn.execute(select(SESSIONS.c.robot_id).where(SESSIONS.c.id == sid)).scalar()
+
     def _connection(self) -> Connection:
         """The connection ingest keeps open (checking one out of the pool per transaction
         costs as much as the inserts)."""
@@ -181,7 +186,11 @@ class Ingest:
                 select(SESSIONS.c.robot_id, SESSIONS.c.status).where(SESSIONS.c.id == sid)
             ).first()
             if row is not None:
-                owner = _Owner(row[0], row[1] == SessionStatus.ended)
+                end_seq = None
+                if row[1] == SessionStatus.ended:
+                    end_seq = conn.execute(END_SEQ, {"sid": sid}).scalar()
+                    end_seq = -1 if end_seq is None else end_seq
+                owner = _Owner(row[0], end_seq)
                 self._owners[sid] = owner
         return owner
 
@@ -199,6 +208,7 @@ class Ingest:
             raise IngestError(f"session {sid} is unknown: send SESSION_START first", retry=True)
         else:
             self._check_owner(sid, owner, robot_id)
+            self._check_not_after_end(sid, owner, message)
         if (sid, message.seq) in batch.seen:
             return StoreResult("duplicate")
         if self.reserve is not None:
@@ -207,12 +217,27 @@ class Ingest:
             conn, message, sid, robot_id, batch
         )  # the file first: a failed write adds no row
         batch.seen.add((sid, message.seq))
+        if ended and owner is not None:
+            batch.new_owners[sid] = _Owner(owner.robot_id, message.seq)
         return StoreResult("stored", session_ended=ended)
 
     @staticmethod
     def _check_owner(sid: str, owner: _Owner, robot_id: int | None) -> None:
-        if owner.robot_id is not None and robot_id is not None and owner.robot_id != robot_id:
+        if owner.robot_id is None and robot_id is not None:
+            raise IngestError(f"session {sid} was imported, not recorded: robots cannot add to it")
+        if owner.robot_id != robot_id:
             raise IngestError(f"session {sid} belongs to another robot")
+
+    @staticmethod
+    def _check_not_after_end(sid: str, owner: _Owner, message: Message) -> None:
+        """Messages sent before the SESSION_END (resends after a storage fault) are taken;
+        nothing sent after it is."""
+        end = owner.end_seq
+        if end is not None and message.seq > end and message.type is not MessageType.SESSION_END:
+            raise IngestError(
+                f"session {sid} ended at seq {end}: {message.type.name} seq {message.seq} "
+                "comes after its end"
+            )
 
     def _add_rows(
         self, conn: Connection, message: Message, sid: str, robot_id: int | None, batch: _Batch
@@ -239,7 +264,7 @@ class Ingest:
                     calibration=meta.get("calibration", {}),
                 )
             )
-            batch.new_owners[sid] = _Owner(robot_id, False)
+            batch.new_owners[sid] = _Owner(robot_id, None)
         batch.rows[RECEIVED].append(
             {"session_id": sid, "seq": message.seq, "type": mtype.name, "received_at": utcnow()}
         )
@@ -304,6 +329,9 @@ RECEIVED = ReceivedMessage.__table__
 FRAMES = Frame.__table__
 CLOUDS = Cloud.__table__
 TELEMETRY = TelemetrySample.__table__
+END_SEQ = select(RECEIVED.c.seq).where(
+    RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.type == MessageType.SESSION_END.name
+)
 STORED = select(RECEIVED.c.seq).where(
     RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.seq.in_(bindparam("seqs", expanding=True))
 )
@@ -353,117 +381,3 @@ class _Batch:
 
 ROW_BYTES = 4096  # what a message's rows may take on disk besides its payload (a page)
 WAL_SIZE_LIMIT = 64 * 2**20  # bytes of write-ahead log kept on disk once checkpointed
-QUIET_S = 0.002  # no transaction for this long: the station is not under load
-
-
-class GroupCommit:
-    """Stores the messages of every robot connection on one writer thread, as many per
-    transaction as have arrived meanwhile (up to ``max_batch``): one SQLite commit for many
-    frames, each acknowledged only once its transaction is committed."""
-
-    def __init__(self, ingest: Ingest, max_batch: int = 128) -> None:
-        self.ingest = ingest
-        self.max_batch = max_batch
-        self._queue: queue.SimpleQueue[
-            tuple[Message, int | None, asyncio.Future[StoreResult], asyncio.AbstractEventLoop]
-            | None
-        ] = queue.SimpleQueue()
-        self._storing = threading.Lock()  # one transaction at a time: the writer's or an inline one
-        self._count = threading.Lock()
-        self._pending = 0  # messages queued and not yet stored
-        self._last_store = 0.0  # time.monotonic() when the last transaction ended
-        self._thread = threading.Thread(target=self._run, name="ingest-writer", daemon=True)
-        self._thread.start()
-
-    def store(self, message: Message, robot_id: int | None) -> asyncio.Future[StoreResult]:
-        """Store one message; the future resolves when it is durably stored (or refused).
-
-        When the station is quiet (nothing waiting, no transaction running, none for
-        ``QUIET_S``), the message is stored at once on the calling thread: two thread
-        hand-offs saved, ~0.5 ms of a lone frame's acknowledgement. Under load it joins the
-        writer's next group commit (storing inline then would cost a commit per message:
-        half the throughput, measured)."""
-        loop = asyncio.get_running_loop()
-        future: asyncio.Future[StoreResult] = loop.create_future()
-        with self._count:
-            idle = (
-                self._pending == 0
-                and time.monotonic() - self._last_store > QUIET_S
-                and self._storing.acquire(blocking=False)
-            )
-            if not idle:
-                self._pending += 1
-        if idle:
-            try:
-                try:
-                    result: StoreResult | Exception = self.ingest.store_many([(message, robot_id)])[
-                        0
-                    ]
-                except Exception as exc:  # the database itself failed  # noqa: BLE001
-                    result = exc
-            finally:
-                self._last_store = time.monotonic()
-                self._storing.release()
-            _settle(future, result)
-            return future
-        self._queue.put((message, robot_id, future, loop))
-        return future
-
-    def close(self) -> None:
-        """Store what is queued, then stop the writer."""
-        self._queue.put(None)
-        self._thread.join(timeout=30)
-        self.ingest.close()
-
-    def _run(self) -> None:
-        while True:
-            first = self._queue.get()
-            if first is None:
-                return
-            batch = [first]
-            while len(batch) < self.max_batch:
-                try:
-                    item = self._queue.get_nowait()
-                except queue.Empty:
-                    break
-                if item is None:
-                    self._queue.put(None)
-                    break
-                batch.append(item)
-            with self._storing:
-                try:
-                    results: list[StoreResult | Exception] = self.ingest.store_many(
-                        [(m, r) for m, r, _, _ in batch]
-                    )
-                except (
-                    Exception
-                ) as exc:  # the database itself failed: every message of the batch hears it  # noqa: BLE001
-                    results = [exc] * len(batch)
-                self._last_store = time.monotonic()
-            with self._count:
-                self._pending -= len(batch)
-            by_loop: dict[
-                asyncio.AbstractEventLoop,
-                list[tuple[asyncio.Future[StoreResult], StoreResult | Exception]],
-            ] = defaultdict(list)
-            for (_, _, future, loop), result in zip(batch, results):
-                by_loop[loop].append((future, result))
-            for (
-                loop,
-                settled,
-            ) in by_loop.items():  # one wake-up of each loop per batch, not one per message
-                loop.call_soon_threadsafe(_settle_all, settled)
-
-
-def _settle_all(settled: list[tuple[asyncio.Future[StoreResult], StoreResult | Exception]]) -> None:
-    for future, result in settled:
-        _settle(future, result)
-
-
-def _settle(future: asyncio.Future[StoreResult], result: StoreResult | Exception) -> None:
-    if future.done():
-        return
-    if isinstance(result, Exception):
-        future.set_exception(result)
-    else:
-        future.set_result(result)

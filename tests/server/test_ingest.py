@@ -257,7 +257,8 @@ def test_group_commit_stores_a_lone_message_at_once_and_batches_under_load(tmp_p
     """A quiet station stores a message on the caller's thread (acknowledged without a
     hand-off); a burst goes to the writer's group commits; every message is stored once."""
     from server.config import Settings
-    from server.link.ingest import QUIET_S, GroupCommit, Ingest
+    from server.link.group_commit import QUIET_S, GroupCommit
+    from server.link.ingest import Ingest
     from server.link.robots import create_robot
     from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.storage.files import SessionFiles

@@ -23,9 +23,10 @@ from robot_link.protocol import (
     decode_message,
     encode_message,
 )
+from server.errors import IngestError
 from server.link.ingest import Ingest, StoreResult
 from tests.conftest import LiveServer
-from tests.server.test_ingest import _ingest, frame, session_json, start, ws_url
+from tests.server.test_ingest import _ingest, frame, msg, session_json, start, ws_url
 
 
 def _with_seq(data: bytes, seq: int) -> bytes:
@@ -140,3 +141,89 @@ def test_an_oversize_message_gets_an_error_and_is_dropped_not_resent(
                 b"\xff\xd8" + bytes(limit),
             )
         )
+
+
+def test_nothing_sent_after_a_session_end_is_stored_but_resends_from_before_are(
+    tmp_path: Path,
+) -> None:
+    factory, ingest, _ = _ingest(tmp_path)
+    sid = uuid.uuid4()
+    end = msg(sid, 4, MessageType.SESSION_END, {"reason": "done"})
+    results = ingest.store_many(
+        [(decode_message(m), None) for m in (start(sid), frame(sid, 2), end, frame(sid, 5))]
+    )
+    assert [getattr(r, "status", None) for r in results[:3]] == ["stored"] * 3
+    assert isinstance(results[3], IngestError) and "after its end" in str(results[3])
+    assert not results[3].retry
+    ingest.close()
+    _, fresh, _ = _ingest(tmp_path)  # the end is known from the database too
+    late = fresh.store_many([(decode_message(frame(sid, 3)), None)])  # sent before the end
+    after = fresh.store_many([(decode_message(frame(sid, 6)), None)])
+    assert getattr(late[0], "status", None) == "stored"
+    assert isinstance(after[0], IngestError)
+    fresh.close()
+
+
+def test_robots_cannot_add_to_a_session_they_did_not_record(tmp_path: Path) -> None:
+    from server.link.robots import create_robot
+    from server.storage.models import InspectionSession
+
+    factory, ingest, _ = _ingest(tmp_path)
+    create_robot(factory, "first")
+    create_robot(factory, "second")
+    imported, theirs = uuid.uuid4(), uuid.uuid4()
+    with factory() as db:
+        db.add(InspectionSession(id=str(imported), structure="imported", robot_id=None))
+        db.commit()
+    assert ingest.store_many([(decode_message(start(theirs)), 1)])[0].status == "stored"  # type: ignore[union-attr]
+    results = ingest.store_many(
+        [(decode_message(frame(imported, 2)), 2), (decode_message(frame(theirs, 2)), 2)]
+    )
+    assert "imported" in str(results[0]) and "another robot" in str(results[1])
+    ingest.close()
+
+
+def test_a_robot_cannot_speak_on_another_robots_live_channel(live_server: LiveServer) -> None:
+    """VIDEO and COMMAND_ACK reach the dashboards only from the robot that recorded the
+    session."""
+    import json
+
+    from tests.conftest import make_token
+
+    other_token = make_token(live_server.settings, "intruder")
+    sid = uuid.uuid4()
+    live_url = live_server.url.replace("http://", "ws://") + "/ws/live"
+
+    def video(seq: int, marker: bytes) -> bytes:
+        return msg(sid, seq, MessageType.VIDEO, {"width": 8, "height": 8}, b"\xff\xd8" + marker)
+
+    fake_ack = msg(sid, 9, MessageType.COMMAND_ACK, {"cmd": "estop", "accepted": True})
+    with (
+        connect(
+            ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+        ) as owner,
+        connect(
+            ws_url(live_server), additional_headers={"Authorization": f"Bearer {other_token}"}
+        ) as intruder,
+        connect(live_url) as browser,
+    ):
+        owner.send(start(sid))
+        decode_message(owner.recv(timeout=10))
+        intruder.send(video(1, b"FAKE"))
+        intruder.send(fake_ack)
+        time.sleep(0.5)
+        owner.send(video(2, b"REAL"))
+        owner.send(msg(sid, 3, MessageType.COMMAND_ACK, {"cmd": "stop", "accepted": True}))
+        seen: list[bytes | str] = []
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not any(
+            isinstance(i, str) and '"command_ack"' in i for i in seen
+        ):
+            try:
+                seen.append(browser.recv(timeout=1))
+            except TimeoutError:
+                continue
+    videos = [i for i in seen if isinstance(i, bytes)]
+    acks = [json.loads(i) for i in seen if isinstance(i, str) and '"command_ack"' in i]
+    assert videos and all(v.endswith(b"REAL") for v in videos)
+    assert [a["cmd"] for a in acks] == ["stop"]
