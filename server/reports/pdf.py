@@ -283,13 +283,30 @@ def _defect_table(
                 pos,
                 _p(review, st["cell"]),
                 d["condition_state"] or "—",
-                _p(d["comment"], st["cell"]),
+                _p(_clip(d["comment"]), st["cell"]),
             ]
         )
     widths = [8 * mm, 26 * mm, 17 * mm, 14 * mm, 14 * mm, 14 * mm, 20 * mm, 20 * mm, 9 * mm]
     widths.append(BODY_W - sum(widths))
     story.append(_table(rows, widths, font_size=8))
+    long = [d for d in listed if d["comment"] and _clip(d["comment"]) != d["comment"]]
+    if long:  # in full as running text, which may break across pages (a table row cannot)
+        story += [Spacer(1, 3 * mm), _p("Comments in full", st["h2"])]
+        story += [_p(f"#{d['number']}: {d['comment']}", st["body"]) for d in long]
     return story
+
+
+def _clip(text: str | None, chars: int = 200, lines: int = 6) -> str | None:
+    """A comment short enough for a table cell; longer ones end in "…" and follow the
+    table in full."""
+    if not text:
+        return text
+    rows = text.splitlines()
+    short = "\n".join(rows[:lines])[:chars]
+    words = short.split()
+    if any(len(w) > 30 for w in words):  # one long "word" would fill the cell letter by letter
+        short = " ".join(w[:30] for w in words)
+    return text if short == text else short.rstrip() + " … (in full below)"
 
 
 def _parameters(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]:

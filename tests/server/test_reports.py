@@ -444,3 +444,24 @@ def test_detect_job_with_the_network_finds_the_simulated_cracks_and_keeps_review
     by_proposed = match_defects(world_boxes(first), truth)
     by_network = match_defects(world_boxes(again), truth)
     assert by_network >= max(1, by_proposed - 1), (by_network, by_proposed)
+
+
+def test_the_pdf_takes_any_comment_the_api_accepts(inspected: tuple[LiveServer, str]) -> None:
+    """Comments of many lines or one endless word (up to the 2,000 characters allowed)
+    are cut short in the defect table and printed in full after it."""
+    live, sid = inspected
+    api = f"{live.url}/api/sessions/{sid}"
+    defects = httpx.get(f"{api}/defects", params={"source": "mosaic"}).json()["data"]
+    lines = "\n".join(f"line {i} of the note" for i in range(90))[:2000]
+    word = "W" * 1999 + "!"
+    for d, comment in zip(defects[-2:], (lines, word)):
+        r = httpx.patch(f"{api}/defects/{d['id']}", json={"comment": comment})
+        assert r.status_code == 200
+    pdf = httpx.get(f"{api}/report.pdf", timeout=120)
+    assert pdf.status_code == 200, pdf.text[:300]
+    doc = pypdfium2.PdfDocument(pdf.content)
+    text = "".join(doc[i].get_textpage().get_text_range() for i in range(len(doc)))
+    doc.close()
+    squeezed = "".join(text.split())
+    assert "Commentsinfull" in squeezed and "line89ofthenote" in squeezed
+    assert "W" * 1999 + "!" in squeezed
