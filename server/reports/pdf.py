@@ -3,30 +3,23 @@ numbered defects, defect table with thumbnails, 3D map snapshot, processing para
 
 from __future__ import annotations
 
-import io
 import json
 import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import escape
 
 import cv2
 import numpy as np
 from reportlab.lib import colors
-from reportlab.lib.enums import TA_CENTER
 from reportlab.lib.pagesizes import A4
-from reportlab.lib.styles import ParagraphStyle, getSampleStyleSheet
+from reportlab.lib.styles import ParagraphStyle
 from reportlab.lib.units import mm
 from reportlab.platypus import (
-    Image,
     KeepTogether,
     PageBreak,
-    Paragraph,
     SimpleDocTemplate,
     Spacer,
-    Table,
-    TableStyle,
 )
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -36,98 +29,24 @@ from processing.snapshot import render_points
 from server.errors import NotFound
 from server.reports.content import build_report, read_json
 from server.reports.fields import CONDITION_MEANING, CONDITION_STATES
+from server.reports.pdf_style import (
+    BODY_W,
+    MARGIN,
+    MARKER_BGR,
+    PAGE_H,
+    PAGE_W,
+    fmt_num,
+    grid_table,
+    make_styles,
+    para,
+    picture,
+)
 from server.storage.files import SessionFiles
 from server.storage.models import Defect
 from server.storage.ply import read_ply_points
 from server.storage.thumbnails import defect_image
 
-PAGE_W, PAGE_H = A4
-MARGIN = 16 * mm
-BODY_W = PAGE_W - 2 * MARGIN
-MARKER_BGR = (30, 30, 220)
-HEADER_BG = colors.HexColor("#1f3a5f")
-ZEBRA = colors.HexColor("#f1f4f8")
 Thumbnail = Callable[[dict[str, Any]], np.ndarray | None]
-
-
-def _styles() -> dict[str, ParagraphStyle]:
-    base = getSampleStyleSheet()
-    return {
-        "title": ParagraphStyle(
-            "title", parent=base["Title"], fontSize=24, leading=30, spaceAfter=6 * mm
-        ),
-        "subtitle": ParagraphStyle(
-            "subtitle",
-            parent=base["Normal"],
-            fontSize=12,
-            leading=16,
-            alignment=TA_CENTER,
-            textColor=colors.HexColor("#444444"),
-        ),
-        "h1": ParagraphStyle(
-            "h1", parent=base["Heading1"], fontSize=16, spaceBefore=2 * mm, spaceAfter=3 * mm
-        ),
-        "h2": ParagraphStyle(
-            "h2", parent=base["Heading2"], fontSize=12, spaceBefore=3 * mm, spaceAfter=2 * mm
-        ),
-        "body": ParagraphStyle("body", parent=base["BodyText"], fontSize=9.5, leading=12.5),
-        "small": ParagraphStyle("small", parent=base["BodyText"], fontSize=7.5, leading=9.5),
-        "cell": ParagraphStyle("cell", parent=base["BodyText"], fontSize=8, leading=10),
-        "cover": ParagraphStyle("cover", parent=base["BodyText"], fontSize=10, leading=12.5),
-        "note": ParagraphStyle(
-            "note",
-            parent=base["BodyText"],
-            fontSize=9,
-            leading=12,
-            textColor=colors.HexColor("#8a4b00"),
-        ),
-    }
-
-
-def _p(text: Any, style: ParagraphStyle) -> Paragraph:
-    return Paragraph(escape("" if text is None else str(text)).replace("\n", "<br/>"), style)
-
-
-def _num(value: float | None, fmt: str = "{:.1f}", unit: str = "") -> str:
-    return "—" if value is None else fmt.format(value) + unit
-
-
-def _image(bgr: np.ndarray, width: float, max_height: float | None = None) -> Image:
-    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 88])
-    if not ok:
-        raise ValueError("could not encode an image for the report")
-    h, w = bgr.shape[:2]
-    draw_w, draw_h = width, width * h / w
-    if max_height is not None and draw_h > max_height:
-        draw_w, draw_h = max_height * w / h, max_height
-    return Image(io.BytesIO(buf.tobytes()), width=draw_w, height=draw_h)
-
-
-def _table(
-    rows: list[list[Any]], widths: list[float], *, header: bool = True, font_size: float = 8.5
-) -> Table:
-    t = Table(rows, colWidths=widths, repeatRows=1 if header else 0)
-    style = [
-        ("FONTSIZE", (0, 0), (-1, -1), font_size),
-        ("VALIGN", (0, 0), (-1, -1), "MIDDLE"),
-        ("GRID", (0, 0), (-1, -1), 0.25, colors.HexColor("#b8c2cc")),
-        ("TOPPADDING", (0, 0), (-1, -1), 2),
-        ("BOTTOMPADDING", (0, 0), (-1, -1), 2),
-    ]
-    if header:
-        style += [
-            ("BACKGROUND", (0, 0), (-1, 0), HEADER_BG),
-            ("TEXTCOLOR", (0, 0), (-1, 0), colors.white),
-            ("FONTNAME", (0, 0), (-1, 0), "Helvetica-Bold"),
-        ]
-        style += [("BACKGROUND", (0, r), (-1, r), ZEBRA) for r in range(2, len(rows), 2)]
-    else:
-        style += [
-            ("FONTNAME", (0, 0), (0, -1), "Helvetica-Bold"),
-            ("BACKGROUND", (0, 0), (0, -1), ZEBRA),
-        ]
-    t.setStyle(TableStyle(style))
-    return t
 
 
 def overview_with_markers(
@@ -156,25 +75,25 @@ def _cover(
     c = report["cover"]
     story: list[Any] = [
         Spacer(1, 18 * mm),
-        _p("Steel structure inspection report", st["title"]),
-        _p(c["structure"], st["subtitle"]),
+        para("Steel structure inspection report", st["title"]),
+        para(c["structure"], st["subtitle"]),
         Spacer(1, 10 * mm),
     ]
     rows = [
-        ["Structure", _p(c["structure"], st["cover"])],
-        ["Location", _p(c["location"] or "not recorded", st["cover"])],
+        ["Structure", para(c["structure"], st["cover"])],
+        ["Location", para(c["location"] or "not recorded", st["cover"])],
         ["Date", c["date"]],
         ["Started / ended (UTC)", f"{c['started_at']}  /  {c['ended_at'] or 'still live'}"],
-        ["Operator", _p(c["operator"] or "not recorded", st["cover"])],
-        ["Robot", _p(c["robot"] or "unknown", st["cover"])],
+        ["Operator", para(c["operator"] or "not recorded", st["cover"])],
+        ["Robot", para(c["robot"] or "unknown", st["cover"])],
         ["Session", c["session_id"]],
         ["Report generated", f"{report['generated_at']} by {report['generator']}"],
     ]
-    story.append(_table(rows, [48 * mm, BODY_W - 48 * mm], header=False, font_size=10))
+    story.append(grid_table(rows, [48 * mm, BODY_W - 48 * mm], header=False, font_size=10))
     if c.get("notes"):
-        story += [Spacer(1, 4 * mm), _p(f"Notes: {c['notes']}", st["body"])]
+        story += [Spacer(1, 4 * mm), para(f"Notes: {c['notes']}", st["body"])]
     if overview is not None:
-        story += [Spacer(1, 8 * mm), _image(overview, BODY_W, 95 * mm)]
+        story += [Spacer(1, 8 * mm), picture(overview, BODY_W, 95 * mm)]
     story.append(PageBreak())
     return story
 
@@ -182,11 +101,13 @@ def _cover(
 def _summary(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]:
     s = report["summary"]
     rows = [
-        ["Area covered", _num(s["area_covered_m2"], "{:.2f}", " m²")],
-        ["Distance travelled (odometry)", _num(s["distance_travelled_m"], "{:.2f}", " m")],
+        ["Area covered", fmt_num(s["area_covered_m2"], "{:.2f}", " m²")],
+        ["Distance travelled (odometry)", fmt_num(s["distance_travelled_m"], "{:.2f}", " m")],
         [
             "Duration",
-            _num(s["duration_s"] / 60 if s["duration_s"] is not None else None, "{:.1f}", " min"),
+            fmt_num(
+                s["duration_s"] / 60 if s["duration_s"] is not None else None, "{:.1f}", " min"
+            ),
         ],
         [
             "Camera frames / ToF clouds / telemetry",
@@ -199,12 +120,12 @@ def _summary(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]
         ],
         [
             "Longest / widest crack",
-            f"{_num(s['longest_crack_mm'], unit=' mm')} / {_num(s['widest_crack_mm'], '{:.2f}', ' mm')}",
+            f"{fmt_num(s['longest_crack_mm'], unit=' mm')} / {fmt_num(s['widest_crack_mm'], '{:.2f}', ' mm')}",
         ],
-        ["Total crack length", _num(s["total_crack_length_mm"], unit=" mm")],
+        ["Total crack length", fmt_num(s["total_crack_length_mm"], unit=" mm")],
         [
             "Corroded area",
-            _num(
+            fmt_num(
                 s["corroded_area_mm2"] / 100 if s["corroded_area_mm2"] is not None else None,
                 "{:.1f}",
                 " cm²",
@@ -213,19 +134,19 @@ def _summary(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]
         ["Review", ", ".join(f"{v} {k}" for k, v in s["defects_by_review"].items())],
     ]
     story: list[Any] = [
-        _p("Summary", st["h1"]),
-        _table(rows, [75 * mm, BODY_W - 75 * mm], header=False, font_size=9.5),
+        para("Summary", st["h1"]),
+        grid_table(rows, [75 * mm, BODY_W - 75 * mm], header=False, font_size=9.5),
     ]
     cs = s["defects_by_condition_state"]
     cs_rows = [["Condition state", "Meaning", "Defects"]] + [
         [k, CONDITION_MEANING[k], cs[k]] for k in CONDITION_STATES
     ]
     cs_rows.append(["—", "not rated yet", cs["not rated"]])
-    cs_table = _table(cs_rows, [35 * mm, 50 * mm, 25 * mm])
+    cs_table = grid_table(cs_rows, [35 * mm, 50 * mm, 25 * mm])
     cs_table.hAlign = "LEFT"
-    story += [_p("Defects by condition state", st["h2"]), cs_table]
+    story += [para("Defects by condition state", st["h2"]), cs_table]
     for note in report["notes"]:
-        story += [Spacer(1, 2 * mm), _p(note, st["note"])]
+        story += [Spacer(1, 2 * mm), para(note, st["note"])]
     return story
 
 
@@ -233,11 +154,11 @@ def _defect_table(
     report: dict[str, Any], st: dict[str, ParagraphStyle], thumbnail: Thumbnail
 ) -> list[Any]:
     listed = [d for d in report["defects"] if d["review_status"] != "rejected"]
-    story: list[Any] = [_p("Defects", st["h1"])]
+    story: list[Any] = [para("Defects", st["h1"])]
     if not report["defects"]:
         done = "detect" not in report["missing"]
         return story + [
-            _p(
+            para(
                 "No defect was found."
                 if done
                 else "Defect detection has not run for this session.",
@@ -251,7 +172,7 @@ def _defect_table(
     )
     if rejected:
         intro += f" {rejected} defects rejected in review are not listed (they are in defects.csv)."
-    story.append(_p(intro, st["body"]))
+    story.append(para(intro, st["body"]))
     story.append(Spacer(1, 2 * mm))
     rows: list[list[Any]] = [
         [
@@ -269,7 +190,7 @@ def _defect_table(
     ]
     for d in listed:
         thumb = thumbnail(d)
-        cell = _image(thumb, 24 * mm, 24 * mm) if thumb is not None else "—"
+        cell = picture(thumb, 24 * mm, 24 * mm) if thumb is not None else "—"
         pos = f"{d['world_x_m']:.3f},\n{d['world_y_m']:.3f}" if d["world_x_m"] is not None else "—"
         review = d["review_status"] + (f"\n{d['reviewed_by']}" if d.get("reviewed_by") else "")
         rows.append(
@@ -277,22 +198,22 @@ def _defect_table(
                 str(d["number"]),
                 cell,
                 d["defect_class"],
-                _num(d["length_mm"]),
-                _num(d["max_width_mm"], "{:.2f}"),
-                _num(d["area_mm2"], "{:.0f}"),
+                fmt_num(d["length_mm"]),
+                fmt_num(d["max_width_mm"], "{:.2f}"),
+                fmt_num(d["area_mm2"], "{:.0f}"),
                 pos,
-                _p(review, st["cell"]),
+                para(review, st["cell"]),
                 d["condition_state"] or "—",
-                _p(_clip(d["comment"]), st["cell"]),
+                para(_clip(d["comment"]), st["cell"]),
             ]
         )
     widths = [8 * mm, 26 * mm, 17 * mm, 14 * mm, 14 * mm, 14 * mm, 20 * mm, 20 * mm, 9 * mm]
     widths.append(BODY_W - sum(widths))
-    story.append(_table(rows, widths, font_size=8))
+    story.append(grid_table(rows, widths, font_size=8))
     long = [d for d in listed if d["comment"] and _clip(d["comment"]) != d["comment"]]
     if long:  # in full as running text, which may break across pages (a table row cannot)
-        story += [Spacer(1, 3 * mm), _p("Comments in full", st["h2"])]
-        story += [_p(f"#{d['number']}: {d['comment']}", st["body"]) for d in long]
+        story += [Spacer(1, 3 * mm), para("Comments in full", st["h2"])]
+        story += [para(f"#{d['number']}: {d['comment']}", st["body"]) for d in long]
     return story
 
 
@@ -310,16 +231,16 @@ def _clip(text: str | None, chars: int = 200, lines: int = 6) -> str | None:
 
 
 def _parameters(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]:
-    story: list[Any] = [_p("Processing parameters", st["h1"])]
+    story: list[Any] = [para("Processing parameters", st["h1"])]
     if not report["parameters"]:
-        return story + [_p("No processing job has finished for this session.", st["body"])]
+        return story + [para("No processing job has finished for this session.", st["body"])]
     for kind, params in report["parameters"].items():
         flat = _flatten(params)
-        rows = [["Parameter", "Value"]] + [[k, _p(v, st["small"])] for k, v in flat.items()]
+        rows = [["Parameter", "Value"]] + [[k, para(v, st["small"])] for k, v in flat.items()]
         if len(rows) == 1:
             rows.append(["(defaults)", ""])
         story += [
-            _p(
+            para(
                 {
                     "stitch": "Mosaic (stitching)",
                     "map": "3D map (ICP)",
@@ -327,16 +248,16 @@ def _parameters(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[A
                 }.get(kind, kind),
                 st["h2"],
             ),
-            _table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5),
+            grid_table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5),
         ]
     cal = report.get("calibration") or {}
     if cal:
         rows = [["Calibration", "Value"]] + [
-            [k, _p(v, st["small"])] for k, v in _flatten(cal).items()
+            [k, para(v, st["small"])] for k, v in _flatten(cal).items()
         ]
         story += [
-            _p("Sensor calibration", st["h2"]),
-            _table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5),
+            para("Sensor calibration", st["h2"]),
+            grid_table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5),
         ]
     return story
 
@@ -375,7 +296,7 @@ def write_report_pdf(
 ) -> Path:
     """Write the PDF of ``report`` (from :func:`server.reports.content.build_report`) to ``path``
     atomically; images are given as BGR arrays, thumbnails fetched per defect record."""
-    st = _styles()
+    st = make_styles()
     marked = (
         overview_with_markers(overview, report["defects"], overview_scale)
         if overview is not None
@@ -384,20 +305,20 @@ def write_report_pdf(
     story = _cover(report, st, marked)
     story += _summary(report, st)
     story.append(PageBreak())
-    story.append(_p("Mosaic of the inspected surface", st["h1"]))
+    story.append(para("Mosaic of the inspected surface", st["h1"]))
     if marked is not None:
         story += [
-            _p(
+            para(
                 "The downward camera's frames stitched in world coordinates; red boxes and numbers mark the listed "
                 "defects (grey: rejected in review).",
                 st["body"],
             ),
             Spacer(1, 3 * mm),
-            _image(marked, BODY_W, PAGE_H - 2 * MARGIN - 40 * mm),
+            picture(marked, BODY_W, PAGE_H - 2 * MARGIN - 40 * mm),
         ]
     else:
         story.append(
-            _p(
+            para(
                 "No mosaic: "
                 + next((n for n in report["notes"] if n.startswith("No mosaic")), "not available."),
                 st["body"],
@@ -406,21 +327,21 @@ def write_report_pdf(
     story.append(PageBreak())
     story += _defect_table(report, st, thumbnail)
     story.append(PageBreak())
-    story.append(_p("3D map of the structure", st["h1"]))
+    story.append(para("3D map of the structure", st["h1"]))
     if map_snapshot is not None:
         pts = report["summary"].get("map_points")
         story += [
-            _p(
+            para(
                 f"Registered ToF point clouds ({pts or '?'} points after voxel filtering), coloured by height; the black line is the "
                 "robot's trajectory.",
                 st["body"],
             ),
             Spacer(1, 3 * mm),
-            KeepTogether(_image(map_snapshot, BODY_W, 150 * mm)),
+            KeepTogether(picture(map_snapshot, BODY_W, 150 * mm)),
         ]
     else:
         story.append(
-            _p(
+            para(
                 "No 3D map: "
                 + next((n for n in report["notes"] if n.startswith("No 3D map")), "not available."),
                 st["body"],
