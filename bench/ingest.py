@@ -26,6 +26,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
 import httpx
 import numpy as np
 import websockets
@@ -43,7 +44,12 @@ FIELD_FPS = 30.0
 
 
 def _payload(rng: np.random.Generator) -> bytes:
-    return b"\xff\xd8\xff\xe0" + rng.integers(0, 256, FRAME_BYTES - 4, dtype=np.uint8).tobytes()
+    """A 640×480 JPEG of noise, cut or padded to FRAME_BYTES (the station reads its header)."""
+    noise = rng.integers(0, 256, (480, 640), dtype=np.uint8)
+    ok, buf = cv2.imencode(".jpg", noise, [cv2.IMWRITE_JPEG_QUALITY, 70])
+    assert ok
+    data = buf.tobytes()
+    return data[:FRAME_BYTES] + bytes(max(0, FRAME_BYTES - len(data)))
 
 
 async def _robot(

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from robot_link.image_header import ImageHeaderError, png_header
 from robot_link.protocol import ProtocolError
 
 MAX_DEPTH_MM = 65535
@@ -24,7 +25,16 @@ def encode_depth_png(depth_m: NDArray[np.floating]) -> bytes:
 
 
 def decode_depth_png(payload: bytes, width: int, height: int) -> NDArray[np.float32]:
-    """Decode a 16-bit depth PNG (mm) to an (H, W) float32 image in metres, NaN where 0."""
+    """Decode a 16-bit depth PNG (mm) to an (H, W) float32 image in metres, NaN where 0.
+
+    The PNG's header is checked first: one declaring another size is refused before its
+    pixels are allocated (a decompression bomb)."""
+    try:
+        png = png_header(payload)
+    except ImageHeaderError as exc:
+        raise ProtocolError(f"depth image: {exc}") from None
+    if (png.width, png.height) != (width, height):
+        raise ProtocolError(f"depth PNG is {png.width}×{png.height}, expected {width}×{height}")
     arr = cv2.imdecode(np.frombuffer(payload, np.uint8), cv2.IMREAD_UNCHANGED)
     if arr is None or arr.dtype != np.uint16 or arr.shape != (height, width):
         got = "undecodable" if arr is None else f"{arr.dtype} {arr.shape}"

@@ -24,7 +24,9 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from robot_link.image_header import PNG_SIGNATURE, ImageHeaderError, jpeg_size, png_header
 
 PROTOCOL_VERSION = 1
 MAGIC = b"STLS"
@@ -32,6 +34,8 @@ HEADER = struct.Struct("<4sBBH16sQdI")
 HEADER_BYTES = HEADER.size
 MAX_MESSAGE_BYTES = 8 * 1024 * 1024
 MAX_META_BYTES = 64 * 1024
+MAX_FRAME_PIXELS = 40_000_000  # a camera frame or video image (8000×5000)
+MAX_CLOUD_PIXELS = 4_000_000  # a ToF depth image or organised cloud
 SEQ_LIMIT = 2**63  # seq is a u64 on the wire whose top bit is clear (a signed 64-bit key)
 
 
@@ -81,17 +85,28 @@ class SessionEndMeta(_Meta):
     clouds: int = Field(default=0, ge=0)
 
 
-class FrameMeta(_Meta):
-    encoding: Literal["jpeg"] = "jpeg"
+class _Sized(_Meta):
+    """An image's size, within a pixel budget (decoded images must fit in memory)."""
+
     width: int = Field(gt=0, le=16384)
     height: int = Field(gt=0, le=16384)
+    _max_pixels = MAX_FRAME_PIXELS
+
+    @model_validator(mode="after")
+    def _within_budget(self) -> _Sized:
+        if self.width * self.height > self._max_pixels:
+            raise ValueError(f"{self.width}×{self.height} is more than {self._max_pixels:,} pixels")
+        return self
+
+
+class FrameMeta(_Sized):
+    encoding: Literal["jpeg"] = "jpeg"
     pose: Pose2D | None = None
 
 
-class CloudMeta(_Meta):
+class CloudMeta(_Sized):
     encoding: Literal["png16_depth_mm", "xyz_f32"]
-    width: int = Field(gt=0, le=8192)
-    height: int = Field(gt=0, le=8192)
+    _max_pixels = MAX_CLOUD_PIXELS
     fx: float | None = Field(default=None, gt=0)
     fy: float | None = Field(default=None, gt=0)
     cx: float | None = None
@@ -107,10 +122,8 @@ class TelemetryMeta(_Meta):
     battery_v: dict[str, float] | None = None
 
 
-class VideoMeta(_Meta):
+class VideoMeta(_Sized):
     encoding: Literal["jpeg"] = "jpeg"
-    width: int = Field(gt=0, le=16384)
-    height: int = Field(gt=0, le=16384)
 
 
 STOP_COMMANDS = frozenset(
@@ -159,7 +172,6 @@ META_MODELS: dict[MessageType, type[_Meta]] = {
 }
 
 JPEG_SOI = b"\xff\xd8"
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 @dataclass(frozen=True)
@@ -266,14 +278,37 @@ def _validate_meta(mtype: MessageType, meta: dict[str, Any]) -> dict[str, Any]:
         raise ProtocolError(f"{mtype.name} meta cannot be stored: {exc}") from None
 
 
+def _check_size(mtype: MessageType, what: str, size: tuple[int, int], meta: dict[str, Any]) -> None:
+    if size != (meta["width"], meta["height"]):
+        raise ProtocolError(
+            f"{mtype.name} {what} is {size[0]}×{size[1]}, meta says "
+            f"{meta['width']}×{meta['height']}"
+        )
+
+
 def _check_payload(mtype: MessageType, meta: dict[str, Any], payload: bytes) -> None:
     if mtype in (MessageType.FRAME, MessageType.VIDEO):
         if not payload.startswith(JPEG_SOI):
             raise ProtocolError(f"{mtype.name} payload is not a JPEG (missing FF D8 start marker)")
+        try:
+            size = jpeg_size(payload)
+        except ImageHeaderError as exc:
+            raise ProtocolError(f"{mtype.name} payload: {exc}") from None
+        _check_size(mtype, "JPEG", size, meta)
     elif mtype is MessageType.CLOUD:
         if meta["encoding"] == "png16_depth_mm":
             if not payload.startswith(PNG_SIGNATURE):
                 raise ProtocolError("CLOUD payload with encoding png16_depth_mm is not a PNG")
+            try:
+                png = png_header(payload)
+            except ImageHeaderError as exc:
+                raise ProtocolError(f"CLOUD payload: {exc}") from None
+            if (png.bit_depth, png.colour_type) != (16, 0):
+                raise ProtocolError(
+                    f"CLOUD depth PNG must be 16-bit greyscale, got {png.bit_depth}-bit "
+                    f"colour type {png.colour_type}"
+                )
+            _check_size(mtype, "depth PNG", (png.width, png.height), meta)
             if any(meta.get(k) is None for k in ("fx", "fy", "cx", "cy")):
                 raise ProtocolError("CLOUD with a depth image needs fx, fy, cx, cy in meta")
         else:

@@ -11,7 +11,13 @@ from sqlalchemy import select
 from processing.stitching import StitchParams, camera_poses, plan_mosaic, render_bands
 from server.jobs.context import JobContext, params_record
 from server.storage.models import Frame
-from server.storage.mosaic_files import StoredImages, frame_records, image_header, write_mosaic
+from server.storage.mosaic_files import (
+    StoredImages,
+    decodes,
+    frame_records,
+    image_header,
+    write_mosaic,
+)
 
 
 def run_stitch(ctx: JobContext) -> dict[str, Any]:
@@ -27,14 +33,16 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         )
     if not frames:
         raise ValueError("the session has no camera frames")
-    # frames of another size than most, or whose file is gone, are skipped and reported
+    # frames of another size than most, whose file is gone or whose image data is corrupt
+    # are skipped and reported
     sizes = Counter((f.width, f.height) for f in frames)
     size = sizes.most_common(1)[0][0]
     use, skipped = [], []
     for f in frames:
-        try:  # the header only: a frame that cannot be read is skipped, not fatal
-            w, h, _ = image_header(ctx.files.payload(f), f"frame {f.seq}")
-            ok = (w, h) == size
+        try:  # a frame that cannot be read is skipped, not fatal
+            data = ctx.files.payload(f)
+            w, h, _ = image_header(data, f"frame {f.seq}")
+            ok = (w, h) == size and decodes(data)
         except (ValueError, OSError):
             ok = False
         (use if ok else skipped).append(f)

@@ -64,6 +64,18 @@ def build_report(
         for kind, label in STAGES.items()
         if kind not in done
     ]
+    for kind, key, what in (
+        (
+            "stitch",
+            "skipped_frames",
+            "frames left out of the mosaic (unreadable or of another size)",
+        ),
+        ("map", "skipped_clouds", "ToF clouds left out of the 3D map (unreadable or empty)"),
+    ):
+        seqs = (done[kind].result or {}).get(key) if kind in done else None
+        if seqs:
+            shown = ", ".join(str(q) for q in seqs[:20]) + (", …" if len(seqs) > 20 else "")
+            notes.append(f"{what[0].upper()}{what[1:]}: {len(seqs)} (seq {shown}).")
     if listed_source == "frame" and defects:
         notes.append(
             "Defects are listed per camera frame (no mosaic): one defect seen in overlapping frames appears more than once."

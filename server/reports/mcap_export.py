@@ -143,8 +143,9 @@ def export_session(
     out: BinaryIO,
     *,
     progress: Progress = lambda f, m: None,
-) -> dict[str, int]:
-    """Write a session as MCAP to the binary stream ``out``; counts of what was written."""
+) -> dict[str, Any]:
+    """Write a session as MCAP to the binary stream ``out``; counts of what was written and
+    the seqs of clouds whose points could not be read (their bytes are written all the same)."""
     s = db.get(InspectionSession, session_id)
     if s is None:
         raise KeyError(session_id)
@@ -166,6 +167,7 @@ def export_session(
         or 1
     )
     counts = {"frames": 0, "clouds": 0, "telemetry": 0}
+    unreadable: list[int] = []
     merged = heapq.merge(
         _rows(db, Frame, session_id),
         _rows(db, Cloud, session_id),
@@ -178,7 +180,8 @@ def export_session(
         if table == "frames":
             _write_frame(ch, files, row)
         elif table == "clouds":
-            _write_cloud(ch, files, row)
+            if not _write_cloud(ch, files, row):
+                unreadable.append(seq)
         else:
             _write_telemetry(ch, row)
         counts[table] += 1
@@ -186,7 +189,7 @@ def export_session(
             progress(0.9 * i / total, f"{i}/{total} messages")
     _write_results(ch, db, files, session_id, t_last)
     writer.finish()
-    return counts
+    return {**counts, "unreadable_clouds": unreadable}
 
 
 def _session_metadata(s: InspectionSession) -> dict[str, str]:
@@ -241,7 +244,9 @@ def _write_frame(ch: _Channels, files: SessionFiles, f: Frame) -> None:
     ch.write("/camera/image", msg, f.timestamp, f.seq)
 
 
-def _write_cloud(ch: _Channels, files: SessionFiles, c: Cloud) -> None:
+def _write_cloud(ch: _Channels, files: SessionFiles, c: Cloud) -> bool:
+    """Write a cloud's pose, calibration, depth image and points; False when its payload
+    cannot be read as a cloud (everything but the points is written)."""
     _write_pose(ch, "/tof/odometry", c)
     payload = files.payload(c)
     k = c.intrinsics
@@ -263,10 +268,14 @@ def _write_cloud(ch: _Channels, files: SessionFiles, c: Cloud) -> None:
         depth = CompressedImage(frame_id="tof", format="png", data=payload)
         depth.timestamp.FromNanoseconds(_ns(c.timestamp))
         ch.write("/tof/depth", depth, c.timestamp, c.seq)
-    points = decode_cloud(
-        payload, {"encoding": c.encoding, "width": c.width, "height": c.height, **k}
-    )
+    try:
+        points = decode_cloud(
+            payload, {"encoding": c.encoding, "width": c.width, "height": c.height, **k}
+        )
+    except ValueError:  # stored as received, but not a readable cloud: no points for it
+        return False
     ch.write("/tof/points", _xyz_cloud(points, "tof", c.timestamp), c.timestamp, c.seq)
+    return True
 
 
 def _write_telemetry(ch: _Channels, sample: TelemetrySample) -> None:

@@ -25,6 +25,8 @@ from mcap.reader import make_reader
 from sqlalchemy import update
 from sqlalchemy.orm import Session
 
+from robot_link.image_header import ImageHeaderError, check_pixels, png_header
+from robot_link.protocol import MAX_CLOUD_PIXELS, MAX_FRAME_PIXELS
 from server.reports.mcap_common import METADATA, Progress
 from server.storage.files import SessionFiles
 from server.storage.models import (
@@ -177,7 +179,7 @@ def _second_pass(
             seen.add(("frame", seq))
             rel = files.frame_relpath(session_id, seq)
             files.write(rel, img.data)
-            w, h = _image_size(img.data)
+            w, h = _image_size(img.data, MAX_FRAME_PIXELS)
             db.add(
                 Frame(
                     session_id=session_id,
@@ -218,7 +220,7 @@ def _cloud_row(
     if topic == "/tof/depth":
         img = CompressedImage.FromString(data)
         payload, encoding, t = img.data, "png16_depth_mm", img.timestamp.ToNanoseconds() / 1e9
-        w, h = _image_size(payload)
+        w, h = _image_size(payload, MAX_CLOUD_PIXELS, depth=True)
         if len(intrinsics) < 4:
             raise McapImportError(f"depth image {seq} has no intrinsics on /tof/calibration")
     else:
@@ -230,6 +232,10 @@ def _cloud_row(
             raise McapImportError(f"cloud {seq} is not packed float32 x, y, z")
         payload, encoding, t = cloud.data, "xyz_f32", cloud.timestamp.ToNanoseconds() / 1e9
         count = len(payload) // 12
+        if count > MAX_CLOUD_PIXELS:
+            raise McapImportError(
+                f"cloud {seq} has {count:,} points, more than the {MAX_CLOUD_PIXELS:,} allowed"
+            )
         w, h = int(cal.get("width", 0)), int(cal.get("height", 0))
         if w * h != count:
             w, h = count, 1
@@ -248,14 +254,14 @@ def _cloud_row(
     )
 
 
-def _image_size(data: bytes) -> tuple[int, int]:
-    """(width, height) of an encoded image from its header."""
-    import io
-
-    from PIL import Image, UnidentifiedImageError
-
+def _image_size(data: bytes, max_pixels: int, depth: bool = False) -> tuple[int, int]:
+    """(width, height) of an encoded image from its header, refused before decoding when
+    larger than ``max_pixels`` (or, for ``depth``, not a 16-bit greyscale PNG)."""
     try:
-        with Image.open(io.BytesIO(data)) as im:
-            return im.size
-    except (OSError, UnidentifiedImageError) as exc:
-        raise McapImportError(f"an image in the file is not readable ({exc})") from None
+        if depth:
+            png = png_header(data)
+            if (png.bit_depth, png.colour_type) != (16, 0):
+                raise ImageHeaderError("a depth image must be a 16-bit greyscale PNG")
+        return check_pixels(data, max_pixels)
+    except ImageHeaderError as exc:
+        raise McapImportError(f"an image in the file is not usable: {exc}") from None

@@ -193,6 +193,11 @@ def image_header(source: Path | bytes, name: str = "") -> tuple[int, int, str]:
         raise ValueError(f"{name}: not a readable image ({exc.__class__.__name__})") from None
 
 
+def decodes(data: bytes) -> bool:
+    """Whether an encoded image decodes (its header may be sound and its data not)."""
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) is not None
+
+
 class StoredImages:
     """Frames stored by the station, read and decoded on demand (a
     :class:`processing.stitching.FrameSource`); ``read(k)`` gives frame k's bytes."""

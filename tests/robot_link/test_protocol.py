@@ -4,6 +4,8 @@ import struct
 import time
 import uuid
 
+import cv2
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -17,10 +19,20 @@ from robot_link.protocol import (
     decode_message,
     encode_message,
 )
+from tests.media import depth_png, jpeg
 
 SID = uuid.UUID("12345678-1234-5678-1234-567812345678")
-JPEG = b"\xff\xd8\xff\xe0" + b"\x00" * 100
-PNG = b"\x89PNG\r\n\x1a\n" + b"\x00" * 50
+JPEG = jpeg(640, 480)
+PNG = depth_png(224, 172)
+DEPTH = {
+    "encoding": "png16_depth_mm",
+    "width": 224,
+    "height": 172,
+    "fx": 1,
+    "fy": 1,
+    "cx": 0,
+    "cy": 0,
+}
 
 
 def raw(
@@ -122,7 +134,16 @@ def _meta_bytes(mtype: int, meta: bytes) -> bytes:
             raw(4, {"encoding": "xyz_f32", "width": 3, "height": 1}, b"\x00" * 12),
             "expected width*height*12",
         ),
-        (raw(4, {"encoding": "png16_depth_mm", "width": 3, "height": 1}, PNG), "needs fx"),
+        (raw(4, {"encoding": "png16_depth_mm", "width": 224, "height": 172}, PNG), "needs fx"),
+        (raw(3, {"width": 64, "height": 48}, JPEG), "JPEG is 640×480, meta says 64×48"),
+        (raw(3, {"width": 640, "height": 480}, JPEG[:2] + b"\xff\xda" + JPEG[2:]), "no frame"),
+        (raw(3, {"width": 9000, "height": 9000}, JPEG), "40,000,000 pixels"),
+        (raw(4, {**DEPTH, "width": 4000, "height": 4000}, PNG), "4,000,000 pixels"),
+        (raw(4, {**DEPTH, "width": 2000, "height": 1000}, PNG), "224×172, meta says 2000×1000"),
+        (
+            raw(4, DEPTH, cv2.imencode(".png", np.zeros((172, 224), np.uint8))[1].tobytes()),
+            "16-bit",
+        ),
         (raw(5, {}, b"junk"), "carry no payload"),
         (raw(6, {"cmd": "self_destruct"}), "cmd"),
         (raw(5, {"x": 2**64}, seq=2**63), "2**63"),
@@ -155,7 +176,9 @@ def test_decoder_raises_only_protocol_errors_on_random_bytes(data: bytes) -> Non
 @given(st.binary(max_size=120), st.integers(0, 255), st.integers(0, 300))
 def test_decoder_survives_mutated_valid_messages(tail: bytes, byte: int, pos: int) -> None:
     good = bytearray(
-        encode_message(Message(MessageType.FRAME, SID, 7, 1.0, {"width": 4, "height": 4}, JPEG))
+        encode_message(
+            Message(MessageType.FRAME, SID, 7, 1.0, {"width": 4, "height": 4}, jpeg(4, 4))
+        )
     )
     good[pos % len(good)] = byte
     try:

@@ -14,8 +14,9 @@ from robot_link.client import RobotLink
 from robot_link.clouds import encode_depth_png
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
 from tests.conftest import LiveServer
+from tests.media import jpeg
 
-JPEG = b"\xff\xd8\xff\xe0" + bytes(range(256)) * 4
+JPEG = jpeg(640, 480)
 
 
 def ws_url(server: LiveServer) -> str:

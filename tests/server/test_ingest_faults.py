@@ -26,6 +26,7 @@ from robot_link.protocol import (
 from server.errors import IngestError
 from server.link.ingest import Ingest, StoreResult
 from tests.conftest import LiveServer
+from tests.media import jpeg
 from tests.server.test_ingest import _ingest, frame, msg, session_json, start, ws_url
 
 
@@ -195,7 +196,7 @@ def test_a_robot_cannot_speak_on_another_robots_live_channel(live_server: LiveSe
     live_url = live_server.url.replace("http://", "ws://") + "/ws/live"
 
     def video(seq: int, marker: bytes) -> bytes:
-        return msg(sid, seq, MessageType.VIDEO, {"width": 8, "height": 8}, b"\xff\xd8" + marker)
+        return msg(sid, seq, MessageType.VIDEO, {"width": 8, "height": 8}, jpeg(8, 8) + marker)
 
     fake_ack = msg(sid, 9, MessageType.COMMAND_ACK, {"cmd": "estop", "accepted": True})
     with (

@@ -11,7 +11,8 @@ from websockets.sync.client import connect
 
 from robot_link.protocol import MessageType, decode_message
 from tests.conftest import LiveServer
-from tests.server.test_ingest import frame, start, ws_url
+from tests.media import undecodable_jpeg
+from tests.server.test_ingest import msg, start, ws_url
 
 
 def wait_job(url: str, job_id: int, timeout_s: float = 120) -> dict:
@@ -30,7 +31,10 @@ def test_a_failing_job_is_marked_failed_with_its_reason(live_server: LiveServer)
         ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
     ) as ws:
         ws.send(start(sid))
-        ws.send(frame(sid, 2))  # not a decodable image: the stitcher must say so
+        # a sound header, no image data: stored, and the stitcher must say it cannot use it
+        ws.send(
+            msg(sid, 2, MessageType.FRAME, {"width": 64, "height": 48}, undecodable_jpeg(64, 48))
+        )
         for _ in range(2):
             decode_message(ws.recv(timeout=10))
     url = live_server.url
@@ -64,7 +68,6 @@ def test_unknown_job_kind_is_a_422(live_server: LiveServer) -> None:
 
 def test_stitch_job_serves_a_deep_zoom_pyramid_of_the_session(live_server: LiveServer) -> None:
     from tests.processing.test_stitching import sweep
-    from tests.server.test_ingest import msg
 
     s = sweep(frames=6, pattern="straight", seed=21)
     sid = uuid.uuid4()
@@ -85,12 +88,20 @@ def test_stitch_job_serves_a_deep_zoom_pyramid_of_the_session(live_server: LiveS
             ws.send(
                 msg(sid, k, MessageType.FRAME, {"width": 320, "height": 240, "pose": pose}, jpeg)
             )
-        for _ in range(7):
-            decode_message(ws.recv(timeout=10))
+        pose = {"x": pose["x"] + 0.01, "y": pose["y"], "yaw": pose["yaw"]}
+        corrupt = undecodable_jpeg(320, 240)
+        ws.send(
+            msg(sid, 8, MessageType.FRAME, {"width": 320, "height": 240, "pose": pose}, corrupt)
+        )
+        for _ in range(8):
+            assert decode_message(ws.recv(timeout=10)).type is MessageType.ACK
     url = f"{live_server.url}/api/sessions/{sid}"
     job = wait_job(live_server.url, httpx.post(f"{url}/jobs", json={"kind": "stitch"}).json()["id"])
     assert job["state"] == "done", job
     assert job["result"]["world_referenced"] and job["result"]["low_confidence_frames"] == 0
+    assert job["result"]["skipped_frames"] == [8]  # one unreadable frame fails only itself
+    notes = httpx.get(f"{url}/report.json").json()["notes"]
+    assert any("Frames left out of the mosaic" in n and ": 1 (seq 8)" in n for n in notes), notes
     dzi = httpx.get(f"{url}/results/mosaic.dzi")
     assert dzi.status_code == 200 and f'Width="{job["result"]["width_px"]}"' in dzi.text
     top = int(np.ceil(np.log2(max(job["result"]["width_px"], job["result"]["height_px"]))))
@@ -115,7 +126,6 @@ def test_map_job_on_tof_clouds_alone_beats_the_odometry(live_server: LiveServer)
     from robot_link.clouds import encode_depth_png
     from robot_link.sim.sensors import tof_mount
     from robot_link.sim.tof_sweeps import TofSweepConfig, tof_sweep
-    from tests.server.test_ingest import msg
 
     sweep = tof_sweep(TofSweepConfig(seed=23))
     mount = tof_mount()
