@@ -190,7 +190,9 @@ function view3dButton(s, root) {
   const button = el("button", { id: "show-3d" }, "Show 3D map");
   button.addEventListener("click", async () => {
     const res = await api(`/api/sessions/${s.id}/view3d`, { method: "POST" });
-    if (!res.ok) { text(button, `3D view unavailable (${res.status})`); return; }
+    // a viewer watches the shared view as an operator set it
+    if (res.status === 403) text(button, "Shared 3D view (an operator chooses the session)");
+    else if (!res.ok) { text(button, `3D view unavailable (${res.status})`); return; }
     const frame = document.getElementById("view3d") || el("iframe", { id: "view3d", title: "3D map" });
     frame.src = `/viser/${token ? `?token=${encodeURIComponent(token)}` : ""}`;
     root.appendChild(frame);

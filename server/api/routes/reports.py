@@ -10,13 +10,14 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from sqlalchemy import select
 
-from server.api.deps import OperatorUser, SessionDep, StateDep, get_current_user
+from server.api.accounts import has_role
+from server.api.deps import CurrentUser, OperatorUser, SessionDep, StateDep, get_current_user
 from server.api.queries import get_session_or_404
 from server.api.schemas import JobPublic
 from server.reports.content import build_report
 from server.reports.pdf import write_pdf
 from server.reports.tables import defects_csv
-from server.storage.models import InspectionSession, Job, JobState, SessionStatus
+from server.storage.models import InspectionSession, Job, JobState, Role, SessionStatus
 
 router = APIRouter(
     prefix="/api/sessions", tags=["reports"], dependencies=[Depends(get_current_user)]
@@ -112,10 +113,10 @@ def _mcap_fresh(db: SessionDep, s: InspectionSession) -> Job | None:
         }
     },
 )
-def read_session_mcap(db: SessionDep, state: StateDep, session_id: str) -> Any:
+def read_session_mcap(db: SessionDep, state: StateDep, session_id: str, user: CurrentUser) -> Any:
     """The whole session as an MCAP file (Foxglove schemas: images, clouds, poses, telemetry),
     streamed from disk. When it is not made yet or is out of date, an export job is queued
-    and 202 returned with it."""
+    and 202 returned with it (queueing one needs the operator role)."""
     s = get_session_or_404(db, session_id)
     path = state.files.results_dir(session_id) / MCAP_NAME
     if _mcap_fresh(db, s) is not None and path.is_file():
@@ -132,6 +133,11 @@ def read_session_mcap(db: SessionDep, state: StateDep, session_id: str) -> Any:
         .order_by(Job.id.desc())
     )
     if pending is None:
+        if not has_role(user, Role.operator):
+            raise HTTPException(
+                status.HTTP_403_FORBIDDEN,
+                "the MCAP of this session is not made yet; making it needs the operator role",
+            )
         job_id = state.jobs.enqueue(session_id, "export")
         pending = db.get(Job, job_id)
     assert pending is not None

@@ -23,12 +23,12 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from server.api.accounts import accounts_exist, user_for_token
-from server.api.deps import SessionDep, StateDep, get_current_user, same_origin
+from server.api.deps import SessionDep, StateDep, require, same_origin
 from server.api.queries import get_session_or_404
 from server.errors import NotFound
 from server.live.scene3d import DefectMarker
 from server.state import AppState
-from server.storage.models import Defect, InspectionSession
+from server.storage.models import Defect, InspectionSession, Role
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["3d view"])
@@ -180,10 +180,11 @@ def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
     }
 
 
-@router.post("/api/sessions/{session_id}/view3d", dependencies=[Depends(get_current_user)])
+@router.post("/api/sessions/{session_id}/view3d", dependencies=[Depends(require(Role.operator))])
 def show_in_3d(db: SessionDep, state: StateDep, session_id: str) -> dict[str, Any]:
     """Show this session in the 3D view: its map coloured by height, its trajectory and a
-    marker per defect placed on the structure (click one to see it)."""
+    marker per defect placed on the structure (click one to see it). Every user sees the
+    same view, so changing it needs the operator role."""
     _scene_or_404(state)
     get_session_or_404(db, session_id)
     return session_scene(db, state, session_id)
