@@ -13,6 +13,7 @@ from fastapi_offline import FastAPIOffline
 
 from server.api.accounts import accounts_exist
 from server.api.deps import get_current_user
+from server.api.headers import SecurityHeaders
 from server.api.routes import ROUTERS
 from server.config import Settings
 from server.errors import Conflict, NotFound
@@ -114,6 +115,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             },
         }
 
+    app.add_middleware(SecurityHeaders)
     app.include_router(robot_router)
     for router in ROUTERS:
         app.include_router(router)

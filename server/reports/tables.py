@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import csv
 import io
+import unicodedata
 from collections.abc import Iterable, Iterator
 from typing import Any
 
 from server.reports.fields import DEFECT_FIELDS
 
-FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+FORMULA_START = frozenset("=+-@|%")  # what spreadsheets start a formula or DDE call with
 
 
 def _cell(value: Any) -> Any:
@@ -19,9 +20,19 @@ def _cell(value: Any) -> Any:
         return ""
     if isinstance(value, float):
         return f"{value:.6g}"
-    if isinstance(value, str) and value.startswith(FORMULA_START):
+    if isinstance(value, str) and _formula_like(value):
         return "'" + value
     return value
+
+
+def _formula_like(text: str) -> bool:
+    """Whether a spreadsheet might read the text as a formula: its first visible character,
+    once full-width forms are folded (＝ is =), starts one, or it starts with a control
+    character that some spreadsheets skip."""
+    if text[:1] in ("\t", "\r", "\n"):
+        return True
+    head = unicodedata.normalize("NFKC", text.lstrip())[:1]
+    return head in FORMULA_START
 
 
 def defects_csv(records: Iterable[dict[str, Any]]) -> Iterator[str]:

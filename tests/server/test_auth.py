@@ -103,8 +103,11 @@ def test_open_until_the_first_account_then_401_and_403(live_server: LiveServer) 
     assert httpx.get(mcap, headers=viewer).status_code == 403
     assert httpx.post(f"{url}/api/sessions/{sid}/view3d", headers=viewer).status_code == 403
     assert httpx.get(mcap, headers=operator).status_code == 202
-    # static pages and the OpenAPI document stay reachable
-    assert httpx.get(f"{url}/").status_code == 200
+    # static pages and the OpenAPI document stay reachable, framed by no other site
+    page = httpx.get(f"{url}/")
+    assert page.status_code == 200 and page.headers["x-frame-options"] == "SAMEORIGIN"
+    assert "script-src 'self'" in page.headers["content-security-policy"]
+    assert page.headers["x-content-type-options"] == "nosniff"
     assert httpx.get(f"{url}/static/js/main.js").status_code == 200
     assert httpx.get(f"{url}/vendor/openseadragon/openseadragon.min.js").status_code == 200
 

@@ -55,6 +55,17 @@ def watch_errors(page, errors: list[str], foreign: list[str]) -> None:  # type: 
     )
 
 
+def wait_js(page, expression: str, timeout: float = 30000) -> None:  # type: ignore[no-untyped-def]
+    """Wait until a JavaScript expression is true on the page, evaluated from outside it (the
+    dashboard's content security policy forbids the string evaluation wait_for_function
+    uses inside the page)."""
+    deadline = time.monotonic() + timeout / 1000
+    while not page.evaluate(expression):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {expression}")
+        page.wait_for_timeout(100)
+
+
 def open_dashboard(pw, url: str, errors: list[str], foreign: list[str]):  # type: ignore[no-untyped-def]
     """Debian's chromium on the dashboard, recording errors and requests to other hosts."""
     browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
@@ -112,8 +123,10 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
         page.wait_for_selector("#link-state.ok", timeout=15000)
         robot = sim(live_server, "--exit-when-done", "--lanes", "1", "--time-scale", "4")
         try:
-            page.wait_for_function(
-                "Number(document.querySelector('#camera').dataset.frames || 0) >= 2", timeout=120000
+            wait_js(
+                page,
+                "Number(document.querySelector('#camera').dataset.frames || 0) >= 2",
+                timeout=120000,
             )
             page.wait_for_selector("#telemetry dt", timeout=20000)
             assert "battery" in page.inner_text("#telemetry")
@@ -122,7 +135,8 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
             _, err = robot.communicate(timeout=120)
         assert robot.returncode == 0, err[-2000:]
         page.goto(live_server.url + "/#/sessions")
-        page.wait_for_function(
+        wait_js(
+            page,
             "document.querySelector('#sessions tbody')?.textContent.includes('detect ✓')",
             timeout=120000,
         )
@@ -236,14 +250,18 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
     foreign: list[str] = []
     with sync_playwright() as pw:
         browser, page = open_dashboard(pw, url, errors, foreign)
-        page.wait_for_function(
-            "Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000
+        wait_js(
+            page,
+            "Number(document.querySelector('#camera').dataset.frames || 0) >= 10",
+            timeout=60000,
         )  # live video
         x0 = latest_telemetry(url, sid)["pose"]["x"]
         # a held key drives the robot and the telemetry shows it
         page.keyboard.down("ArrowUp")
-        page.wait_for_function(
-            "document.querySelector('#telemetry').textContent.includes('0.08 · turn')", timeout=5000
+        wait_js(
+            page,
+            "document.querySelector('#telemetry').textContent.includes('0.08 · turn')",
+            timeout=5000,
         )
         time.sleep(1.0)
         assert page.inner_text("#control-state") == "you drive"
@@ -265,7 +283,8 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
         page.keyboard.down("ArrowUp")
         time.sleep(0.5)
         assert latest_telemetry(url, sid)["drive"]["linear_mps"] == 0.0
-        page.wait_for_function(
+        wait_js(
+            page,
             "document.querySelector('#command-result').textContent.includes('emergency stop')",
             timeout=5000,
         )
@@ -276,13 +295,15 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
         other = browser.new_page()
         watch_errors(other, errors, foreign)
         other.goto(url + "/")
-        other.wait_for_function(
+        wait_js(
+            other,
             "document.querySelector('#control-state').textContent.startsWith('driven by')",
             timeout=20000,
         )
         other.focus("body")
         other.keyboard.down("ArrowUp")
-        other.wait_for_function(
+        wait_js(
+            other,
             "document.querySelector('#command-result').textContent.includes('driven by')",
             timeout=5000,
         )
@@ -299,8 +320,10 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
             2,
             "the robot to stop when its driver's page closed",
         )
-        other.wait_for_function(
-            "document.querySelector('#control-state').textContent === 'nobody drives'", timeout=5000
+        wait_js(
+            other,
+            "document.querySelector('#control-state').textContent === 'nobody drives'",
+            timeout=5000,
         )
         other.close()
         browser.close()
@@ -325,8 +348,10 @@ def test_a_gamepad_drives_and_its_b_button_stops(
             navigator.getGamepads = () => [window.fakePad];
         """)
         page.goto(url + "/")
-        page.wait_for_function(
-            "document.querySelector('#robot-state').textContent.startsWith('robot:')", timeout=30000
+        wait_js(
+            page,
+            "document.querySelector('#robot-state').textContent.startsWith('robot:')",
+            timeout=30000,
         )
         page.evaluate("window.fakePad.axes[1] = -1")  # stick forward
         wait_until(
@@ -377,14 +402,16 @@ def test_sign_in_when_accounts_exist(live_server: LiveServer) -> None:
         page.fill("input[name=username]", "otto")
         page.fill("input[name=password]", "wrong password")
         page.click("#login button")
-        page.wait_for_function(
-            "document.querySelector('#login-error').textContent.length > 0", timeout=10000
+        wait_js(
+            page, "document.querySelector('#login-error').textContent.length > 0", timeout=10000
         )
         errors.clear()  # the refused sign-in is a 401 by design
         page.fill("input[name=password]", "correct horse")
         page.click("#login button")
-        page.wait_for_function(
-            "document.querySelector('#who').textContent.includes('otto (operator)')", timeout=10000
+        wait_js(
+            page,
+            "document.querySelector('#who').textContent.includes('otto (operator)')",
+            timeout=10000,
         )
         page.wait_for_selector("#link-state.ok", timeout=15000)
         browser.close()
