@@ -12,7 +12,7 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.jobs.allocator import keep_arrays_on_heap
+from server.jobs.orphans import init_worker
 from server.jobs.worker import JOB_KINDS, PIPELINE, run_job
 from server.storage.models import Job, JobState, utcnow
 
@@ -110,7 +110,7 @@ class JobRunner:
     def _new_pool(self) -> ProcessPoolExecutor:
         ctx = multiprocessing.get_context("spawn")
         return ProcessPoolExecutor(
-            max_workers=self.workers, mp_context=ctx, initializer=keep_arrays_on_heap
+            max_workers=self.workers, mp_context=ctx, initializer=init_worker
         )
 
     def _loop(self) -> None:

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from server.jobs.orphans import init_worker
+
 log = logging.getLogger(__name__)
 MAX_PENDING = 3  # clouds waiting for the worker; beyond, the live view skips (the job uses all)
 DISPLAY_POINTS = 150_000
@@ -89,7 +91,9 @@ class LiveMap:
                 return False
             self._pending += 1
             if self._pool is None:
-                self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+                self._pool = ProcessPoolExecutor(
+                    1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker
+                )
             pool = self._pool
         guess = se2_to_se3(float(pose["x"]), float(pose["y"]), float(pose["yaw"])) @ mount
         future = pool.submit(_place, session_id, payload, dict(meta), guess)

@@ -5,6 +5,7 @@ import asyncio
 import signal
 import sqlite3
 import subprocess
+import time
 from pathlib import Path
 
 import httpx
@@ -77,3 +78,65 @@ def test_sigkill_mid_session_loses_nothing(tmp_path: Path) -> None:
     ):
         payload = store.read(path, offset, size)
         assert payload.startswith(b"\xff\xd8") and len(payload) == size
+
+
+def _alive_children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` and that have not exited (zombies count as gone)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            state, ppid = stat.read_text().rsplit(")", 1)[1].split()[:2]
+        except (OSError, ValueError):
+            continue
+        if int(ppid) == pid and state != "Z":
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _alive(pids: list[int]) -> list[int]:
+    alive = []
+    for p in pids:
+        try:
+            state = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z":
+            alive.append(p)
+    return alive
+
+
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGTERM])
+def test_job_workers_end_with_the_station(tmp_path: Path, how: signal.Signals) -> None:
+    """Killed or stopped, the station leaves no worker process behind."""
+    data = tmp_path / "data"
+    token = make_token(Settings(data_dir=data))
+    port = free_port()
+    proc = serve(data, port)
+    url = f"http://127.0.0.1:{port}"
+    try:
+
+        async def record() -> str:
+            link = RobotLink(url, token)
+            await link.start()
+            await link.send(MessageType.SESSION_START, {"structure": "workers"})
+            await link.send(MessageType.FRAME, {"width": 640, "height": 480}, JPEG)
+            await link.flush(timeout_s=30)
+            await link.close()
+            return str(link.session_id)
+
+        sid = asyncio.run(record())
+        job = httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "stitch"}).json()
+        for _ in range(600):
+            state = httpx.get(f"{url}/api/jobs/{job['id']}").json()["state"]
+            if state in ("done", "failed"):
+                break
+            time.sleep(0.1)
+        workers = _alive_children(proc.pid)
+        assert workers  # the job ran in a worker process, which the pool keeps
+    finally:
+        proc.send_signal(how)
+        proc.wait(timeout=60)
+    deadline = time.monotonic() + 10
+    while _alive(workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive(workers)
