@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.api.accounts import LoginThrottle
+from server.api.accounts import LoginThrottle, PasswordBudget
 from server.config import Settings
 from server.jobs.runner import JobRunner
 from server.link.group_commit import GroupCommit
@@ -32,6 +32,5 @@ class AppState:
     writer: GroupCommit
     scene: Scene3D | None = None  # the 3D view, when switched on
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
-    logins: LoginThrottle = field(
-        default_factory=LoginThrottle
-    )  # wrong passwords per (client, user)
+    logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per client
+    passwords: PasswordBudget = field(default_factory=PasswordBudget)  # hashing, station-wide

@@ -8,6 +8,7 @@ import time
 from collections import deque
 from datetime import timedelta
 
+import anyio
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
 from sqlalchemy import delete, func, select
@@ -15,6 +16,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.errors import Conflict
+from server.link.limits import TokenBucket
 from server.link.robots import hash_token
 from server.storage.models import AuthToken, Role, User, utcnow
 
@@ -87,15 +89,24 @@ def has_role(user: User, role: Role) -> bool:
     return ROLE_RANK[user.role] >= ROLE_RANK[role]
 
 
+ANY_USER = "\x00any"  # the key of a client's failures over every user name
+
+
 class LoginThrottle:
     """Refuses logins for a (client, user name) after ``max_failures`` wrong passwords within
-    ``window_s`` until the oldest of them is that old (password guessing, not typing slips).
-    Bounded: at most ``max_keys`` pairs are remembered."""
+    ``window_s``, and for a client after ``max_client_failures`` over every user name (so
+    guessing across many names is throttled too), until the oldest of them is that old.
+    Bounded: at most ``max_keys`` keys are remembered."""
 
     def __init__(
-        self, max_failures: int = 5, window_s: float = 60.0, max_keys: int = 10_000
+        self,
+        max_failures: int = 5,
+        window_s: float = 60.0,
+        max_keys: int = 10_000,
+        max_client_failures: int = 20,
     ) -> None:
         self.max_failures = max_failures
+        self.max_client_failures = max_client_failures
         self.window_s = window_s
         self.max_keys = max_keys
         self._failures: dict[tuple[str, str], deque[float]] = {}
@@ -105,30 +116,61 @@ class LoginThrottle:
         """Seconds until this pair may try again (0: now)."""
         now = time.monotonic()
         with self._lock:
-            times = self._failures.get((client, name))
-            if times is None:
-                return 0.0
-            while times and now - times[0] > self.window_s:
-                times.popleft()
-            if len(times) < self.max_failures:
-                return 0.0
-            return self.window_s - (now - times[0])
+            return max(
+                self._wait((client, name), self.max_failures, now),
+                self._wait((client, ANY_USER), self.max_client_failures, now),
+            )
+
+    def _wait(self, key: tuple[str, str], limit: int, now: float) -> float:
+        times = self._failures.get(key)
+        if times is None:
+            return 0.0
+        while times and now - times[0] > self.window_s:
+            times.popleft()
+        if len(times) < limit:
+            return 0.0
+        return self.window_s - (now - times[0])
 
     def failed(self, client: str, name: str) -> None:
         """Count a wrong password."""
         now = time.monotonic()
         with self._lock:
-            if (
-                len(self._failures) >= self.max_keys
-            ):  # forget the pairs whose failures are all old, then the oldest pairs
+            if len(self._failures) >= self.max_keys - 1:
+                # forget the keys whose failures are all old, then the oldest keys
                 self._failures = {
                     k: v for k, v in self._failures.items() if v and now - v[-1] <= self.window_s
                 }
-                for key in list(self._failures)[: max(0, len(self._failures) - self.max_keys + 1)]:
+                for key in list(self._failures)[: max(0, len(self._failures) - self.max_keys + 2)]:
                     del self._failures[key]
             self._failures.setdefault((client, name), deque(maxlen=self.max_failures)).append(now)
+            self._failures.setdefault(
+                (client, ANY_USER), deque(maxlen=self.max_client_failures)
+            ).append(now)
 
     def succeeded(self, client: str, name: str) -> None:
-        """Forget this pair's failures."""
+        """Forget this pair's failures (the client's count over all names stays)."""
         with self._lock:
             self._failures.pop((client, name), None)
+
+
+class PasswordBudget:
+    """Password hashing (argon2: ~0.1 s of several cores each) for the whole station: at
+    most ``rate`` checks a second (``burst`` at once), one at a time, so logins can never
+    take the CPU the robots' ingest needs."""
+
+    def __init__(self, rate: float = 3.0, burst: float = 6.0) -> None:
+        self._bucket = TokenBucket(rate, burst)
+        self._lock = threading.Lock()
+        self._limiter: anyio.CapacityLimiter | None = None
+
+    @property
+    def limiter(self) -> anyio.CapacityLimiter:
+        """One check at a time (made in the event loop that first asks)."""
+        if self._limiter is None:
+            self._limiter = anyio.CapacityLimiter(1)
+        return self._limiter
+
+    def take(self) -> bool:
+        """Whether a check may start now."""
+        with self._lock:
+            return self._bucket.take()

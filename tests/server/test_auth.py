@@ -236,3 +236,39 @@ def test_a_browser_flooding_or_sending_huge_messages_is_refused_but_can_always_s
             json.dumps({"session_id": sid, "cmd": "estop"})
         )  # the bucket is empty: e-stop still goes through
         assert "too many" not in results(ws, 1)[0].get("error", "")
+
+
+def test_guessing_over_many_user_names_is_throttled_per_client() -> None:
+    from server.api.accounts import LoginThrottle
+
+    throttle = LoginThrottle(max_failures=5, window_s=60, max_client_failures=20)
+    for k in range(20):
+        assert throttle.retry_after("mallory", f"user-{k}") == 0
+        throttle.failed("mallory", f"user-{k}")
+    assert throttle.retry_after("mallory", "a-new-name") > 59
+    assert throttle.retry_after("ana", "user-1") == 0  # another client is not affected
+    throttle.succeeded("mallory", "user-3")  # one right password does not reset the client
+    assert throttle.retry_after("mallory", "user-3") > 59
+
+
+def test_password_checks_have_a_station_wide_budget(live_server: LiveServer) -> None:
+    """A login flood (random user names) is answered 429 beyond the budget, before any
+    hashing, so it cannot take the CPU ingest needs."""
+    from server.api.accounts import PasswordBudget
+
+    budget = PasswordBudget(rate=1.0, burst=3.0)
+    assert [budget.take() for _ in range(4)] == [True, True, True, False]
+    add_user(live_server, "vera", Role.viewer)
+    url = f"{live_server.url}/api/auth/token"
+    replies = [
+        httpx.post(url, data={"username": f"u{uuid.uuid4()}", "password": "x"}) for _ in range(30)
+    ]
+    codes = [r.status_code for r in replies]
+    assert codes.count(429) >= 10 and set(codes) <= {401, 429}  # the budget, or the throttle
+    assert all(
+        r.json()["detail"].startswith(
+            ("too many wrong passwords", "the station is checking too many passwords")
+        )
+        for r in replies
+        if r.status_code == 429
+    )

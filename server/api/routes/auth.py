@@ -31,7 +31,8 @@ async def create_token(
     state: StateDep, request: Request, form: Annotated[OAuth2PasswordRequestForm, Depends()]
 ) -> TokenPublic:
     """Exchange a user name and password for a bearer token (429 after repeated wrong
-    passwords from one client for one user, until the throttle's window has passed)."""
+    passwords from one client, for one user or over all, until the throttle's window has
+    passed; 429 too while the station checks more passwords a second than it allows)."""
     client = request.client.host if request.client else "?"
     wait = state.logins.retry_after(client, form.username)
     if wait > 0:
@@ -40,8 +41,14 @@ async def create_token(
             f"too many wrong passwords; try again in {wait:.0f} s",
             headers={"Retry-After": str(max(1, round(wait)))},
         )
+    if not state.passwords.take():
+        raise HTTPException(
+            status.HTTP_429_TOO_MANY_REQUESTS,
+            "the station is checking too many passwords; try again in a second",
+            headers={"Retry-After": "1"},
+        )
     issued = await anyio.to_thread.run_sync(
-        issue_token, state.factory, form.username, form.password
+        issue_token, state.factory, form.username, form.password, limiter=state.passwords.limiter
     )
     if issued is None:
         state.logins.failed(client, form.username)
