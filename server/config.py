@@ -45,6 +45,12 @@ class Settings(BaseSettings):
         description="free disk space kept in the data directory: below it robots are told "
         "to send again later",
     )
+    session_idle_s: float = Field(
+        default=1800.0,
+        gt=0,
+        description="a live session with no message for this long is ended by the station "
+        "(its robot never sent SESSION_END) and its files closed",
+    )
     fsync: bool = Field(default=False, description="fsync every stored file (power-loss safety)")
     job_workers: int = Field(default=2, ge=1, description="worker processes for processing jobs")
     auto_process: bool = Field(default=True, description="run jobs when a session ends")

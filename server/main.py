@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
+import anyio
 from fastapi import Depends, FastAPI, Request
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
@@ -61,6 +63,23 @@ def build_state(settings: Settings) -> AppState:
     )
 
 
+async def _end_quiet_sessions(state: AppState) -> None:
+    """Every little while: close the files of quiet sessions, end the live ones whose robot
+    went silent without SESSION_END, and process those as if it had ended them."""
+    idle = state.settings.session_idle_s
+    while True:
+        await asyncio.sleep(min(60.0, idle / 4))
+        try:
+            ended = await anyio.to_thread.run_sync(state.ingest.close_quiet_sessions, idle)
+        except Exception:  # noqa: BLE001  the next round tries again
+            log.exception("could not end quiet sessions")
+            continue
+        for sid in ended:
+            log.info("session %s ended: no message for %g s", sid, idle)
+            if state.settings.auto_process:
+                await anyio.to_thread.run_sync(state.jobs.enqueue_pipeline, sid)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The ground-station ASGI app."""
     settings = settings or Settings()
@@ -74,9 +93,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             if settings.live_map:
                 state.live_map = LiveMap(state.factory, state.scene)
         state.jobs.start()
+        reaper = asyncio.create_task(_end_quiet_sessions(state))
         try:
             yield
         finally:
+            reaper.cancel()
             state.jobs.stop()
             state.writer.close()
             if state.live_map is not None:

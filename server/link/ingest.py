@@ -5,9 +5,10 @@ from __future__ import annotations
 import threading
 from collections import defaultdict
 from dataclasses import dataclass, field
+from datetime import timedelta
 from typing import Any, Literal
 
-from sqlalchemy import Connection, bindparam, select
+from sqlalchemy import Connection, bindparam, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -136,6 +137,45 @@ class Ingest:
         with self.engine.connect() as conn:
             return conn.execute(select(SESSIONS.c.robot_id).where(SESSIONS.c.id == sid)).scalar()
 
+    def close_quiet_sessions(self, idle_s: float) -> list[str]:
+        """Close the files of every session without an append for ``idle_s`` seconds, and
+        end the live sessions that got no message for that long (their robot never sent
+        SESSION_END); the ids of the sessions ended. A robot that comes back later may still
+        add to one: it was ended without a SESSION_END."""
+        cutoff = utcnow() - timedelta(seconds=idle_s)
+        last = (
+            select(func.max(RECEIVED.c.received_at))
+            .where(RECEIVED.c.session_id == SESSIONS.c.id)
+            .scalar_subquery()
+        )
+        with self._lock:
+            for sid in self.files.quiet_sessions(idle_s):
+                self.files.close_session(sid)
+            conn = self._connection()
+            with conn.begin():
+                quiet = list(
+                    conn.execute(
+                        select(SESSIONS.c.id).where(
+                            SESSIONS.c.status == SessionStatus.live,
+                            func.coalesce(last, SESSIONS.c.started_at) < cutoff,
+                        )
+                    ).scalars()
+                )
+                if quiet:
+                    conn.execute(
+                        SESSIONS.update()
+                        .where(SESSIONS.c.id.in_(quiet))
+                        .values(
+                            status=SessionStatus.ended,
+                            ended_at=utcnow(),
+                            end_reason=f"no message for {idle_s:g} s: ended by the station",
+                        )
+                    )
+            for sid in quiet:
+                self.files.close_session(sid)
+                self._owners.pop(sid, None)
+        return quiet
+
     def _connection(self) -> Connection:
         """The connection ingest keeps open (checking one out of the pool per transaction
         costs as much as the inserts)."""
@@ -187,9 +227,8 @@ class Ingest:
             ).first()
             if row is not None:
                 end_seq = None
-                if row[1] == SessionStatus.ended:
+                if row[1] == SessionStatus.ended:  # None: ended by the station, not the robot
                     end_seq = conn.execute(END_SEQ, {"sid": sid}).scalar()
-                    end_seq = -1 if end_seq is None else end_seq
                 owner = _Owner(row[0], end_seq)
                 self._owners[sid] = owner
         return owner

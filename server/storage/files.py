@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -22,6 +23,7 @@ class SessionFiles:
         self._segments: dict[
             tuple[str, str], tuple[int, BinaryIO]
         ] = {}  # (session, kind) -> (number, open file)
+        self._last_append: dict[str, float] = {}  # session -> time.monotonic() of its last append
 
     def session_dir(self, session_id: str) -> Path:
         """Folder of one session."""
@@ -56,6 +58,7 @@ class SessionFiles:
                 number += 1
             fh = open(folder / f"segment-{number:05d}.bin", "ab")  # noqa: SIM115 - kept open across appends
             self._segments[key] = (number, fh)
+        self._last_append[session_id] = time.monotonic()
         offset = fh.seek(0, os.SEEK_END)
         fh.write(data)
         fh.flush()
@@ -64,9 +67,15 @@ class SessionFiles:
         return f"sessions/{session_id}/{kind}/segment-{number:05d}.bin", offset
 
     def close_session(self, session_id: str) -> None:
-        """Close the session's open segment files (it ended)."""
+        """Close the session's open segment files (it ended, or went quiet)."""
         for key in [k for k in self._segments if k[0] == session_id]:
             self._segments.pop(key)[1].close()
+        self._last_append.pop(session_id, None)
+
+    def quiet_sessions(self, idle_s: float) -> list[str]:
+        """Sessions with open segment files and no append for ``idle_s`` seconds."""
+        cutoff = time.monotonic() - idle_s
+        return [sid for sid, t in self._last_append.items() if t < cutoff]
 
     def read(self, relpath: str, offset: int | None, size: int) -> bytes:
         """A stored payload: ``size`` bytes at ``offset`` of a segment file, or a whole file

@@ -4,6 +4,7 @@ message over the size limit gets the protocol's ERROR instead of a dead link."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 import uuid
@@ -228,3 +229,51 @@ def test_a_robot_cannot_speak_on_another_robots_live_channel(live_server: LiveSe
     acks = [json.loads(i) for i in seen if isinstance(i, str) and '"command_ack"' in i]
     assert videos and all(v.endswith(b"REAL") for v in videos)
     assert [a["cmd"] for a in acks] == ["stop"]
+
+
+def _open_files_of(sid: uuid.UUID) -> int:
+    count = 0
+    for fd in Path("/proc/self/fd").iterdir():
+        try:
+            count += str(sid) in os.readlink(fd)
+        except OSError:
+            continue
+    return count
+
+
+def test_a_session_its_robot_abandoned_is_ended_and_its_files_closed(tmp_path: Path) -> None:
+    """No SESSION_END and no message for the idle time: the station ends the session,
+    closes its files, and still takes what the robot sends if it comes back."""
+    from server.config import Settings
+    from server.loopback import BackgroundServer, free_port
+    from tests.conftest import make_token
+
+    settings = Settings(
+        data_dir=tmp_path / "data", job_workers=1, auto_process=False, session_idle_s=0.8
+    )
+    token = make_token(settings)
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    live = LiveServer(server.url, settings, token)
+    sid = uuid.uuid4()
+    try:
+        headers = {"Authorization": f"Bearer {token}"}
+        with connect(ws_url(live), additional_headers=headers) as ws:
+            ws.send(start(sid))
+            ws.send(frame(sid, 2))
+            assert [decode_message(ws.recv(timeout=10)).type for _ in range(2)] == [
+                MessageType.ACK
+            ] * 2
+        assert _open_files_of(sid) > 0
+        deadline = time.monotonic() + 15
+        while session_json(live, sid)["status"] != "ended" and time.monotonic() < deadline:
+            time.sleep(0.2)
+        session = session_json(live, sid)
+        assert session["status"] == "ended" and "no message" in session["end_reason"]
+        assert _open_files_of(sid) == 0
+        with connect(ws_url(live), additional_headers=headers) as ws:  # the robot is back
+            ws.send(frame(sid, 3))
+            assert decode_message(ws.recv(timeout=10)).meta["status"] == "stored"
+        assert session_json(live, sid)["frames"] == 2
+    finally:
+        server.stop()
