@@ -41,9 +41,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         port=port,
         log_level="info",
         log_config=uvicorn_log_config(),
-        ws_max_size=settings.ws_max_bytes,
-        ws_per_message_deflate=False,
-    )  # media does not deflate: compression would only cost CPU
+        **settings.uvicorn_options(),
+    )
     return 0
 
 

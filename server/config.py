@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -23,6 +23,12 @@ class Settings(BaseSettings):
     max_message_bytes: int = 8 * 1024 * 1024
     max_import_bytes: int = Field(
         default=50 * 1024**3, description="largest MCAP file POST /api/sessions/import accepts"
+    )
+    max_connections_per_client: int = Field(
+        default=64, ge=1, description="open connections one address may hold (robots, browsers)"
+    )
+    request_head_timeout_s: float = Field(
+        default=10.0, gt=0, description="time a client has to send a request's line and headers"
     )
     robot_messages_per_s: float = Field(
         default=3000.0, description="rate limit per robot connection (ERROR, retry, beyond it)"
@@ -75,6 +81,17 @@ class Settings(BaseSettings):
         default=True,
         description="grow the 3D map during a session (ICP in a worker process) and show it",
     )
+
+    def uvicorn_options(self) -> dict[str, Any]:
+        """What ``uvicorn.Config`` needs of these settings: the connection guard, the
+        websocket message size."""
+        from server.link.guard import guarded_http
+
+        return {
+            "http": guarded_http(self.max_connections_per_client, self.request_head_timeout_s),
+            "ws_max_size": self.ws_max_bytes,
+            "ws_per_message_deflate": False,  # media does not deflate: it would only cost CPU
+        }
 
     @property
     def ws_max_bytes(self) -> int:

@@ -37,8 +37,7 @@ class BackgroundServer:
             port=port,
             log_level="warning",
             log_config=uvicorn_log_config(),
-            ws_max_size=settings.ws_max_bytes,
-            ws_per_message_deflate=False,
+            **settings.uvicorn_options(),
             lifespan="on",
         )
         self.server = uvicorn.Server(config)

@@ -277,3 +277,58 @@ def test_a_session_its_robot_abandoned_is_ended_and_its_files_closed(tmp_path: P
         assert session_json(live, sid)["frames"] == 2
     finally:
         server.stop()
+
+
+def test_slow_or_many_connections_from_one_address_cannot_keep_a_robot_out(
+    tmp_path: Path,
+) -> None:
+    """Sockets from one address sending a partial request head are capped per address and
+    closed at the head deadline; a robot from another address connects all along."""
+    import socket
+
+    from server.config import Settings
+    from server.loopback import BackgroundServer, free_port
+    from tests.conftest import make_token
+
+    settings = Settings(
+        data_dir=tmp_path / "data",
+        job_workers=1,
+        max_connections_per_client=20,
+        request_head_timeout_s=1.0,
+    )
+    token = make_token(settings)
+    port = free_port()
+    server = BackgroundServer(settings, port)
+    server.start()
+    live = LiveServer(server.url, settings, token)
+    slow: list[socket.socket] = []
+    try:
+        for _ in range(60):
+            s = socket.socket()
+            s.bind(("127.0.0.2", 0))  # the attacker's address
+            s.settimeout(5)
+            s.connect(("127.0.0.1", port))
+            s.sendall(b"GET /api/health HTTP/1.1\r\nHost: x\r\nX-Slow: ")
+            slow.append(s)
+        time.sleep(0.3)
+
+        def closed(s: socket.socket) -> bool:
+            s.settimeout(0.01)
+            try:
+                return s.recv(1) == b""
+            except TimeoutError:
+                return False
+            except OSError:
+                return True
+
+        assert sum(closed(s) for s in slow) >= 40  # over the cap: refused at once
+        sid = uuid.uuid4()
+        with connect(ws_url(live), additional_headers={"Authorization": f"Bearer {token}"}) as ws:
+            ws.send(start(sid))
+            assert decode_message(ws.recv(timeout=10)).meta["status"] == "stored"
+        time.sleep(1.5)
+        assert all(closed(s) for s in slow)  # the rest at the head deadline
+    finally:
+        for s in slow:
+            s.close()
+        server.stop()
