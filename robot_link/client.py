@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import ssl
 import time
 import uuid
 from collections import OrderedDict
@@ -87,8 +88,13 @@ class RobotLink:
         max_backoff_s: float = 5.0,
         spool: Spool | None = None,
         on_link_change: Callable[[bool], None] | None = None,
+        ca_file: str | None = None,
     ) -> None:
         self.url = robot_ws_url(server_url)
+        # wss://: the station's certificate checked against the system's CAs, or ``ca_file``
+        self._ssl = (
+            ssl.create_default_context(cafile=ca_file) if self.url.startswith("wss://") else None
+        )
         self.on_link_change = (
             on_link_change  # called with True on (re)connect, False when the link drops
         )
@@ -249,6 +255,7 @@ class RobotLink:
                     additional_headers=headers,
                     max_size=2**20,
                     open_timeout=10,
+                    ssl=self._ssl,
                     # JPEG and PNG payloads do not deflate: compression only costs CPU
                     compression=None,
                 ) as ws:

@@ -23,7 +23,13 @@ def _settings(args: argparse.Namespace) -> Settings:
     overrides = {}
     if getattr(args, "data_dir", None):
         overrides["data_dir"] = Path(args.data_dir)
-    return Settings(**overrides)
+    for name in ("tls_cert", "tls_key"):
+        if getattr(args, name, None):
+            overrides[name] = Path(getattr(args, name))
+    try:
+        return Settings(**overrides)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -71,7 +77,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
             if args.spool
             else None
         )
-        link = RobotLink(args.server, token, spool=spool)
+        link = RobotLink(args.server, token, spool=spool, ca_file=args.ca_file)
         await link.start()
         if args.teleop:
             from robot_link.sim.teleop import TeleopConfig, TeleopSim
@@ -340,6 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data-dir")
     s.add_argument("--host")
     s.add_argument("--port", type=int)
+    s.add_argument("--tls-cert", help="PEM certificate: serve HTTPS, robots connect over wss://")
+    s.add_argument("--tls-key", help="PEM private key of --tls-cert")
     s.set_defaults(func=cmd_serve)
 
     s = sub.add_parser("demo", help="ground station + simulated robot + processing, end to end")
@@ -369,6 +377,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--spool", help="durable spool folder: unacknowledged messages survive outages and restarts"
     )
     s.add_argument("--spool-max-mb", type=float, default=2048.0, help="size bound of the spool")
+    s.add_argument(
+        "--ca-file", help="PEM certificate(s) to trust for an https:// station (self-signed)"
+    )
     s.add_argument(
         "--flush-timeout",
         type=float,

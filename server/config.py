@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
@@ -24,6 +24,10 @@ class Settings(BaseSettings):
     max_import_bytes: int = Field(
         default=50 * 1024**3, description="largest MCAP file POST /api/sessions/import accepts"
     )
+    tls_cert: Path | None = Field(
+        default=None, description="PEM certificate: serve HTTPS and wss:// (with tls_key)"
+    )
+    tls_key: Path | None = Field(default=None, description="PEM private key of tls_cert")
     max_connections_per_client: int = Field(
         default=64, ge=1, description="open connections one address may hold (robots, browsers)"
     )
@@ -83,11 +87,17 @@ class Settings(BaseSettings):
     )
 
     def uvicorn_options(self) -> dict[str, Any]:
-        """What ``uvicorn.Config`` needs of these settings: the connection guard, the
+        """What ``uvicorn.Config`` needs of these settings: TLS, the connection guard, the
         websocket message size."""
         from server.link.guard import guarded_http
 
+        tls = (
+            {"ssl_certfile": str(self.tls_cert), "ssl_keyfile": str(self.tls_key)}
+            if self.tls_cert is not None
+            else {}
+        )
         return {
+            **tls,
             "http": guarded_http(self.max_connections_per_client, self.request_head_timeout_s),
             "ws_max_size": self.ws_max_bytes,
             "ws_per_message_deflate": False,  # media does not deflate: it would only cost CPU
@@ -99,6 +109,12 @@ class Settings(BaseSettings):
         over it is answered with the protocol's ERROR (naming its seq, which the robot then
         drops); beyond this the connection is closed (1009) before it is read."""
         return 2 * self.max_message_bytes + 2**16
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> Settings:
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key go together")
+        return self
 
     def resolved_database_url(self) -> str:
         """The database URL, SQLite in the data directory unless set."""

@@ -42,7 +42,8 @@ class BackgroundServer:
         )
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
-        self.url = f"http://127.0.0.1:{port}"
+        scheme = "https" if settings.tls_cert is not None else "http"
+        self.url = f"{scheme}://127.0.0.1:{port}"
 
     def start(self, timeout_s: float = 60) -> None:
         """Start and wait until it accepts requests."""
