@@ -251,6 +251,11 @@ def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Messag
     if not isinstance(meta_obj, dict):
         raise ProtocolError(f"meta must be a JSON object, got {type(meta_obj).__name__}")
     meta = _validate_meta(mtype, meta_obj)
+    if b"\\u" in raw_meta:  # an escape may spell a lone surrogate, which UTF-8 cannot hold
+        try:
+            json.dumps(meta, ensure_ascii=False).encode("utf-8")
+        except UnicodeEncodeError:
+            raise ProtocolError("meta holds a lone UTF-16 surrogate (\\ud800-\\udfff)") from None
     payload = data[HEADER_BYTES + meta_len :]
     _check_payload(mtype, meta, payload)
     return Message(mtype, uuid.UUID(bytes=sid), seq, timestamp, meta, payload)

@@ -3,9 +3,21 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+
+
+def _encodable(text: str) -> str:
+    """Text that can be stored as UTF-8 (JSON allows lone surrogates such as \\ud800)."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError("text must be valid Unicode (no lone surrogates)") from None
+    return text
+
+
+Text = Annotated[str, AfterValidator(_encodable)]
 
 
 class ORM(BaseModel):
@@ -64,10 +76,10 @@ class SessionUpdate(BaseModel):
     """What a user may correct about a session (for the report's cover)."""
 
     model_config = ConfigDict(extra="forbid")
-    structure: str | None = Field(default=None, min_length=1, max_length=200)
-    location: str | None = Field(default=None, max_length=200)
-    operator: str | None = Field(default=None, max_length=200)
-    notes: str | None = Field(default=None, max_length=10_000)
+    structure: Text | None = Field(default=None, min_length=1, max_length=200)
+    location: Text | None = Field(default=None, max_length=200)
+    operator: Text | None = Field(default=None, max_length=200)
+    notes: Text | None = Field(default=None, max_length=10_000)
 
 
 class SessionsPublic(BaseModel):
@@ -161,7 +173,7 @@ class DefectReview(BaseModel):
     clear_condition_state: bool = Field(
         default=False, description="set the condition state back to none"
     )
-    comment: str | None = Field(default=None, max_length=2000)
+    comment: Text | None = Field(default=None, max_length=2000)
 
 
 class DefectsPublic(BaseModel):

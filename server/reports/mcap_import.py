@@ -6,6 +6,7 @@ A broken or foreign file is refused (:class:`McapImportError`) and leaves nothin
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import struct
 import uuid
@@ -22,7 +23,10 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from google.protobuf.message import DecodeError
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
 from sqlalchemy import update
+from sqlalchemy.exc import StatementError
 from sqlalchemy.orm import Session
 
 from robot_link.image_header import ImageHeaderError, check_pixels, png_header
@@ -50,6 +54,8 @@ def import_session(
     session_id = str(uuid.uuid4())
     try:
         with path.open("rb") as fh:
+            _check_sizes(fh)
+            fh.seek(0)
             meta, poses, calibration, depth_seqs = _first_pass(fh)
             db.add(_new_session(session_id, meta, path.name))
             db.flush()
@@ -67,7 +73,22 @@ def import_session(
                 "the file holds no camera frames, clouds or telemetry on steelscan's topics"
             )
         db.commit()
-    except (McapError, DecodeError, EOFError, KeyError, struct.error) as exc:
+    except McapImportError:
+        _discard(db, files, session_id)
+        raise
+    except (
+        McapError,
+        DecodeError,
+        EOFError,
+        KeyError,
+        IndexError,
+        struct.error,
+        ValueError,  # JSON, numbers and text that do not parse
+        TypeError,
+        OverflowError,
+        RecursionError,  # JSON nested too deeply
+        StatementError,  # a value the database refuses
+    ) as exc:
         _discard(db, files, session_id)
         raise McapImportError(
             f"{path.name}: not a readable MCAP session ({type(exc).__name__}: {exc})"
@@ -108,6 +129,20 @@ def _new_session(session_id: str, meta: dict[str, str], name: str) -> Inspection
         end_reason=meta.get("end_reason") or "imported",
         calibration=calibration if isinstance(calibration, dict) else {},
     )
+
+
+MAX_RECORD_BYTES = 256 * 2**20  # a record (a chunk, compressed or not) read into memory
+
+
+def _check_sizes(fh: BinaryIO) -> None:
+    """Refuse, before anything is decompressed, a file with a record or a chunk that would
+    take more memory than ``MAX_RECORD_BYTES`` (a decompression bomb)."""
+    for record in StreamReader(fh, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES).records:
+        if isinstance(record, Chunk) and record.uncompressed_size > MAX_RECORD_BYTES:
+            raise McapImportError(
+                f"a chunk decompresses to {record.uncompressed_size:,} bytes, more than the "
+                f"{MAX_RECORD_BYTES:,} allowed"
+            )
 
 
 def _first_pass(
@@ -204,6 +239,8 @@ def _second_pass(
                 continue
             seen.add(("telemetry", seq))
             stamp = float(data.pop("timestamp", t))
+            if not math.isfinite(stamp):
+                raise McapImportError(f"telemetry {seq} has the timestamp {stamp}")
             db.add(TelemetrySample(session_id=session_id, seq=seq, timestamp=stamp, data=data))
             counts["telemetry"] += 1
         if i % 500 == 499:

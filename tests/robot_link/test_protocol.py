@@ -150,6 +150,7 @@ def _meta_bytes(mtype: int, meta: bytes) -> bytes:
         (_meta_bytes(5, b'{"x":' + b"[" * 600 + b"]" * 600 + b"}"), "cannot be stored"),
         (_meta_bytes(5, b'{"x":' + b"[" * 5000 + b"]" * 5000 + b"}"), "nested too deeply"),
         (_meta_bytes(5, b'{"x":' + b"7" * 5000 + b"}"), "out of range"),
+        (_meta_bytes(5, b'{"note": "G3 \\ud800"}'), "lone UTF-16 surrogate"),
     ],
 )
 def test_malformed_messages_get_a_clear_error(data: bytes, fragment: str) -> None:

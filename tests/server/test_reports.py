@@ -369,6 +369,9 @@ def test_session_cover_fields_can_be_corrected(live_server: LiveServer) -> None:
     assert r.status_code == 200 and r.json()["location"] == "Bridge 12, pier 3 east"
     assert httpx.patch(api, json={"structure": ""}).status_code == 422
     assert httpx.patch(api, json={"robot_id": 3}).status_code == 422
+    lone_surrogate = b'{"notes": "wind \\ud800"}'  # valid JSON, not storable as UTF-8
+    headers = {"content-type": "application/json"}
+    assert httpx.patch(api, content=lone_surrogate, headers=headers).status_code == 422
     assert httpx.get(f"{api}/report.json").json()["cover"]["notes"] == "wind 8 m/s"
 
 

@@ -1,0 +1,77 @@
+"""Crafted MCAP files are refused with 422 and a reason, before anything large is decoded or
+decompressed, and leave nothing behind."""
+
+from __future__ import annotations
+
+import io
+import struct
+
+import httpx
+import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from mcap.writer import CompressionType, Writer
+
+from tests.conftest import LiveServer
+from tests.media import jpeg
+
+
+def _mcap(
+    messages: list[tuple[str, bytes]], compression: CompressionType = CompressionType.NONE
+) -> bytes:
+    buf = io.BytesIO()
+    writer = Writer(buf, compression=compression)
+    writer.start()
+    schema = writer.register_schema("steelscan.Json", "jsonschema", b"{}")
+    channels: dict[str, int] = {}
+    for i, (topic, data) in enumerate(messages):
+        if topic not in channels:
+            channels[topic] = writer.register_channel(topic, "json", schema)
+        writer.add_message(channels[topic], log_time=i, publish_time=i, data=data, sequence=i)
+    writer.finish()
+    return buf.getvalue()
+
+
+def _huge_jpeg() -> bytes:
+    """A small JPEG whose frame header declares 20000×20000 pixels."""
+    data = bytearray(jpeg(64, 48))
+    sof = data.index(b"\xff\xc0")
+    struct.pack_into(">HH", data, sof + 5, 20000, 20000)
+    return bytes(data)
+
+
+def _bomb() -> bytes:
+    """A compressed chunk whose header says it decompresses to 2 GiB."""
+    data = bytearray(
+        _mcap([("/robot/telemetry", b'{"a": 1}')] * 50, compression=CompressionType.ZSTD)
+    )
+    at = 8  # past the magic: the Header record, then the first Chunk
+    (header_len,) = struct.unpack_from("<Q", data, at + 1)
+    at += 9 + header_len
+    assert data[at] == 0x06  # a Chunk: opcode, length, start and end time, uncompressed size
+    struct.pack_into("<Q", data, at + 1 + 8 + 16, 2**31)
+    return bytes(data)
+
+
+TELEMETRY = "/robot/telemetry"
+CASES = {
+    "magic only": b"\x89MCAP0\r\n",
+    "telemetry that is not JSON": _mcap([(TELEMETRY, b"{not json")]),
+    "a text timestamp": _mcap([(TELEMETRY, b'{"timestamp": "soon"}')]),
+    "a NaN timestamp": _mcap([(TELEMETRY, b'{"timestamp": NaN}')]),
+    "JSON nested too deeply": _mcap(
+        [(TELEMETRY, b'{"a":' + b"[" * 100_000 + b"]" * 100_000 + b"}")]
+    ),
+    "an image declaring 400 megapixels": _mcap(
+        [("/camera/image", CompressedImage(format="jpeg", data=_huge_jpeg()).SerializeToString())]
+    ),
+    "a decompression bomb": _bomb(),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_crafted_files_are_refused_with_422(live_server: LiveServer, case: str) -> None:
+    url = f"{live_server.url}/api/sessions"
+    r = httpx.post(f"{url}/import", files={"file": ("crafted.mcap", CASES[case])}, timeout=60)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"]
+    assert httpx.get(url).json()["count"] == 0
