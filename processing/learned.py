@@ -31,7 +31,7 @@ class LearnedParams:
     model_path: Path = MODEL_PATH
     threshold: float | None = None
     tile_px: int = 2048
-    overlap_px: int = 48
+    overlap_px: int = 64
     threads: int = 2
 
 
