@@ -65,8 +65,9 @@ class Settings(BaseSettings):
     job_workers: int = Field(default=2, ge=1, description="worker processes for processing jobs")
     auto_process: bool = Field(default=True, description="run jobs when a session ends")
     detect_method: Literal["proposed", "learned"] = Field(
-        default="proposed",
-        description="crack detector of the detect job: the filter pipeline or the shipped network",
+        default="learned",
+        description="crack detector of the detect job: the shipped network or the filter "
+        "pipeline",
     )
     web_dir: Path = PROJECT_ROOT / "web"
     live_queue: int = Field(default=8, description="frames buffered per watching browser")
