@@ -12,6 +12,10 @@ off). Two loads through the real robot protocol, ~68 KB JPEG-sized frames:
   dirty pages are written back: sustained rate and the ACK latency of each frame (sent →
   acknowledged after the file is written and its row committed).
 
+- *attacked*: the field load again while a robot floods poison messages, 300 sockets
+  trickle request heads and a client tries passwords 8 times a second
+  (:mod:`bench.ingest_attack`); its ACK p99 against the quiet field's.
+
 Every frame sent is then counted in the database: none may be lost.
 """
 
@@ -34,6 +38,7 @@ from websockets.asyncio.client import connect
 from websockets.asyncio.server import serve
 
 from bench.common import Result
+from bench.ingest_attack import LOGINS_PER_S, SLOW_SOCKETS, under_attack
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
 
 FRAME_BYTES = 68 * 1024
@@ -177,6 +182,7 @@ def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Itera
         upgrade(settings.resolved_database_url())
         engine = make_engine(settings.resolved_database_url())
         token = create_robot(make_sessionmaker(engine), "bench")
+        attacker = create_robot(make_sessionmaker(engine), "attacker")
         engine.dispose()
         port = free_port()
         proc = serve_process(
@@ -188,11 +194,19 @@ def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Itera
             # field phase would measure the kernel's writeback of the flood
             os.sync()
             field, field_lat, field_s = _load(port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS)
+            os.sync()
+            attacked: list[tuple[list[tuple[str, int]], list[float], float]] = []
+            attackers = under_attack(
+                port,
+                attacker,
+                lambda: attacked.append(_load(port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS)),
+            )
+            field_attacked, attacked_lat, _ = attacked[0]
             stored = {
                 sid: httpx.get(f"http://127.0.0.1:{port}/api/sessions/{sid}", timeout=30).json()[
                     "frames"
                 ]
-                for sid, _ in flood + field
+                for sid, _ in flood + field + field_attacked
             }
         finally:
             proc.terminate()
@@ -238,7 +252,26 @@ def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Itera
             "target": 2.0,
             "load": "field",
         }
-        all_acked = {sid: a for sid, a in flood + field}
+        quiet_p99 = float(np.percentile(lat, 99))
+        attacked_p99 = float(np.percentile(np.array(attacked_lat) * 1000, 99))
+        yield {
+            "name": "ingest.ack_latency_p99_under_attack",
+            "value": round(attacked_p99, 2),
+            "unit": "ms",
+            "baseline": round(quiet_p99, 2),
+            "baseline_is": "the same field load without attackers",
+            "ratio": round(attacked_p99 / max(quiet_p99, 1e-9), 3),
+            "target_ratio": 2.0,
+            "attacks": {
+                "poison_robot": attackers.get("poison_robot"),
+                "slow_sockets": SLOW_SOCKETS,
+                "slow_sockets_closed_by_station": attackers.get("slow_sockets_closed"),
+                "logins_per_s": LOGINS_PER_S,
+                "login_answers": attackers.get("login_answers"),
+            },
+            "acked": sum(a for _, a in field_attacked),
+        }
+        all_acked = {sid: a for sid, a in flood + field + field_attacked}
         yield {
             "name": "ingest.lost",
             "value": sum(all_acked.values()) - sum(stored.values()),

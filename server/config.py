@@ -66,8 +66,7 @@ class Settings(BaseSettings):
     auto_process: bool = Field(default=True, description="run jobs when a session ends")
     detect_method: Literal["proposed", "learned"] = Field(
         default="learned",
-        description="crack detector of the detect job: the shipped network or the filter "
-        "pipeline",
+        description="crack detector of the detect job: the shipped network or the filter pipeline",
     )
     web_dir: Path = PROJECT_ROOT / "web"
     live_queue: int = Field(default=8, description="frames buffered per watching browser")

@@ -12,6 +12,7 @@ from server.config import Settings
 from server.jobs.runner import JobRunner
 from server.link.group_commit import GroupCommit
 from server.link.ingest import Ingest
+from server.link.limits import MalformedGuard
 from server.live.hub import LiveHub
 from server.live.live_map import LiveMap
 from server.live.scene3d import Scene3D
@@ -33,4 +34,5 @@ class AppState:
     scene: Scene3D | None = None  # the 3D view, when switched on
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
     logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per client
+    malformed: MalformedGuard = field(default_factory=MalformedGuard)  # per robot
     passwords: PasswordBudget = field(default_factory=PasswordBudget)  # hashing, station-wide

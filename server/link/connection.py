@@ -22,7 +22,7 @@ from robot_link.protocol import (
 )
 from server.errors import IngestError
 from server.link.limits import TokenBucket
-from server.link.robots import authenticate_robot
+from server.link.robots import authenticate_robot, hash_token
 
 log = logging.getLogger(__name__)
 router = APIRouter()
@@ -47,16 +47,20 @@ def _seq_of(data: bytes) -> int:
 class RobotConnection:
     """One robot's websocket: decodes, stores, acknowledges, relays, forwards commands."""
 
-    def __init__(self, websocket: WebSocket, robot_id: int, robot_name: str) -> None:
+    def __init__(
+        self, websocket: WebSocket, robot_id: int, robot_name: str, token_digest: str = ""
+    ) -> None:
         self.ws = websocket
         self.robot_id = robot_id
         self.robot_name = robot_name
+        self.token_digest = token_digest
         self.state = websocket.app.state.steelscan
         self.send_lock = asyncio.Lock()
         self.owned: set[str] = set()  # sessions this robot recorded
         self.refused: dict[str, float] = {}  # sessions it did not: when last looked up
         settings = self.state.settings
         self.bucket = TokenBucket(settings.robot_messages_per_s, settings.robot_message_burst)
+        self.cut_off = False
 
     async def send(self, message: Message) -> None:
         """Send one protocol message to the robot."""
@@ -121,10 +125,17 @@ class RobotConnection:
 
     async def handle(self, data: bytes, senders: dict[str, Any]) -> None:
         """Decode, store, acknowledge and relay one message."""
+        within_rate = self.bucket.take()  # every message counts, readable or not
         try:
             message = decode_message(data, max_bytes=self.state.settings.max_message_bytes)
         except ProtocolError as exc:
-            await self.send_error(uuid.UUID(int=0), _seq_of(data), f"malformed message: {exc}")
+            if not self.state.malformed.malformed(self.robot_id, self.token_digest):  # barred
+                if not self.cut_off:
+                    self.cut_off = True
+                    log.warning("robot %s: too many malformed messages, barred", self.robot_name)
+                    await self.ws.close(code=1008, reason="too many malformed messages")
+            elif within_rate:
+                await self.send_error(uuid.UUID(int=0), _seq_of(data), f"malformed message: {exc}")
             return
         if message.type in (MessageType.ACK, MessageType.ERROR, MessageType.COMMAND):
             await self.send_error(
@@ -136,7 +147,7 @@ class RobotConnection:
         ):  # another robot's live channel: never relayed
             return
         if message.type is MessageType.VIDEO:  # live preview: relayed, never stored or acknowledged
-            if self.bucket.take():
+            if within_rate:
                 self.state.hub.publish_frame(
                     {
                         "session_id": str(message.session_id),
@@ -157,7 +168,7 @@ class RobotConnection:
                 }
             )
             return
-        if not self.bucket.take():
+        if not within_rate:
             await self.send_error(
                 message.session_id,
                 message.seq,
@@ -262,9 +273,17 @@ class RobotConnection:
 async def robot_socket(websocket: WebSocket) -> None:
     """Robot link: binary protocol messages in, ACK/ERROR/COMMAND out (see docs/protocol.md)."""
     state = websocket.app.state.steelscan
-    robot = await anyio.to_thread.run_sync(authenticate_robot, state.factory, _bearer(websocket))
+    token = _bearer(websocket)
+    digest = hash_token(token or "")
+    if state.malformed.token_barred(digest):  # refused before the upgrade and the database
+        await websocket.close(code=1008, reason="barred for malformed messages; retry later")
+        return
+    robot = await anyio.to_thread.run_sync(authenticate_robot, state.factory, token)
     if robot is None:
         await websocket.close(code=1008, reason="invalid robot token")
         return
+    if state.malformed.barred_for(robot.id) > 0:  # refused before the upgrade: cheap
+        await websocket.close(code=1008, reason="barred for malformed messages; retry later")
+        return
     await websocket.accept()
-    await RobotConnection(websocket, robot.id, robot.name).run()
+    await RobotConnection(websocket, robot.id, robot.name, digest).run()

@@ -10,14 +10,25 @@ from collections import defaultdict
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+from server.link.limits import TokenBucket
+
 log = logging.getLogger(__name__)
+NEW_PER_S, NEW_BURST = 20.0, 60.0  # new connections an address may open (a reconnect storm)
+MAX_ADDRESSES = 10_000
 
 
-def guarded_http(max_per_client: int, head_timeout_s: float) -> type[HttpToolsProtocol]:
-    """uvicorn's HTTP protocol (``uvicorn.Config(http=...)``) with both limits; one
-    class per server, counting that server's connections (websockets included: an upgraded
-    connection keeps its transport)."""
+def guarded_http(
+    max_per_client: int,
+    head_timeout_s: float,
+    new_per_s: float = NEW_PER_S,
+    new_burst: float = NEW_BURST,
+) -> type[HttpToolsProtocol]:
+    """uvicorn's HTTP protocol (``uvicorn.Config(http=...)``) with the limits; one class per
+    server, counting that server's connections (websockets included: an upgraded connection
+    keeps its transport). New connections from one address beyond ``new_per_s`` a second
+    (``new_burst`` at once) are closed as they arrive, before a byte is parsed."""
     open_by_client: dict[str, set[asyncio.BaseTransport]] = defaultdict(set)
+    arrivals: dict[str, TokenBucket] = {}
 
     class GuardedHttp(HttpToolsProtocol):
         _head_timer: asyncio.TimerHandle | None = None
@@ -25,6 +36,11 @@ def guarded_http(max_per_client: int, head_timeout_s: float) -> type[HttpToolsPr
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
             host = self.client[0] if self.client else "?"
+            if len(arrivals) > MAX_ADDRESSES:
+                arrivals.clear()  # a flood of spoofed addresses: start counting afresh
+            if not arrivals.setdefault(host, TokenBucket(new_per_s, new_burst)).take():
+                transport.close()
+                return
             mine = open_by_client[host]
             mine.difference_update([t for t in mine if t.is_closing()])
             if len(mine) >= max_per_client:

@@ -332,3 +332,33 @@ def test_slow_or_many_connections_from_one_address_cannot_keep_a_robot_out(
         for s in slow:
             s.close()
         server.stop()
+
+
+def test_a_robot_sending_garbage_is_cut_off_and_barred_others_are_not(
+    live_server: LiveServer,
+) -> None:
+    from websockets.exceptions import InvalidStatus
+
+    from tests.conftest import make_token
+
+    garbage = b"STLS" + bytes(60)
+    bad_token = make_token(live_server.settings, "babbler")
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {bad_token}"}
+    ) as ws:
+        with pytest.raises(ConnectionClosed):
+            for _ in range(500):
+                ws.send(garbage)
+            while True:
+                ws.recv(timeout=10)
+        assert ws.close_code == 1008
+    with pytest.raises(InvalidStatus):  # barred: refused before the upgrade
+        with connect(
+            ws_url(live_server), additional_headers={"Authorization": f"Bearer {bad_token}"}
+        ):
+            pass
+    sid = uuid.uuid4()
+    headers = {"Authorization": f"Bearer {live_server.token}"}
+    with connect(ws_url(live_server), additional_headers=headers) as ws:
+        ws.send(start(sid))
+        assert decode_message(ws.recv(timeout=10)).meta["status"] == "stored"
