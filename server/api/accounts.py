@@ -158,7 +158,7 @@ class PasswordBudget:
     most ``rate`` checks a second (``burst`` at once), one at a time, so logins can never
     take the CPU the robots' ingest needs."""
 
-    def __init__(self, rate: float = 1.0, burst: float = 3.0) -> None:
+    def __init__(self, rate: float = 1.0, burst: float = 8.0) -> None:
         self._bucket = TokenBucket(rate, burst)
         self._lock = threading.Lock()
         self._limiter: anyio.CapacityLimiter | None = None
