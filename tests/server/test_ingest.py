@@ -23,6 +23,12 @@ def ws_url(server: LiveServer) -> str:
     return server.url.replace("http://", "ws://") + "/ws/robot"
 
 
+def robot_ws(server: LiveServer, token: str | None = None, **kwargs: object):  # type: ignore[no-untyped-def]
+    """A robot's websocket to the station (``token``: another robot's)."""
+    headers = {"Authorization": f"Bearer {token or server.token}"}
+    return connect(ws_url(server), additional_headers=headers, **kwargs)  # type: ignore[arg-type]
+
+
 def msg(sid: uuid.UUID, seq: int, mtype: MessageType, meta: dict, payload: bytes = b"") -> bytes:
     return encode_message(Message(mtype, sid, seq, time.time(), meta, payload))
 
@@ -81,9 +87,7 @@ def test_robot_link_stores_everything_once_and_acks(live_server: LiveServer) -> 
 
 def test_resent_messages_are_acknowledged_but_stored_once(live_server: LiveServer) -> None:
     sid = uuid.uuid4()
-    with connect(
-        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
-    ) as ws:
+    with robot_ws(live_server) as ws:
         statuses = []
         for data in [
             start(sid),
@@ -177,9 +181,7 @@ def test_browser_command_reaches_the_robot_and_frames_reach_the_browser(
     sid = uuid.uuid4()
     live_url = live_server.url.replace("http://", "ws://") + "/ws/live"
     with (
-        connect(
-            ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
-        ) as robot,
+        robot_ws(live_server) as robot,
         connect(live_url) as browser,
     ):
         robot.send(start(sid))

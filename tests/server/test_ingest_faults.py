@@ -28,7 +28,7 @@ from server.errors import IngestError
 from server.link.ingest import Ingest, StoreResult
 from tests.conftest import LiveServer
 from tests.media import jpeg
-from tests.server.test_ingest import _ingest, frame, msg, session_json, start, ws_url
+from tests.server.test_ingest import _ingest, frame, msg, robot_ws, session_json, start
 
 
 def _with_seq(data: bytes, seq: int) -> bytes:
@@ -48,13 +48,12 @@ def test_seq_beyond_two_to_the_63_is_refused_by_both_ends() -> None:
 
 
 def test_a_robot_sending_huge_seqs_costs_another_robot_nothing(live_server: LiveServer) -> None:
-    headers = {"Authorization": f"Bearer {live_server.token}"}
     honest, attacker = uuid.uuid4(), uuid.uuid4()
     stop = threading.Event()
     errors: list[Message] = []
 
     def attack() -> None:
-        with connect(ws_url(live_server), additional_headers=headers) as ws:
+        with robot_ws(live_server) as ws:
             ws.send(start(attacker))
             ws.recv(timeout=10)
             seq = 2**63
@@ -66,7 +65,7 @@ def test_a_robot_sending_huge_seqs_costs_another_robot_nothing(live_server: Live
     thread = threading.Thread(target=attack)
     thread.start()
     try:
-        with connect(ws_url(live_server), additional_headers=headers) as ws:
+        with robot_ws(live_server) as ws:
             ws.send(start(honest))
             replies = [decode_message(ws.recv(timeout=10))]
             for seq in range(2, 82):
@@ -114,11 +113,7 @@ def test_an_oversize_message_gets_an_error_and_is_dropped_not_resent(
 ) -> None:
     sid = uuid.uuid4()
     limit = live_server.settings.max_message_bytes
-    with connect(
-        ws_url(live_server),
-        additional_headers={"Authorization": f"Bearer {live_server.token}"},
-        max_size=None,
-    ) as ws:
+    with robot_ws(live_server, max_size=None) as ws:
         ws.send(start(sid))
         decode_message(ws.recv(timeout=10))
         ws.send(frame(sid, 2)[:60] + b"\x00" * (limit + 4096))
@@ -201,12 +196,8 @@ def test_a_robot_cannot_speak_on_another_robots_live_channel(live_server: LiveSe
 
     fake_ack = msg(sid, 9, MessageType.COMMAND_ACK, {"cmd": "estop", "accepted": True})
     with (
-        connect(
-            ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
-        ) as owner,
-        connect(
-            ws_url(live_server), additional_headers={"Authorization": f"Bearer {other_token}"}
-        ) as intruder,
+        robot_ws(live_server) as owner,
+        robot_ws(live_server, other_token) as intruder,
         connect(live_url) as browser,
     ):
         owner.send(start(sid))
@@ -257,8 +248,7 @@ def test_a_session_its_robot_abandoned_is_ended_and_its_files_closed(tmp_path: P
     live = LiveServer(server.url, settings, token)
     sid = uuid.uuid4()
     try:
-        headers = {"Authorization": f"Bearer {token}"}
-        with connect(ws_url(live), additional_headers=headers) as ws:
+        with robot_ws(live) as ws:
             ws.send(start(sid))
             ws.send(frame(sid, 2))
             assert [decode_message(ws.recv(timeout=10)).type for _ in range(2)] == [
@@ -271,7 +261,7 @@ def test_a_session_its_robot_abandoned_is_ended_and_its_files_closed(tmp_path: P
         session = session_json(live, sid)
         assert session["status"] == "ended" and "no message" in session["end_reason"]
         assert _open_files_of(sid) == 0
-        with connect(ws_url(live), additional_headers=headers) as ws:  # the robot is back
+        with robot_ws(live) as ws:  # the robot is back
             ws.send(frame(sid, 3))
             assert decode_message(ws.recv(timeout=10)).meta["status"] == "stored"
         assert session_json(live, sid)["frames"] == 2
@@ -323,7 +313,7 @@ def test_slow_or_many_connections_from_one_address_cannot_keep_a_robot_out(
 
         assert sum(closed(s) for s in slow) >= 40  # over the cap: refused at once
         sid = uuid.uuid4()
-        with connect(ws_url(live), additional_headers={"Authorization": f"Bearer {token}"}) as ws:
+        with robot_ws(live) as ws:
             ws.send(start(sid))
             assert decode_message(ws.recv(timeout=10)).meta["status"] == "stored"
         time.sleep(1.5)
@@ -343,9 +333,7 @@ def test_a_robot_sending_garbage_is_cut_off_and_barred_others_are_not(
 
     garbage = b"STLS" + bytes(60)
     bad_token = make_token(live_server.settings, "babbler")
-    with connect(
-        ws_url(live_server), additional_headers={"Authorization": f"Bearer {bad_token}"}
-    ) as ws:
+    with robot_ws(live_server, bad_token) as ws:
         with pytest.raises(ConnectionClosed):
             for _ in range(500):
                 ws.send(garbage)
@@ -353,12 +341,9 @@ def test_a_robot_sending_garbage_is_cut_off_and_barred_others_are_not(
                 ws.recv(timeout=10)
         assert ws.close_code == 1008
     with pytest.raises(InvalidStatus):  # barred: refused before the upgrade
-        with connect(
-            ws_url(live_server), additional_headers={"Authorization": f"Bearer {bad_token}"}
-        ):
+        with robot_ws(live_server, bad_token):
             pass
     sid = uuid.uuid4()
-    headers = {"Authorization": f"Bearer {live_server.token}"}
-    with connect(ws_url(live_server), additional_headers=headers) as ws:
+    with robot_ws(live_server) as ws:
         ws.send(start(sid))
         assert decode_message(ws.recv(timeout=10)).meta["status"] == "stored"
