@@ -13,7 +13,7 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from server.link.limits import TokenBucket
 
 log = logging.getLogger(__name__)
-NEW_PER_S, NEW_BURST = 20.0, 60.0  # new connections an address may open (a reconnect storm)
+NEW_PER_S, NEW_BURST = 100.0, 300.0  # new connections an address may open (a reconnect storm)
 MAX_ADDRESSES = 10_000
 
 
