@@ -172,17 +172,23 @@ def defect_masks(
         part = image[rows, cols]
         core = tile_core(*tile)
         gray = cv2.cvtColor(part, cv2.COLOR_BGR2GRAY)
-        if min(gray.shape) >= 3 and crack_method == "learned":
+        if min(gray.shape) >= 3 and learned is not None:
             smooth, background = estimate_background(
                 gray, crack_params.background_px, crack_params.light_sigma
             )
-            mask, dark_by = learned_cracks(gray), cv2.subtract(background, smooth)
-            cracks[core], contrast[core] = mask[cr, cc], dark_by[cr, cc]
+            cracks[core] = learned[core]
+            contrast[core] = cv2.subtract(background, smooth)[cr, cc]
         elif min(gray.shape) >= 3:
             mask, dark_by = proposed_with_contrast(gray, crack_params, surface)
             cracks[core], contrast[core] = mask[cr, cc], dark_by[cr, cc]
         rust[core] = corrosion_candidates(part, corrosion_params, rust_sat)[cr, cc]
 
+    # the network runs once over the image (its own tiles, all cores to each)
+    learned = (
+        learned_cracks(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+        if crack_method == "learned" and min(shape) >= 3
+        else None
+    )
     tiles = tile_cores(shape, tile_px, overlap_px)
     if surface is None and crack_method == "proposed" and len(tiles) > 1:
         surface = sample_surface(image, crack_params, tile_px)
