@@ -101,6 +101,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             reaper.cancel()
+            state.passwords.executor.shutdown(wait=False)
             state.jobs.stop()
             state.writer.close()
             if state.live_map is not None:

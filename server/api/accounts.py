@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import os
 import secrets
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
+from typing import Any, TypeVar
 
-import anyio
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
 from sqlalchemy import delete, func, select
@@ -89,6 +94,15 @@ def has_role(user: User, role: Role) -> bool:
     return ROLE_RANK[user.role] >= ROLE_RANK[role]
 
 
+T = TypeVar("T")
+PASSWORD_NICE = 10  # the password thread's priority below the station's (Linux: per thread)
+
+
+def _lower_priority() -> None:
+    with contextlib.suppress(OSError, AttributeError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), PASSWORD_NICE)
+
+
 ANY_USER = "\x00any"  # the key of a client's failures over every user name
 
 
@@ -155,20 +169,20 @@ class LoginThrottle:
 
 class PasswordBudget:
     """Password hashing (argon2: ~0.1 s of several cores each) for the whole station: at
-    most ``rate`` checks a second (``burst`` at once), one at a time, so logins can never
-    take the CPU the robots' ingest needs."""
+    most ``rate`` checks a second (``burst`` at once), one at a time on one thread of low
+    scheduling priority (its argon2 lanes inherit it), so logins can never take the CPU
+    the robots' ingest needs."""
 
     def __init__(self, rate: float = 1.0, burst: float = 8.0) -> None:
         self._bucket = TokenBucket(rate, burst)
         self._lock = threading.Lock()
-        self._limiter: anyio.CapacityLimiter | None = None
+        self.executor = ThreadPoolExecutor(
+            1, thread_name_prefix="passwords", initializer=_lower_priority
+        )
 
-    @property
-    def limiter(self) -> anyio.CapacityLimiter:
-        """One check at a time (made in the event loop that first asks)."""
-        if self._limiter is None:
-            self._limiter = anyio.CapacityLimiter(1)
-        return self._limiter
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` on the password thread."""
+        return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
 
     def take(self) -> bool:
         """Whether a check may start now."""

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from typing import Annotated
 
-import anyio
 from fastapi import APIRouter, Depends, HTTPException, Request, status
 from fastapi.security import OAuth2PasswordRequestForm
 from pydantic import BaseModel
@@ -47,9 +46,7 @@ async def create_token(
             "the station is checking too many passwords; try again in a second",
             headers={"Retry-After": "1"},
         )
-    issued = await anyio.to_thread.run_sync(
-        issue_token, state.factory, form.username, form.password, limiter=state.passwords.limiter
-    )
+    issued = await state.passwords.run(issue_token, state.factory, form.username, form.password)
     if issued is None:
         state.logins.failed(client, form.username)
         raise HTTPException(
