@@ -11,25 +11,11 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
-from server.config import Settings
 from server.errors import CommandError
 from server.jobs.allocator import keep_arrays_on_heap
 from server.logs import RedactSecrets, uvicorn_log_config
-
-
-def _settings(args: argparse.Namespace) -> Settings:
-    overrides = {}
-    if getattr(args, "data_dir", None):
-        overrides["data_dir"] = Path(args.data_dir)
-    for name in ("tls_cert", "tls_key"):
-        if getattr(args, name, None):
-            overrides[name] = Path(getattr(args, name))
-    try:
-        return Settings(**overrides)
-    except ValueError as exc:
-        raise CommandError(str(exc)) from None
+from server.session_commands import cmd_export, cmd_import, cmd_report, settings_from_args
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -38,7 +24,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     from server.main import create_app
 
-    settings = _settings(args)
+    settings = settings_from_args(args)
     host = args.host or settings.host
     port = args.port if args.port is not None else settings.port
     uvicorn.run(
@@ -114,7 +100,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     """Run the ground station, the simulated robot and the jobs; print the summary."""
     from server.demo import run_demo
 
-    settings = _settings(args)
+    settings = settings_from_args(args)
     return run_demo(
         settings,
         port=args.port,
@@ -132,7 +118,7 @@ def cmd_create_robot(args: argparse.Namespace) -> int:
     from server.link.robots import create_robot
     from server.storage.db import make_engine, make_sessionmaker, upgrade
 
-    settings = _settings(args)
+    settings = settings_from_args(args)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     url = settings.resolved_database_url()
     upgrade(url)
@@ -163,7 +149,7 @@ def cmd_create_user(args: argparse.Namespace) -> int:
     from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.storage.models import Role
 
-    settings = _settings(args)
+    settings = settings_from_args(args)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     url = settings.resolved_database_url()
     upgrade(url)
@@ -232,91 +218,6 @@ def cmd_map(args: argparse.Namespace) -> int:
         Path(args.clouds_dir),
         Path(args.out),
         odometry=Path(args.odometry) if args.odometry else None,
-    )
-    return 0
-
-
-def _database(args: argparse.Namespace) -> tuple[Any, Any]:
-    """(sessionmaker, SessionFiles) of the data directory, migrated to head."""
-    from server.storage.db import make_engine, make_sessionmaker, upgrade
-    from server.storage.files import SessionFiles
-
-    settings = _settings(args)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    url = settings.resolved_database_url()
-    upgrade(url)
-    return make_sessionmaker(make_engine(url)), SessionFiles(settings.data_dir)
-
-
-def cmd_import(args: argparse.Namespace) -> int:
-    """Import an MCAP session log into a new session; prints its id and counts as JSON."""
-    from server.reports.mcap_import import McapImportError, import_session
-
-    path = Path(args.file)
-    if not path.is_file():
-        raise CommandError(f"{path}: no such file")
-    factory, files = _database(args)
-    with factory() as db:
-        try:
-            result = import_session(db, files, path)
-        except McapImportError as exc:
-            raise CommandError(str(exc)) from None
-    print(json.dumps(result))
-    return 0
-
-
-def _session_id(factory: Any, session_id: str) -> str:
-    from server.storage.models import InspectionSession
-
-    with factory() as db:
-        if db.get(InspectionSession, session_id) is None:
-            raise CommandError(f"no session {session_id!r} in this data directory")
-    return session_id
-
-
-def cmd_export(args: argparse.Namespace) -> int:
-    """Write a session as an MCAP file."""
-    from server.reports.mcap_export import export_session
-
-    factory, files = _database(args)
-    sid = _session_id(factory, args.session_id)
-    out = Path(args.out)
-    tmp = out.with_name(f".{out.name}.tmp")
-    try:
-        with factory() as db, tmp.open("wb") as fh:
-            counts = export_session(db, files, sid, fh)
-        tmp.replace(out)
-    except OSError as exc:
-        raise CommandError(f"cannot write {out}: {exc}") from None
-    finally:
-        tmp.unlink(missing_ok=True)
-    print(json.dumps({"session_id": sid, "mcap_path": str(out.resolve()), **counts}))
-    return 0
-
-
-def cmd_report(args: argparse.Namespace) -> int:
-    """Write a session's report.pdf, report.json and defects.csv into a folder."""
-    from server.reports.content import build_report
-    from server.reports.pdf import write_pdf
-    from server.reports.tables import defects_csv
-    from server.storage.files import write_atomic
-
-    factory, files = _database(args)
-    sid = _session_id(factory, args.session_id)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with factory() as db:
-        report = build_report(db, files, sid)
-        write_atomic(out / "report.json", json.dumps(report, indent=1).encode())
-        write_atomic(out / "defects.csv", "".join(defects_csv(report["defects"])).encode("utf-8"))
-        write_pdf(db, files, sid, out / "report.pdf")
-    print(
-        json.dumps(
-            {
-                name: str((out / name).resolve())
-                for name in ("report.pdf", "report.json", "defects.csv")
-            }
-        )
     )
     return 0
 

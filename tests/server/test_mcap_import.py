@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import io
 import struct
+import subprocess
+import sys
+from pathlib import Path
 
 import httpx
 import pytest
@@ -75,3 +78,21 @@ def test_crafted_files_are_refused_with_422(live_server: LiveServer, case: str) 
     assert r.status_code == 422, r.text
     assert r.json()["detail"]
     assert httpx.get(url).json()["count"] == 0
+
+
+def test_import_refuses_a_file_that_is_not_an_mcap_session(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"\x89MCAP0\r\n" + b"garbage" * 100)
+    data = tmp_path / "data"
+    for target in (bad, tmp_path / "missing.mcap"):
+        out = subprocess.run(
+            [sys.executable, "-m", "server.cli", "import", str(target), "--data-dir", str(data)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert out.returncode != 0 and out.stderr.strip().splitlines()[-1].startswith("error: ")
+        assert "Traceback" not in out.stderr
+    assert not (data / "sessions").exists() or not list(
+        (data / "sessions").glob("*")
+    )  # nothing left behind
