@@ -30,6 +30,7 @@ from processing.learning.data import (
     split_holdout,
 )
 from processing.learning.network import CrackNet, NetworkParams, parameter_count
+from processing.learning.quantize import calibration_crops, quantize_int8
 from processing.metrics import PooledCounts
 
 log = logging.getLogger(__name__)
@@ -191,18 +192,44 @@ def export_onnx(model: CrackNet, record: dict, path: Path) -> None:
     tmp.unlink()
 
 
+def export_model(
+    model: CrackNet, record: dict, path: Path, datasets: dict[str, list[Sample]], int8: bool
+) -> None:
+    """Export as ONNX; with ``int8``, quantized (calibrated on crops of up to eight images
+    of each dataset) — what the station ships."""
+    if not int8:
+        export_onnx(model, record, path)
+        return
+    float_path = path.with_suffix(".float.onnx")
+    try:
+        export_onnx(model, record, float_path)
+        images = [s.gray for samples in datasets.values() for s in samples[:8]]
+        quantize_int8(float_path, path, calibration_crops(images))
+    finally:
+        float_path.unlink(missing_ok=True)
+
+
 def train_from_folders(
-    roots: list[Path], out: Path, params: TrainParams = TrainParams(), limit: int | None = None
+    roots: list[Path],
+    out: Path,
+    params: TrainParams = TrainParams(),
+    limit: int | None = None,
+    int8: bool = True,
 ) -> dict:
-    """Load each dataset folder, train, export to ``out``; returns the training record."""
+    """Load each dataset folder, train, export to ``out`` (int8 unless not ``int8``);
+    returns the training record."""
     datasets = {r.name: load_dataset(r, limit) for r in roots}
     model, record = train(datasets, params)
-    export_onnx(model, record, out)
+    export_model(model, record, out, datasets, int8)
     return record
 
 
 def leave_one_out(
-    roots: list[Path], out_dir: Path, params: TrainParams = TrainParams(), limit: int | None = None
+    roots: list[Path],
+    out_dir: Path,
+    params: TrainParams = TrainParams(),
+    limit: int | None = None,
+    int8: bool = True,
 ) -> dict[str, dict]:
     """One model per dataset, trained on all the others: ``out_dir/<left-out name>.onnx``
     (for scoring each set with a model that never saw it). Returns the records by name."""
@@ -214,6 +241,7 @@ def leave_one_out(
         log.info("training without %s", left)
         model, record = train({k: v for k, v in datasets.items() if k != left}, params)
         record["left_out"] = left
-        export_onnx(model, record, out_dir / f"{left}.onnx")
+        kept = {k: v for k, v in datasets.items() if k != left}
+        export_model(model, record, out_dir / f"{left}.onnx", kept, int8)
         records[left] = record
     return records

@@ -120,6 +120,12 @@ def test_training_script_makes_a_model_onnx_runtime_runs_as_pytorch_does(tmp_pat
     gray = sets["a"][0].gray
     torch.manual_seed(0)
     np.testing.assert_allclose(onnx_model.probability(gray), predict(model, gray), atol=1e-4)
+    from processing.learning.quantize import calibration_crops, quantize_int8
+
+    quantize_int8(out, tmp_path / "q.onnx", calibration_crops([s.gray for s in sets["b"]]))
+    int8 = CrackModel(tmp_path / "q.onnx", threads=1)
+    assert int8.record["threshold"] == record["threshold"] and "quantized" in int8.record
+    np.testing.assert_allclose(int8.probability(gray), onnx_model.probability(gray), atol=0.05)
 
 
 def test_train_detector_command_trains_and_detect_uses_the_result(tmp_path: Path) -> None:
@@ -134,6 +140,7 @@ def test_train_detector_command_trains_and_detect_uses_the_result(tmp_path: Path
     assert proc.returncode == 0, proc.stderr
     assert "threshold" in json.loads(proc.stdout.splitlines()[-1])
     assert CrackModel(out).record["datasets"] == {"set": 6}
+    assert CrackModel(out).record["quantized"]["calibration_crops"] == 6  # shipped as int8
     bad = steelscan("train-detector", str(tmp_path), "--out", str(out))
     assert bad.returncode == 2 and "not a dataset folder" in bad.stderr
 
