@@ -212,12 +212,13 @@ def cmd_stitch(args: argparse.Namespace) -> int:
 
 def cmd_map(args: argparse.Namespace) -> int:
     """Register a folder of point clouds into a map."""
-    from server.commands import map_folder
+    from server.map_command import map_folder
 
     map_folder(
         Path(args.clouds_dir),
         Path(args.out),
         odometry=Path(args.odometry) if args.odometry else None,
+        units=args.units,
     )
     return 0
 
@@ -343,6 +344,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("clouds_dir")
     s.add_argument("--out", required=True)
     s.add_argument("--odometry")
+    s.add_argument(
+        "--units",
+        choices=("auto", "m", "mm"),
+        default="auto",
+        help="the clouds' unit: auto (metres; millimetres are recognised and refused), m, or mm (converted)",
+    )
     s.set_defaults(func=cmd_map, image_work=True)
 
     s = sub.add_parser("bench", help="benchmarks against baselines measured in the same run")

@@ -1,4 +1,4 @@
-"""File-based commands (detect, stitch, map): read inputs, call ``processing``, write outputs.
+"""File-based commands (detect, stitch; map: :mod:`server.map_command`): read inputs, call ``processing``, write outputs.
 
 Every output is written atomically, so a failed command leaves no half-written file.
 """
@@ -17,17 +17,16 @@ import numpy as np
 
 from processing.defects import measure_defects
 from processing.detection import detect_cracks, detect_cracks_tiled
-from processing.mapping import register_clouds
-from processing.poses import format_tum, parse_tum, yaw_of
+from processing.poses import yaw_of
 from processing.stitching import plan_mosaic, render_bands
 from server.errors import CommandError
+from server.inputs import list_files, read_odometry
 from server.storage.files import write_atomic
 from server.storage.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
 
 log = logging.getLogger(__name__)
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
-CLOUD_EXTS = {".ply", ".pcd"}
 TILED_ABOVE_PX = 4_000_000
 EIGHT_BIT_MODES = {"L", "P", "RGB", "RGBA", "LA", "1"}
 
@@ -75,31 +74,12 @@ def detect_images(images: list[Path], out: Path, *, method: str, px_per_mm: floa
     write_atomic(out / "defects.json", json.dumps(records, indent=1).encode())
 
 
-def _list(folder: Path, exts: set[str], what: str) -> list[Path]:
-    if not folder.is_dir():
-        raise CommandError(f"{folder}: not a directory")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in exts)
-    if not files:
-        raise CommandError(f"{folder}: no {what} files ({', '.join(sorted(exts))})")
-    return files
-
-
-def _odometry(path: Path, n: int, what: str) -> np.ndarray:
-    try:
-        _, poses = parse_tum(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise CommandError(f"{path}: {exc}") from None
-    if len(poses) != n:
-        raise CommandError(f"{path}: {len(poses)} poses for {n} {what}; need one per {what[:-1]}")
-    return poses
-
-
 def stitch_folder(
     frames_dir: Path, out: Path, *, odometry: Path | None, px_per_m: float | None
 ) -> None:
     """Write ``mosaic.png``, ``poses.csv``, the Deep Zoom pyramid, an overview and the world
     mapping (``mosaic.json``) for a folder of frames, reading the frames as needed."""
-    files = _list(frames_dir, IMAGE_EXTS, "image")
+    files = list_files(frames_dir, IMAGE_EXTS, "image")
     if px_per_m is not None and px_per_m <= 0:
         raise CommandError(f"--px-per-m must be positive, got {px_per_m}")
     first: tuple[int, int] | None = None
@@ -119,7 +99,7 @@ def stitch_folder(
     if odometry is not None:
         if not px_per_m:
             raise CommandError("--odometry needs --px-per-m (the image scale)")
-        T = _odometry(odometry, len(files), "frames")
+        T = read_odometry(odometry, len(files), "frames")
         guess = np.array([[t[0, 3] * px_per_m, t[1, 3] * px_per_m, yaw_of(t)] for t in T])
     try:
         layout, frames = plan_mosaic(ImageFiles(files), guess, px_per_m=px_per_m or 1.0)
@@ -136,62 +116,3 @@ def stitch_folder(
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     write_atomic(out / "poses.csv", buf.getvalue().encode())
-
-
-def _read_cloud(path: Path, sensor: dict | None) -> np.ndarray:
-    import open3d as o3d
-
-    pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
-    pts = np.asarray(pcd.points)
-    if pts.size == 0:
-        raise CommandError(f"{path}: no points (not a readable .ply/.pcd?)")
-    if sensor and len(pts) != sensor["width"] * sensor["height"]:
-        raise CommandError(
-            f"{path}: {len(pts)} points, but sensor.json says {sensor['width']}x{sensor['height']}"
-        )
-    return pts
-
-
-def map_folder(clouds_dir: Path, out: Path, *, odometry: Path | None) -> None:
-    """Write ``map.ply`` and ``poses.tum`` for a folder of clouds."""
-    import open3d as o3d
-
-    files = _list(clouds_dir, CLOUD_EXTS, "point cloud")
-    sensor = None
-    if (clouds_dir / "sensor.json").is_file():
-        try:
-            sensor = json.loads((clouds_dir / "sensor.json").read_text())
-            int(sensor["width"]), int(sensor["height"])
-        except (ValueError, KeyError, TypeError) as exc:
-            raise CommandError(f"{clouds_dir / 'sensor.json'}: {exc}") from None
-    clouds = [_read_cloud(p, sensor) for p in files]
-    empty = [p for p, c in zip(files, clouds) if not np.isfinite(c).all(axis=1).any()]
-    if len(empty) == len(clouds):
-        raise CommandError(f"{clouds_dir}: every point of every cloud is NaN or infinite")
-    for p in empty:  # the sensor saw nothing (looking past the structure): odometry places it
-        log.warning("%s: every point is NaN or infinite; placed by odometry", p)
-    init = _odometry(odometry, len(clouds), "clouds") if odometry else None
-    try:
-        shape = (int(sensor["height"]), int(sensor["width"])) if sensor else None
-        result = register_clouds(clouds, init, shape=shape)
-    except ValueError as exc:
-        raise CommandError(str(exc)) from None
-    out.mkdir(parents=True, exist_ok=True)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
-    tmp = out / ".map.tmp.ply"
-    if not o3d.io.write_point_cloud(str(tmp), pcd):
-        raise CommandError(f"could not write {out / 'map.ply'}")
-    tmp.replace(out / "map.ply")
-    write_atomic(
-        out / "poses.tum", format_tum(np.arange(len(clouds), dtype=float), result.poses).encode()
-    )
-    log.info(
-        "%d clouds mapped: %d loop closures, %d placed by odometry alone, %d with directions only the odometry "
-        "fixed (a flat view), odometry error %.1fx the configured one, %d plane landmarks",
-        len(clouds),
-        result.loop_closures,
-        int(result.used_odometry.sum()),
-        int((result.degenerate_dims > 0).sum()),
-        result.odometry_error_scale,
-        result.plane_landmarks,
-    )

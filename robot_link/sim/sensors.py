@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -90,9 +91,10 @@ class DownwardCamera:
 
 
 def tof_mount(
-    x_m: float = 0.15, height_m: float = 0.10, pitch_deg: float = 20.0
+    x_m: float = 0.15, height_m: float = 0.10, pitch_deg: float = 20.0, yaw_deg: float = 0.0
 ) -> NDArray[np.float64]:
-    """T_robot_tof: ToF at the front, looking ahead and tilted ``pitch_deg`` down to the surface.
+    """T_robot_tof: ToF at the front, looking ahead and tilted ``pitch_deg`` down to the
+    surface, turned ``yaw_deg`` towards the robot's right (obliquely at members beside it).
 
     Robot frame: x forward, y right, z down into the surface; sensor frame: x right,
     y down, z forward.
@@ -103,14 +105,24 @@ def tof_mount(
     T[:3, 1] = (-np.sin(p), 0, np.cos(p))
     T[:3, 2] = (np.cos(p), 0, np.sin(p))
     T[:3, 3] = (x_m, 0, -height_m)
-    return T
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    turn = np.eye(4)
+    turn[:2, :2] = [[c, -s], [s, c]]  # about the robot's z (down): towards +y, its right
+    return turn @ T
+
+
+class HasMesh(Protocol):
+    """A structure or scene: anything with a triangle mesh to ray cast."""
+
+    mesh: o3d.geometry.TriangleMesh
 
 
 @dataclass
 class TofCamera:
-    """A 224 x 172 time-of-flight camera rendered by ray casting the structure's mesh."""
+    """A 224 x 172 time-of-flight camera rendered by ray casting the structure's mesh;
+    its noise is along each ray (``noise_sigma_m``, range)."""
 
-    structure: SteelStructure
+    structure: HasMesh
     width: int = 224
     height: int = 172
     fx: float = 195.0
@@ -157,7 +169,7 @@ class TofCamera:
         dirs = self._dirs @ R.T
         rays = np.hstack([np.broadcast_to(t, dirs.shape), dirs]).astype(np.float32)
         hit = self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        z = hit / self._dir_norm  # range along the ray -> depth along the optical axis
-        z = z + rng.normal(0, self.noise_sigma_m, z.shape)
+        ranged = hit + rng.normal(0, self.noise_sigma_m, hit.shape)
+        z = ranged / self._dir_norm  # range along the ray -> depth along the optical axis
         z[~np.isfinite(hit) | (hit > self.max_range_m)] = np.nan
         return z.reshape(self.height, self.width).astype(np.float32)

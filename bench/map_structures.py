@@ -1,0 +1,129 @@
+"""The map on every structure type of the simulator (:mod:`robot_link.sim.scenes`), on seeds
+no parameter was chosen on: a table per type of mean and worst trajectory error as a share
+of the path, for this pipeline, odometry alone and Open3D's tutorial pipeline in the same
+run, ms per cloud in-process, and the whole ``steelscan map`` command (start-up, reading
+the files, writing the map) on one sequence per type."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import Result
+
+HELD_BACK_SEEDS = range(1000, 1010)  # never used while developing (that used seeds 1-9)
+TARGET_MEAN, TARGET_WORST, TARGET_MS = 0.25, 0.4, 25.0
+
+
+def bench_map_structures(seeds: int | None = None) -> Iterator[Result]:
+    """Per structure type: ATE (% of path) of ours, odometry and the tutorial pipeline over
+    ``seeds`` held-back seeds (10 unless given), ms per cloud, the whole command's time."""
+    from bench.map import _open3d_tutorial_poses
+    from processing.mapping import SelectParams, register_clouds, select
+    from processing.metrics import absolute_trajectory_error
+    from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_sweep, write_sweep
+    from robot_link.sim.scenes import SCENES
+
+    for kind in SCENES:
+        drift: dict[str, list[float]] = {"ours": [], "odometry": [], "tutorial": []}
+        ms: dict[str, list[float]] = {"ours": [], "tutorial": []}
+        for seed in list(HELD_BACK_SEEDS)[: seeds or None]:
+            sweep = scene_sweep(SceneSweepConfig(kind=kind, seed=seed))
+            shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
+            n = len(sweep.clouds)
+            t0 = time.perf_counter()
+            ours = register_clouds(sweep.clouds, sweep.odometry, shape=shape).poses
+            ms["ours"].append(1000 * (time.perf_counter() - t0) / n)
+            t0 = time.perf_counter()
+            pcds = [select(c, SelectParams()) for c in sweep.clouds]
+            tutorial = _open3d_tutorial_poses(pcds, sweep.odometry)
+            ms["tutorial"].append(1000 * (time.perf_counter() - t0) / n)
+            for name, poses in (
+                ("ours", ours),
+                ("odometry", sweep.odometry),
+                ("tutorial", tutorial),
+            ):
+                ate = absolute_trajectory_error(poses, sweep.truth)
+                drift[name].append(100 * ate / sweep.path_length_m)
+        name = f"map.structure.{kind}"
+        yield {
+            "name": f"{name}.drift_mean",
+            "value": round(float(np.mean(drift["ours"])), 3),
+            "unit": "% of path",
+            "target": TARGET_MEAN,
+            "worst": round(float(np.max(drift["ours"])), 3),
+            "worst_target": TARGET_WORST,
+            "baseline": round(float(np.mean(drift["tutorial"])), 3),
+            "ratio": round(
+                float(np.mean(drift["ours"]) / max(np.mean(drift["tutorial"]), 1e-9)), 3
+            ),
+            "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP, cloud to cloud",
+            "baseline_worst": round(float(np.max(drift["tutorial"])), 3),
+            "odometry_mean": round(float(np.mean(drift["odometry"])), 3),
+            "odometry_worst": round(float(np.max(drift["odometry"])), 3),
+            "seeds": len(drift["ours"]),
+            "per_seed": [round(v, 3) for v in drift["ours"]],
+        }
+        yield {
+            "name": f"{name}.ms_per_cloud",
+            "value": round(float(np.mean(ms["ours"])), 1),
+            "unit": "ms",
+            "target": TARGET_MS,
+            "baseline": round(float(np.mean(ms["tutorial"])), 1),
+            "ratio": round(float(np.mean(ms["ours"]) / np.mean(ms["tutorial"])), 3),
+            "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP, cloud to cloud",
+        }
+        with tempfile.TemporaryDirectory() as tmp:
+            sweep = scene_sweep(SceneSweepConfig(kind=kind, seed=HELD_BACK_SEEDS[0]))
+            clouds = write_sweep(sweep, Path(tmp))
+            yield _whole_command(name, clouds, Path(tmp), len(sweep.clouds))
+
+
+def _whole_command(name: str, clouds: Path, folder: Path, n: int) -> Result:
+    """Wall time of ``steelscan map`` in a fresh process and of the interpreter's start-up
+    with the command's imports (the start-up's share), ms per cloud of the remainder."""
+    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "2")}
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "server.cli",
+            "map",
+            str(clouds),
+            "--out",
+            str(folder / "out"),
+            "--odometry",
+            str(folder / "odom.tum"),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=False,
+    )
+    whole = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"steelscan map failed: {proc.stderr[-2000:]}")
+    t0 = time.perf_counter()
+    subprocess.run(
+        [sys.executable, "-c", "import server.cli, server.map_command, processing.mapping, open3d"],
+        check=True,
+        env=env,
+    )
+    start_up = time.perf_counter() - t0
+    return {
+        "name": f"{name}.whole_command",
+        "value": round(whole, 2),
+        "unit": "s",
+        "target": round(2.0 + n * TARGET_MS / 1000, 2),
+        "start_up_s": round(start_up, 2),
+        "ms_per_cloud_after_start_up": round(1000 * (whole - start_up) / n, 1),
+        "clouds": n,
+    }

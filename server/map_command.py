@@ -1,0 +1,140 @@
+"""``steelscan map``: a folder of point clouds (organised ToF clouds with ``sensor.json``, or
+unorganised ``.ply``/``.pcd`` from other tools) registered into ``map.ply``, ``poses.tum``
+and ``map_report.json``.
+
+Foreign input is checked before any work: clouds in millimetres are recognised by their
+ranges and refused (``--units mm`` converts them), empty and all-NaN clouds are skipped
+(placed by the odometry, or by the previous step's motion without it) and reported.
+Only what the map needs is imported, so the command starts quickly.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from server.errors import CommandError
+from server.inputs import list_files, read_odometry
+from server.storage.files import write_atomic
+
+log = logging.getLogger(__name__)
+
+CLOUD_EXTS = {".ply", ".pcd"}
+# a ToF camera's range is a few metres; a median range beyond this is millimetres
+MAX_PLAUSIBLE_RANGE_M = 50.0
+Units = Literal["auto", "m", "mm"]
+
+
+def _read_sensor(folder: Path) -> dict | None:
+    path = folder / "sensor.json"
+    if not path.is_file():
+        return None
+    try:
+        sensor = json.loads(path.read_text())
+        if int(sensor["width"]) <= 0 or int(sensor["height"]) <= 0:
+            raise ValueError("width and height must be positive")
+    except (ValueError, KeyError, TypeError, OSError) as exc:
+        raise CommandError(f"{path}: {exc}") from None
+    return sensor
+
+
+def _read_cloud(path: Path, sensor: dict | None) -> np.ndarray:
+    """(K, 3) float64 points; (0, 3) for a file without points (reported, not refused)."""
+    import open3d as o3d
+
+    pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+    pts = np.asarray(pcd.points)
+    if pts.size == 0:  # Open3D reads nothing from an empty cloud and from a broken file alike
+        if not re.search(rb"element vertex 0\b|POINTS 0\b", path.read_bytes()[:4096]):
+            raise CommandError(f"{path}: not a readable .ply/.pcd point cloud")
+        return np.zeros((0, 3))
+    if sensor and len(pts) != int(sensor["width"]) * int(sensor["height"]):
+        raise CommandError(
+            f"{path}: {len(pts)} points, but sensor.json says {sensor['width']}x{sensor['height']}"
+        )
+    return pts
+
+
+def _check_units(clouds: list[np.ndarray], units: Units, folder: Path) -> list[np.ndarray]:
+    """Clouds in metres: converted from millimetres with ``units="mm"``; with ``"auto"``
+    clouds whose median range is beyond any ToF camera's are refused."""
+    if units == "mm":
+        return [c / 1000.0 for c in clouds]
+    if units == "auto":
+        ranges = [np.linalg.norm(c[np.isfinite(c).all(axis=1)], axis=1) for c in clouds]
+        finite = np.concatenate(ranges) if ranges else np.zeros(0)
+        if len(finite) and float(np.median(finite)) > MAX_PLAUSIBLE_RANGE_M:
+            raise CommandError(
+                f"{folder}: the clouds' median range is {float(np.median(finite)):.0f}; clouds must be "
+                "in metres (these look like millimetres: pass --units mm to convert them)"
+            )
+    return clouds
+
+
+def map_folder(
+    clouds_dir: Path, out: Path, *, odometry: Path | None, units: Units = "auto"
+) -> None:
+    """Write ``map.ply``, ``poses.tum`` (one pose per input cloud) and ``map_report.json``."""
+    from processing.mapping import register_clouds
+    from processing.poses import format_tum
+
+    files = list_files(clouds_dir, CLOUD_EXTS, "point cloud")
+    sensor = _read_sensor(clouds_dir)
+    init = read_odometry(odometry, len(files), "clouds") if odometry else None
+    clouds = _check_units([_read_cloud(p, sensor) for p in files], units, clouds_dir)
+    skipped = {
+        p.name: ("no points" if len(c) == 0 else "every point is NaN or infinite")
+        for p, c in zip(files, clouds)
+        if not np.isfinite(c).all(axis=1).any()
+    }
+    if len(skipped) == len(clouds):
+        raise CommandError(f"{clouds_dir}: no cloud has a finite point")
+    for name, why in skipped.items():
+        log.warning(
+            "%s: %s; skipped (placed by %s)",
+            name,
+            why,
+            "odometry" if init is not None else "the previous motion",
+        )
+    shape = (int(sensor["height"]), int(sensor["width"])) if sensor else None
+    try:
+        result = register_clouds(clouds, init, shape=shape)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+    out.mkdir(parents=True, exist_ok=True)
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
+    tmp = out / ".map.tmp.ply"
+    if not o3d.io.write_point_cloud(str(tmp), pcd):
+        raise CommandError(f"could not write {out / 'map.ply'}")
+    tmp.replace(out / "map.ply")
+    write_atomic(
+        out / "poses.tum", format_tum(np.arange(len(clouds), dtype=float), result.poses).encode()
+    )
+    report = {
+        "clouds": len(clouds),
+        "skipped": [{"file": k, "reason": v} for k, v in skipped.items()],
+        "organised": sensor is not None,
+        "map_points": len(result.points),
+        "loop_closures": result.loop_closures,
+        "placed_by_odometry": [files[k].name for k in np.flatnonzero(result.used_odometry)],
+        "clouds_with_unobservable_directions": int((result.degenerate_dims > 0).sum()),
+        "odometry_error_scale": round(float(result.odometry_error_scale), 2),
+        "plane_landmarks": result.plane_landmarks,
+    }
+    write_atomic(out / "map_report.json", json.dumps(report, indent=1).encode())
+    log.info(
+        "%d clouds mapped (%d skipped): %d loop closures, %d placed by odometry alone, %d with "
+        "directions only the odometry fixed (a flat view)",
+        len(clouds),
+        len(skipped),
+        result.loop_closures,
+        int(result.used_odometry.sum()),
+        report["clouds_with_unobservable_directions"],
+    )
