@@ -81,7 +81,16 @@ def scene_sweep(cfg: SceneSweepConfig = SceneSweepConfig()) -> TofSweep:
         rng.uniform(8, vfov / 2),
         rng.choice([-1, 1]) * rng.uniform(0, 40),
     )
-    tof = TofCamera(scene, width=w, height=h, fx=fx, fy=fy, noise_sigma_m=noise, T_robot_tof=mount)
+    tof = TofCamera(
+        scene,
+        width=w,
+        height=h,
+        fx=fx,
+        fy=fy,
+        noise_sigma_m=noise,
+        T_robot_tof=mount,
+        noise_along_ray=True,
+    )
     lanes, (x0, x1) = scene.lanes_y_m, scene.x_range_m
     gap = abs(lanes[1] - lanes[0])
     step = (2 * (x1 - x0) + np.pi * gap) / cfg.clouds

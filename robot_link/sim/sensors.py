@@ -119,8 +119,9 @@ class HasMesh(Protocol):
 
 @dataclass
 class TofCamera:
-    """A 224 x 172 time-of-flight camera rendered by ray casting the structure's mesh;
-    its noise is along each ray (``noise_sigma_m``, range)."""
+    """A 224 x 172 time-of-flight camera rendered by ray casting the structure's mesh; its
+    noise (``noise_sigma_m``) is on the range along each ray (``noise_along_ray``) or on
+    the depth."""
 
     structure: HasMesh
     width: int = 224
@@ -130,6 +131,7 @@ class TofCamera:
     noise_sigma_m: float = 0.01
     max_range_m: float = 4.0
     T_robot_tof: NDArray[np.float64] = field(default_factory=tof_mount)
+    noise_along_ray: bool = False
 
     def __post_init__(self) -> None:
         self.cx, self.cy = (self.width - 1) / 2, (self.height - 1) / 2
@@ -169,7 +171,12 @@ class TofCamera:
         dirs = self._dirs @ R.T
         rays = np.hstack([np.broadcast_to(t, dirs.shape), dirs]).astype(np.float32)
         hit = self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        ranged = hit + rng.normal(0, self.noise_sigma_m, hit.shape)
-        z = ranged / self._dir_norm  # range along the ray -> depth along the optical axis
+        noise = rng.normal(0, self.noise_sigma_m, hit.shape)
+        if self.noise_along_ray:
+            z = (
+                hit + noise
+            ) / self._dir_norm  # range along the ray -> depth along the optical axis
+        else:
+            z = hit / self._dir_norm + noise
         z[~np.isfinite(hit) | (hit > self.max_range_m)] = np.nan
         return z.reshape(self.height, self.width).astype(np.float32)
