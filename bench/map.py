@@ -59,14 +59,15 @@ def _sweeps() -> list[tuple[str, Any]]:
 
 
 def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
-    """Per structure type (:mod:`bench.map_structures`, ``limit`` held-back seeds each), then
+    """Per structure type (:mod:`bench.map_structures`; with ``limit``, one held-back seed of
+    ``limit`` clouds each), then
     trajectory error (ATE, RPE, drift as a share of the path) and time per cloud on long
     simulated ToF sweeps along the deck plate's girder (:func:`_sweeps`, the first ``limit``
     clouds), for this pipeline, odometry alone and Open3D's tutorial pipeline (FPFH +
     RANSAC + ICP, cloud to cloud)."""
     from bench.map_structures import bench_map_structures
 
-    yield from bench_map_structures(limit)
+    yield from bench_map_structures(1, max(limit, 3)) if limit else bench_map_structures()
     from processing.mapping import SelectParams, register_clouds, select
     from processing.metrics import absolute_trajectory_error
     from robot_link.sim.tof_sweeps import tof_sweep

@@ -22,9 +22,10 @@ HELD_BACK_SEEDS = range(1000, 1010)  # never used while developing (that used se
 TARGET_MEAN, TARGET_WORST, TARGET_MS = 0.25, 0.4, 25.0
 
 
-def bench_map_structures(seeds: int | None = None) -> Iterator[Result]:
+def bench_map_structures(seeds: int | None = None, clouds: int = 40) -> Iterator[Result]:
     """Per structure type: ATE (% of path) of ours, odometry and the tutorial pipeline over
-    ``seeds`` held-back seeds (10 unless given), ms per cloud, the whole command's time."""
+    ``seeds`` held-back seeds (10 unless given) of ``clouds`` clouds, ms per cloud, the whole
+    command's time."""
     from bench.map import _open3d_tutorial_poses
     from processing.mapping import SelectParams, register_clouds, select
     from processing.metrics import absolute_trajectory_error
@@ -35,7 +36,7 @@ def bench_map_structures(seeds: int | None = None) -> Iterator[Result]:
         drift: dict[str, list[float]] = {"ours": [], "odometry": [], "tutorial": []}
         ms: dict[str, list[float]] = {"ours": [], "tutorial": []}
         for seed in list(HELD_BACK_SEEDS)[: seeds or None]:
-            sweep = scene_sweep(SceneSweepConfig(kind=kind, seed=seed))
+            sweep = scene_sweep(SceneSweepConfig(kind=kind, seed=seed, clouds=clouds))
             shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
             n = len(sweep.clouds)
             t0 = time.perf_counter()
@@ -81,9 +82,9 @@ def bench_map_structures(seeds: int | None = None) -> Iterator[Result]:
             "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP, cloud to cloud",
         }
         with tempfile.TemporaryDirectory() as tmp:
-            sweep = scene_sweep(SceneSweepConfig(kind=kind, seed=HELD_BACK_SEEDS[0]))
-            clouds = write_sweep(sweep, Path(tmp))
-            yield _whole_command(name, clouds, Path(tmp), len(sweep.clouds))
+            sweep = scene_sweep(SceneSweepConfig(kind=kind, seed=HELD_BACK_SEEDS[0], clouds=clouds))
+            files = write_sweep(sweep, Path(tmp))
+            yield _whole_command(name, files, Path(tmp), len(sweep.clouds))
 
 
 def _whole_command(name: str, clouds: Path, folder: Path, n: int) -> Result:

@@ -318,6 +318,10 @@ def test_bench_stitch_and_map_measure_against_baselines() -> None:
         "map.sweep31.ms_per_cloud",
     } <= results.keys()
     assert results["map.sweep31.ate"]["value"] < 0.05
+    for kind in ("i_girder", "box_girder", "cross_frames", "truss", "gusset_joint"):
+        drift = results[f"map.structure.{kind}.drift_mean"]
+        assert drift["seeds"] == 1 and drift["value"] > 0 and "odometry_mean" in drift
+        assert results[f"map.structure.{kind}.whole_command"]["clouds"] == 8
 
 
 def test_bench_ingest_counts_every_frame_it_sends() -> None:
