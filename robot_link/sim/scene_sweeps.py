@@ -129,7 +129,9 @@ def write_sweep(sweep: TofSweep, folder: Path) -> Path:
         if not o3d.io.write_point_cloud(str(clouds / f"c{i:04d}.ply"), pcd):
             raise OSError(f"could not write {clouds / f'c{i:04d}.ply'}")
     (clouds / "sensor.json").write_text(
-        json.dumps({k: float(v) for k, v in sweep.intrinsics.items()})
+        json.dumps(
+            {k: v if k in ("width", "height") else float(v) for k, v in sweep.intrinsics.items()}
+        )
     )
     (folder / "odom.tum").write_text(
         format_tum(np.arange(len(sweep.clouds), dtype=float), sweep.odometry)

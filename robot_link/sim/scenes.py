@@ -50,11 +50,11 @@ def _frames_x(rng: np.random.Generator, x0: float, x1: float, spacing: float) ->
 
 
 def i_girder(rng: np.random.Generator) -> Scene:
-    """The deck plate beside an I-girder (:func:`robot_link.sim.structure._geometry`)."""
-    from robot_link.sim.structure import _geometry
+    """The deck plate beside an I-girder (:func:`robot_link.sim.structure.girder_geometry`)."""
+    from robot_link.sim.structure import girder_geometry
 
     plate_h = rng.uniform(0.85, 1.0)
-    mesh = _geometry(1.6, plate_h, 1.6, rng.uniform(0.4, 0.7))
+    mesh = girder_geometry(1.6, plate_h, 1.6, rng.uniform(0.4, 0.7))
     return Scene("i_girder", mesh, (plate_h - 0.34, plate_h - 0.16), (0.5, 1.2))
 
 

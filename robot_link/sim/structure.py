@@ -143,7 +143,7 @@ def _box(
     return box.translate((x0, y0, z0))
 
 
-def _geometry(
+def girder_geometry(
     plate_w: float, plate_h: float, girder_overhang_m: float = 0.0, stiffener_spacing_m: float = 0.5
 ) -> o3d.geometry.TriangleMesh:
     """Plate, I-girder (web, top flange, stiffeners, bolts) and an edge angle, as one mesh;
@@ -230,7 +230,7 @@ def make_structure(
         crack > 0,
         rust > 0,
         defects,
-        _geometry(*plate_size_m, girder_overhang_m, stiffener_spacing_m),
+        girder_geometry(*plate_size_m, girder_overhang_m, stiffener_spacing_m),
     )
 
 
