@@ -212,3 +212,18 @@ def world_box(
     )
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     return float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])
+
+
+def se3_exp(xi: NDArray[np.floating]) -> NDArray[np.float64]:
+    """4x4 transform of a small motion xi = (ω, v) (rotation vector, translation), as used
+    for a right perturbation T · exp(xi) (rotation and translation apart: exact for the
+    rotation, first order for the coupling, which the iterations absorb)."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+    T[:3, 3] = xi[3:]
+    return T
+
+
+def se3_log(T: NDArray[np.floating]) -> NDArray[np.float64]:
+    """(ω, v) of a 4x4 transform: rotation vector and translation (the inverse of :func:`se3_exp`)."""
+    return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])

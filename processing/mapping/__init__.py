@@ -72,8 +72,10 @@ from processing.mapping.params import (
     OdometryParams,
     PlaneParams,
     SelectParams,
+    TrackingParams,
 )
 from processing.mapping.selection import clean_cloud, filter_organised, fuse_map, select
+from processing.mapping.tracking import Tracker, register_to_map
 
 __all__ = [
     "IcpParams",
@@ -84,6 +86,8 @@ __all__ = [
     "OdometryParams",
     "PlaneParams",
     "SelectParams",
+    "TrackingParams",
+    "Tracker",
     "align",
     "clean_cloud",
     "constrain_to_observable",
@@ -93,6 +97,7 @@ __all__ = [
     "mutual_overlap",
     "plane_information",
     "register_clouds",
+    "register_to_map",
     "select",
     "structure_fitness",
     "within_bounds",

@@ -19,6 +19,7 @@ from processing.mapping.icp import (
 )
 from processing.mapping.params import MapParams
 from processing.mapping.selection import fuse_map, select
+from processing.mapping.tracking import Tracker
 from processing.planes import Plane, extract_planes, plane_edge, plane_frame, same_plane, to_frame
 
 reg = o3d.pipelines.registration
@@ -92,6 +93,7 @@ class IncrementalMap:
         ] = []  # T_world_landmark: a frame on the plane, z along its normal
         self._fused = o3d.geometry.PointCloud()
         self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
+        self.tracker = Tracker(params.tracking, params.select.voxel_m)
 
     @property
     def usable_clouds(self) -> int:
@@ -123,6 +125,8 @@ class IncrementalMap:
         """Place one cloud (sensor frame) given its odometry pose ``guess``; its pose."""
         guess = None if guess is None else np.asarray(guess, dtype=np.float64)
         pcd = select(points, self.params.select, shape)
+        if self.params.tracking.enabled:  # the tracked pose is the graph's odometry
+            guess = self.tracker.track(pcd, guess)
         i = len(self._pcds)
         self._pcds.append(pcd)
         self._guesses.append(guess)

@@ -17,6 +17,27 @@ class SelectParams:
 
 
 @dataclass(frozen=True)
+class TrackingParams:
+    """Tracking: each cloud registered to the map of all earlier ones, held by the odometry
+    as far as the data show the odometry to be right (:mod:`processing.mapping.tracking`)."""
+
+    enabled: bool = True
+    # the odometry's error per step until ``warm_up`` steps measured it: generous
+    initial_sigma_m: float = 0.05
+    initial_sigma_deg: float = 5.0
+    warm_up: int = 5
+    min_sigma_m: float = 0.002  # the measured error is not trusted below these
+    min_sigma_deg: float = 0.2
+    max_distance_m: float = 0.3  # the widest correspondence search (3 sigma of the motion error)
+    final_distance_voxels: float = 1.5  # the last search distance, in voxels of the selection
+    max_iterations: int = 15
+    min_normal_cos: float = 0.7  # a match's normals (cloud's and map's) agree this well
+    # directions the geometry fixes less than this share of the strongest half do: prior only
+    degenerate_ratio: float = 0.001
+    min_points: int = 50  # fewer points (cloud or map in view): the prediction is used
+
+
+@dataclass(frozen=True)
 class IcpParams:
     """Matching, rejection and alignment of one pair of clouds, and the stopping rules."""
 
@@ -96,6 +117,7 @@ class MapParams:
     """Options of the whole pipeline: each stage's parameters and the pose graph's own."""
 
     select: SelectParams = field(default_factory=SelectParams)
+    tracking: TrackingParams = field(default_factory=TrackingParams)
     icp: IcpParams = field(default_factory=IcpParams)
     loops: LoopParams = field(default_factory=LoopParams)
     odometry: OdometryParams = field(default_factory=OdometryParams)

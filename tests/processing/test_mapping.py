@@ -10,6 +10,7 @@ from processing.mapping import (
     MapParams,
     OdometryParams,
     PlaneParams,
+    TrackingParams,
     filter_organised,
     register_clouds,
 )
@@ -231,27 +232,32 @@ def test_odometry_worse_than_configured_is_weighted_by_what_the_data_show() -> N
     """Odometry three times worse than the graph's prior: its heading steps disagree with
     ICP's where the structure fixes them, the odometry edges are loosened by what that
     measures, and the map ends closer to the truth than with the prior kept; odometry as
-    good as configured is left alone."""
+    good as configured is left alone. (The graph's own calibration, so without tracking,
+    which would hand the graph its much better poses as the odometry.)"""
     from processing.mapping import IncrementalMap
+
+    untracked = MapParams(tracking=TrackingParams(enabled=False))
 
     poor = tof_sweep(
         TofSweepConfig(odometry_distance_sigma=0.09, odometry_yaw_sigma_deg=1.8, seed=43)
     )
-    calibrated = IncrementalMap(MapParams())
+    calibrated = IncrementalMap(untracked)
     for cloud, guess in zip(poor.clouds, poor.odometry):
         calibrated.add(cloud, guess, shape=(172, 224))
     assert 1.7 < calibrated.odometry_error_scale() < 4
     fixed = register_clouds(
         poor.clouds,
         poor.odometry,
-        params=MapParams(odometry=OdometryParams(calibrate=False)),
+        params=MapParams(
+            odometry=OdometryParams(calibrate=False), tracking=TrackingParams(enabled=False)
+        ),
         shape=(172, 224),
     )
     assert absolute_trajectory_error(
         calibrated.result().poses, poor.truth
     ) < 0.9 * absolute_trajectory_error(fixed.poses, poor.truth)
     good = tof_sweep(TofSweepConfig(seed=43))
-    as_configured = IncrementalMap(MapParams())
+    as_configured = IncrementalMap(untracked)
     for cloud, guess in zip(good.clouds, good.odometry):
         as_configured.add(cloud, guess, shape=(172, 224))
     assert as_configured.odometry_error_scale() == 1.0
@@ -260,13 +266,14 @@ def test_odometry_worse_than_configured_is_weighted_by_what_the_data_show() -> N
 def test_a_loop_missed_while_the_estimate_drifted_is_found_from_the_optimised_poses() -> None:
     """With poor odometry the estimate cloud by cloud is decimetres off when the robot
     comes back, so the return is not searched where it is; after optimising, the search
-    runs again and closes the loop."""
+    runs again and closes the loop. (Without tracking: tracked poses are close enough for
+    the search cloud by cloud.)"""
     from processing.mapping import IncrementalMap
 
     sweep = tof_sweep(
         TofSweepConfig(odometry_distance_sigma=0.09, odometry_yaw_sigma_deg=1.8, seed=45)
     )
-    graph_map = IncrementalMap(MapParams())
+    graph_map = IncrementalMap(MapParams(tracking=TrackingParams(enabled=False)))
     for cloud, guess in zip(sweep.clouds, sweep.odometry):
         graph_map.add(cloud, guess, shape=(172, 224))
     assert graph_map.loop_closures == 0

@@ -1,0 +1,249 @@
+"""Tracking: each cloud registered to the map of every earlier cloud, held by the odometry
+only as far as the data show the odometry to be right.
+
+A cloud registered to the previous cloud alone sees what that one saw; registered to the
+map of all earlier clouds (cropped to where the prediction puts it) it also sees what the
+robot saw a turn ago or a lane ago, so errors do not add up cloud by cloud. Each
+registration (:func:`register_to_map`) is Gauss-Newton point-to-plane ICP with a
+Geman-McClure kernel, searched coarse to fine, with the odometry's prediction as a prior in
+the same cost: along directions the geometry fixes the points win, along those it leaves
+free (sliding along a plate, a turn that sees little of the map) the prior holds.
+
+How far the prediction is trusted is measured, not configured (KISS-ICP's adaptive
+threshold, Vizzo et al. 2023, applied to the prior as well): the spread of the corrections
+registration made to the predictions so far sets the prior's errors and the widest
+correspondence search (three of those errors, moved out to the cloud's farthest point).
+Until ``warm_up`` corrections were seen the prior is generous. Good odometry thus ends up
+trusted to millimetres, poor odometry to centimetres, and no threshold is tied to one
+sensor or structure; the last search distance is a multiple of the selection's voxel.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from processing.mapping.params import TrackingParams
+from processing.poses import se3_exp, se3_log
+
+
+def voxel_mean(
+    points: NDArray[np.float64], normals: NDArray[np.float64], voxel_m: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Points (K, 3) and normals (K, 3) averaged per voxel of ``voxel_m``: (M, 3) means and
+    (M, 3) unit normals (the map, where many clouds' points of one surface fall together)."""
+    k = np.floor(points / voxel_m).astype(np.int64) + (1 << 20)
+    key = (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+    _, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(count), 6))
+    np.add.at(sums, inverse, np.hstack([points, normals]))
+    mean = sums[:, :3] / count[:, None]
+    normal = sums[:, 3:] / np.maximum(np.linalg.norm(sums[:, 3:], axis=1, keepdims=True), 1e-12)
+    return mean, normal
+
+
+def search_distances(
+    sigma_rad: float, sigma_m: float, reach_m: float, params: TrackingParams, voxel_m: float
+) -> list[float]:
+    """Correspondence distances, coarse to fine: from three errors of the motion (a rotation
+    of ``sigma_rad`` per axis moves a point ``reach_m`` from the sensor by 2·r·sin(θ/2), a
+    translation of ``sigma_m`` per axis by √3·σ) down to ``final_distance_voxels`` voxels,
+    halving."""
+    final = params.final_distance_voxels * voxel_m
+    spread = 2 * reach_m * np.sin(sigma_rad * np.sqrt(3) / 2) + sigma_m * np.sqrt(3)
+    first = float(np.clip(3 * spread, final, params.max_distance_m))
+    distances = [first]
+    while distances[-1] / 2 > final:
+        distances.append(distances[-1] / 2)
+    if distances[-1] > final:
+        distances.append(final)
+    return distances
+
+
+def register_to_map(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    map_points: NDArray[np.float64],
+    map_normals: NDArray[np.float64],
+    prediction: NDArray[np.float64],
+    prior_information: NDArray[np.float64],
+    distances: list[float],
+    params: TrackingParams,
+) -> tuple[NDArray[np.float64], int, NDArray[np.float64]]:
+    """Pose T_world_sensor (4, 4) of a cloud (``points``, ``normals``: (K, 3), sensor frame)
+    against a map (``map_points``, ``map_normals``: (M, 3), world frame), the number of
+    matches it rests on and their normal equations (6, 6) at the last iteration.
+
+    Minimises Σ ρ(nᵀ(T q − p)) + eᵀ Λ e over T, ρ the Geman-McClure kernel of scale d/3 for
+    each search distance d in turn, e = log(prediction⁻¹ T) the deviation from the
+    ``prediction`` and Λ the ``prior_information`` (6, 6; rotation first). The motion is a
+    right perturbation T·exp(δ): a residual's Jacobian is [q × Rᵀn, Rᵀn]. Matches whose
+    normals disagree (``min_normal_cos``) are not used (a web's point is not matched to the
+    plate beside it).
+    """
+    tree = cKDTree(map_points)
+    reach_m = float(np.sqrt(np.mean(np.einsum("ij,ij->i", points, points))))
+    T = prediction.copy()
+    P_inv = np.linalg.inv(prediction)
+    matched, H_all = 0, np.zeros((6, 6))
+    for distance in distances:
+        scale = distance / 3
+        for _ in range(params.max_iterations):
+            R = T[:3, :3]
+            world = points @ R.T + T[:3, 3]
+            gap, nearest = tree.query(world, distance_upper_bound=distance, workers=-1)
+            ok = np.isfinite(gap)
+            ok[ok] &= (
+                np.abs(np.einsum("ij,ij->i", map_normals[nearest[ok]], normals[ok] @ R.T))
+                > params.min_normal_cos
+            )
+            matched = int(ok.sum())
+            if matched < params.min_points:
+                return prediction.copy(), matched, np.zeros((6, 6))
+            n = map_normals[nearest[ok]]
+            r = np.einsum("ij,ij->i", world[ok] - map_points[nearest[ok]], n)
+            w = (scale**2 / (scale**2 + r**2)) ** 2 / scale**2
+            n_sensor = n @ R
+            J = np.hstack([np.cross(points[ok], n_sensor), n_sensor])
+            H_all = (J * w[:, None]).T @ J
+            H_data, g_data = observable_part(
+                H_all, (J * w[:, None]).T @ r, reach_m, params.degenerate_ratio
+            )
+            e = se3_log(P_inv @ T)
+            H = H_data + prior_information
+            g = g_data + prior_information @ e
+            step = -np.linalg.solve(H, g)
+            T = T @ se3_exp(step)
+            if np.abs(step).max() < 1e-5:
+                break
+    return T, matched, H_all
+
+
+def observable_part(
+    H: NDArray[np.float64], g: NDArray[np.float64], reach_m: float, ratio: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The normal equations (H (6, 6), g (6,)) kept only along the directions the geometry
+    observes: with rotations scaled by ``reach_m`` (the points' RMS distance, so both parts are
+    in metres), eigen-directions of H weaker than ``ratio`` of half its trace are dropped.
+    Along a flat plate's own plane, or about its normal, noisy normals give point-to-plane a
+    little spurious information that would slide the cloud; without it the prior holds there
+    (degeneracy-aware registration, Zhang et al. 2016)."""
+    evals, evecs, good = _scaled_eigen(H, reach_m, ratio)
+    V = evecs[:, good]
+    S = np.diag([1 / reach_m] * 3 + [1.0] * 3)  # x_scaled = S⁻¹ x
+    S_inv = np.diag([reach_m] * 3 + [1.0] * 3)
+    return S_inv @ (V * evals[good]) @ V.T @ S_inv, S_inv @ V @ V.T @ S @ g
+
+
+def _scaled_eigen(
+    H: NDArray[np.float64], reach_m: float, ratio: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Eigenvalues and vectors of H with rotations scaled by ``reach_m``, and which of them
+    reach ``ratio`` of half the trace."""
+    S = np.diag([1 / reach_m] * 3 + [1.0] * 3)
+    Hs = S @ H @ S
+    evals, evecs = np.linalg.eigh(Hs)
+    return evals, evecs, evals >= ratio * max(float(np.trace(Hs)) / 2, 1e-12)
+
+
+class Tracker:
+    """Poses of clouds as they come, each registered to the map of all earlier ones
+    (:func:`register_to_map`), predicted by the odometry (or, without it, by the last
+    motion) and held by it as far as the corrections so far show it right."""
+
+    def __init__(self, params: TrackingParams = TrackingParams(), voxel_m: float = 0.02) -> None:
+        self.params = params
+        self.voxel_m = voxel_m
+        self._points: list[NDArray[np.float64]] = []  # sensor frame
+        self._normals: list[NDArray[np.float64]] = []
+        self._poses: list[NDArray[np.float64]] = []
+        self._boxes: list[NDArray[np.float64]] = []  # (2, 3) world bounds of each cloud
+        self._guesses: list[NDArray[np.float64] | None] = []
+        self._corrections: list[
+            tuple[float, float]
+        ] = []  # mean square per axis: rotation, translation
+
+    def sigmas(self) -> tuple[float, float]:
+        """The prediction's error per axis, rotation (rad) and translation (m): the RMS of the
+        corrections so far (generous until ``warm_up`` of them), not below the minimum."""
+        p = self.params
+        if len(self._corrections) < p.warm_up:
+            return float(np.radians(p.initial_sigma_deg)), p.initial_sigma_m
+        rot, trans = np.sqrt(np.mean(self._corrections, axis=0))
+        return max(float(rot), float(np.radians(p.min_sigma_deg))), max(float(trans), p.min_sigma_m)
+
+    def _prediction(self, guess: NDArray[np.float64] | None) -> NDArray[np.float64]:
+        previous = self._guesses[-1] if self._guesses else None
+        if guess is not None and previous is not None:
+            return self._poses[-1] @ np.linalg.inv(previous) @ guess
+        if len(self._poses) >= 2:  # the last motion again
+            return self._poses[-1] @ np.linalg.inv(self._poses[-2]) @ self._poses[-1]
+        return self._poses[-1].copy()
+
+    def _local_map(
+        self, lo: NDArray[np.float64], hi: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The earlier clouds' points and normals within [lo, hi] (world), per voxel."""
+        points, normals = [], []
+        for q, n, T, box in zip(self._points, self._normals, self._poses, self._boxes):
+            if np.any(box[1] < lo) or np.any(box[0] > hi):
+                continue
+            world = q @ T[:3, :3].T + T[:3, 3]
+            inside = np.all((world >= lo) & (world <= hi), axis=1)
+            points.append(world[inside])
+            normals.append(n[inside] @ T[:3, :3].T)
+        if not points or sum(len(p) for p in points) == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        return voxel_mean(np.concatenate(points), np.concatenate(normals), self.voxel_m)
+
+    def track(
+        self, pcd: o3d.geometry.PointCloud, guess: NDArray[np.float64] | None = None
+    ) -> NDArray[np.float64]:
+        """Pose T_world_sensor (4, 4) of the next cloud (selected, with normals) given its
+        odometry pose ``guess`` (or None)."""
+        points = np.asarray(pcd.points, dtype=np.float64)
+        normals = (
+            np.asarray(pcd.normals, dtype=np.float64)
+            if pcd.has_normals()
+            else np.zeros_like(points)
+        )
+        if not self._poses:
+            pose = np.eye(4) if guess is None else guess.copy()
+        else:
+            prediction = self._prediction(guess)
+            pose = prediction
+            sigma_rad, sigma_m = self.sigmas()
+            if len(points) >= self.params.min_points and pcd.has_normals():
+                reach = float(np.sqrt(np.einsum("ij,ij->i", points, points).max()))
+                distances = search_distances(sigma_rad, sigma_m, reach, self.params, self.voxel_m)
+                world = points @ prediction[:3, :3].T + prediction[:3, 3]
+                lo, hi = world.min(axis=0) - distances[0], world.max(axis=0) + distances[0]
+                map_points, map_normals = self._local_map(lo, hi)
+                if len(map_points) >= self.params.min_points:
+                    info = np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
+                    pose, matched, _ = register_to_map(
+                        points,
+                        normals,
+                        map_points,
+                        map_normals,
+                        prediction,
+                        info,
+                        distances,
+                        self.params,
+                    )
+                    if matched >= self.params.min_points:
+                        c = se3_log(np.linalg.inv(prediction) @ pose)
+                        self._corrections.append((c[:3] @ c[:3] / 3, c[3:] @ c[3:] / 3))
+        self._points.append(points)
+        self._normals.append(normals)
+        self._poses.append(pose)
+        self._guesses.append(guess)
+        world = points @ pose[:3, :3].T + pose[:3, 3]
+        self._boxes.append(
+            np.array([world.min(axis=0), world.max(axis=0)])
+            if len(points)
+            else np.full((2, 3), np.inf)
+        )
+        return pose
