@@ -10,7 +10,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from sqlalchemy import select
 
-from processing.mapping import MapParams, register_clouds
+from processing.mapping import MapParams, TrackingParams, register_clouds
 from processing.poses import format_tum, robot_poses_from_camera, se2_to_se3, transfer_correction
 from robot_link.clouds import decode_cloud
 from server.jobs.context import JobContext, params_record
@@ -52,13 +52,15 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
             ctx.progress(0.3 * i / len(rows), f"decoded {i}/{len(rows)} clouds")
     if not clouds:
         raise ValueError("no readable ToF cloud in the session")
-    params = MapParams()
+    # the station's own sessions: dense clouds and wheel odometry good to millimetres, which
+    # the pairwise graph uses best (tracking is for sparse sequences with poor odometry)
+    params = MapParams(tracking=TrackingParams(enabled=False))
     robot = _visual_robot_poses(ctx, rows, seqs) if len(guesses) == len(clouds) else None
     if robot is not None:
         # the mosaic's sub-pixel camera motion, carried over to the clouds, places them far
         # better than ICP on a mostly flat view can (0.03 mm against 3-5 mm on the simulator)
         guesses = [se2_to_se3(*p) @ T_rt for p in robot]
-        params = MapParams(refine=False)
+        params = MapParams(refine=False, tracking=TrackingParams(enabled=False))
     ctx.progress(0.3, "registering")
     result = register_clouds(
         clouds,
