@@ -221,7 +221,7 @@ def constrain_to_observable(
     c = q.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((q - c) ** 2, axis=1)))) or 1.0
     J = np.hstack([np.cross(q - c, normals) / scale, normals])
-    P, degenerate = _projector(J.T @ J / len(q), params.degenerate_ratio)
+    P, degenerate = eigen_projector(J.T @ J / len(q), params.degenerate_ratio)
     dT = T_icp @ np.linalg.inv(init)
     R = dT[:3, :3]
     x = np.concatenate([Rotation.from_matrix(R).as_rotvec() * scale, dT[:3, 3] + R @ c - c])
@@ -233,7 +233,7 @@ def constrain_to_observable(
     return out @ init, degenerate
 
 
-def _projector(A: NDArray[np.float64], ratio: float) -> tuple[NDArray[np.float64], int]:
+def eigen_projector(A: NDArray[np.float64], ratio: float) -> tuple[NDArray[np.float64], int]:
     """Projector onto eigen-directions of A whose eigenvalue is at least ``ratio``·trace/2."""
     evals, evecs = np.linalg.eigh(A)
     good = evals >= ratio * max(float(np.trace(A)) / 2, 1e-12)

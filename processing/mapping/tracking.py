@@ -25,6 +25,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from processing.mapping.icp import eigen_projector
 from processing.mapping.params import TrackingParams
 from processing.poses import se3_exp, se3_log
 
@@ -71,10 +72,10 @@ def register_to_map(
     prior_information: NDArray[np.float64],
     distances: list[float],
     params: TrackingParams,
-) -> tuple[NDArray[np.float64], int, NDArray[np.float64]]:
+) -> tuple[NDArray[np.float64], int]:
     """Pose T_world_sensor (4, 4) of a cloud (``points``, ``normals``: (K, 3), sensor frame)
-    against a map (``map_points``, ``map_normals``: (M, 3), world frame), the number of
-    matches it rests on and their normal equations (6, 6) at the last iteration.
+    against a map (``map_points``, ``map_normals``: (M, 3), world frame), and the number of
+    matches it rests on.
 
     Minimises Σ ρ(nᵀ(T q − p)) + eᵀ Λ e over T, ρ the Geman-McClure kernel of scale d/3 for
     each search distance d in turn, e = log(prediction⁻¹ T) the deviation from the
@@ -87,7 +88,7 @@ def register_to_map(
     reach_m = float(np.sqrt(np.mean(np.einsum("ij,ij->i", points, points))))
     T = prediction.copy()
     P_inv = np.linalg.inv(prediction)
-    matched, H_all = 0, np.zeros((6, 6))
+    matched = 0
     for distance in distances:
         scale = distance / 3
         for _ in range(params.max_iterations):
@@ -101,15 +102,14 @@ def register_to_map(
             )
             matched = int(ok.sum())
             if matched < params.min_points:
-                return prediction.copy(), matched, np.zeros((6, 6))
+                return prediction.copy(), matched
             n = map_normals[nearest[ok]]
             r = np.einsum("ij,ij->i", world[ok] - map_points[nearest[ok]], n)
             w = (scale**2 / (scale**2 + r**2)) ** 2 / scale**2
             n_sensor = n @ R
             J = np.hstack([np.cross(points[ok], n_sensor), n_sensor])
-            H_all = (J * w[:, None]).T @ J
             H_data, g_data = observable_part(
-                H_all, (J * w[:, None]).T @ r, reach_m, params.degenerate_ratio
+                (J * w[:, None]).T @ J, (J * w[:, None]).T @ r, reach_m, params.degenerate_ratio
             )
             e = se3_log(P_inv @ T)
             H = H_data + prior_information
@@ -118,7 +118,7 @@ def register_to_map(
             T = T @ se3_exp(step)
             if np.abs(step).max() < 1e-5:
                 break
-    return T, matched, H_all
+    return T, matched
 
 
 def observable_part(
@@ -126,26 +126,16 @@ def observable_part(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The normal equations (H (6, 6), g (6,)) kept only along the directions the geometry
     observes: with rotations scaled by ``reach_m`` (the points' RMS distance, so both parts are
-    in metres), eigen-directions of H weaker than ``ratio`` of half its trace are dropped.
-    Along a flat plate's own plane, or about its normal, noisy normals give point-to-plane a
-    little spurious information that would slide the cloud; without it the prior holds there
-    (degeneracy-aware registration, Zhang et al. 2016)."""
-    evals, evecs, good = _scaled_eigen(H, reach_m, ratio)
-    V = evecs[:, good]
+    in metres), eigen-directions of H weaker than ``ratio`` of half its trace are dropped
+    (:func:`~processing.mapping.icp.eigen_projector`). Along a flat plate's own plane, or
+    about its normal, noisy normals give point-to-plane a little spurious information that
+    would slide the cloud; without it the prior holds there (degeneracy-aware registration,
+    Zhang et al. 2016)."""
     S = np.diag([1 / reach_m] * 3 + [1.0] * 3)  # x_scaled = S⁻¹ x
     S_inv = np.diag([reach_m] * 3 + [1.0] * 3)
-    return S_inv @ (V * evals[good]) @ V.T @ S_inv, S_inv @ V @ V.T @ S @ g
-
-
-def _scaled_eigen(
-    H: NDArray[np.float64], reach_m: float, ratio: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
-    """Eigenvalues and vectors of H with rotations scaled by ``reach_m``, and which of them
-    reach ``ratio`` of half the trace."""
-    S = np.diag([1 / reach_m] * 3 + [1.0] * 3)
     Hs = S @ H @ S
-    evals, evecs = np.linalg.eigh(Hs)
-    return evals, evecs, evals >= ratio * max(float(np.trace(Hs)) / 2, 1e-12)
+    P, _ = eigen_projector(Hs, ratio)
+    return S_inv @ P @ Hs @ P @ S_inv, S_inv @ P @ S @ g
 
 
 class Tracker:
@@ -223,7 +213,7 @@ class Tracker:
                 map_points, map_normals = self._local_map(lo, hi)
                 if len(map_points) >= self.params.min_points:
                     info = np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
-                    pose, matched, _ = register_to_map(
+                    pose, matched = register_to_map(
                         points,
                         normals,
                         map_points,

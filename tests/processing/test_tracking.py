@@ -40,7 +40,7 @@ def test_a_cloud_is_pulled_onto_the_map_from_centimetres_off() -> None:
     map_points = points @ truth[:3, :3].T + truth[:3, 3] + rng.normal(0, 0.003, points.shape)
     map_normals = normals @ truth[:3, :3].T
     weak = np.diag([1 / np.radians(10) ** 2] * 3 + [1 / 0.1**2] * 3)
-    T, matched, _ = register_to_map(
+    T, matched = register_to_map(
         points,
         normals,
         map_points,
@@ -64,7 +64,7 @@ def test_where_the_geometry_says_nothing_the_prediction_holds() -> None:
     seen = [select(plate + rng.normal(0, 0.002, plate.shape)) for _ in range(2)]
     prediction = se3_exp(np.array([0, 0, 0.02, 0.03, -0.01, 0.0]))
     prior = np.diag([1 / np.radians(5) ** 2] * 3 + [1 / 0.05**2] * 3)
-    T, _, _ = register_to_map(
+    T, _ = register_to_map(
         np.asarray(seen[0].points),
         np.asarray(seen[0].normals),
         np.asarray(seen[1].points),
