@@ -156,11 +156,18 @@ class RobotLink:
         return seq
 
     async def send(
-        self, mtype: MessageType, meta: dict[str, Any] | None = None, payload: bytes = b""
+        self,
+        mtype: MessageType,
+        meta: dict[str, Any] | None = None,
+        payload: bytes = b"",
+        *,
+        timestamp: float | None = None,
     ) -> int:
-        """Queue one message for reliable delivery and return its sequence number."""
+        """Queue one message for reliable delivery and return its sequence number
+        (``timestamp``: when the data was taken, robot clock; default now)."""
         self._raise_if_failed()
-        message = Message(mtype, self.session_id, self.next_seq(), time.time(), meta or {}, payload)
+        stamp = time.time() if timestamp is None else timestamp
+        message = Message(mtype, self.session_id, self.next_seq(), stamp, meta or {}, payload)
         data = encode_message(message)
         spool = self.spool
         async with self._space:

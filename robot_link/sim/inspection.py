@@ -120,6 +120,7 @@ class InspectionSim:
         self.capture_requested = False
         self._sim_t = 0.0
         self._wall0 = 0.0
+        self._epoch0 = time.time()  # the robot's clock when the simulation started
         self._next_telemetry = 0.0
         self._last_edge: list[int] = []
         link.on_command = self.on_command
@@ -156,7 +157,8 @@ class InspectionSim:
     async def run(self) -> SimResult:
         """Run the whole route and wait until the station acknowledged everything."""
         self._wall0 = time.monotonic()
-        await self.link.send(
+        self._epoch0 = time.time()
+        await self._send(
             MessageType.SESSION_START,
             {
                 "structure": self.cfg.structure,
@@ -181,7 +183,7 @@ class InspectionSim:
             await self.drive(lane_y + self.lane_spacing_m - float(self.robot.odom[1]))
             await self.rotate(turn)
             heading = np.pi if heading == 0.0 else 0.0
-        await self.link.send(
+        await self._send(
             MessageType.SESSION_END,
             {
                 "reason": "route completed",
@@ -256,9 +258,10 @@ class InspectionSim:
 
     async def step(self, v: float, w: float) -> None:
         """Advance the simulation by one time step, pacing to wall time and sending telemetry."""
-        while self.paused:
+        while self.paused:  # the robot's clock runs on while it waits
             await self.send_telemetry()
             await asyncio.sleep(0.1)
+            self._sim_t += 0.1 * (self.cfg.time_scale or 1.0)
         if self.capture_requested:
             self.capture_requested = False
             await self.capture()
@@ -274,9 +277,17 @@ class InspectionSim:
         else:
             await asyncio.sleep(0)
 
+    def clock(self) -> float:
+        """The robot's clock (s since the epoch): simulated time, which runs ``time_scale``
+        times faster than the wall's, so a session's timestamps span the inspection's time."""
+        return self._epoch0 + self._sim_t
+
+    async def _send(self, mtype: MessageType, meta: dict[str, Any], payload: bytes = b"") -> int:
+        return await self.link.send(mtype, meta, payload, timestamp=self.clock())
+
     async def send_telemetry(self) -> None:
         """Send one telemetry sample."""
-        await self.link.send(MessageType.TELEMETRY, self.telemetry_meta())
+        await self._send(MessageType.TELEMETRY, self.telemetry_meta())
         self.result.telemetry_sent += 1
 
     def telemetry_meta(self) -> dict[str, Any]:
@@ -322,7 +333,7 @@ class InspectionSim:
         image = await asyncio.to_thread(
             partial(self.camera.render, exact=True), self.structure, cam_true, self.rng
         )
-        await self.link.send(
+        await self._send(
             MessageType.FRAME,
             {
                 "encoding": "jpeg",
@@ -336,7 +347,7 @@ class InspectionSim:
         self.result.frame_poses_true.append([float(v) for v in cam_true])
         T_true = self.tof.T_world_tof(r.pose)
         depth = await asyncio.to_thread(self.tof.render, T_true, self.rng)
-        seq = await self.link.send(
+        seq = await self._send(
             MessageType.CLOUD,
             {"encoding": "png16_depth_mm", **self.tof.intrinsics(), "pose": odom_pose},
             encode_depth_png(depth),

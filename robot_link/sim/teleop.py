@@ -19,7 +19,7 @@ import numpy as np
 from robot_link.client import RobotLink
 from robot_link.protocol import DRIVE_HOLD_S, STOP_COMMANDS, Message, MessageType
 from robot_link.sim.inspection import InspectionSim, SimConfig
-from robot_link.sim.robot import edge_avoidance
+from robot_link.sim.robot import IR_NAMES, edge_avoidance
 
 FRONT, REAR = {0, 1}, {2, 3}  # IR sensor indices (IR_NAMES order)
 TELEOP_SIM = SimConfig(
@@ -71,6 +71,7 @@ class TeleopSim(InspectionSim):
         self.v = self.w = 0.0
         self.last_drive = -np.inf  # monotonic time of the last drive command
         self.estopped = False
+        self.blocked: list[int] = []  # IR sensors that block the commanded direction
         self.lift = {"front": False, "rear": False}
         self.auto_capture = teleop.auto_capture
         self.end_requested = False
@@ -150,15 +151,26 @@ class TeleopSim(InspectionSim):
             return f"unknown command {cmd!r}"
         return ""
 
+    def clock(self) -> float:
+        """Real time: an operator drives this robot."""
+        return time.time()
+
     def telemetry_meta(self) -> dict[str, Any]:
         """The inspection telemetry plus the drive state (speed, dead-man, lift, capture)."""
         meta = super().telemetry_meta()
         held = (time.monotonic() - self.last_drive) * 1000 if np.isfinite(self.last_drive) else None
+        blocked = self.blocked if self.v else []
+        if blocked:  # the robot holds still at the edge instead of Algorithm 1's back-off
+            meta["edge_action"] = "block_forward" if self.v > 0 else "block_reverse"
+        elif meta["edge_action"] != "none":
+            meta["edge_action"] = "edge_near"  # the operator decides; nothing is blocked yet
         meta.update(
             {
                 "mode": "teleop",
                 "drive": {
-                    "linear_mps": round(self.v, 4),
+                    "linear_mps": 0.0 if blocked else round(self.v, 4),
+                    "commanded_linear_mps": round(self.v, 4),
+                    "blocked_by": [IR_NAMES[i] for i in blocked],
                     "angular_radps": round(self.w, 4),
                     "last_command_ms": round(held, 1) if held is not None else None,
                     "hold_ms": self.teleop.hold_s * 1000,
@@ -186,7 +198,9 @@ class TeleopSim(InspectionSim):
             self.cfg.ir_eps_m,
         )
         v = self.v
-        if (v > 0 and FRONT & set(out)) or (v < 0 and REAR & set(out)):
+        side = FRONT if v > 0 else REAR if v < 0 else set()
+        self.blocked = sorted(side & set(out))
+        if self.blocked:
             self._edge_event(out)
             v = 0.0
         return v, self.w
@@ -213,6 +227,7 @@ class TeleopSim(InspectionSim):
         """Drive as commanded until ``end_session`` (or the configured duration), then end the
         session and wait until the station acknowledged everything."""
         self._wall0 = time.monotonic()
+        self._epoch0 = time.time()
         await self.link.send(
             MessageType.SESSION_START,
             {

@@ -12,12 +12,14 @@ from server.api.schemas import JobPublic, SessionPublic
 from server.errors import NotFound
 from server.storage.files import SessionFiles
 from server.storage.models import Cloud, Defect, Frame, InspectionSession, Job, TelemetrySample
+from server.storage.spans import duration_s
 
 MAX_INT = 2**63 - 1  # SQLite's largest integer: a bigger id cannot exist
 Seq = Annotated[int, Path(ge=0, le=MAX_INT)]
 DefectId = Annotated[int, Path(ge=1, le=MAX_INT)]
 DEFECT_SORT_KEYS = (
     "id",
+    "number",
     "defect_class",
     "source",
     "length_mm",
@@ -63,6 +65,7 @@ def session_public(db: Session, s: InspectionSession, *, with_jobs: bool = True)
     out.defects = db.scalar(defects.where(Defect.source == "mosaic")) or 0
     out.frame_defects = db.scalar(defects.where(Defect.source == "frame")) or 0
     out.robot_name = s.robot.name if s.robot else None
+    out.duration_s = duration_s(db, s)
     if with_jobs:
         jobs = db.scalars(select(Job).where(Job.session_id == s.id).order_by(Job.id))
         out.jobs = [JobPublic.model_validate(j) for j in jobs]

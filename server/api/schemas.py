@@ -68,6 +68,9 @@ class SessionPublic(ORM):
     defects: int = 0
     frame_defects: int = 0
     robot_name: str | None = None
+    duration_s: float = Field(
+        default=0.0, description="how long the inspection lasted (its data's span, robot clock)"
+    )
     calibration: dict[str, Any] = Field(default_factory=dict)
     jobs: list[JobPublic] = Field(default_factory=list)
 
@@ -134,6 +137,11 @@ class TelemetryListPublic(BaseModel):
 
 class DefectPublic(ORM):
     id: int
+    number: int | None = Field(
+        default=None,
+        description="the defect's number in its session (per source, in order along the "
+        "structure): what the dashboard, 3D view, PDF, CSV and MCAP show",
+    )
     defect_class: str
     source: str
     frame_seq: int | None = None

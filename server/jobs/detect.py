@@ -184,6 +184,8 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
         )
         kept = carry_reviews(reviewed, frame_rows + mosaic_rows)
         db.execute(delete(Defect).where(Defect.session_id == ctx.session_id))
+        number_defects(frame_rows)
+        number_defects(mosaic_rows)
         db.add_all(frame_rows + mosaic_rows)
         db.commit()
     by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
@@ -287,6 +289,20 @@ def _box_iou(a: Defect, b: Defect) -> float:
     inter = max(0, x1 - x0) * max(0, y1 - y0)
     union = a.bbox_w * a.bbox_h + b.bbox_w * b.bbox_h - inter
     return inter / union if union > 0 else 0.0
+
+
+def along_the_structure(d: Defect) -> tuple[bool, float, float, int]:
+    """The order defects are numbered and listed in: across (y), then along (x) the
+    structure; unplaced ones last, in the order they were found."""
+    placed = d.world_x_m is not None and d.world_y_m is not None
+    return (not placed, d.world_y_m or 0.0, d.world_x_m or 0.0, d.id or 0)
+
+
+def number_defects(rows: list[Defect]) -> None:
+    """Give one session's defects of one source their numbers, 1.. in order along the
+    structure: the number the dashboard, 3D view, reports and exports show."""
+    for i, d in enumerate(sorted(rows, key=along_the_structure)):
+        d.number = i + 1
 
 
 def carry_reviews(reviewed: list[Defect], new: list[Defect], min_iou: float = 0.3) -> int:

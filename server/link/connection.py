@@ -203,7 +203,7 @@ class RobotConnection:
         self.owned.add(sid)  # ingest checked the owner
         if sid not in senders:
             senders[sid] = self.command_sender(message.session_id)
-            self.state.hub.attach_robot(sid, senders[sid])
+            self.state.hub.attach_robot(sid, senders[sid], self.robot_name)
         self.relay(message)
         live_map = self.state.live_map
         if live_map is not None and message.type is MessageType.CLOUD and result.status == "stored":

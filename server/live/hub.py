@@ -47,6 +47,8 @@ class LiveHub:
         self.queue_size = queue_size
         self.watchers: set[Watcher] = set()
         self.robots: dict[str, SendCommand] = {}  # session id -> command sender
+        self.names: dict[str, str] = {}  # session id -> the robot's registered name
+        self.drivers: dict[str, list[str]] = {}  # session id -> users who drove its robot
         self.latest: dict[str, dict[str, Any]] = {}  # session id -> last telemetry
         self.controllers: dict[
             str, Watcher
@@ -68,7 +70,7 @@ class LiveHub:
         self.watchers.add(watcher)
         watcher.offer(json.dumps({"type": "hello", "watcher_id": watcher.id}))
         for sid in self.robots:
-            watcher.offer(json.dumps({"type": "robot", "session_id": sid, "connected": True}))
+            watcher.offer(json.dumps(self._robot_event(sid, connected=True)))
         for sid, telemetry in self.latest.items():
             watcher.offer(json.dumps({"type": "telemetry", "session_id": sid, "data": telemetry}))
         for sid in self.controllers:
@@ -82,6 +84,14 @@ class LiveHub:
         for sid in released:
             self.release_control(sid, watcher)
         return released
+
+    def _robot_event(self, session_id: str, *, connected: bool) -> dict[str, Any]:
+        return {
+            "type": "robot",
+            "session_id": session_id,
+            "connected": connected,
+            "robot": self.names.get(session_id, ""),
+        }
 
     def _control_event(self, session_id: str) -> dict[str, Any]:
         w = self.controllers.get(session_id)
@@ -114,9 +124,12 @@ class LiveHub:
         return self.controllers.get(session_id)
 
     def publish_json(self, event: dict[str, Any]) -> None:
-        """Send a JSON event to every browser."""
+        """Send a JSON event to every browser (the last telemetry of a live session is kept
+        for browsers that open later; an ended session's is dropped)."""
         if event.get("type") == "telemetry":
             self.latest[event["session_id"]] = event["data"]
+        elif event.get("type") == "session" and event.get("event") == "session_end":
+            self.latest.pop(event["session_id"], None)
         text = json.dumps(event, separators=(",", ":"))
         for watcher in list(self.watchers):
             watcher.offer(text)
@@ -129,16 +142,19 @@ class LiveHub:
         for watcher in list(self.watchers):
             watcher.offer(data)
 
-    def attach_robot(self, session_id: str, sender: SendCommand) -> None:
-        """A robot streaming this session can now take commands."""
+    def attach_robot(self, session_id: str, sender: SendCommand, name: str = "") -> None:
+        """A robot (registered as ``name``) streaming this session can now take commands."""
         self.robots[session_id] = sender
-        self.publish_json({"type": "robot", "session_id": session_id, "connected": True})
+        self.names[session_id] = name
+        self.publish_json(self._robot_event(session_id, connected=True))
 
     def detach_robot(self, session_id: str, sender: SendCommand) -> None:
         """The robot of this session went away."""
         if self.robots.get(session_id) is sender:
             del self.robots[session_id]
-            self.publish_json({"type": "robot", "session_id": session_id, "connected": False})
+            self.publish_json(self._robot_event(session_id, connected=False))
+            self.names.pop(session_id, None)
+            self.latest.pop(session_id, None)
 
     async def command(self, session_id: str, cmd: str, args: dict[str, Any]) -> int:
         """Forward an operator's command; returns its seq. Raises KeyError if no robot."""

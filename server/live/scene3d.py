@@ -37,6 +37,7 @@ class DefectMarker:
     """A defect placed on the structure (metres, world frame)."""
 
     id: int
+    number: int
     defect_class: str
     x: float
     y: float
@@ -147,7 +148,9 @@ class Scene3D:
             position=(d.x, d.y, -0.004),
             opacity=0.8,
         )
-        self.server.scene.add_label(f"/defects/{d.id}/label", f"{d.id}", position=(d.x, d.y, -0.03))
+        self.server.scene.add_label(
+            f"/defects/{d.id}/label", f"{d.number}", position=(d.x, d.y, -0.03)
+        )
 
         @handle.on_click
         def _(_: Any) -> None:

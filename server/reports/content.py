@@ -27,6 +27,7 @@ from server.storage.models import (
     JobState,
     TelemetrySample,
 )
+from server.storage.spans import duration_s
 
 STAGES = {"stitch": "mosaic", "map": "3D map", "detect": "defect detection"}
 
@@ -48,10 +49,10 @@ def build_report(
         db.scalars(
             select(Defect)
             .where(Defect.session_id == session_id, Defect.source == listed_source)
-            .order_by(Defect.world_y_m.is_(None), Defect.world_y_m, Defect.world_x_m, Defect.id)
+            .order_by(Defect.number.is_(None), Defect.number, Defect.id)
         )
     )
-    records = [_defect_record(d, i + 1, base_url) for i, d in enumerate(defects)]
+    records = [_defect_record(d, d.number or i + 1, base_url) for i, d in enumerate(defects)]
     counts = {
         m.__tablename__: db.scalar(
             select(func.count()).select_from(m).where(m.session_id == session_id)
@@ -186,12 +187,11 @@ def _summary(
 ) -> dict[str, Any]:
     kept = [r for r in records if r["review_status"] != "rejected"]
     cracks = [r for r in kept if r["defect_class"] == "crack"]
-    end = s.ended_at or s.started_at
     return {
         "frames": counts["frames"],
         "clouds": counts["clouds"],
         "telemetry_samples": counts["telemetry"],
-        "duration_s": max(0.0, (end - s.started_at).total_seconds()),
+        "duration_s": duration_s(db, s),
         "distance_travelled_m": _distance_travelled(db, s.id),
         "area_covered_m2": _area_covered(results_dir, world),
         "mosaic_size_px": [world["width_px"], world["height_px"]] if world else None,

@@ -351,7 +351,7 @@ def _defect_markers(defects: list[Defect], t: float) -> SceneUpdate:
             billboard=True,
             font_size=14.0,
             scale_invariant=True,
-            text=f"#{d.id} {d.defect_class} {d.length_mm or 0:.0f} mm {d.condition_state or ''}".strip(),
+            text=f"#{d.number or d.id} {d.defect_class} {d.length_mm or 0:.0f} mm {d.condition_state or ''}".strip(),
         )
         _set_pose(
             label.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.02), (0.0, 0.0, 0.0, 1.0)

@@ -69,9 +69,7 @@ def overview_with_markers(
     return out
 
 
-def _cover(
-    report: dict[str, Any], st: dict[str, ParagraphStyle], overview: np.ndarray | None
-) -> list[Any]:
+def _cover(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]:
     c = report["cover"]
     story: list[Any] = [
         Spacer(1, 18 * mm),
@@ -92,8 +90,6 @@ def _cover(
     story.append(grid_table(rows, [48 * mm, BODY_W - 48 * mm], header=False, font_size=10))
     if c.get("notes"):
         story += [Spacer(1, 4 * mm), para(f"Notes: {c['notes']}", st["body"])]
-    if overview is not None:
-        story += [Spacer(1, 8 * mm), picture(overview, BODY_W, 95 * mm)]
     story.append(PageBreak())
     return story
 
@@ -103,12 +99,7 @@ def _summary(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]
     rows = [
         ["Area covered", fmt_num(s["area_covered_m2"], "{:.2f}", " m²")],
         ["Distance travelled (odometry)", fmt_num(s["distance_travelled_m"], "{:.2f}", " m")],
-        [
-            "Duration",
-            fmt_num(
-                s["duration_s"] / 60 if s["duration_s"] is not None else None, "{:.1f}", " min"
-            ),
-        ],
+        ["Duration", duration_text(s["duration_s"])],
         [
             "Camera frames / ToF clouds / telemetry",
             f"{s['frames']} / {s['clouds']} / {s['telemetry_samples']}",
@@ -192,7 +183,7 @@ def _defect_table(
         thumb = thumbnail(d)
         cell = picture(thumb, 24 * mm, 24 * mm) if thumb is not None else "—"
         pos = f"{d['world_x_m']:.3f},\n{d['world_y_m']:.3f}" if d["world_x_m"] is not None else "—"
-        review = d["review_status"] + (f"\n{d['reviewed_by']}" if d.get("reviewed_by") else "")
+        review = d["review_status"] + (f"\nby {d['reviewed_by']}" if d.get("reviewed_by") else "")
         rows.append(
             [
                 str(d["number"]),
@@ -207,7 +198,7 @@ def _defect_table(
                 para(_clip(d["comment"]), st["cell"]),
             ]
         )
-    widths = [8 * mm, 26 * mm, 17 * mm, 14 * mm, 14 * mm, 14 * mm, 20 * mm, 20 * mm, 9 * mm]
+    widths = [8 * mm, 26 * mm, 16 * mm, 13 * mm, 13 * mm, 13 * mm, 18 * mm, 30 * mm, 9 * mm]
     widths.append(BODY_W - sum(widths))
     story.append(grid_table(rows, widths, font_size=8))
     long = [d for d in listed if d["comment"] and _clip(d["comment"]) != d["comment"]]
@@ -215,6 +206,21 @@ def _defect_table(
         story += [Spacer(1, 3 * mm), para("Comments in full", st["h2"])]
         story += [para(f"#{d['number']}: {d['comment']}", st["body"]) for d in long]
     return story
+
+
+def duration_text(seconds: float | None) -> str:
+    """A duration as an inspector says it: "12 min 05 s", "1 h 02 min"."""
+    if seconds is None:
+        return "—"
+    total = round(seconds)
+    h, rest = divmod(total, 3600)
+    m, sec = divmod(rest, 60)
+    return f"{h} h {m:02d} min" if h else f"{m} min {sec:02d} s" if m else f"{sec} s"
+
+
+def _missing(report: dict[str, Any], what: str) -> str:
+    """The report's note on why a result is missing (it starts with ``what``)."""
+    return next((n for n in report["notes"] if n.startswith(what)), f"{what}: not available.")
 
 
 def _clip(text: str | None, chars: int = 200, lines: int = 6) -> str | None:
@@ -231,7 +237,14 @@ def _clip(text: str | None, chars: int = 200, lines: int = 6) -> str | None:
 
 
 def _parameters(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]:
-    story: list[Any] = [para("Processing parameters", st["h1"])]
+    story: list[Any] = [
+        para("Appendix — processing parameters and calibration", st["h1"]),
+        para(
+            "The parameters each processing stage ran with and the sensors' calibration, for "
+            "repeating or auditing the results.",
+            st["body"],
+        ),
+    ]
     if not report["parameters"]:
         return story + [para("No processing job has finished for this session.", st["body"])]
     for kind, params in report["parameters"].items():
@@ -302,7 +315,7 @@ def write_report_pdf(
         if overview is not None
         else None
     )
-    story = _cover(report, st, marked)
+    story = _cover(report, st)
     story += _summary(report, st)
     story.append(PageBreak())
     story.append(para("Mosaic of the inspected surface", st["h1"]))
@@ -317,13 +330,7 @@ def write_report_pdf(
             picture(marked, BODY_W, PAGE_H - 2 * MARGIN - 40 * mm),
         ]
     else:
-        story.append(
-            para(
-                "No mosaic: "
-                + next((n for n in report["notes"] if n.startswith("No mosaic")), "not available."),
-                st["body"],
-            )
-        )
+        story.append(para(_missing(report, "No mosaic"), st["body"]))
     story.append(PageBreak())
     story += _defect_table(report, st, thumbnail)
     story.append(PageBreak())
@@ -340,14 +347,8 @@ def write_report_pdf(
             KeepTogether(picture(map_snapshot, BODY_W, 150 * mm)),
         ]
     else:
-        story.append(
-            para(
-                "No 3D map: "
-                + next((n for n in report["notes"] if n.startswith("No 3D map")), "not available."),
-                st["body"],
-            )
-        )
-    story += [Spacer(1, 6 * mm)] + _parameters(report, st)
+        story.append(para(_missing(report, "No 3D map"), st["body"]))
+    story += [PageBreak()] + _parameters(report, st)
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     footer = _footer(report["cover"]["structure"])
     doc = SimpleDocTemplate(

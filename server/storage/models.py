@@ -188,6 +188,7 @@ class Defect(Base):
     )
     job_id: Mapped[int | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
     source: Mapped[str] = mapped_column(String(16), default="mosaic")
+    number: Mapped[int | None] = mapped_column(Integer)  # 1.. per session and source
     frame_seq: Mapped[int | None] = mapped_column(Integer)
     defect_class: Mapped[str] = mapped_column(String(16))
     bbox_x: Mapped[int]

@@ -161,3 +161,30 @@ def test_one_operator_drives_others_watch_and_the_robot_stops_when_the_driver_le
         # now the watcher may take over
         drive(watcher, robot.session_id, 0.2)
         assert robot.sim.v < 0 or robot.sim.log.drive_commands > 0
+
+
+def test_at_the_plate_edge_forward_is_blocked_and_the_telemetry_says_why(
+    live_server: LiveServer, robot: TeleopRobot
+) -> None:
+    """Commanded forward at the plate's far end: the robot holds still, its telemetry gives
+    the actual speed (0), the commanded one and the sensors that block it; reverse still
+    drives."""
+    sim = robot.sim
+    length_m, width_m = sim.structure.plate_size_m
+    sim.robot.pose[:] = (length_m - 0.02, width_m / 2, 0.0)  # the front sensors overhang
+    with browser(live_server) as ws:
+        wait_for_robot(ws, robot.session_id)
+        drive(ws, robot.session_id, 0.6)
+        blocked = None
+        for e in events(ws, time.monotonic() + 1.0):
+            if isinstance(e, dict) and e.get("type") == "telemetry":
+                if e["data"]["drive"]["commanded_linear_mps"] > 0:
+                    blocked = e["data"]
+        assert blocked is not None
+        assert blocked["drive"]["linear_mps"] == 0.0
+        assert blocked["drive"]["blocked_by"] == ["front_left", "front_right"]
+        assert blocked["edge_action"] == "block_forward"
+        assert max(abs(v) for v in blocked["wheel_speed_mps"]) < 1e-6
+        assert sim.robot.pose[0] == pytest.approx(length_m - 0.02, abs=1e-3)
+        drive(ws, robot.session_id, 0.6, v=-0.1)  # reverse, away from the edge
+        assert sim.robot.pose[0] < length_m - 0.04

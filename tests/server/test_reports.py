@@ -116,6 +116,10 @@ def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, 
     assert (
         httpx.patch(f"{api}/defects/999999", json={"review_status": "confirmed"}).status_code == 404
     )
+    third = defects[2]["id"]  # reviewed, then taken back entirely: it names nobody
+    httpx.patch(f"{api}/defects/{third}", json={"review_status": "confirmed"}).raise_for_status()
+    reset = httpx.patch(f"{api}/defects/{third}", json={"review_status": "unreviewed"}).json()
+    assert reset["reviewed_by"] is None and reset["reviewed_at"] is None
     confirmed = httpx.get(f"{api}/defects", params={"review_status": "confirmed"}).json()
     assert [d["id"] for d in confirmed["data"]] == [first]
     by_length = httpx.get(
@@ -153,12 +157,18 @@ def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, 
         "Summary",
         "Defects",
         "3D map of the structure",
-        "Processing parameters",
+        "Appendix — processing parameters",
         "CS3",
         "Riß at weld toe",
         "confirmed",
     ):
         assert expected in text, expected
+    assert "No mosaic: No mosaic" not in text and "Duration 0 s" not in text
+    # one number per defect everywhere: the API's, the PDF's and the CSV's
+    numbers = {d["id"]: d["number"] for d in defects}
+    assert sorted(numbers.values()) == list(range(1, len(defects) + 1))
+    assert {int(r["id"]): int(r["number"]) for r in rows} == numbers
+    assert all(d["number"] == numbers[d["id"]] for d in report["defects"])
     for i in range(len(doc)):  # every page renders and has something on it
         page = np.asarray(doc[i].render(scale=0.5).to_pil().convert("L"))
         assert page.shape[0] > page.shape[1] > 200  # A4 portrait

@@ -84,7 +84,13 @@ def review_defect(
         defect.condition_state = None
     if body.comment is not None:
         defect.comment = body.comment
-    defect.reviewed_by, defect.reviewed_at = user.name, utcnow()
+    reset = (
+        defect.review_status == "unreviewed"
+        and defect.condition_state is None
+        and not defect.comment
+    )
+    # a review taken back entirely names nobody; any other change names who made it
+    defect.reviewed_by, defect.reviewed_at = (None, None) if reset else (user.name, utcnow())
     db.commit()
     return defect
 

@@ -15,7 +15,7 @@ from server.api.accounts import accounts_exist, has_role, user_for_token
 from server.api.deps import same_origin
 from server.link.limits import TokenBucket
 from server.live.messages import BadBrowserMessage, ControlMessage, is_stop, parse_browser_message
-from server.storage.models import Role, User
+from server.storage.models import InspectionSession, Role, User
 
 router = APIRouter()
 
@@ -102,6 +102,25 @@ def _browser_user(factory: Any, token: str | None) -> User | None:
         return user_for_token(db, token)
 
 
+async def _note_operator(websocket: WebSocket, session_id: str, name: str) -> None:
+    """Record a user who drove the robot as the session's operator (the first one replaces
+    what the robot announced; later ones are added)."""
+    state = websocket.app.state.steelscan
+    drivers = state.hub.drivers.setdefault(session_id, [])
+    if name in drivers:
+        return
+    drivers.append(name)
+    await anyio.to_thread.run_sync(_set_operator, state.factory, session_id, ", ".join(drivers))
+
+
+def _set_operator(factory: Any, session_id: str, operator: str) -> None:
+    with factory() as db:
+        s = db.get(InspectionSession, session_id)
+        if s is not None:
+            s.operator = operator[:200]
+            db.commit()
+
+
 async def _reply(websocket: WebSocket, **fields: Any) -> None:
     await websocket.send_text(json.dumps({"type": "command_result", **fields}))
 
@@ -123,7 +142,10 @@ async def _handle_browser_message(
             hub.release_control(sid, watcher)
             await _reply(websocket, ok=True, cmd="release")
             return
+        was = hub.controller(sid)
         refused = hub.take_control(sid, watcher, force=request.force and has_role(user, Role.admin))
+        if not refused and was is not watcher:
+            await _note_operator(websocket, sid, user.name)
         await _reply(websocket, ok=not refused, cmd="take", error=refused or None)
         return
     cmd, args = request.cmd, request.args
@@ -131,14 +153,17 @@ async def _handle_browser_message(
         await _reply(websocket, ok=False, cmd=cmd, error="no robot is connected for that session")
         return
     if cmd not in STOP_COMMANDS:
+        was = hub.controller(sid)
         refused = (
             hub.take_control(sid, watcher)
-            if hub.controller(sid) in (None, watcher)
-            else f"the robot is driven by {hub.controller(sid).user or 'another operator'}; you can watch, stop or e-stop it"
+            if was in (None, watcher)
+            else f"the robot is driven by {was.user or 'another operator'}; you can watch, stop or e-stop it"
         )
         if refused:
             await _reply(websocket, ok=False, cmd=cmd, error=refused)
             return
+        if was is None:
+            await _note_operator(websocket, sid, user.name)
     try:
         seq = await hub.command(sid, cmd, args)
     except KeyError:

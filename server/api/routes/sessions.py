@@ -5,12 +5,12 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query
-from sqlalchemy import func, select
+from sqlalchemy import func, or_, select
 
 from server.api.deps import OperatorUser, SessionDep, get_current_user
-from server.api.queries import MAX_INT, get_session_or_404, session_public
+from server.api.queries import MAX_INT, count_query, get_session_or_404, session_public
 from server.api.schemas import SessionPublic, SessionsPublic, SessionUpdate
-from server.storage.models import InspectionSession
+from server.storage.models import InspectionSession, Robot, SessionStatus
 
 router = APIRouter(
     prefix="/api/sessions", tags=["sessions"], dependencies=[Depends(get_current_user)]
@@ -22,15 +22,36 @@ def read_sessions(
     db: SessionDep,
     skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0,
     limit: Annotated[int, Query(ge=1, le=500)] = 100,
+    q: Annotated[
+        str,
+        Query(
+            max_length=200,
+            description="words that must each appear in the structure, location, operator, "
+            "notes, robot name or id (case-insensitive)",
+        ),
+    ] = "",
+    status: Annotated[SessionStatus | None, Query()] = None,
 ) -> SessionsPublic:
-    """List inspection sessions, newest first."""
-    count = db.scalar(select(func.count()).select_from(InspectionSession)) or 0
-    rows = db.scalars(
-        select(InspectionSession)
-        .order_by(InspectionSession.started_at.desc())
-        .offset(skip)
-        .limit(limit)
-    )
+    """List inspection sessions, newest first; ``q`` and ``status`` narrow the list
+    (``count`` is of the narrowed list)."""
+    query = select(InspectionSession).outerjoin(Robot, InspectionSession.robot_id == Robot.id)
+    for word in q.split():
+        pattern = (
+            "%" + word.lower().replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
+        )
+        fields = (
+            InspectionSession.structure,
+            InspectionSession.location,
+            InspectionSession.operator,
+            InspectionSession.notes,
+            InspectionSession.id,
+            Robot.name,
+        )
+        query = query.where(or_(*(func.lower(f).like(pattern, escape="\\") for f in fields)))
+    if status is not None:
+        query = query.where(InspectionSession.status == status)
+    count = count_query(db, query)
+    rows = db.scalars(query.order_by(InspectionSession.started_at.desc()).offset(skip).limit(limit))
     return SessionsPublic(data=[session_public(db, s) for s in rows], count=count)
 
 

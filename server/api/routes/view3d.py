@@ -156,12 +156,13 @@ def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
     for d in mosaic_rows or rows:
         size = max(d.world_w_m or 0.0, d.world_h_m or 0.0)
         text = (
-            f"**Defect {d.id}** — {d.defect_class}  \nlength {d.length_mm or 0:.1f} mm, max width {d.max_width_mm or 0:.2f} mm  \n"
+            f"**Defect {d.number or d.id}** — {d.defect_class}  \nlength {d.length_mm or 0:.1f} mm, max width {d.max_width_mm or 0:.2f} mm  \n"
             f"at x {d.world_x_m + (d.world_w_m or 0) / 2:.3f} m, y {d.world_y_m + (d.world_h_m or 0) / 2:.3f} m ({d.source})"
         )
         markers.append(
             DefectMarker(
                 d.id,
+                d.number or d.id,
                 d.defect_class,
                 d.world_x_m + (d.world_w_m or 0) / 2,
                 d.world_y_m + (d.world_h_m or 0) / 2,
