@@ -79,7 +79,8 @@ class Settings(BaseSettings):
         default=True, description="serve the 3D view (viser, proxied under /viser/)"
     )
     view3d_port: int = Field(
-        default=0, description="loopback port of the viser server (0: any free one)"
+        default=0,
+        description="loopback port of the live 3D view's viser server (0: any free one; session views always take free ones)",
     )
     live_map: bool = Field(
         default=True,

@@ -28,7 +28,7 @@ from server.link.group_commit import GroupCommit
 from server.link.ingest import Ingest
 from server.live.hub import LiveHub
 from server.live.live_map import LiveMap
-from server.live.scene3d import Scene3D
+from server.live.scenes import Scenes
 from server.state import AppState
 from server.storage import db
 from server.storage.files import SessionFiles
@@ -92,9 +92,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         state = build_state(settings)
         app.state.steelscan = state
         if settings.view3d:
-            state.scene = Scene3D(settings.view3d_port)
+            state.scenes = Scenes(settings.view3d_port)
             if settings.live_map:
-                state.live_map = LiveMap(state.factory, state.scene)
+                state.live_map = LiveMap(state.factory, state.scenes.live)
         state.jobs.start()
         reaper = asyncio.create_task(_end_quiet_sessions(state))
         try:
@@ -106,8 +106,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.writer.close()
             if state.live_map is not None:
                 state.live_map.close()
-            if state.scene is not None:
-                state.scene.close()
+            if state.scenes is not None:
+                state.scenes.close()
             state.engine.dispose()
 
     # the API docs serve Swagger/ReDoc from the station itself: no CDN on a bridge

@@ -15,7 +15,7 @@ from server.link.ingest import Ingest
 from server.link.limits import MalformedGuard
 from server.live.hub import LiveHub
 from server.live.live_map import LiveMap
-from server.live.scene3d import Scene3D
+from server.live.scenes import Scenes
 from server.storage.files import SessionFiles
 
 
@@ -31,7 +31,7 @@ class AppState:
     hub: LiveHub
     jobs: JobRunner
     writer: GroupCommit
-    scene: Scene3D | None = None  # the 3D view, when switched on
+    scenes: Scenes | None = None  # the 3D views (live and per session), when switched on
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
     logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per client
     malformed: MalformedGuard = field(default_factory=MalformedGuard)  # per robot

@@ -89,6 +89,15 @@ def user_for_token(db: Session, token: str | None) -> User | None:
     return db.get(User, row.user_id)
 
 
+def revoke_token(db: Session, token: str | None) -> bool:
+    """Make a bearer token invalid (signing out); whether it was valid."""
+    if not token:
+        return False
+    gone = db.execute(delete(AuthToken).where(AuthToken.token_hash == hash_token(token)))
+    db.commit()
+    return bool(gone.rowcount)
+
+
 def has_role(user: User, role: Role) -> bool:
     """Whether the user's role is at least ``role``."""
     return ROLE_RANK[user.role] >= ROLE_RANK[role]

@@ -235,11 +235,13 @@ class RobotConnection:
         sid = str(message.session_id)
         pose = message.meta.get("pose")
         if (
-            self.state.scene is not None
+            self.state.scenes is not None
             and isinstance(pose, dict)
             and message.type in (MessageType.FRAME, MessageType.TELEMETRY)
         ):
-            self.state.scene.show_pose(sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"]))
+            self.state.scenes.live.show_pose(
+                sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"])
+            )
         if message.type is MessageType.FRAME:
             hub.publish_frame(
                 {

@@ -272,3 +272,15 @@ def test_password_checks_have_a_station_wide_budget(live_server: LiveServer) -> 
         for r in replies
         if r.status_code == 429
     )
+
+
+def test_signing_out_ends_that_token_only(live_server: LiveServer) -> None:
+    url = live_server.url
+    add_user(live_server, "otto", Role.operator)
+    here, there = login(live_server, "otto"), login(live_server, "otto")
+    assert httpx.get(f"{url}/api/auth/me", headers=here).status_code == 200
+    assert httpx.delete(f"{url}/api/auth/token", headers=here).status_code == 204
+    assert httpx.get(f"{url}/api/auth/me", headers=here).status_code == 401
+    assert httpx.get(f"{url}/api/auth/me", headers=there).status_code == 200  # another browser
+    assert httpx.delete(f"{url}/api/auth/token", headers=here).status_code == 401
+    assert httpx.delete(f"{url}/api/auth/token").status_code == 401

@@ -207,7 +207,7 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
         frame.locator("#root").wait_for(timeout=30000)
         frame.get_by_text("Click a defect marker to see it.").wait_for(timeout=30000)
         frame.get_by_text("Simulated plate girder").first.wait_for(timeout=30000)
-        assert live_server.app.state.steelscan.scene.session_id == sid
+        assert live_server.app.state.steelscan.scenes.get(sid).session_id == sid
         shot(page, "session-3d")
         browser.close()
     assert page_errors == []

@@ -2,7 +2,10 @@
 export let token = sessionStorage.getItem("steelscan-token");
 const listeners = [];
 
-export function setToken(value) { token = value; sessionStorage.setItem("steelscan-token", value); }
+export function setToken(value) {
+  token = value || null;
+  if (token) sessionStorage.setItem("steelscan-token", token); else sessionStorage.removeItem("steelscan-token");
+}
 export function onSignedOut(fn) { listeners.push(fn); }
 export function authHeaders() { return token ? { Authorization: `Bearer ${token}` } : {}; }
 
@@ -34,6 +37,14 @@ export function el(tag, attrs = {}, ...children) {
   }
   node.append(...children.filter((c) => c !== null && c !== undefined));
   return node;
+}
+
+// A duration as people say it: "12 min 05 s", "1 h 02 min".
+export function duration(seconds) {
+  if (typeof seconds !== "number" || !Number.isFinite(seconds)) return "–";
+  const t = Math.round(seconds); const h = Math.floor(t / 3600); const m = Math.floor((t % 3600) / 60); const s = t % 60;
+  const two = (n) => String(n).padStart(2, "0");
+  return h ? `${h} h ${two(m)} min` : m ? `${m} min ${two(s)} s` : `${s} s`;
 }
 
 export function fmt(v, digits = 2) { return typeof v === "number" && Number.isFinite(v) ? v.toFixed(digits) : "–"; }

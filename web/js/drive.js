@@ -9,7 +9,7 @@ const REPEAT_MS = 50;
 const TURN_RADPS = 0.5;
 const canvas = document.getElementById("camera");
 const ctx2d = canvas.getContext("2d");
-const robots = new Map(); // session id -> {connected, holder, holderId, lastTelemetry}
+const robots = new Map(); // session id -> {connected, name, holder, holderId, lastTelemetry}
 const held = new Set(); // drive inputs held: forward, back, left, right (keys and pad buttons)
 let selected = null;
 let moving = false;
@@ -22,7 +22,10 @@ window.steelscanStats = stats;
 
 export function selectedSession() { return selected; }
 
-function robotLabel(sid) { return `session ${sid.slice(0, 8)}`; }
+export function robotLabel(sid) {
+  const name = robots.get(sid)?.name;
+  return name ? `${name} (session ${sid.slice(0, 8)})` : `session ${sid.slice(0, 8)}`;
+}
 
 function refreshRobots() {
   const select = document.getElementById("robot-select");
@@ -32,9 +35,42 @@ function refreshRobots() {
     const o = document.createElement("option"); o.value = sid; o.textContent = robotLabel(sid); o.selected = sid === selected; return o;
   }));
   const state = document.getElementById("robot-state");
-  text(state, selected ? `robot: ${robotLabel(selected)}` : "no robot");
+  text(state, selected ? `robot: ${robotLabel(selected)}` : "no robot connected");
   state.classList.toggle("ok", Boolean(selected));
+  if (!selected && canvas.dataset.live !== "false") blankCamera();
   refreshControl();
+  refreshAlerts();
+}
+
+// No robot on view: the camera says so instead of keeping the last frame as if it were live.
+function blankCamera(message = "no robot connected") {
+  ctx2d.fillStyle = "#000";
+  ctx2d.fillRect(0, 0, canvas.width, canvas.height);
+  ctx2d.fillStyle = "#8b96a0";
+  ctx2d.font = "24px system-ui, sans-serif";
+  ctx2d.textAlign = "center";
+  ctx2d.fillText(message, canvas.width / 2, canvas.height / 2);
+  canvas.dataset.live = "false";
+  text(document.getElementById("video-info"), "");
+  text(document.getElementById("frame-info"), message);
+}
+
+// The e-stop banner (any connected robot stopped) and why the selected robot will not drive
+// (its edge sensors block the commanded direction).
+function refreshAlerts() {
+  const stopped = [...robots.entries()].filter(([, r]) => r.connected && r.lastTelemetry?.estop).map(([sid]) => robotLabel(sid));
+  const banner = document.getElementById("estop-banner");
+  banner.hidden = stopped.length === 0;
+  text(document.getElementById("estop-text"), `EMERGENCY STOP ENGAGED: ${stopped.join(", ")} will not move until the e-stop is reset`);
+  const t = robots.get(selected)?.lastTelemetry;
+  const blockedBy = t?.drive?.blocked_by || [];
+  const notice = document.getElementById("drive-blocked");
+  notice.hidden = blockedBy.length === 0;
+  if (blockedBy.length) {
+    const way = t.edge_action === "block_reverse" ? "Reverse" : "Forward";
+    text(notice, `${way} blocked at the plate edge: ${blockedBy.join(", ").replaceAll("_", " ")} ${blockedBy.length > 1 ? "see" : "sees"} no steel. `
+      + `${way === "Forward" ? "Reverse" : "Drive forward"} or turn away from the edge.`);
+  }
 }
 
 function iDrive() { const r = robots.get(selected); return Boolean(r && r.holderId !== null && r.holderId === link.watcherId); }
@@ -43,7 +79,7 @@ function refreshControl() {
   const r = robots.get(selected);
   const state = document.getElementById("control-state");
   const button = document.getElementById("take-control");
-  if (!r) { text(state, "no robot connected"); button.disabled = true; return; }
+  if (!r) { text(state, "no robot connected"); state.classList.remove("ok"); button.disabled = true; return; }
   button.disabled = false;
   if (r.holder === null || r.holder === undefined) { text(state, "nobody drives"); text(button, "Take control"); }
   else if (iDrive()) { text(state, "you drive"); text(button, "Release control"); }
@@ -52,7 +88,7 @@ function refreshControl() {
 }
 
 function robot(sid) {
-  if (!robots.has(sid)) robots.set(sid, { connected: false, holder: null, holderId: null });
+  if (!robots.has(sid)) robots.set(sid, { connected: false, name: "", holder: null, holderId: null });
   return robots.get(sid);
 }
 
@@ -111,10 +147,18 @@ const KEYS = { ArrowUp: "forward", KeyW: "forward", ArrowDown: "back", KeyS: "ba
 
 function typing(e) { return ["INPUT", "SELECT", "TEXTAREA"].includes(e.target.tagName) && e.target.type !== "range" && e.target.type !== "checkbox"; }
 
+// A focused control keeps its own keys: arrows move a slider, Space presses a button or
+// ticks a box. Esc (e-stop) always passes, and so do WASD.
+function ownKey(e) {
+  const t = e.target;
+  if (t.type === "range" && e.code.startsWith("Arrow")) return true;
+  return e.code === "Space" && (t.tagName === "BUTTON" || t.type === "checkbox");
+}
+
 function onKeyDown(e) {
   if (document.getElementById("view-drive").hidden) return;
   if (e.code === "Escape") { estopAll(); return; }
-  if (typing(e)) return;
+  if (typing(e) || ownKey(e)) return;
   if (e.code === "Space") { e.preventDefault(); release("space"); command("stop"); return; }
   if (e.code === "KeyC" && !e.repeat) { command("capture"); return; }
   const input = KEYS[e.code];
@@ -134,7 +178,7 @@ function onKeyUp(e) {
 }
 
 function drawFrame(header, jpeg) {
-  if (header.session_id !== selected && selected) return;
+  if (header.session_id !== selected) return; // only the selected robot's camera
   if (drawing) return; // never queue frames: draw the newest, drop what arrives meanwhile
   drawing = true;
   createImageBitmap(new Blob([jpeg], { type: "image/jpeg" })).then((bmp) => {
@@ -146,6 +190,7 @@ function drawFrame(header, jpeg) {
     if (stats.video.length > 5000) stats.video.shift();
     stats.frames += 1;
     canvas.dataset.frames = String(stats.frames);
+    canvas.dataset.live = "true";
     frameTimes.push(now);
     while (frameTimes.length && frameTimes[0] < now - 2000) frameTimes.shift();
     text(document.getElementById("video-info"), `${(frameTimes.length / 2).toFixed(0)} fps · ${latency.toFixed(0)} ms`);
@@ -154,7 +199,13 @@ function drawFrame(header, jpeg) {
 }
 
 function onEvent(ev) {
-  if (ev.type === "robot") { robot(ev.session_id).connected = ev.connected; refreshRobots(); }
+  if (ev.type === "robot") {
+    const r = robot(ev.session_id);
+    r.connected = ev.connected;
+    if (ev.robot) r.name = ev.robot;
+    if (!ev.connected) r.lastTelemetry = null;
+    refreshRobots();
+  }
   else if (ev.type === "control") {
     const r = robot(ev.session_id); r.holder = ev.holder; r.holderId = ev.holder_id; refreshControl();
   } else if (ev.type === "command_ack" && typeof ev.latency_ms === "number") {
@@ -170,8 +221,13 @@ function onEvent(ev) {
       for (const axle of ["front", "rear"]) document.getElementById(`lift-${axle}`).setAttribute("aria-pressed", String(Boolean(ev.data.lift[axle])));
     }
     if (ev.session_id === selected && ev.data.drive) text(document.getElementById("hold-ms"), String(ev.data.drive.hold_ms));
+    refreshAlerts();
   } else if (ev.type === "session" && ev.event === "session_end") {
-    robot(ev.session_id).connected = false; refreshRobots();
+    const r = robot(ev.session_id);
+    r.connected = false; r.lastTelemetry = null;
+    const wasSelected = ev.session_id === selected;
+    refreshRobots();
+    if (wasSelected && !selected) blankCamera("session ended: no robot connected");
   } else if (ev.type === "link" && !ev.open) {
     held.clear(); moving = false;
   }

@@ -1,9 +1,9 @@
 // The dashboard: sign-in, the live link, and three views (#/drive, #/sessions, #/session/<id>).
-import { apiJSON, onSignedOut, setToken, text } from "./api.js";
+import { api, apiJSON, onSignedOut, setToken, text } from "./api.js";
 import { initDrive } from "./drive.js";
 import { connect, on } from "./live.js";
 import { initReview, showSession } from "./review.js";
-import { loadSessions } from "./sessions.js";
+import { initSessions, loadSessions } from "./sessions.js";
 import { initTelemetry } from "./telemetry.js";
 
 let started = false;
@@ -21,8 +21,30 @@ async function watchStorage() {
 }
 
 function showLogin() {
+  document.body.classList.add("signed-out");
   document.getElementById("login").hidden = false;
   document.querySelectorAll("main.view").forEach((m) => { m.hidden = true; });
+  document.querySelector("#login input[name=username]").focus();
+}
+
+// What the station said about a refused sign-in, in words: a throttled one says when to retry.
+async function loginError(res) {
+  if (res.status === 401) return "wrong user name or password";
+  if (res.status === 429) {
+    const wait = Number(res.headers.get("Retry-After") || 0);
+    const at = new Date(Date.now() + wait * 1000).toLocaleTimeString();
+    return `too many wrong passwords: wait ${wait} s (until ${at}) and try again`;
+  }
+  let detail = "";
+  try { detail = (await res.json()).detail; } catch { /* not JSON */ }
+  return `sign-in failed (HTTP ${res.status}${detail ? `: ${detail}` : ""})`;
+}
+
+async function signOut() {
+  try { await api("/api/auth/token", { method: "DELETE" }); } catch { /* signed out already */ }
+  setToken("");
+  location.hash = "";
+  location.reload();
 }
 
 function route() {
@@ -40,9 +62,11 @@ function route() {
 document.getElementById("login").addEventListener("submit", async (e) => {
   e.preventDefault();
   const res = await fetch("/api/auth/token", { method: "POST", body: new URLSearchParams(new FormData(e.target)) });
-  if (!res.ok) { text(document.getElementById("login-error"), "wrong user name or password"); return; }
+  if (!res.ok) { text(document.getElementById("login-error"), await loginError(res)); return; }
   setToken((await res.json()).access_token);
+  text(document.getElementById("login-error"), "");
   document.getElementById("login").hidden = true;
+  document.body.classList.remove("signed-out");
   start();
 });
 
@@ -51,12 +75,16 @@ async function start() {
   if (auth === "required" && !sessionStorage.getItem("steelscan-token")) { showLogin(); return; }
   let me;
   try { me = await apiJSON("/api/auth/me"); } catch { return; }
+  document.body.classList.remove("signed-out");
   text(document.getElementById("who"), `${me.name} (${me.role})`);
+  document.getElementById("sign-out").hidden = auth !== "required";
   if (started) { route(); return; }
   started = true;
   initDrive();
   initTelemetry();
   initReview();
+  initSessions();
+  document.getElementById("sign-out").addEventListener("click", signOut);
   connect();
   on("event", (ev) => { if (ev.type === "session" && location.hash === "#/sessions") loadSessions().catch(() => {}); });
   setInterval(() => { if (location.hash === "#/sessions") loadSessions().catch(() => {}); }, 3000);

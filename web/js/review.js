@@ -1,13 +1,17 @@
 // One session: cover details, downloads, the mosaic in a pan-and-zoom viewer (OpenSeadragon
 // over the Deep Zoom pyramid) with the defects drawn on it, the defect table with filters,
 // sorting and review (confirm / reject, CS1–CS4, comment; keyboard shortcuts), the 3D view.
-import { api, apiJSON, authHeaders, download, el, fmt, patchJSON, text, token } from "./api.js";
+import { api, apiJSON, authHeaders, download, duration, el, fmt, patchJSON, text, token } from "./api.js";
 
+// column, heading, decimals: one format per quantity wherever it is shown
 const COLUMNS = [
-  ["id", "#"], ["defect_class", "class"], ["length_mm", "length (mm)"], ["max_width_mm", "max width (mm)"],
-  ["area_mm2", "area (mm²)"], ["world_x_m", "x (m)"], ["world_y_m", "y (m)"],
+  ["number", "#", 0], ["defect_class", "class", null], ["length_mm", "length (mm)", 1], ["max_width_mm", "max width (mm)", 2],
+  ["area_mm2", "area (mm²)", 0], ["world_x_m", "x (m)", 3], ["world_y_m", "y (m)", 3],
 ];
-const view = { session: null, defects: [], sort: "id", desc: false, selected: null, viewer: null, overlays: new Map() };
+const view = { session: null, defects: [], sort: "number", desc: false, selected: null, viewer: null, overlays: new Map() };
+
+// The defect's number in its session, as the PDF, CSV and 3D view show it (frame defects: F).
+export function label(d) { return `${d.source === "frame" ? "F" : "#"}${d.number ?? d.id}`; }
 
 function visible() {
   const cls = document.getElementById("filter-class")?.value || "";
@@ -18,7 +22,7 @@ function visible() {
   const key = view.sort;
   rows.sort((a, b) => {
     const x = a[key]; const y = b[key];
-    if (x === y) return a.id - b.id;
+    if (x === y) return (a.number ?? a.id) - (b.number ?? b.id);
     if (x === null || x === undefined) return 1;
     if (y === null || y === undefined) return -1;
     return (x < y ? -1 : 1) * (view.desc ? -1 : 1);
@@ -36,14 +40,15 @@ async function save(d, body, input) {
   if (res.ok) {
     Object.assign(d, await res.json());
     styleOverlay(d);
+    if (d.id === view.selected) showDetail(d);
   }
   return res.ok;
 }
 
 function reviewInput(d, field, options) {
-  const input = options ? el("select", { name: field, "aria-label": `${field} of defect ${d.id}` },
+  const input = options ? el("select", { name: field, "aria-label": `${field} of defect ${label(d)}` },
     ...options.map((o) => el("option", { value: o }, o || "–")))
-    : el("input", { name: field, "aria-label": `comment on defect ${d.id}`, placeholder: "comment", maxlength: "2000" });
+    : el("input", { name: field, "aria-label": `comment on defect ${label(d)}`, placeholder: "comment", maxlength: "2000" });
   input.value = d[field] ?? "";
   input.addEventListener("change", () => {
     const body = field === "condition_state" && !input.value ? { clear_condition_state: true } : { [field]: input.value };
@@ -62,8 +67,7 @@ function renderTable() {
   table.replaceChildren(head, ...rows.map((d) => {
     const tr = el("tr", { dataset: { defect: d.id }, class: d.id === view.selected ? "selected" : "", onclick: (e) => {
       if (!["SELECT", "INPUT", "OPTION"].includes(e.target.tagName)) select(d.id);
-    } }, ...[d.id, d.defect_class, d.length_mm, d.max_width_mm, d.area_mm2, d.world_x_m, d.world_y_m].map((v) => el("td", {},
-      typeof v === "number" && !Number.isInteger(v) ? v.toFixed(v > 100 ? 0 : 2) : v ?? "–")),
+    } }, ...COLUMNS.map(([key, , digits]) => el("td", {}, key === "number" ? label(d) : digits === null ? d[key] : fmt(d[key], digits))),
     reviewInput(d, "review_status", ["unreviewed", "confirmed", "rejected"]),
     reviewInput(d, "condition_state", ["", "CS1", "CS2", "CS3", "CS4"]),
     reviewInput(d, "comment", null));
@@ -86,21 +90,31 @@ function select(id, { pan = true } = {}) {
   view.defects.forEach(styleOverlay);
   const d = view.defects.find((x) => x.id === id);
   if (!d) return;
-  const detail = document.getElementById("defect-detail");
-  const img = el("img", { alt: `defect ${d.id}`, width: "192", height: "192" });
+  const img = el("img", { alt: `defect ${label(d)}`, width: "192", height: "192" });
   api(`/api/sessions/${view.session.id}/defects/${d.id}/thumbnail.jpg?size=192`).then((r) => (r.ok ? r.blob() : null)).then((b) => {
     if (b) img.src = URL.createObjectURL(b);
   }).catch(() => {});
-  detail.replaceChildren(img, el("dl", {},
-    el("dt", {}, "defect"), el("dd", {}, `#${d.id} ${d.defect_class} (${d.source})`),
-    el("dt", {}, "size"), el("dd", {}, `${fmt(d.length_mm, 1)} mm long, up to ${fmt(d.max_width_mm, 2)} mm wide, ${fmt(d.area_mm2, 0)} mm²`),
-    el("dt", {}, "on the structure"), el("dd", {}, d.world_x_m === null ? "not placed" : `x ${fmt(d.world_x_m, 3)} m, y ${fmt(d.world_y_m, 3)} m`),
-    el("dt", {}, "review"), el("dd", {}, `${d.review_status}${d.condition_state ? `, ${d.condition_state}` : ""}${d.reviewed_by ? ` by ${d.reviewed_by}` : ""}`)));
+  view.thumbnail = img;
+  showDetail(d);
   if (pan && view.viewer && d.source === "mosaic") {
     const pad = Math.max(d.bbox_w, d.bbox_h) * 1.5 + 60;
     const rect = view.viewer.viewport.imageToViewportRectangle(d.bbox_x + d.bbox_w / 2 - pad / 2, d.bbox_y + d.bbox_h / 2 - pad / 2, pad, pad);
     view.viewer.viewport.fitBoundsWithConstraints(rect);
   }
+}
+
+// The selected defect's panel: picture, measurements, place, and its review as stored now.
+function showDetail(d) {
+  const detail = document.getElementById("defect-detail");
+  detail.dataset.defect = String(d.id);
+  detail.replaceChildren(view.thumbnail, el("dl", {},
+    el("dt", {}, "defect"), el("dd", {}, `${label(d)} ${d.defect_class} (${d.source === "frame" ? `frame ${d.frame_seq}` : "mosaic"})`),
+    el("dt", {}, "size"), el("dd", {}, `${fmt(d.length_mm, 1)} mm long, up to ${fmt(d.max_width_mm, 2)} mm wide, ${fmt(d.area_mm2, 0)} mm²`),
+    el("dt", {}, "on the structure"), el("dd", {}, d.world_x_m === null ? "not placed" : `x ${fmt(d.world_x_m, 3)} m, y ${fmt(d.world_y_m, 3)} m`),
+    el("dt", {}, "review"), el("dd", { class: "review-state" }, d.review_status),
+    el("dt", {}, "condition state"), el("dd", { class: "review-cs" }, d.condition_state || "not rated"),
+    el("dt", {}, "comment"), el("dd", { class: "review-comment" }, d.comment || "–"),
+    el("dt", {}, "reviewed by"), el("dd", {}, d.reviewed_by ? `${d.reviewed_by}, ${new Date(d.reviewed_at).toLocaleString()}` : "–")));
 }
 
 function onKey(e) {
@@ -143,7 +157,8 @@ async function openViewer(s, stitch) {
   view.viewer = viewer;
   viewer.addHandler("open", () => {
     for (const d of view.defects.filter((x) => x.source === "mosaic")) {
-      const node = el("div", { class: "defect-box", dataset: { defect: d.id }, title: `#${d.id} ${d.defect_class}` });
+      const node = el("div", { class: "defect-box", dataset: { defect: d.id }, title: `${label(d)} ${d.defect_class}` },
+        el("span", { class: "defect-number" }, String(d.number ?? d.id)));
       view.overlays.set(d.id, node);
       styleOverlay(d);
       viewer.addOverlay({ element: node, location: viewer.viewport.imageToViewportRectangle(d.bbox_x - 4, d.bbox_y - 4, d.bbox_w + 8, d.bbox_h + 8) });
@@ -190,11 +205,10 @@ function view3dButton(s, root) {
   const button = el("button", { id: "show-3d" }, "Show 3D map");
   button.addEventListener("click", async () => {
     const res = await api(`/api/sessions/${s.id}/view3d`, { method: "POST" });
-    // a viewer watches the shared view as an operator set it
-    if (res.status === 403) text(button, "Shared 3D view (an operator chooses the session)");
-    else if (!res.ok) { text(button, `3D view unavailable (${res.status})`); return; }
+    if (!res.ok) { text(button, `3D view unavailable (HTTP ${res.status})`); return; }
+    const { url } = await res.json(); // this session's own view: live robots never take it over
     const frame = document.getElementById("view3d") || el("iframe", { id: "view3d", title: "3D map" });
-    frame.src = `/viser/${token ? `?token=${encodeURIComponent(token)}` : ""}`;
+    frame.src = `${url}${token ? `?token=${encodeURIComponent(token)}` : ""}`;
     root.appendChild(frame);
   });
   return button;
@@ -204,14 +218,14 @@ export async function showSession(id) {
   const root = document.getElementById("session-detail");
   root.replaceChildren(el("p", { class: "muted" }, "loading…"));
   const s = await apiJSON(`/api/sessions/${id}`);
-  view.session = s; view.selected = null; view.overlays.clear();
+  view.session = s; view.selected = null; view.overlays.clear(); view.thumbnail = null;
   if (view.viewer) { view.viewer.destroy(); view.viewer = null; }
   const stitch = s.jobs.filter((j) => j.kind === "stitch" && j.state === "done").pop();
   const source = stitch ? "mosaic" : "frame";
   const jobs = s.jobs.map((j) => `${j.kind}: ${j.state}${j.error ? ` (${j.error})` : ""}`).join(" · ") || "no processing yet";
   root.replaceChildren(
     el("h3", {}, `${s.structure} — ${s.id}`),
-    el("p", { class: "muted" }, `${new Date(s.started_at).toLocaleString()} · operator ${s.operator || "–"} · robot ${s.robot_name || "–"} · ${s.status}`
+    el("p", { class: "muted" }, `${new Date(s.started_at).toLocaleString()} · ${duration(s.duration_s)} · operator ${s.operator || "–"} · robot ${s.robot_name || "–"} · ${s.status}`
       + ` · ${s.frames} frames, ${s.clouds} clouds · ${jobs}`),
     detailsForm(s), exportsBar(s),
     el("div", { class: "review" },

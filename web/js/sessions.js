@@ -1,5 +1,7 @@
-// The list of inspection sessions with their job states.
-import { apiJSON, el } from "./api.js";
+// The list of inspection sessions with their job states; searched and narrowed on the station.
+import { apiJSON, duration, el, text } from "./api.js";
+
+let timer = null;
 
 function jobCell(jobs) {
   if (!jobs.length) return "–";
@@ -10,14 +12,26 @@ function jobCell(jobs) {
 }
 
 export async function loadSessions() {
-  const body = await apiJSON("/api/sessions?limit=200");
+  const q = document.getElementById("session-search").value.trim();
+  const status = document.getElementById("session-status").value;
+  const params = new URLSearchParams({ limit: "200", q, status });
+  if (!status) params.delete("status");
+  const body = await apiJSON(`/api/sessions?${params}`);
   const tbody = document.querySelector("#sessions tbody");
-  tbody.replaceChildren(...body.data.map((s) => {
-    const tr = el("tr", { dataset: { session: s.id }, tabindex: "0", onclick: () => { location.hash = `#/session/${s.id}`; },
-      onkeydown: (e) => { if (e.key === "Enter") location.hash = `#/session/${s.id}`; } },
-    el("td", {}, s.structure), el("td", {}, s.location || "–"), el("td", {}, new Date(s.started_at).toLocaleString()),
-    el("td", {}, s.operator || "–"), el("td", {}, s.status), el("td", {}, String(s.frames)),
-    el("td", {}, String(s.defects)), el("td", {}, jobCell(s.jobs)));
-    return tr;
-  }));
+  const open = (s) => { location.hash = `#/session/${s.id}`; };
+  tbody.replaceChildren(...body.data.map((s) => el("tr", {
+    dataset: { session: s.id }, tabindex: "0", onclick: () => open(s), onkeydown: (e) => { if (e.key === "Enter") open(s); },
+  },
+  el("td", {}, s.structure), el("td", {}, s.location || "–"), el("td", {}, s.robot_name || "–"), el("td", {}, s.operator || "–"),
+  el("td", {}, new Date(s.started_at).toLocaleString()), el("td", { class: "num" }, duration(s.duration_s)),
+  el("td", {}, s.status), el("td", { class: "num" }, String(s.frames)), el("td", { class: "num" }, String(s.defects)),
+  el("td", {}, jobCell(s.jobs)), el("td", { class: "muted mono", title: s.id }, s.id.slice(0, 8)))));
+  text(document.getElementById("session-count"), body.count > body.data.length
+    ? `${body.data.length} of ${body.count} sessions` : `${body.count} session${body.count === 1 ? "" : "s"}`);
+}
+
+export function initSessions() {
+  const later = () => { clearTimeout(timer); timer = setTimeout(() => loadSessions().catch(() => {}), 250); };
+  document.getElementById("session-search").addEventListener("input", later);
+  document.getElementById("session-status").addEventListener("change", later);
 }

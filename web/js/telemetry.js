@@ -13,6 +13,30 @@ const series = { t: [], speed: [], main: [], logic: [], adhesion: [], ack: [] };
 const plots = [];
 let lastEdge = "none";
 let lastAt = 0;
+let shown = null; // the session whose telemetry is on view
+
+// No robot any more: no stale values, plots or age.
+function clear() {
+  shown = null; lastAt = 0; lastEdge = "none";
+  for (const k of Object.keys(series)) series[k].length = 0;
+  document.getElementById("telemetry").replaceChildren(...row("robot", "no robot connected"));
+  for (const { plot, keys } of plots) plot.setData([[], ...keys.map(() => [])]);
+  for (const name of ["front_left", "front_right", "rear_left", "rear_right"]) document.getElementById(`ir-${name}`).classList.remove("nosurface");
+}
+
+// The robot's speed; when its edge sensors hold it still, what was commanded and why not.
+function speedText(drive) {
+  const turn = ` · turn ${fmt(drive.angular_radps)} rad/s`;
+  if (!drive.blocked_by?.length) return `${fmt(drive.linear_mps)}${turn}`;
+  return `${fmt(drive.linear_mps)} (commanded ${fmt(drive.commanded_linear_mps)}: blocked by ${drive.blocked_by.join(", ").replaceAll("_", " ")})${turn}`;
+}
+
+// What the edge action of Algorithm 1 (or the teleoperated robot's edge guard) means.
+const EDGE_WORDS = {
+  back_off_turn_left: "backing off, turning left", back_off_turn_right: "backing off, turning right",
+  stop_and_wait: "stopped: waiting for commands", block_forward: "forward blocked", block_reverse: "reverse blocked",
+  edge_near: "edge near",
+};
 
 function row(label, value, warn = false) {
   return [el("dt", {}, label), el("dd", { class: warn ? "warn" : "" }, value)];
@@ -29,7 +53,8 @@ function render(d) {
   dl.replaceChildren(
     ...row("pose x, y (m)", d.pose ? `${fmt(d.pose.x, 3)}, ${fmt(d.pose.y, 3)}` : "–"),
     ...row("heading (°)", d.pose ? fmt((d.pose.yaw * 180) / Math.PI, 1) : "–"),
-    ...row("speed (m/s)", d.drive ? `${fmt(d.drive.linear_mps)} · turn ${fmt(d.drive.angular_radps)} rad/s` : fmt(wheels.reduce((a, v) => a + v, 0) / (wheels.length || 1))),
+    ...row("speed (m/s)", d.drive ? speedText(d.drive) : fmt(wheels.reduce((a, v) => a + v, 0) / (wheels.length || 1)),
+      Boolean(d.drive?.blocked_by?.length)),
     ...row("wheel speeds (m/s)", wheels.map((v) => fmt(v)).join(" ") || "–"),
     ...row("distance, Hall (m)", fmt(d.distance_m, 2)),
     ...row("battery 12 V / 7.4 V", `${fmt(b.main)} / ${fmt(b.logic)} V${lowMain || lowLogic ? " — LOW" : ""}`, lowMain || lowLogic),
@@ -46,7 +71,8 @@ function render(d) {
   for (const axle of ["front", "rear"]) document.getElementById(`lift-${axle}-mark`).classList.toggle("up", Boolean(d.lift?.[axle]));
   if (d.edge_action && d.edge_action !== lastEdge && d.edge_action !== "none") {
     const list = document.getElementById("edge-events");
-    list.prepend(el("li", {}, `${new Date().toLocaleTimeString()} — ${d.edge_action.replaceAll("_", " ")} (${(d.ir_no_surface || []).join(", ")})`));
+    const where = (d.ir_no_surface || []).join(", ").replaceAll("_", " ");
+    list.prepend(el("li", {}, `${new Date().toLocaleTimeString()} — ${EDGE_WORDS[d.edge_action] || d.edge_action.replaceAll("_", " ")}${where ? ` (no steel under ${where})` : ""}`));
     while (list.children.length > 20) list.lastChild.remove();
   }
   lastEdge = d.edge_action || "none";
@@ -62,14 +88,24 @@ function record(d) {
   while (series.t.length && series.t[0] < t - WINDOW_S) for (const k of Object.keys(series)) series[k].shift();
 }
 
-function makePlot(title, keys, colours, units) {
-  const target = el("div", { class: "plot" });
+// A y range that always shows at least ``span`` around the data: an idle robot's speed of 0
+// is drawn on a ±0.1 m/s axis, not on 0–100.
+function rangeOf(span) {
+  return (u, lo, hi) => {
+    if (lo === null || hi === null || !Number.isFinite(lo) || !Number.isFinite(hi)) return [-span / 2, span / 2];
+    const mid = (lo + hi) / 2; const half = Math.max((hi - lo) / 2 * 1.1, span / 2);
+    return [mid - half, mid + half];
+  };
+}
+
+function makePlot(title, keys, labels, colours, units, span) {
+  const target = el("div", { class: "plot", dataset: { plot: title } });
   document.getElementById("plots").appendChild(target);
   const opts = {
-    title, width: 300, height: 120, legend: { show: false }, cursor: { show: false },
-    scales: { x: { time: true } },
+    title: `${title} (${units})`, width: 300, height: 140, legend: { show: true, live: false }, cursor: { show: false },
+    scales: { x: { time: true }, y: { range: rangeOf(span) } },
     axes: [{ stroke: "#8b96a0", grid: { stroke: "#2a323a" } }, { stroke: "#8b96a0", grid: { stroke: "#2a323a" }, label: units, size: 50 }],
-    series: [{}, ...keys.map((k, i) => ({ label: k, stroke: colours[i], width: 1.5 }))],
+    series: [{ label: "time" }, ...keys.map((k, i) => ({ label: labels[i], stroke: colours[i], width: 1.5 }))],
   };
   const plot = new uPlot(opts, [[], ...keys.map(() => [])], target);
   plots.push({ plot, keys });
@@ -81,14 +117,17 @@ function redraw() {
 }
 
 export function initTelemetry() {
-  makePlot("speed", ["speed"], ["#e0a030"], "m/s");
-  makePlot("batteries", ["main", "logic"], ["#3fae6a", "#4a90d9"], "V");
-  makePlot("adhesion margin", ["adhesion"], ["#d9443c"], "");
-  makePlot("ACK latency", ["ack"], ["#b07cd8"], "ms");
+  makePlot("speed", ["speed"], ["mean wheel speed"], ["#e0a030"], "m/s", 0.2);
+  makePlot("batteries", ["main", "logic"], ["main 12 V pack", "logic 7.4 V pack"], ["#3fae6a", "#4a90d9"], "V", 1.0);
+  makePlot("adhesion margin", ["adhesion"], ["margin, eq. (1)"], ["#d9443c"], "× needed", 1.0);
+  makePlot("ACK latency", ["ack"], ["robot ← station"], ["#b07cd8"], "ms", 20);
   on("event", (ev) => {
+    const gone = (ev.type === "robot" && !ev.connected) || (ev.type === "session" && ev.event === "session_end");
+    if (gone && (!selectedSession() || ev.session_id === selectedSession() || ev.session_id === shown)) { clear(); return; }
     if (ev.type !== "telemetry") return;
     const sid = selectedSession();
     if (sid && ev.session_id !== sid) return;
+    if (ev.session_id !== shown) { clear(); shown = ev.session_id; }
     lastAt = Date.now();
     render(ev.data);
     record(ev.data);

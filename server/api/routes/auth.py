@@ -8,8 +8,8 @@ from fastapi import APIRouter, Depends, HTTPException, Request, status
 from fastapi.security import OAuth2PasswordRequestForm
 from pydantic import BaseModel
 
-from server.api.accounts import issue_token
-from server.api.deps import CurrentUser, StateDep
+from server.api.accounts import accounts_exist, issue_token, revoke_token
+from server.api.deps import CurrentUser, SessionDep, StateDep, oauth2
 
 router = APIRouter(prefix="/api/auth", tags=["auth"])
 
@@ -57,6 +57,18 @@ async def create_token(
     state.logins.succeeded(client, form.username)
     token, user = issued
     return TokenPublic(access_token=token, role=user.role.value)
+
+
+@router.delete("/token", status_code=status.HTTP_204_NO_CONTENT)
+def delete_token(db: SessionDep, token: Annotated[str | None, Depends(oauth2)]) -> None:
+    """Sign out: the bearer token the request carries stops working at once (other tokens
+    of the same user, e.g. another browser's, stay valid)."""
+    if not revoke_token(db, token) and accounts_exist(db):
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            "a valid bearer token is required",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
 
 
 @router.get("/me", response_model=UserPublic)

@@ -1,6 +1,7 @@
-"""The 3D view through the ground station: ``/viser/`` proxies the loopback-only viser server
-(HTTP and websocket) for authenticated users, and ``POST /api/sessions/{id}/view3d`` puts a
-session's map, trajectory and defects into it.
+"""The 3D views through the ground station: ``/viser/live/`` (also ``/viser/``) proxies the
+loopback-only viser server of the live robots, ``/viser/session/{id}/`` the one of a finished
+session (HTTP and websocket, for authenticated users); ``POST /api/sessions/{id}/view3d``
+loads a session's map, trajectory and defects into its own view.
 
 A browser embeds the view in an iframe, which cannot send an Authorization header: it
 opens ``/viser/?token=...`` once, and the proxy answers with an HttpOnly, SameSite=Strict
@@ -10,6 +11,7 @@ cookie scoped to ``/viser`` that the page's own requests and websocket then carr
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from typing import Any
 
@@ -19,16 +21,18 @@ import numpy as np
 from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import Response
 from sqlalchemy import select
+from starlette.websockets import WebSocketState
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from server.api.accounts import accounts_exist, user_for_token
-from server.api.deps import SessionDep, StateDep, require, same_origin
+from server.api.deps import SessionDep, StateDep, get_current_user, same_origin
 from server.api.queries import get_session_or_404
 from server.errors import NotFound
-from server.live.scene3d import DefectMarker
+from server.live.scene3d import DefectMarker, Scene3D
+from server.live.scenes import Scenes
 from server.state import AppState
-from server.storage.models import Defect, InspectionSession, Role
+from server.storage.models import Defect, InspectionSession
 
 log = logging.getLogger(__name__)
 router = APIRouter(tags=["3d view"])
@@ -40,16 +44,34 @@ def _allowed(state: AppState, token: str | None) -> bool:
         return not accounts_exist(db) or user_for_token(db, token) is not None
 
 
-def _scene_or_404(state: AppState) -> Any:
-    if state.scene is None:
+def _scenes_or_404(state: AppState) -> Scenes:
+    if state.scenes is None:
         raise NotFound("the 3D view is switched off (STEELSCAN_VIEW3D=false)")
-    return state.scene
+    return state.scenes
+
+
+def _view_or_404(state: AppState, key: str) -> Scene3D:
+    scene = _scenes_or_404(state).get(key)
+    if scene is None:
+        raise NotFound(f"no 3D view of session {key} is open: POST /api/sessions/{key}/view3d")
+    return scene
 
 
 @router.get("/viser/", include_in_schema=False)
-async def read_view(request: Request, state: StateDep) -> Response:
+@router.get("/viser/live/", include_in_schema=False)
+async def read_live_view(request: Request, state: StateDep) -> Response:
+    """The live robots' 3D view."""
+    return await _page(request, state, _view_or_404(state, "live"))
+
+
+@router.get("/viser/session/{session_id}/", include_in_schema=False)
+async def read_session_view(request: Request, state: StateDep, session_id: str) -> Response:
+    """A session's own 3D view."""
+    return await _page(request, state, _view_or_404(state, session_id))
+
+
+async def _page(request: Request, state: AppState, scene: Scene3D) -> Response:
     """The viser page, for a user with a valid token (query, once) or view cookie."""
-    scene = _scene_or_404(state)
     query_token = request.query_params.get("token")
     token = query_token or request.cookies.get(COOKIE)
     if not await anyio.to_thread.run_sync(_allowed, state, token):
@@ -74,11 +96,24 @@ async def read_view(request: Request, state: StateDep) -> Response:
 
 @router.websocket("/viser")  # the viser client drops the trailing slash
 @router.websocket("/viser/")
-async def view_socket(websocket: WebSocket) -> None:
+@router.websocket("/viser/live")
+async def live_view_socket(websocket: WebSocket) -> None:
+    """The live view's websocket."""
+    await _socket(websocket, "live")
+
+
+@router.websocket("/viser/session/{session_id}")
+async def session_view_socket(websocket: WebSocket, session_id: str) -> None:
+    """A session view's websocket."""
+    await _socket(websocket, session_id)
+
+
+async def _socket(websocket: WebSocket, key: str) -> None:
     """The viser websocket, passed through to the loopback server for authenticated users."""
     state: AppState = websocket.app.state.steelscan
-    if state.scene is None:
-        await websocket.close(code=1008, reason="the 3D view is switched off")
+    scene = state.scenes.get(key) if state.scenes is not None else None
+    if scene is None:
+        await websocket.close(code=1008, reason="no such 3D view")
         return
     if not same_origin(websocket, state.settings.allowed_origins):
         await websocket.close(code=1008, reason="cross-site websocket refused")
@@ -93,7 +128,7 @@ async def view_socket(websocket: WebSocket) -> None:
         if p.strip()
     ]
     async with connect(
-        f"ws://127.0.0.1:{state.scene.port}/",
+        f"ws://127.0.0.1:{scene.port}/",
         subprotocols=protocols or None,  # type: ignore[arg-type]
         max_size=None,
         compression=None,
@@ -121,15 +156,14 @@ async def view_socket(websocket: WebSocket) -> None:
         tasks = [asyncio.create_task(down()), asyncio.create_task(up())]
         try:
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-        except (ConnectionClosed, WebSocketDisconnect):
-            pass
         finally:
             for t in tasks:
                 t.cancel()
-    try:
-        await websocket.close()
-    except RuntimeError:
-        pass
+            # a side that went away ends its task with an error: expected, not worth a log
+            await asyncio.gather(*tasks, return_exceptions=True)
+    if websocket.client_state == WebSocketState.CONNECTED:
+        with contextlib.suppress(RuntimeError, OSError, WebSocketDisconnect, ConnectionClosed):
+            await websocket.close()
 
 
 def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
@@ -171,21 +205,22 @@ def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
             )
         )
     title = f"{s.structure or 'session'} — {session_id[:8]}" if s is not None else session_id
-    state.scene.show_session(session_id, points, trajectory, markers, title)  # type: ignore[union-attr]
+    scenes = _scenes_or_404(state)
+    scenes.for_session(session_id).show_session(session_id, points, trajectory, markers, title)
     return {
         "session_id": session_id,
         "points": 0 if points is None else len(points),
         "trajectory_poses": 0 if trajectory is None else len(trajectory),
         "defects": len(markers),
-        "url": "/viser/",
+        "url": f"/viser/session/{session_id}/",
     }
 
 
-@router.post("/api/sessions/{session_id}/view3d", dependencies=[Depends(require(Role.operator))])
+@router.post("/api/sessions/{session_id}/view3d", dependencies=[Depends(get_current_user)])
 def show_in_3d(db: SessionDep, state: StateDep, session_id: str) -> dict[str, Any]:
-    """Show this session in the 3D view: its map coloured by height, its trajectory and a
-    marker per defect placed on the structure (click one to see it). Every user sees the
-    same view, so changing it needs the operator role."""
-    _scene_or_404(state)
+    """Open this session's own 3D view (at the returned ``url``): its map coloured by height,
+    its trajectory and a numbered marker per defect placed on the structure (click one to
+    see it). Live robots have their own view (``/viser/live/``); neither changes the other."""
+    _scenes_or_404(state)
     get_session_or_404(db, session_id)
     return session_scene(db, state, session_id)

@@ -1,0 +1,153 @@
+"""The Drive page in Debian's headless chromium against the real server and an in-process
+teleoperated robot: the e-stop within reach at tablet and phone widths with a banner while
+engaged, the robot's name, keys that belong to a focused control, why the robot will not
+drive at the plate's edge, and a page that says so when the session ends."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+
+from robot_link.sim.teleop import TeleopRobot, start_teleop_robot
+from server.config import Settings
+from tests.conftest import LiveServer
+from tests.web.test_dashboard import CHROMIUM, CHROMIUM_ARGS, shot, wait_js, watch_errors
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.browser,
+    pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed"),
+]
+
+
+@pytest.fixture
+def settings(tmp_path) -> Settings:  # type: ignore[no-untyped-def]
+    return Settings(data_dir=tmp_path / "data", job_workers=1, auto_process=False, view3d=False)
+
+
+@pytest.fixture
+def robot(live_server: LiveServer) -> Iterator[TeleopRobot]:
+    r = start_teleop_robot(live_server.url, live_server.token, seed=7)
+    yield r
+    r.stop(timeout_s=60)
+
+
+def open_page(pw, url: str, errors: list[str], width: int, height: int):  # type: ignore[no-untyped-def]
+    browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+    page = browser.new_page(viewport={"width": width, "height": height})
+    watch_errors(page, errors, [])
+    page.goto(url + "/")
+    wait_js(page, "document.querySelector('#robot-state').textContent.startsWith('robot:')")
+    return browser, page
+
+
+def in_view(page, selector: str) -> bool:  # type: ignore[no-untyped-def]
+    box = page.locator(selector).bounding_box()
+    size = page.viewport_size
+    return bool(
+        box
+        and box["x"] >= 0
+        and box["y"] >= 0
+        and box["x"] + box["width"] <= size["width"]
+        and box["y"] + box["height"] <= size["height"]
+    )
+
+
+@pytest.mark.parametrize("width,height", [(800, 1200), (390, 844)])
+def test_estop_is_within_reach_at_every_width_and_a_banner_shows_it_engaged(
+    live_server: LiveServer, robot: TeleopRobot, width: int, height: int
+) -> None:
+    from playwright.sync_api import sync_playwright
+
+    errors: list[str] = []
+    with sync_playwright() as pw:
+        browser, page = open_page(pw, live_server.url, errors, width, height)
+        assert "test-robot" in page.inner_text("#robot-state")  # its name, not a session id
+        page.mouse.wheel(0, 2000)  # scrolled down to the telemetry: the header stays
+        page.wait_for_timeout(300)
+        assert in_view(page, "#estop")
+        page.click("#estop")
+        page.wait_for_selector("#estop-banner:not([hidden])", timeout=5000)
+        assert robot.sim.estopped
+        assert "EMERGENCY STOP ENGAGED" in page.inner_text("#estop-banner")
+        assert in_view(page, "#estop-banner button")
+        shot(page, f"drive-estop-{width}")
+        page.click("#estop-banner button")
+        page.wait_for_selector("#estop-banner[hidden]", state="attached", timeout=5000)
+        assert not robot.sim.estopped
+        browser.close()
+    assert errors == []
+
+
+def test_keys_of_focused_controls_and_the_plate_edge(
+    live_server: LiveServer, robot: TeleopRobot
+) -> None:
+    from playwright.sync_api import sync_playwright
+
+    errors: list[str] = []
+    sim = robot.sim
+    with sync_playwright() as pw:
+        browser, page = open_page(pw, live_server.url, errors, 1440, 900)
+        # a focused speed slider takes the arrows: the speed changes, the robot does not turn
+        page.focus("#speed")
+        for _ in range(3):
+            page.keyboard.press("ArrowRight")
+        assert page.input_value("#speed") == "0.11"
+        assert page.inner_text("#speed-value") == "0.11 m/s"
+        assert sim.w == 0.0 and sim.v == 0.0
+        # Space on a focused button presses it
+        page.focus("#lift-front")
+        page.keyboard.press("Space")
+        wait_js(
+            page, "document.querySelector('#lift-front').getAttribute('aria-pressed') === 'true'"
+        )
+        assert sim.lift["front"]
+        # at the plate's far end forward is blocked, and the page says why
+        length_m, width_m = sim.structure.plate_size_m
+        sim.robot.pose[:] = (length_m - 0.02, width_m / 2, 0.0)
+        page.focus("body")
+        page.keyboard.down("ArrowUp")
+        page.wait_for_selector("#drive-blocked:not([hidden])", timeout=5000)
+        notice = page.inner_text("#drive-blocked")
+        assert "Forward blocked" in notice and "front left" in notice and "Reverse" in notice
+        wait_js(page, "document.querySelector('#telemetry').textContent.includes('commanded 0.11')")
+        shot(page, "drive-edge-blocked")
+        page.keyboard.up("ArrowUp")
+        wait_js(page, "document.querySelector('#drive-blocked').hidden")
+        assert sim.robot.pose[0] == pytest.approx(length_m - 0.02, abs=1e-3)
+        browser.close()
+    assert errors == []
+
+
+def test_after_the_session_ends_the_page_shows_no_stale_video_or_telemetry(
+    live_server: LiveServer, robot: TeleopRobot
+) -> None:
+    from playwright.sync_api import sync_playwright
+
+    errors: list[str] = []
+    with sync_playwright() as pw:
+        browser, page = open_page(pw, live_server.url, errors, 1440, 900)
+        wait_js(page, "document.querySelector('#camera').dataset.live === 'true'")
+        page.wait_for_selector("#telemetry dt", timeout=10000)
+        page.on("dialog", lambda d: d.accept())
+        page.click("#end-session")
+        wait_js(page, "document.querySelector('#camera').dataset.live === 'false'", timeout=20000)
+        assert "session ended" in page.inner_text("#frame-info")
+        assert page.inner_text("#video-info") == ""
+        assert "no robot connected" in page.inner_text("#telemetry")
+        assert "battery" not in page.inner_text("#telemetry")
+        for pill in ("#robot-state", "#control-state"):
+            assert page.inner_text(pill) == "no robot connected"
+            assert "ok" not in (page.get_attribute(pill, "class") or "")
+        page.wait_for_timeout(1500)  # no late frame or sample brings the old robot back
+        assert page.evaluate("document.querySelector('#camera').dataset.live") == "false"
+        shot(page, "drive-session-ended")
+        # a page opened now shows no robot either
+        other = browser.new_page()
+        other.goto(live_server.url + "/")
+        wait_js(other, "document.querySelector('#link-state').classList.contains('ok')")
+        other.wait_for_timeout(1000)
+        assert "battery" not in other.inner_text("#telemetry")
+        browser.close()
+    assert errors == []
