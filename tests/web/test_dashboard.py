@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from urllib.parse import urlparse
@@ -16,7 +17,9 @@ from urllib.parse import urlparse
 import httpx
 import pytest
 
+from robot_link.protocol import MessageType
 from tests.conftest import LiveServer
+from tests.server.test_ingest import msg, robot_ws, start
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = [
@@ -140,6 +143,13 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
             "document.querySelector('#sessions tbody')?.textContent.includes('detect ✓')",
             timeout=120000,
         )
+        row_text = page.inner_text("#sessions tbody tr:first-child")
+        assert "test-robot" in row_text and " s" in row_text  # the robot's name, the duration
+        structure = page.inner_text("#sessions tbody tr:first-child td:first-child")
+        page.fill("#session-search", "no such girder")
+        wait_js(page, "document.querySelectorAll('#sessions tbody tr').length === 0")
+        page.fill("#session-search", structure.split()[-1].upper())
+        wait_js(page, "document.querySelectorAll('#sessions tbody tr').length === 1")
         shot(page, "sessions")
         page.click("#sessions tbody tr:first-child")
         page.wait_for_selector("#defects tr[data-defect]", timeout=20000)
@@ -150,11 +160,30 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
             page.locator(".defect-box").count() == page.locator("#defects tr[data-defect]").count()
         )
         assert "crack" in page.inner_text("#defects") or "corrosion" in page.inner_text("#defects")
-        # keyboard review: next defect, confirm, condition state 3; then a comment
+        # defects carry their session number (#1, #2, ...) in the table and on the mosaic
+        numbers = page.locator("#defects tr[data-defect] td:first-child").all_inner_texts()
+        assert sorted(numbers, key=lambda n: int(n[1:])) == [
+            f"#{i}" for i in range(1, len(numbers) + 1)
+        ]
+        assert sorted(page.locator(".defect-box .defect-number").all_inner_texts(), key=int) == [
+            n[1:] for n in sorted(numbers, key=lambda n: int(n[1:]))
+        ]
+        # keyboard review: next defect, confirm, condition state 3; then a comment; the
+        # detail panel follows each change
         page.keyboard.press("j")
         defect_id = page.get_attribute("#defects tr.selected", "data-defect")
+        page.keyboard.press("x")
+        wait_js(
+            page,
+            "document.querySelector('#defect-detail .review-state')?.textContent === 'rejected'",
+        )
         page.keyboard.press("c")
+        wait_js(
+            page,
+            "document.querySelector('#defect-detail .review-state').textContent === 'confirmed'",
+        )
         page.keyboard.press("3")
+        wait_js(page, "document.querySelector('#defect-detail .review-cs').textContent === 'CS3'")
         row = page.locator(f"#defects tr[data-defect='{defect_id}']")
         row.locator("input[name=comment]").fill("check weld toe")
         row.locator("input[name=comment]").press("Tab")
@@ -162,6 +191,10 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
         page.wait_for_selector(
             f"#defects tr[data-defect='{defect_id}'] select[name=condition_state].saved",
             timeout=10000,
+        )
+        wait_js(
+            page,
+            "document.querySelector('#defect-detail .review-comment').textContent === 'check weld toe'",
         )
         sid = page.inner_text("#session-detail h3").split(" — ")[-1]
         stored = httpx.get(f"{live_server.url}/api/sessions/{sid}/defects/{defect_id}").json()
@@ -200,14 +233,26 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
         dl.value.save_as(tmp_path / "defects.csv")
         assert "check weld toe" in (tmp_path / "defects.csv").read_text(encoding="utf-8-sig")
         page_errors = list(errors)  # the 3D view's own WebGL console is not the dashboard's
-        # the 3D map, proxied from viser under /viser/, embedded in the session page
+        # the 3D map, proxied from viser, embedded in the session page: its own scene, which
+        # a robot going live meanwhile does not take over
+        live_robot = robot_ws(live_server)
+        live_sid = uuid.uuid4()
+        live_robot.send(start(live_sid))
+        live_robot.send(
+            msg(live_sid, 2, MessageType.TELEMETRY, {"pose": {"x": 0.2, "y": 0.1, "yaw": 0.0}})
+        )
         page.click("#show-3d")
         page.wait_for_selector("#view3d", timeout=20000)
         frame = page.frame_locator("#view3d")
         frame.locator("#root").wait_for(timeout=30000)
         frame.get_by_text("Click a defect marker to see it.").wait_for(timeout=30000)
         frame.get_by_text("Simulated plate girder").first.wait_for(timeout=30000)
-        assert live_server.app.state.steelscan.scenes.get(sid).session_id == sid
+        scenes = live_server.app.state.steelscan.scenes
+        assert scenes.get(sid).session_id == sid
+        assert scenes.live.session_id == str(live_sid)
+        page.wait_for_timeout(1500)
+        assert frame.get_by_text("Live:").count() == 0
+        live_robot.close()
         shot(page, "session-3d")
         browser.close()
     assert page_errors == []
@@ -380,39 +425,3 @@ def test_a_gamepad_drives_and_its_b_button_stops(
             "B to stop the robot",
         )
         browser.close()
-
-
-def test_sign_in_when_accounts_exist(live_server: LiveServer) -> None:
-    from playwright.sync_api import sync_playwright
-
-    from server.storage.models import Role
-    from tests.server.test_auth import add_user
-
-    add_user(live_server, "otto", Role.operator)
-    errors: list[str] = []
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
-        page = browser.new_page()
-        page.on("pageerror", lambda exc: errors.append(str(exc)))
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.goto(live_server.url + "/")
-        page.wait_for_selector("#login:not([hidden])", timeout=15000)
-        shot(page, "sign-in")
-        assert errors == []  # the page asks for a sign-in without a 401 from the API first
-        page.fill("input[name=username]", "otto")
-        page.fill("input[name=password]", "wrong password")
-        page.click("#login button")
-        wait_js(
-            page, "document.querySelector('#login-error').textContent.length > 0", timeout=10000
-        )
-        errors.clear()  # the refused sign-in is a 401 by design
-        page.fill("input[name=password]", "correct horse")
-        page.click("#login button")
-        wait_js(
-            page,
-            "document.querySelector('#who').textContent.includes('otto (operator)')",
-            timeout=10000,
-        )
-        page.wait_for_selector("#link-state.ok", timeout=15000)
-        browser.close()
-    assert errors == []
