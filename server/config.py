@@ -64,6 +64,12 @@ class Settings(BaseSettings):
     fsync: bool = Field(default=False, description="fsync every stored file (power-loss safety)")
     job_workers: int = Field(default=2, ge=1, description="worker processes for processing jobs")
     auto_process: bool = Field(default=True, description="run jobs when a session ends")
+    coverage_mm_per_px: float = Field(
+        default=0.3,
+        gt=0,
+        description="coarsest camera resolution (mm of surface per pixel) that counts as "
+        "imaged in the coverage map and report",
+    )
     detect_method: Literal["proposed", "learned"] = Field(
         default="learned",
         description="crack detector of the detect job: the shipped network or the filter pipeline",

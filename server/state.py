@@ -16,6 +16,7 @@ from server.link.limits import MalformedGuard
 from server.live.hub import LiveHub
 from server.live.live_map import LiveMap
 from server.live.scenes import Scenes
+from server.reports.coverage import QualityCache
 from server.storage.files import SessionFiles
 
 
@@ -33,6 +34,7 @@ class AppState:
     writer: GroupCommit
     scenes: Scenes | None = None  # the 3D views (live and per session), when switched on
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
+    quality: QualityCache = field(default_factory=QualityCache)  # frame sharpness, exposure
     logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per client
     malformed: MalformedGuard = field(default_factory=MalformedGuard)  # per robot
     passwords: PasswordBudget = field(default_factory=PasswordBudget)  # hashing, station-wide

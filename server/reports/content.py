@@ -16,6 +16,8 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from processing.coverage import CoverageParams
+from server.reports.coverage import QualityCache, session_coverage
 from server.reports.fields import CONDITION_STATES, GENERATOR
 from server.storage.files import SessionFiles
 from server.storage.models import (
@@ -33,9 +35,15 @@ STAGES = {"stitch": "mosaic", "map": "3D map", "detect": "defect detection"}
 
 
 def build_report(
-    db: Session, files: SessionFiles, session_id: str, *, base_url: str = ""
+    db: Session,
+    files: SessionFiles,
+    session_id: str,
+    *,
+    base_url: str = "",
+    coverage: CoverageParams | None = None,
 ) -> dict[str, Any]:
-    """Everything the report of one session shows, as JSON-ready data."""
+    """Everything the report of one session shows, as JSON-ready data (with ``coverage``:
+    the surface imaged well enough and its holes, judged by those parameters)."""
     s = db.get(InspectionSession, session_id)
     if s is None:
         raise KeyError(session_id)
@@ -115,8 +123,21 @@ def build_report(
         "missing": [k for k in STAGES if k not in done],
         "notes": notes,
         "files": _files(results_dir, base_url, session_id),
+        "coverage": _coverage(db, files, session_id, coverage) if coverage else None,
         "calibration": s.calibration,
     }
+
+
+def _coverage(
+    db: Session, files: SessionFiles, session_id: str, params: CoverageParams
+) -> dict[str, Any]:
+    """The coverage summary: areas, frames not counted and why, holes (largest first)."""
+    cov = session_coverage(db, files, QualityCache(), session_id, params, with_grid=False)
+    reasons: dict[str, int] = {}
+    for f in cov.pop("frames"):
+        if f["why_not"]:
+            reasons[f["why_not"]] = reasons.get(f["why_not"], 0) + 1
+    return cov | {"frames_not_counted_by_reason": reasons}
 
 
 def _why_missing(job: Job | None) -> str:

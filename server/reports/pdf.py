@@ -3,7 +3,6 @@ numbered defects, defect table with thumbnails, 3D map snapshot, processing para
 
 from __future__ import annotations
 
-import json
 import uuid
 from collections.abc import Callable
 from pathlib import Path
@@ -24,11 +23,13 @@ from reportlab.platypus import (
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from processing.coverage import CoverageParams
 from processing.poses import parse_tum
 from processing.snapshot import render_points
 from server.errors import NotFound
 from server.reports.content import build_report, read_json
 from server.reports.fields import CONDITION_MEANING, CONDITION_STATES
+from server.reports.pdf_sections import coverage_section, parameters_appendix
 from server.reports.pdf_style import (
     BODY_W,
     MARGIN,
@@ -136,6 +137,7 @@ def _summary(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]
     cs_table = grid_table(cs_rows, [35 * mm, 50 * mm, 25 * mm])
     cs_table.hAlign = "LEFT"
     story += [para("Defects by condition state", st["h2"]), cs_table]
+    story += coverage_section(report.get("coverage"), st)
     for note in report["notes"]:
         story += [Spacer(1, 2 * mm), para(note, st["note"])]
     return story
@@ -236,56 +238,6 @@ def _clip(text: str | None, chars: int = 200, lines: int = 6) -> str | None:
     return text if short == text else short.rstrip() + " … (in full below)"
 
 
-def _parameters(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]:
-    story: list[Any] = [
-        para("Appendix — processing parameters and calibration", st["h1"]),
-        para(
-            "The parameters each processing stage ran with and the sensors' calibration, for "
-            "repeating or auditing the results.",
-            st["body"],
-        ),
-    ]
-    if not report["parameters"]:
-        return story + [para("No processing job has finished for this session.", st["body"])]
-    for kind, params in report["parameters"].items():
-        flat = _flatten(params)
-        rows = [["Parameter", "Value"]] + [[k, para(v, st["small"])] for k, v in flat.items()]
-        if len(rows) == 1:
-            rows.append(["(defaults)", ""])
-        story += [
-            para(
-                {
-                    "stitch": "Mosaic (stitching)",
-                    "map": "3D map (ICP)",
-                    "detect": "Defect detection",
-                }.get(kind, kind),
-                st["h2"],
-            ),
-            grid_table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5),
-        ]
-    cal = report.get("calibration") or {}
-    if cal:
-        rows = [["Calibration", "Value"]] + [
-            [k, para(v, st["small"])] for k, v in _flatten(cal).items()
-        ]
-        story += [
-            para("Sensor calibration", st["h2"]),
-            grid_table(rows, [70 * mm, BODY_W - 70 * mm], font_size=7.5),
-        ]
-    return story
-
-
-def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, str]:
-    out: dict[str, str] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out |= _flatten(v, key + ".")
-        else:
-            out[key] = json.dumps(v) if isinstance(v, (list, tuple)) else str(v)
-    return out
-
-
 def _footer(structure: str) -> Callable[[Any, Any], None]:
     def draw(canvas: Any, doc: Any) -> None:
         canvas.saveState()
@@ -348,7 +300,7 @@ def write_report_pdf(
         ]
     else:
         story.append(para(_missing(report, "No 3D map"), st["body"]))
-    story += [PageBreak()] + _parameters(report, st)
+    story += [PageBreak()] + parameters_appendix(report, st)
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     footer = _footer(report["cover"]["structure"])
     doc = SimpleDocTemplate(
@@ -372,10 +324,18 @@ def write_report_pdf(
 
 
 def write_pdf(
-    db: Session, files: SessionFiles, session_id: str, path: Path, *, base_url: str = ""
+    db: Session,
+    files: SessionFiles,
+    session_id: str,
+    path: Path,
+    *,
+    base_url: str = "",
+    coverage: CoverageParams | None = None,
 ) -> Path:
     """Build the report of a session and write it as PDF to ``path`` (atomically)."""
-    report = build_report(db, files, session_id, base_url=base_url)
+    report = build_report(
+        db, files, session_id, base_url=base_url, coverage=coverage or CoverageParams()
+    )
     results = files.results_dir(session_id)
     overview, scale = None, 1.0
     if "stitch" not in report["missing"]:

@@ -92,6 +92,27 @@ def test_report_json_summarises_the_session(inspected: tuple[LiveServer, str]) -
     assert all(d["length_mm"] and d["world_x_m"] is not None for d in report["defects"])
     assert [d["number"] for d in report["defects"]] == list(range(1, s["defects"] + 1))
     assert set(report["parameters"]) == {"stitch", "map", "detect"}
+    # coverage: the simulated lanes overlap, so nearly all the surface in view counts
+    cov = report["coverage"]
+    assert 0.9 < cov["fraction_imaged"] <= 1.0 and cov["frames_not_counted"] == 0
+    assert cov["area_surface_m2"] == pytest.approx(s["area_covered_m2"], rel=0.25)
+
+
+def test_coverage_of_the_session_with_frames_holes_and_a_grid(
+    inspected: tuple[LiveServer, str],
+) -> None:
+    live, sid = inspected
+    cov = httpx.get(f"{live.url}/api/sessions/{sid}/coverage").raise_for_status().json()
+    frames = httpx.get(f"{live.url}/api/sessions/{sid}/frames", params={"limit": 1}).json()
+    assert len(cov["frames"]) == frames["count"]
+    assert all(f["counts"] and len(f["footprint"]) == 4 for f in cov["frames"])
+    assert cov["camera_mm_per_px"] < cov["required_mm_per_px"] == 0.3
+    grid = cov["grid"]
+    assert grid["rows"] == len(grid["holes_rle"]) > 10 and grid["cols"] > 10
+    hole_cells = sum(sum(r[1::2]) for r in grid["holes_rle"])
+    gaps = cov["area_surface_m2"] - cov["area_imaged_m2"]
+    assert hole_cells * grid["cell_m"] ** 2 == pytest.approx(gaps, abs=1e-9)
+    assert httpx.get(f"{live.url}/api/sessions/nope/coverage").status_code == 404
 
 
 def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, str]) -> None:
@@ -158,6 +179,8 @@ def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, 
         "Defects",
         "3D map of the structure",
         "Appendix — processing parameters",
+        "Coverage",
+        "mm/px, sharp and exposed",
         "CS3",
         "Riß at weld toe",
         "confirmed",

@@ -3,6 +3,7 @@
 from server.api.routes import (
     auth,
     clouds,
+    coverage,
     defects,
     frames,
     jobs,
@@ -22,6 +23,7 @@ ROUTERS = [
         frames,
         clouds,
         telemetry,
+        coverage,
         defects,
         results,
         reports,

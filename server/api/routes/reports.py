@@ -10,6 +10,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from sqlalchemy import select
 
+from processing.coverage import CoverageParams
 from server.api.accounts import has_role
 from server.api.deps import CurrentUser, OperatorUser, SessionDep, StateDep, get_current_user
 from server.api.queries import get_session_or_404
@@ -43,7 +44,13 @@ def read_report_json(
 ) -> dict[str, Any]:
     """The inspection report as data: cover, summary, defects, results, parameters, notes on what is missing."""
     get_session_or_404(db, session_id)
-    return build_report(db, state.files, session_id, base_url=_base_url(request))
+    return build_report(
+        db, state.files, session_id, base_url=_base_url(request), coverage=_coverage(state)
+    )
+
+
+def _coverage(state: Any) -> CoverageParams:
+    return CoverageParams(required_mm_per_px=state.settings.coverage_mm_per_px)
 
 
 @router.get("/{session_id}/report.pdf", response_class=FileResponse)
@@ -55,7 +62,13 @@ async def read_report_pdf(
     out = state.files.results_dir(session_id)
     out.mkdir(parents=True, exist_ok=True)
     path = await run_in_threadpool(
-        write_pdf, db, state.files, session_id, out / "report.pdf", base_url=_base_url(request)
+        write_pdf,
+        db,
+        state.files,
+        session_id,
+        out / "report.pdf",
+        base_url=_base_url(request),
+        coverage=_coverage(state),
     )
     return FileResponse(path, media_type="application/pdf", filename=_filename(s, "-report.pdf"))
 

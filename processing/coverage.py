@@ -1,0 +1,180 @@
+"""Coverage of the inspected surface: which part the camera imaged well enough to count,
+and where the holes are.
+
+A frame counts when its resolution meets the required one (mm per pixel, from the camera's
+calibration), it is sharp compared with the session's other frames, and it is exposed
+(its brightest pixels are not all dark). The surface "in view" is the convex hull of every
+frame's footprint (or a declared surface outline); a hole is a connected part of it that no
+counting frame imaged. Pure functions: arrays and dataclasses in and out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from processing.poses import image_to_world
+
+
+@dataclass(frozen=True)
+class CoverageParams:
+    """How coverage is judged (no number here is tied to one camera or structure)."""
+
+    required_mm_per_px: float = 0.3  # finest detail the inspection must resolve
+    min_sharpness_ratio: float = 0.35  # of the session's median frame sharpness
+    min_frames_for_sharpness: int = 5  # fewer frames: no median to compare with
+    dark_level: int = 64  # a frame whose 95th-percentile grey is below this is too dark
+    cells_per_footprint: int = 40  # grid cell: the footprint's shorter side over this
+
+
+@dataclass(frozen=True)
+class FrameQuality:
+    """Sharpness (variance of the Laplacian, grey levels²) and exposure of one frame."""
+
+    sharpness: float
+    bright_level: float  # 95th percentile of grey
+
+
+@dataclass(frozen=True)
+class Hole:
+    """A part of the surface no counting frame imaged (metres, world frame)."""
+
+    x_m: float  # centroid
+    y_m: float
+    bbox_m: tuple[float, float, float, float]  # x, y, w, h
+    area_m2: float
+
+
+@dataclass
+class Coverage:
+    """The coverage grid and what it says."""
+
+    origin_m: tuple[float, float]  # world (x, y) of cell (0, 0)'s corner
+    cell_m: float
+    imaged: NDArray[np.bool_]  # (rows, cols): imaged by a counting frame
+    surface: NDArray[np.bool_]  # (rows, cols): the surface in view
+    holes: list[Hole] = field(default_factory=list)
+
+    @property
+    def area_imaged_m2(self) -> float:
+        return float((self.imaged & self.surface).sum()) * self.cell_m**2
+
+    @property
+    def area_surface_m2(self) -> float:
+        return float(self.surface.sum()) * self.cell_m**2
+
+    @property
+    def fraction(self) -> float:
+        return self.area_imaged_m2 / self.area_surface_m2 if self.surface.any() else 0.0
+
+
+def frame_quality(gray: NDArray[np.uint8]) -> FrameQuality:
+    """Sharpness and exposure of a grey image (H, W) uint8."""
+    sharp = float(cv2.Laplacian(gray, cv2.CV_32F).var())
+    return FrameQuality(sharp, float(np.percentile(gray, 95)))
+
+
+def frame_verdicts(
+    qualities: Sequence[FrameQuality | None], mm_per_px: float | None, params: CoverageParams
+) -> list[str]:
+    """Per frame: "" when it counts, else why not (unreadable, too coarse, blurred, dark)."""
+    if mm_per_px is None:
+        return ["no camera scale in the calibration"] * len(qualities)
+    if mm_per_px > params.required_mm_per_px:
+        coarse = f"{mm_per_px:.2f} mm/px is coarser than the required {params.required_mm_per_px:g}"
+        return [coarse] * len(qualities)
+    sharp = [q.sharpness for q in qualities if q is not None]
+    median = float(np.median(sharp)) if len(sharp) >= params.min_frames_for_sharpness else 0.0
+    out = []
+    for q in qualities:
+        if q is None:
+            out.append("unreadable")
+        elif q.bright_level < params.dark_level:
+            out.append("too dark")
+        elif q.sharpness < params.min_sharpness_ratio * median:
+            out.append("blurred")
+        else:
+            out.append("")
+    return out
+
+
+def footprint(
+    camera_pose: NDArray[np.floating], px_per_m: float, size: tuple[int, int]
+) -> NDArray[np.float64]:
+    """World corners (4, 2) of a downward-camera image of ``size`` (w, h) at ``camera_pose``."""
+    w, h = size
+    corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], dtype=np.float64) - 0.5
+    return image_to_world(corners, camera_pose, px_per_m, size)
+
+
+def coverage_map(
+    footprints: Sequence[NDArray[np.floating]],
+    counts: Sequence[bool],
+    params: CoverageParams = CoverageParams(),
+    surface_outline: NDArray[np.floating] | None = None,
+) -> Coverage:
+    """Rasterise the footprints (each (4, 2) metres) of the frames that count onto a grid
+    over the surface in view (``surface_outline`` (N, 2), else the hull of all footprints)
+    and find the holes."""
+    if not len(footprints):
+        empty = np.zeros((0, 0), bool)
+        return Coverage((0.0, 0.0), 1.0, empty, empty)
+    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in footprints]
+    short = min(float(np.linalg.norm(p[1] - p[0])) for p in polys)
+    short = min(short, min(float(np.linalg.norm(p[2] - p[1])) for p in polys))
+    cell = max(short, 1e-6) / params.cells_per_footprint
+    every = np.vstack(
+        polys + ([np.asarray(surface_outline)] if surface_outline is not None else [])
+    )
+    lo = every.min(axis=0) - cell
+    cols, rows = (np.ceil((every.max(axis=0) + cell - lo) / cell).astype(int) + 1).tolist()
+
+    def cells(p: NDArray[np.float64]) -> NDArray[np.int32]:
+        return np.round((p - lo) / cell - 0.5).astype(np.int32).reshape(-1, 1, 2)
+
+    imaged = np.zeros((rows, cols), np.uint8)
+    for p, ok in zip(polys, counts):  # one at a time: fillPoly XORs overlapping contours
+        if ok:
+            cv2.fillPoly(imaged, [cells(p)], 1)
+    surface = np.zeros_like(imaged)
+    if surface_outline is not None:
+        outline = cells(np.asarray(surface_outline, dtype=np.float64))
+    else:  # the hull of the footprints' own corner cells: its edges rasterise as theirs do
+        outline = cv2.convexHull(np.vstack([cells(p) for p in polys]))
+    cv2.fillPoly(surface, [outline], 1)
+    result = Coverage((float(lo[0]), float(lo[1])), cell, imaged.astype(bool), surface.astype(bool))
+    result.holes = find_holes(result, min_cells=params.cells_per_footprint // 4)
+    return result
+
+
+def hole_mask(cov: Coverage) -> NDArray[np.bool_]:
+    """(rows, cols) the surface not imaged."""
+    return cov.surface & ~cov.imaged
+
+
+def find_holes(cov: Coverage, min_cells: int = 1) -> list[Hole]:
+    """Connected parts of the surface not imaged (at least ``min_cells`` cells each),
+    largest first."""
+    n, _, stats, centroids = cv2.connectedComponentsWithStats(
+        hole_mask(cov).astype(np.uint8), connectivity=4
+    )
+    ox, oy = cov.origin_m
+    holes = []
+    for i in range(1, n):
+        x, y, w, h, area = stats[i]
+        if area < max(min_cells, 1):
+            continue
+        cx, cy = centroids[i]
+        holes.append(
+            Hole(
+                ox + (cx + 0.5) * cov.cell_m,
+                oy + (cy + 0.5) * cov.cell_m,
+                (ox + x * cov.cell_m, oy + y * cov.cell_m, w * cov.cell_m, h * cov.cell_m),
+                float(area) * cov.cell_m**2,
+            )
+        )
+    return sorted(holes, key=lambda h: -h.area_m2)

@@ -1,0 +1,36 @@
+"""A session's coverage: what the camera imaged well enough, and the holes."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Query
+from starlette.concurrency import run_in_threadpool
+
+from processing.coverage import CoverageParams
+from server.api.deps import SessionDep, StateDep, get_current_user
+from server.api.queries import get_session_or_404
+from server.reports.coverage import session_coverage
+
+router = APIRouter(
+    prefix="/api/sessions", tags=["coverage"], dependencies=[Depends(get_current_user)]
+)
+
+
+@router.get("/{session_id}/coverage")
+async def read_coverage(
+    db: SessionDep,
+    state: StateDep,
+    session_id: str,
+    grid: Annotated[bool, Query(description="include the hole grid for drawing")] = True,
+) -> dict[str, Any]:
+    """The surface the camera imaged at the required resolution (``STEELSCAN_COVERAGE_MM_PER_PX``),
+    sharp and exposed, against the surface in view (the hull of all frame footprints): each
+    frame's footprint and whether it counts (else why not), the areas, and the holes with
+    their positions (metres, world frame), largest first. Live sessions grow as frames
+    arrive."""
+    get_session_or_404(db, session_id)
+    params = CoverageParams(required_mm_per_px=state.settings.coverage_mm_per_px)
+    return await run_in_threadpool(
+        session_coverage, db, state.files, state.quality, session_id, params, with_grid=grid
+    )

@@ -1,0 +1,130 @@
+"""A session's coverage, from its stored frames: each frame's footprint placed by its pose
+(odometry at capture) and the camera calibration, judged by :mod:`processing.coverage`
+(resolution, sharpness, exposure), rasterised, holes listed. Frame qualities are cached:
+a live session's map is asked for every second or two and only new frames are read."""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from typing import Any
+
+import cv2
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from processing.coverage import (
+    CoverageParams,
+    FrameQuality,
+    coverage_map,
+    footprint,
+    frame_quality,
+    frame_verdicts,
+    hole_mask,
+)
+from processing.poses import compose_se2
+from server.storage.files import SessionFiles
+from server.storage.models import Frame, InspectionSession
+
+MAX_CACHED = 200_000
+
+
+class QualityCache:
+    """Frame qualities by (session, seq), least recently used dropped beyond a bound."""
+
+    def __init__(self, limit: int = MAX_CACHED) -> None:
+        self.limit = limit
+        self._items: OrderedDict[tuple[str, int], FrameQuality | None] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, files: SessionFiles, frame: Frame) -> FrameQuality | None:
+        key = (frame.session_id, frame.seq)
+        with self._lock:
+            if key in self._items:
+                self._items.move_to_end(key)
+                return self._items[key]
+        quality = _measure(files, frame)
+        with self._lock:
+            self._items[key] = quality
+            while len(self._items) > self.limit:
+                self._items.popitem(last=False)
+        return quality
+
+
+def _measure(files: SessionFiles, frame: Frame) -> FrameQuality | None:
+    try:
+        data = np.frombuffer(files.payload(frame), np.uint8)
+    except (OSError, ValueError):
+        return None
+    gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+    return frame_quality(gray) if gray is not None else None
+
+
+def session_coverage(
+    db: Session,
+    files: SessionFiles,
+    cache: QualityCache,
+    session_id: str,
+    params: CoverageParams,
+    *,
+    with_grid: bool = True,
+) -> dict[str, Any]:
+    """The coverage of a session as JSON: frames (footprint corners, verdict), surface and
+    imaged areas, holes, and (``with_grid``) the grid as run-length rows for drawing."""
+    s = db.get(InspectionSession, session_id)
+    camera = (s.calibration or {}).get("camera", {}) if s is not None else {}
+    px_per_m = float(camera.get("px_per_m") or 0) or None
+    T_rc = np.asarray(camera.get("T_robot_camera", [0.0, 0.0, 0.0]), dtype=np.float64)
+    frames = list(
+        db.scalars(
+            select(Frame)
+            .where(Frame.session_id == session_id, Frame.pose_x.is_not(None))
+            .order_by(Frame.seq)
+        )
+    )
+    mm_per_px = 1000.0 / px_per_m if px_per_m else None
+    verdicts = frame_verdicts([cache.get(files, f) for f in frames], mm_per_px, params)
+    polys = []
+    if px_per_m:
+        for f in frames:
+            cam = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw or 0.0]), T_rc)
+            polys.append(footprint(cam, px_per_m, (f.width, f.height)))
+    cov = coverage_map(polys, [not v for v in verdicts], params)
+    out: dict[str, Any] = {
+        "required_mm_per_px": params.required_mm_per_px,
+        "camera_mm_per_px": mm_per_px,
+        "frames": [
+            {
+                "seq": f.seq,
+                "footprint": poly.round(4).tolist(),
+                "counts": not verdict,
+                "why_not": verdict or None,
+            }
+            for f, poly, verdict in zip(frames, polys, verdicts)
+        ],
+        "frames_not_counted": sum(1 for v in verdicts if v),
+        "area_surface_m2": cov.area_surface_m2,
+        "area_imaged_m2": cov.area_imaged_m2,
+        "fraction_imaged": cov.fraction,
+        "holes": [
+            {"x_m": h.x_m, "y_m": h.y_m, "bbox_m": list(h.bbox_m), "area_m2": h.area_m2}
+            for h in cov.holes
+        ],
+    }
+    if with_grid:
+        out["grid"] = {
+            "origin_m": list(cov.origin_m),
+            "cell_m": cov.cell_m,
+            "rows": int(cov.surface.shape[0]),
+            "cols": int(cov.surface.shape[1]) if cov.surface.ndim == 2 else 0,
+            "holes_rle": [_runs(row) for row in hole_mask(cov)],
+        }
+    return out
+
+
+def _runs(row: np.ndarray) -> list[int]:
+    """Start and length of each run of True in a row, flattened."""
+    padded = np.concatenate([[0], row.astype(np.int8), [0]])
+    edges = np.flatnonzero(np.diff(padded))
+    return np.column_stack([edges[0::2], edges[1::2] - edges[0::2]]).ravel().tolist()
