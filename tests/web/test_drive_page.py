@@ -151,3 +151,39 @@ def test_after_the_session_ends_the_page_shows_no_stale_video_or_telemetry(
         assert "battery" not in other.inner_text("#telemetry")
         browser.close()
     assert errors == []
+
+
+def test_the_coverage_map_shows_the_frames_and_the_gap_left_between_lanes(
+    live_server: LiveServer, robot: TeleopRobot
+) -> None:
+    """Two lanes of frames captured from the page with a strip between them left out: the
+    Drive page's coverage map places every frame, says how much is imaged and lists the
+    one hole where the strip is."""
+    from playwright.sync_api import sync_playwright
+
+    sim = robot.sim
+    sim.auto_capture = False
+    along, across = sim.camera.footprint_m
+    gap = 0.04
+    spots = [(0.35 + i * along * 0.8, 0.3) for i in range(4)]
+    spots += [(x, 0.3 + across + gap) for x, _ in spots]
+    errors: list[str] = []
+    with sync_playwright() as pw:
+        browser, page = open_page(pw, live_server.url, errors, 1440, 900)
+        for i, (x, y) in enumerate(spots):
+            sim.robot.pose[:] = sim.robot.odom[:] = (x, y, 0.0)
+            page.wait_for_timeout(300)  # a telemetry sample at the new place
+            page.click("button[data-cmd=capture]")
+            wait_js(
+                page, f"Number(document.querySelector('#coverage-map').dataset.frames) >= {i + 1}"
+            )
+        wait_js(page, "document.querySelectorAll('#coverage-holes li').length === 1")
+        summary = page.inner_text("#coverage-summary")
+        assert "imaged at ≤ 0.3 mm/px" in summary and "1 hole" in summary
+        hole = page.inner_text("#coverage-holes li")
+        y_gap = 0.3 + across / 2 + gap / 2
+        assert f"y {y_gap:.2f} m" in hole, hole
+        assert f"× {gap * 100:.0f} cm" in hole, hole
+        shot(page, "drive-coverage")
+        browser.close()
+    assert errors == []

@@ -1,5 +1,6 @@
 // The dashboard: sign-in, the live link, and three views (#/drive, #/sessions, #/session/<id>).
 import { api, apiJSON, onSignedOut, setToken, text } from "./api.js";
+import { initCoverage } from "./coverage.js";
 import { initDrive } from "./drive.js";
 import { connect, on } from "./live.js";
 import { initReview, showSession } from "./review.js";
@@ -82,6 +83,7 @@ async function start() {
   started = true;
   initDrive();
   initTelemetry();
+  initCoverage();
   initReview();
   initSessions();
   document.getElementById("sign-out").addEventListener("click", signOut);
