@@ -280,7 +280,8 @@ class InspectionSim:
     def clock(self) -> float:
         """The robot's clock (s since the epoch): simulated time, which runs ``time_scale``
         times faster than the wall's, so a session's timestamps span the inspection's time."""
-        return round(self._epoch0 + self._sim_t, 6)  # a microsecond clock, like a robot's
+        # whole nanoseconds, as time.time() gives them (and MCAP stores them)
+        return round((self._epoch0 + self._sim_t) * 1e9) / 1e9
 
     async def _send(self, mtype: MessageType, meta: dict[str, Any], payload: bytes = b"") -> int:
         return await self.link.send(mtype, meta, payload, timestamp=self.clock())

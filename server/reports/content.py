@@ -194,6 +194,8 @@ def _defect_record(d: Defect, number: int, base_url: str) -> dict[str, Any]:
         "reviewed_at": _iso(d.reviewed_at),
     }
     rec["thumbnail_url"] = f"{base_url}/api/sessions/{d.session_id}/defects/{d.id}/thumbnail.jpg"
+    # the dashboard opens on this defect, its frames a click away (the PDF links its number)
+    rec["dashboard_url"] = f"{base_url}/#/session/{d.session_id}/defect/{number}"
     return rec
 
 

@@ -7,6 +7,7 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+from xml.sax.saxutils import escape
 
 import cv2
 import numpy as np
@@ -17,6 +18,7 @@ from reportlab.lib.units import mm
 from reportlab.platypus import (
     KeepTogether,
     PageBreak,
+    Paragraph,
     SimpleDocTemplate,
     Spacer,
 )
@@ -188,7 +190,7 @@ def _defect_table(
         review = d["review_status"] + (f"\nby {d['reviewed_by']}" if d.get("reviewed_by") else "")
         rows.append(
             [
-                str(d["number"]),
+                _number_link(d, st),
                 cell,
                 d["defect_class"],
                 fmt_num(d["length_mm"]),
@@ -208,6 +210,17 @@ def _defect_table(
         story += [Spacer(1, 3 * mm), para("Comments in full", st["h2"])]
         story += [para(f"#{d['number']}: {d['comment']}", st["body"]) for d in long]
     return story
+
+
+def _number_link(d: dict[str, Any], st: dict[str, ParagraphStyle]) -> Any:
+    """The defect's number, linked to the dashboard on that defect when the report knows
+    the station's address."""
+    url = d.get("dashboard_url", "")
+    if not url.startswith(("http://", "https://")):
+        return str(d["number"])
+    return Paragraph(
+        f'<a href="{escape(url)}" color="#1f3a5f"><u>{d["number"]}</u></a>', st["cell"]
+    )
 
 
 def duration_text(seconds: float | None) -> str:

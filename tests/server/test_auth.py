@@ -98,10 +98,12 @@ def test_open_until_the_first_account_then_401_and_403(live_server: LiveServer) 
         ).status_code
         == 403
     )
-    # viewers download what exists but neither queue exports nor change the shared 3D view
+    # viewers download what exists but do not queue exports; they open a session's own 3D
+    # view (it changes no one else's); without a token nobody does
     mcap = f"{url}/api/sessions/{sid}/export.mcap"
     assert httpx.get(mcap, headers=viewer).status_code == 403
-    assert httpx.post(f"{url}/api/sessions/{sid}/view3d", headers=viewer).status_code == 403
+    assert httpx.post(f"{url}/api/sessions/{sid}/view3d", headers=viewer).status_code == 200
+    assert httpx.post(f"{url}/api/sessions/{sid}/view3d").status_code == 401
     assert httpx.get(mcap, headers=operator).status_code == 202
     # static pages and the OpenAPI document stay reachable, framed by no other site
     page = httpx.get(f"{url}/")

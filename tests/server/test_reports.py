@@ -8,6 +8,7 @@ import asyncio
 import csv
 import io
 import json
+import math
 import re
 import subprocess
 import sys
@@ -113,6 +114,31 @@ def test_coverage_of_the_session_with_frames_holes_and_a_grid(
     gaps = cov["area_surface_m2"] - cov["area_imaged_m2"]
     assert hole_cells * grid["cell_m"] ** 2 == pytest.approx(gaps, abs=1e-9)
     assert httpx.get(f"{live.url}/api/sessions/nope/coverage").status_code == 404
+
+
+def test_each_defect_was_seen_in_the_frames_over_it(inspected: tuple[LiveServer, str]) -> None:
+    """The frames a defect is replayed from: those whose footprint holds its centre, with
+    the pose and the telemetry of that moment; a frame defect's own frame among them."""
+    live, sid = inspected
+    api = f"{live.url}/api/sessions/{sid}"
+    mosaic = httpx.get(f"{api}/defects", params={"source": "mosaic"}).json()["data"]
+    frame_defect = httpx.get(f"{api}/defects", params={"source": "frame", "limit": 1}).json()
+    for d in mosaic[:3]:
+        seen = httpx.get(f"{api}/defects/{d['id']}/sightings").raise_for_status().json()
+        assert seen, d  # every mosaic defect lies under some frame
+        times = [s["t_s"] for s in seen]
+        assert times == sorted(times) and times[0] >= 0
+        cx = d["world_x_m"] + d["world_w_m"] / 2
+        for s in seen:  # the camera (behind the robot) was within a footprint of the defect
+            camera_x = s["pose"]["x"] - 0.12 * math.cos(s["pose"]["yaw"])
+            assert abs(camera_x - cx) < 0.2
+            assert abs(s["telemetry"]["dt_s"]) < 1.0 and "battery_v" in s["telemetry"]["data"]
+            image = httpx.get(live.url + s["image_url"])
+            assert image.status_code == 200 and image.content[:2] == b"\xff\xd8"
+    fd = frame_defect["data"][0]
+    own = httpx.get(f"{api}/defects/{fd['id']}/sightings").json()
+    assert fd["frame_seq"] in [s["seq"] for s in own]
+    assert httpx.get(f"{api}/defects/999999/sightings").status_code == 404
 
 
 def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, str]) -> None:

@@ -47,6 +47,7 @@ def shot(page, name: str) -> None:  # type: ignore[no-untyped-def]
 def watch_errors(page, errors: list[str], foreign: list[str]) -> None:  # type: ignore[no-untyped-def]
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("response", lambda r: errors.append(f"{r.status} {r.url}") if r.status >= 400 else None)
     page.on(
         "request",
         lambda r: (
@@ -223,6 +224,25 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
         ]
         assert lengths == sorted(lengths, reverse=True)
         shot(page, "session-review")
+        # from a report's defect link to the frames it was seen in: the link opens the page on
+        # that defect, one click on the strip shows a frame with the moment's telemetry
+        report = httpx.get(f"{live_server.url}/api/sessions/{sid}/report.json").json()
+        link = report["defects"][1]["dashboard_url"]
+        assert link.endswith(f"/#/session/{sid}/defect/2")
+        page.goto("about:blank")
+        page.goto(link)
+        page.wait_for_selector("#defects tr.selected", timeout=20000)
+        assert page.inner_text("#defects tr.selected td:first-child") == "#2"
+        page.wait_for_selector("#replay .replay-thumb", timeout=20000)
+        thumbs = page.locator("#replay .replay-thumb")
+        assert "Seen in" in page.inner_text("#replay h4")
+        thumbs.nth(thumbs.count() - 1).click()
+        last = page.get_attribute(".replay-thumb.selected", "data-seq")
+        wait_js(page, f"document.querySelector('#replay').dataset.shown === '{last}'")
+        caption = page.inner_text(".replay-caption")
+        assert f"frame {last}" in caption and "battery" in caption and "heading" in caption
+        wait_js(page, "document.querySelector('.replay-frame').naturalWidth > 0")
+        shot(page, "session-replay")
         # downloads from the page
         with page.expect_download(timeout=120000) as dl:
             page.click("#exports button[data-export='report.pdf']")

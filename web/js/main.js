@@ -51,13 +51,13 @@ async function signOut() {
 function route() {
   if (!started) return;
   const hash = location.hash || "#/drive";
-  const [, name, id] = hash.split("/");
+  const [, name, id, sub, number] = hash.split("/");
   const viewName = name === "session" && id ? "session" : name === "sessions" ? "sessions" : "drive";
   document.querySelectorAll("main.view").forEach((m) => { m.hidden = m.id !== `view-${viewName}`; });
   document.querySelectorAll("nav a").forEach((a) => a.classList.toggle("active", a.dataset.view === viewName
     || (viewName === "session" && a.dataset.view === "sessions")));
   if (viewName === "sessions") loadSessions().catch(() => {});
-  if (viewName === "session") showSession(id).catch((e) => text(document.getElementById("session-detail"), `cannot show the session: ${e.message}`));
+  if (viewName === "session") showSession(id, sub === "defect" ? number : null).catch((e) => text(document.getElementById("session-detail"), `cannot show the session: ${e.message}`));
 }
 
 document.getElementById("login").addEventListener("submit", async (e) => {

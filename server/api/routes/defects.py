@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query
 from fastapi.concurrency import run_in_threadpool
@@ -25,6 +25,7 @@ from server.api.schemas import (
     DefectsPublic,
     ReviewStatus,
 )
+from server.reports.sightings import defect_sightings
 from server.storage.models import Defect, utcnow
 from server.storage.thumbnails import defect_image, encode_jpeg
 
@@ -111,3 +112,13 @@ async def read_defect_thumbnail(
         media_type="image/jpeg",
         headers={"Cache-Control": "private, max-age=60"},
     )
+
+
+@router.get("/{session_id}/defects/{defect_id}/sightings")
+def read_defect_sightings(
+    db: SessionDep, session_id: str, defect_id: DefectId
+) -> list[dict[str, Any]]:
+    """The camera frames the defect was seen in, oldest first: each with its time (robot
+    clock, and seconds since the session's first frame), the robot's pose, the telemetry
+    sample nearest that moment and the URL of its image."""
+    return defect_sightings(db, get_defect_or_404(db, session_id, defect_id))
