@@ -1,4 +1,5 @@
-"""defect numbers: one human-sized number per session and source, in order along the structure
+"""defect numbers (one per session and source, in order along the structure) and defects
+drawn by hand
 
 Revision ID: 0006
 Revises: 0005
@@ -19,6 +20,7 @@ depends_on = None
 def upgrade() -> None:
     with op.batch_alter_table("defects", schema=None) as batch_op:
         batch_op.add_column(sa.Column("number", sa.Integer(), nullable=True))
+        batch_op.add_column(sa.Column("drawn_by", sa.String(length=200), nullable=True))
     # existing defects: numbered as the reports listed them (across, then along the structure)
     op.execute(
         """
@@ -38,4 +40,5 @@ def upgrade() -> None:
 
 def downgrade() -> None:
     with op.batch_alter_table("defects", schema=None) as batch_op:
+        batch_op.drop_column("drawn_by")
         batch_op.drop_column("number")

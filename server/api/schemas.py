@@ -166,6 +166,7 @@ class DefectPublic(ORM):
     comment: str
     reviewed_by: str | None = None
     reviewed_at: datetime | None = None
+    drawn_by: str | None = Field(default=None, description="who drew it by hand, if someone did")
 
 
 ReviewStatus = Literal["unreviewed", "confirmed", "rejected"]
@@ -182,6 +183,19 @@ class DefectReview(BaseModel):
         default=False, description="set the condition state back to none"
     )
     comment: Text | None = Field(default=None, max_length=2000)
+
+
+class DefectCreate(BaseModel):
+    """A defect the detector missed, drawn by a reviewer as a box on the mosaic (pixels)."""
+
+    model_config = ConfigDict(extra="forbid")
+    defect_class: Literal["crack", "corrosion"]
+    bbox_x: int = Field(ge=0, le=10_000_000)
+    bbox_y: int = Field(ge=0, le=10_000_000)
+    bbox_w: int = Field(ge=1, le=1_000_000)
+    bbox_h: int = Field(ge=1, le=1_000_000)
+    condition_state: ConditionState | None = None
+    comment: Text = Field(default="", max_length=2000)
 
 
 class DefectsPublic(BaseModel):

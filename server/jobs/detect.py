@@ -175,17 +175,19 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
         )
         mosaic_rows.append(_defect_row(ctx, d, "mosaic", referenced, placed))
     with ctx.factory() as db:
-        reviewed = list(
+        ours = (Defect.session_id == ctx.session_id) & Defect.drawn_by.is_(None)
+        reviewed = list(db.scalars(select(Defect).where(ours, Defect.reviewed_by.is_not(None))))
+        kept = carry_reviews(reviewed, frame_rows + mosaic_rows)
+        db.execute(delete(Defect).where(ours))  # defects drawn by hand stay
+        drawn = list(
             db.scalars(
                 select(Defect).where(
-                    Defect.session_id == ctx.session_id, Defect.reviewed_by.is_not(None)
+                    Defect.session_id == ctx.session_id, Defect.drawn_by.is_not(None)
                 )
             )
         )
-        kept = carry_reviews(reviewed, frame_rows + mosaic_rows)
-        db.execute(delete(Defect).where(Defect.session_id == ctx.session_id))
         number_defects(frame_rows)
-        number_defects(mosaic_rows)
+        number_defects(mosaic_rows + drawn)
         db.add_all(frame_rows + mosaic_rows)
         db.commit()
     by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}

@@ -212,3 +212,4 @@ class Defect(Base):
     comment: Mapped[str] = mapped_column(Text, default="")
     reviewed_by: Mapped[str | None] = mapped_column(String(200))
     reviewed_at: Mapped[datetime | None]
+    drawn_by: Mapped[str | None] = mapped_column(String(200))  # a defect a reviewer drew

@@ -223,6 +223,46 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
             if t != "–"
         ]
         assert lengths == sorted(lengths, reverse=True)
+        # filters hide the boxes on the mosaic too
+        page.select_option("#filter-class", "corrosion")
+        rows = page.locator("#defects tr[data-defect]").count()
+        assert page.locator(".defect-box:visible").count() == rows
+        page.select_option("#filter-class", "")
+        # the viewer's legend, scale bar and the cursor's place on the structure
+        assert "corrosion" in page.inner_text(".mosaic-legend")
+        viewer = page.locator("#mosaic-viewer").bounding_box()
+        cx, cy = viewer["x"] + viewer["width"] / 2, viewer["y"] + viewer["height"] / 2
+        page.mouse.move(cx, cy)
+        wait_js(
+            page,
+            "/^x [0-9.]+ m, y [0-9.]+ m$/.test(document.querySelector('#cursor-position').textContent)",
+        )
+        bar_px = page.locator("#scale-bar .bar").bounding_box()["width"]
+        bar_text = page.inner_text("#scale-bar span")
+        value, unit = bar_text.split()
+        bar_mm = float(value) * {"mm": 1, "cm": 10, "m": 1000}[unit]
+        # measuring: two clicks 200 screen pixels apart read as the scale bar says
+        page.click("#tool-measure")
+        page.mouse.click(cx - 100, cy)
+        page.mouse.click(cx + 100, cy)
+        wait_js(page, "document.querySelector('#tool-readout').dataset.mm > 0")
+        measured = float(page.get_attribute("#tool-readout", "data-mm"))
+        assert measured == pytest.approx(200 * bar_mm / bar_px, rel=0.03)
+        assert "mm" in page.inner_text("#tool-readout")
+        page.click("#tool-measure")  # off
+        # a missed defect drawn by hand: stored, numbered after the others, listed
+        count = page.locator("#defects tr[data-defect]").count()
+        page.click("#tool-draw")
+        page.select_option("#draw-class", "corrosion")
+        page.mouse.click(cx - 30, cy - 20)
+        page.mouse.click(cx + 30, cy + 20)
+        wait_js(
+            page, f"document.querySelectorAll('#defects tr[data-defect]').length === {count + 1}"
+        )
+        assert "drawn" in page.inner_text("#tool-readout")
+        new_row = page.locator("#defects tr.selected")
+        assert new_row.locator("td:first-child").inner_text() == f"#{count + 1}"
+        assert "corrosion" in new_row.inner_text()
         shot(page, "session-review")
         # from a report's defect link to the frames it was seen in: the link opens the page on
         # that defect, one click on the strip shows a frame with the moment's telemetry

@@ -1,6 +1,7 @@
 // One session: cover details, downloads, the mosaic in a pan-and-zoom viewer (OpenSeadragon
 // over the Deep Zoom pyramid) with the defects drawn on it, the defect table with filters,
 // sorting and review (confirm / reject, CS1–CS4, comment; keyboard shortcuts), the 3D view.
+import { attachTools, toolbar } from "./mosaic_tools.js";
 import { api, apiJSON, authHeaders, download, duration, el, fmt, patchJSON, text, token } from "./api.js";
 
 // column, heading, decimals: one format per quantity wherever it is shown
@@ -74,12 +75,15 @@ function renderTable() {
     return tr;
   }));
   text(document.getElementById("defect-count"), `${rows.length} of ${view.defects.length} defects`);
+  const shown = new Set(rows.map((d) => d.id));
+  view.defects.forEach((d) => styleOverlay(d, shown.has(d.id)));
 }
 
-function styleOverlay(d) {
+function styleOverlay(d, shown = true) {
   const box = view.overlays.get(d.id);
   if (!box) return;
   box.className = `defect-box ${d.defect_class} ${d.review_status}${d.id === view.selected ? " selected" : ""}`;
+  box.hidden = !shown;
 }
 
 function select(id, { pan = true } = {}) {
@@ -87,7 +91,8 @@ function select(id, { pan = true } = {}) {
   document.querySelectorAll("#defects tr[data-defect]").forEach((tr) => tr.classList.toggle("selected", Number(tr.dataset.defect) === id));
   const row = document.querySelector(`#defects tr[data-defect='${id}']`);
   row?.scrollIntoView({ block: "nearest" });
-  view.defects.forEach(styleOverlay);
+  const shown = new Set(visible().map((x) => x.id));
+  view.defects.forEach((x) => styleOverlay(x, shown.has(x.id)));
   const d = view.defects.find((x) => x.id === id);
   if (!d) return;
   const img = el("img", { alt: `defect ${label(d)}`, width: "192", height: "192" });
@@ -203,30 +208,52 @@ async function openViewer(s, stitch) {
   const source = { Image: { xmlns: "http://schemas.microsoft.com/deepzoom/2008", Url: `/api/sessions/${s.id}/mosaic_files/`,
     Format: xml.getAttribute("Format"), Overlap: xml.getAttribute("Overlap"), TileSize: xml.getAttribute("TileSize"),
     Size: { Width: size.getAttribute("Width"), Height: size.getAttribute("Height") } } };
+  const world = await apiJSON(`/api/sessions/${s.id}/results/mosaic.json`).catch(() => null);
   const viewer = window.OpenSeadragon({
     element: box, tileSources: source, prefixUrl: "/vendor/openseadragon/images/", loadTilesWithAjax: true,
     ajaxHeaders: authHeaders(), showNavigator: true, navigatorPosition: "BOTTOM_RIGHT", maxZoomPixelRatio: 4,
     gestureSettingsMouse: { clickToZoom: false }, crossOriginPolicy: false,
   });
   view.viewer = viewer;
+  const toolClick = attachTools(viewer, box, world, { onDraw: drawDefect });
   viewer.addHandler("open", () => {
-    for (const d of view.defects.filter((x) => x.source === "mosaic")) {
-      const node = el("div", { class: "defect-box", dataset: { defect: d.id }, title: `${label(d)} ${d.defect_class}` },
-        el("span", { class: "defect-number" }, String(d.number ?? d.id)));
-      view.overlays.set(d.id, node);
-      styleOverlay(d);
-      viewer.addOverlay({ element: node, location: viewer.viewport.imageToViewportRectangle(d.bbox_x - 4, d.bbox_y - 4, d.bbox_w + 8, d.bbox_h + 8) });
-    }
+    for (const d of view.defects.filter((x) => x.source === "mosaic")) addOverlay(d);
+    renderTable(); // the filters hide boxes too
     box.dataset.ready = "true";
   });
   viewer.addHandler("canvas-click", (ev) => {
     if (!ev.quick) return;
     const p = viewer.viewport.viewerElementToImageCoordinates(ev.position);
+    if (toolClick(p)) return;
     const hit = view.defects.find((d) => d.source === "mosaic" && p.x >= d.bbox_x - 6 && p.x <= d.bbox_x + d.bbox_w + 6
       && p.y >= d.bbox_y - 6 && p.y <= d.bbox_y + d.bbox_h + 6);
     if (hit) select(hit.id, { pan: false });
   });
   void stitch;
+}
+
+function addOverlay(d) {
+  const node = el("div", { class: "defect-box", dataset: { defect: d.id }, title: `${label(d)} ${d.defect_class}` },
+    el("span", { class: "defect-number" }, String(d.number ?? d.id)));
+  view.overlays.set(d.id, node);
+  styleOverlay(d);
+  view.viewer.addOverlay({ element: node, location: view.viewer.viewport.imageToViewportRectangle(d.bbox_x - 4, d.bbox_y - 4, d.bbox_w + 8, d.bbox_h + 8) });
+}
+
+// A defect the detector missed, drawn on the mosaic: stored, numbered, selected.
+async function drawDefect(body) {
+  const res = await api(`/api/sessions/${view.session.id}/defects`, {
+    method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
+  if (!res.ok) {
+    let detail = ""; try { detail = (await res.json()).detail; } catch { /* not JSON */ }
+    return `not stored (HTTP ${res.status}${detail ? `: ${detail}` : ""})`;
+  }
+  const d = await res.json();
+  view.defects.push(d);
+  addOverlay(d);
+  renderTable();
+  select(d.id, { pan: false });
+  return `${label(d)} drawn`;
 }
 
 function exportsBar(s) {
@@ -283,7 +310,7 @@ export async function showSession(id, defectNumber = null) {
       + ` · ${s.frames} frames, ${s.clouds} clouds · ${jobs}`),
     detailsForm(s), exportsBar(s),
     el("div", { class: "review" },
-      el("div", { id: "mosaic-viewer", class: "mosaic-viewer" }),
+      el("div", {}, toolbar(), el("div", { id: "mosaic-viewer", class: "mosaic-viewer" })),
       el("aside", { id: "defect-detail", class: "defect-detail" }, el("p", { class: "muted" }, "Select a defect (click it, or j / k)."))),
     el("div", { class: "filters" },
       el("label", {}, "class ", el("select", { id: "filter-class", onchange: renderTable }, ...["", "crack", "corrosion"].map((v) => el("option", { value: v }, v || "all")))),

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
+from sqlalchemy import func, select
 
 from server.api.deps import OperatorUser, SessionDep, StateDep, get_current_user
 from server.api.queries import (
@@ -20,11 +22,13 @@ from server.api.queries import (
 )
 from server.api.schemas import (
     ConditionState,
+    DefectCreate,
     DefectPublic,
     DefectReview,
     DefectsPublic,
     ReviewStatus,
 )
+from server.errors import Conflict
 from server.reports.sightings import defect_sightings
 from server.storage.models import Defect, utcnow
 from server.storage.thumbnails import defect_image, encode_jpeg
@@ -122,3 +126,66 @@ def read_defect_sightings(
     clock, and seconds since the session's first frame), the robot's pose, the telemetry
     sample nearest that moment and the URL of its image."""
     return defect_sightings(db, get_defect_or_404(db, session_id, defect_id))
+
+
+@router.post(
+    "/{session_id}/defects", response_model=DefectPublic, status_code=status.HTTP_201_CREATED
+)
+def create_defect(
+    db: SessionDep, state: StateDep, session_id: str, body: DefectCreate, user: OperatorUser
+) -> Defect:
+    """Add a defect the detector missed, drawn as a box on the mosaic (operator role). It is
+    confirmed and named as drawn by the caller, placed on the structure through the
+    mosaic's scale, numbered after the session's others, and kept when detection runs
+    again. Its length is the box's longer side; its width is not measured."""
+    get_session_or_404(db, session_id)
+    try:
+        world = json.loads((state.files.results_dir(session_id) / "mosaic.json").read_text())
+    except (OSError, ValueError):
+        raise Conflict("the session has no mosaic to draw on: run the stitch job first") from None
+    if (
+        body.bbox_x + body.bbox_w > world["width_px"]
+        or body.bbox_y + body.bbox_h > world["height_px"]
+    ):
+        raise Conflict(f"the box leaves the {world['width_px']}×{world['height_px']} px mosaic")
+    ppm, (ox, oy) = float(world["px_per_m"]), world["origin_m"]
+    referenced = bool(world.get("world_referenced"))
+    long_px = float(max(body.bbox_w, body.bbox_h))
+    last = db.scalar(
+        select(func.max(Defect.number)).where(
+            Defect.session_id == session_id, Defect.source == "mosaic"
+        )
+    )
+    now = utcnow()
+    defect = Defect(
+        session_id=session_id,
+        source="mosaic",
+        number=(last or 0) + 1,
+        defect_class=body.defect_class,
+        bbox_x=body.bbox_x,
+        bbox_y=body.bbox_y,
+        bbox_w=body.bbox_w,
+        bbox_h=body.bbox_h,
+        area_px=body.bbox_w * body.bbox_h,
+        length_px=long_px,
+        max_width_px=0.0,
+        mean_width_px=0.0,
+        orientation_deg=0.0 if body.bbox_w >= body.bbox_h else 90.0,
+        length_mm=long_px / ppm * 1000 if referenced else None,
+        area_mm2=body.bbox_w * body.bbox_h / ppm**2 * 1e6
+        if referenced and body.defect_class == "corrosion"
+        else None,
+        world_x_m=ox + body.bbox_x / ppm if referenced else None,
+        world_y_m=oy + body.bbox_y / ppm if referenced else None,
+        world_w_m=body.bbox_w / ppm if referenced else None,
+        world_h_m=body.bbox_h / ppm if referenced else None,
+        review_status="confirmed",
+        condition_state=body.condition_state,
+        comment=body.comment,
+        reviewed_by=user.name,
+        reviewed_at=now,
+        drawn_by=user.name,
+    )
+    db.add(defect)
+    db.commit()
+    return defect
