@@ -44,6 +44,14 @@ def create_user(factory: sessionmaker[Session], name: str, password: str, role: 
             raise Conflict(f"a user named {name!r} already exists") from None
 
 
+def set_password(db: Session, user: User, password: str) -> None:
+    """Give an account a new password; its tokens stop working (sign in again)."""
+    if len(password) < 8:
+        raise ValueError("password must have at least 8 characters")
+    user.password_hash = _hasher.hash(password)
+    db.execute(delete(AuthToken).where(AuthToken.user_id == user.id))
+
+
 def accounts_exist(db: Session) -> bool:
     """Whether any operator account exists (without one the station is open, as on a bench)."""
     return (db.scalar(select(func.count()).select_from(User)) or 0) > 0

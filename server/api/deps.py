@@ -78,3 +78,4 @@ def require(role: Role) -> Callable[[User], User]:
 
 
 OperatorUser = Annotated[User, Depends(require(Role.operator))]
+AdminUser = Annotated[User, Depends(require(Role.admin))]

@@ -1,5 +1,6 @@
 // The dashboard: sign-in, the live link, and three views (#/drive, #/sessions, #/session/<id>).
 import { api, apiJSON, onSignedOut, setToken, text } from "./api.js";
+import { loadAdmin } from "./admin.js";
 import { initCoverage } from "./coverage.js";
 import { initDrive } from "./drive.js";
 import { connect, on } from "./live.js";
@@ -52,11 +53,12 @@ function route() {
   if (!started) return;
   const hash = location.hash || "#/drive";
   const [, name, id, sub, number] = hash.split("/");
-  const viewName = name === "session" && id ? "session" : name === "sessions" ? "sessions" : "drive";
+  const viewName = name === "session" && id ? "session" : ["sessions", "admin"].includes(name) ? name : "drive";
   document.querySelectorAll("main.view").forEach((m) => { m.hidden = m.id !== `view-${viewName}`; });
   document.querySelectorAll("nav a").forEach((a) => a.classList.toggle("active", a.dataset.view === viewName
     || (viewName === "session" && a.dataset.view === "sessions")));
   if (viewName === "sessions") loadSessions().catch(() => {});
+  if (viewName === "admin") loadAdmin().catch((e) => text(document.getElementById("admin"), `cannot show accounts: ${e.message}`));
   if (viewName === "session") showSession(id, sub === "defect" ? number : null).catch((e) => text(document.getElementById("session-detail"), `cannot show the session: ${e.message}`));
 }
 
@@ -79,6 +81,7 @@ async function start() {
   document.body.classList.remove("signed-out");
   text(document.getElementById("who"), `${me.name} (${me.role})`);
   document.getElementById("sign-out").hidden = auth !== "required";
+  document.getElementById("nav-admin").hidden = me.role !== "admin";
   if (started) { route(); return; }
   started = true;
   initDrive();

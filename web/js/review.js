@@ -1,6 +1,7 @@
 // One session: cover details, downloads, the mosaic in a pan-and-zoom viewer (OpenSeadragon
 // over the Deep Zoom pyramid) with the defects drawn on it, the defect table with filters,
 // sorting and review (confirm / reject, CS1–CS4, comment; keyboard shortcuts), the 3D view.
+import { jobsBar } from "./jobs.js";
 import { attachTools, toolbar } from "./mosaic_tools.js";
 import { api, apiJSON, authHeaders, download, duration, el, fmt, patchJSON, text, token } from "./api.js";
 
@@ -114,7 +115,8 @@ function showDetail(d) {
   detail.dataset.defect = String(d.id);
   detail.replaceChildren(view.thumbnail, el("dl", {},
     el("dt", {}, "defect"), el("dd", {}, `${label(d)} ${d.defect_class} (${d.source === "frame" ? `frame ${d.frame_seq}` : "mosaic"})`),
-    el("dt", {}, "size"), el("dd", {}, `${fmt(d.length_mm, 1)} mm long, up to ${fmt(d.max_width_mm, 2)} mm wide, ${fmt(d.area_mm2, 0)} mm²`),
+    el("dt", {}, "size"), el("dd", {}, `${fmt(d.length_mm, 1)} mm long, ${d.max_width_mm === null ? "width not measured" : `up to ${fmt(d.max_width_mm, 2)} mm wide`}${d.area_mm2 === null ? "" : `, ${fmt(d.area_mm2, 0)} mm²`}`),
+    ...(d.drawn_by ? [el("dt", {}, "drawn by"), el("dd", {}, d.drawn_by)] : []),
     el("dt", {}, "on the structure"), el("dd", {}, d.world_x_m === null ? "not placed" : `x ${fmt(d.world_x_m, 3)} m, y ${fmt(d.world_y_m, 3)} m`),
     el("dt", {}, "review"), el("dd", { class: "review-state" }, d.review_status),
     el("dt", {}, "condition state"), el("dd", { class: "review-cs" }, d.condition_state || "not rated"),
@@ -308,7 +310,7 @@ export async function showSession(id, defectNumber = null) {
     el("h3", {}, `${s.structure} — ${s.id}`),
     el("p", { class: "muted" }, `${new Date(s.started_at).toLocaleString()} · ${duration(s.duration_s)} · operator ${s.operator || "–"} · robot ${s.robot_name || "–"} · ${s.status}`
       + ` · ${s.frames} frames, ${s.clouds} clouds · ${jobs}`),
-    detailsForm(s), exportsBar(s),
+    detailsForm(s), exportsBar(s), jobsBar(s, () => showSession(s.id)),
     el("div", { class: "review" },
       el("div", {}, toolbar(), el("div", { id: "mosaic-viewer", class: "mosaic-viewer" })),
       el("aside", { id: "defect-detail", class: "defect-detail" }, el("p", { class: "muted" }, "Select a defect (click it, or j / k)."))),

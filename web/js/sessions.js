@@ -1,5 +1,5 @@
 // The list of inspection sessions with their job states; searched and narrowed on the station.
-import { apiJSON, duration, el, text } from "./api.js";
+import { api, apiJSON, duration, el, text } from "./api.js";
 
 let timer = null;
 
@@ -30,7 +30,24 @@ export async function loadSessions() {
     ? `${body.data.length} of ${body.count} sessions` : `${body.count} session${body.count === 1 ? "" : "s"}`);
 }
 
+// An MCAP log (as this station exports it) becomes a new session, processed like any other.
+async function importMcap(input) {
+  const file = input.files[0];
+  if (!file) return;
+  const out = document.getElementById("import-status");
+  text(out, `importing ${file.name}…`);
+  const body = new FormData();
+  body.append("file", file);
+  const res = await api("/api/sessions/import", { method: "POST", body });
+  input.value = "";
+  if (!res.ok) { text(out, `${file.name}: not imported (HTTP ${res.status}: ${(await res.json().catch(() => ({}))).detail || ""})`); return; }
+  const r = await res.json();
+  text(out, `${file.name}: ${r.frames ?? 0} frames, ${r.clouds ?? 0} clouds imported`);
+  location.hash = `#/session/${r.session_id}`;
+}
+
 export function initSessions() {
+  document.getElementById("import-mcap").addEventListener("change", (e) => importMcap(e.target));
   const later = () => { clearTimeout(timer); timer = setTimeout(() => loadSessions().catch(() => {}), 250); };
   document.getElementById("session-search").addEventListener("input", later);
   document.getElementById("session-status").addEventListener("change", later);

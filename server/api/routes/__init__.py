@@ -10,8 +10,10 @@ from server.api.routes import (
     live,
     reports,
     results,
+    robots,
     sessions,
     telemetry,
+    users,
     view3d,
 )
 
@@ -28,6 +30,8 @@ ROUTERS = [
         results,
         reports,
         jobs,
+        users,
+        robots,
         live,
         view3d,
     )
