@@ -16,7 +16,7 @@ import io
 import logging
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -86,6 +86,10 @@ class Scene3D:
         self.live_trajectory_poses = 0  # poses of the live map's trajectory last shown
         self._closed = False
         self._info = self.server.gui.add_markdown("Click a defect marker to see it.")
+        self.markers: dict[int, DefectMarker] = {}
+        self.focused: int | None = None  # the defect the view last flew to
+        # called with a defect's id when a browser clicks its marker (the dashboard selects it)
+        self.on_select: Callable[[int], None] | None = None
         self._title = self.server.gui.add_markdown("**No session shown yet.**")
 
     @property
@@ -107,6 +111,7 @@ class Scene3D:
             self._trail = []
             scene = self.server.scene
             scene.reset()
+            self.markers = {}
             self._title.content = f"**{title or session_id}**"
             if points is not None and len(points):
                 pts = display_points(points)
@@ -152,9 +157,28 @@ class Scene3D:
             f"/defects/{d.id}/label", f"{d.number}", position=(d.x, d.y, -0.03)
         )
 
+        self.markers[d.id] = d
+
         @handle.on_click
         def _(_: Any) -> None:
             self._info.content = d.text
+            if self.on_select is not None:
+                self.on_select(d.id)
+
+    def focus(self, defect_id: int) -> bool:
+        """Fly every browser's camera to a defect's marker (from above, close enough to see
+        its neighbourhood) and show its text; False when the view has no such marker."""
+        d = self.markers.get(defect_id)
+        if d is None:
+            return False
+        self.focused = defect_id
+        self._info.content = d.text
+        span = max(d.size * 6, 0.25)
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.look_at = (d.x, d.y, 0.0)
+                client.camera.position = (d.x, d.y - 0.4 * span, -0.9 * span)
+        return True
 
     def show_pose(self, session_id: str, x: float, y: float, yaw: float) -> None:
         """Move the robot marker (and grow its trail) for the session being shown; a new

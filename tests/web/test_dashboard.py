@@ -313,6 +313,22 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
         page.wait_for_timeout(1500)
         assert frame.get_by_text("Live:").count() == 0
         live_robot.close()
+        # linked views: selecting a defect on the page flies the 3D view to it, and a
+        # marker clicked in the 3D view selects its defect on the page
+        page.keyboard.press("k")
+        chosen = int(page.get_attribute("#defects tr.selected", "data-defect"))
+        wait_until(lambda: scenes.get(sid).focused == chosen, 10, "the 3D view to fly there")
+        other = next(
+            int(r)
+            for r in page.locator("#defects tr[data-defect]").evaluate_all(
+                "rows => rows.map(r => r.dataset.defect)"
+            )
+            if int(r) != chosen and int(r) in scenes.get(sid).markers
+        )
+        scenes.get(sid).on_select(other)  # what viser calls when its marker is clicked
+        wait_js(
+            page, f"document.querySelector('#defects tr.selected')?.dataset.defect === '{other}'"
+        )
         shot(page, "session-3d")
         browser.close()
     assert page_errors == []

@@ -2,6 +2,7 @@
 // over the Deep Zoom pyramid) with the defects drawn on it, the defect table with filters,
 // sorting and review (confirm / reject, CS1–CS4, comment; keyboard shortcuts), the 3D view.
 import { jobsBar } from "./jobs.js";
+import { on } from "./live.js";
 import { attachTools, toolbar } from "./mosaic_tools.js";
 import { api, apiJSON, authHeaders, download, duration, el, fmt, patchJSON, text, token } from "./api.js";
 
@@ -87,7 +88,7 @@ function styleOverlay(d, shown = true) {
   box.hidden = !shown;
 }
 
-function select(id, { pan = true } = {}) {
+function select(id, { pan = true, focus3d = true } = {}) {
   view.selected = id;
   document.querySelectorAll("#defects tr[data-defect]").forEach((tr) => tr.classList.toggle("selected", Number(tr.dataset.defect) === id));
   const row = document.querySelector(`#defects tr[data-defect='${id}']`);
@@ -102,6 +103,9 @@ function select(id, { pan = true } = {}) {
   }).catch(() => {});
   view.thumbnail = img;
   showDetail(d);
+  if (focus3d && document.getElementById("view3d")) { // the 3D view flies to its marker
+    api(`/api/sessions/${view.session.id}/view3d/focus/${d.id}`, { method: "POST" }).catch(() => {});
+  }
   if (pan && view.viewer && d.source === "mosaic") {
     const pad = Math.max(d.bbox_w, d.bbox_h) * 1.5 + 60;
     const rect = view.viewer.viewport.imageToViewportRectangle(d.bbox_x + d.bbox_w / 2 - pad / 2, d.bbox_y + d.bbox_h / 2 - pad / 2, pad, pad);
@@ -337,4 +341,9 @@ export async function showSession(id, defectNumber = null) {
 
 export function initReview() {
   document.addEventListener("keydown", onKey);
+  on("event", (ev) => { // a marker clicked in this session's 3D view selects its defect here
+    if (ev.type === "defect_selected" && ev.session_id === view.session?.id && !document.getElementById("view-session").hidden) {
+      select(ev.defect_id, { focus3d: false });
+    }
+  });
 }

@@ -217,10 +217,35 @@ def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
 
 
 @router.post("/api/sessions/{session_id}/view3d", dependencies=[Depends(get_current_user)])
-def show_in_3d(db: SessionDep, state: StateDep, session_id: str) -> dict[str, Any]:
+async def show_in_3d(db: SessionDep, state: StateDep, session_id: str) -> dict[str, Any]:
     """Open this session's own 3D view (at the returned ``url``): its map coloured by height,
-    its trajectory and a numbered marker per defect placed on the structure (click one to
-    see it). Live robots have their own view (``/viser/live/``); neither changes the other."""
-    _scenes_or_404(state)
+    its trajectory and a numbered marker per defect placed on the structure. Clicking a
+    marker selects the defect on the dashboard (a ``defect_selected`` event on the live
+    websocket). Live robots have their own view (``/viser/live/``); neither changes the
+    other."""
+    scenes = _scenes_or_404(state)
     get_session_or_404(db, session_id)
-    return session_scene(db, state, session_id)
+    shown = await anyio.to_thread.run_sync(session_scene, db, state, session_id)
+    loop = asyncio.get_running_loop()
+    scene = scenes.get(session_id)
+
+    def selected(defect_id: int) -> None:  # in viser's thread: hand over to the event loop
+        event = {"type": "defect_selected", "session_id": session_id, "defect_id": defect_id}
+        loop.call_soon_threadsafe(state.hub.publish_json, event)
+
+    if scene is not None:
+        scene.on_select = selected
+    return shown
+
+
+@router.post(
+    "/api/sessions/{session_id}/view3d/focus/{defect_id}",
+    dependencies=[Depends(get_current_user)],
+)
+def focus_in_3d(state: StateDep, session_id: str, defect_id: int) -> dict[str, Any]:
+    """Fly the session's 3D view to a defect's marker (the dashboard does this when a defect
+    is selected anywhere else)."""
+    scene = _view_or_404(state, session_id)
+    if not scene.focus(defect_id):
+        raise NotFound(f"defect {defect_id} has no marker in the 3D view of {session_id}")
+    return {"session_id": session_id, "defect_id": defect_id}
