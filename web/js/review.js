@@ -262,6 +262,18 @@ async function drawDefect(body) {
   return `${label(d)} drawn`;
 }
 
+// How much of the surface in view the camera imaged well enough, and the holes left.
+function coverageNote(s) {
+  const node = el("p", { id: "session-coverage", class: "small" }, "coverage: …");
+  apiJSON(`/api/sessions/${s.id}/coverage?grid=false`).then((c) => {
+    if (!c.area_surface_m2) { text(node, "coverage: no frame with a pose and a camera scale"); return; }
+    const holes = c.holes.slice(0, 5).map((h) => `(${fmt(h.x_m, 2)}, ${fmt(h.y_m, 2)}) m ${fmt(h.area_m2 * 1e4, 0)} cm²`).join("; ");
+    text(node, `coverage at ≤ ${c.required_mm_per_px} mm/px: ${fmt(c.area_imaged_m2, 3)} of ${fmt(c.area_surface_m2, 3)} m² imaged `
+      + `(${fmt(c.fraction_imaged * 100, 1)} %), ${c.frames_not_counted} frames not counted, ${c.holes.length} holes${holes ? `: ${holes}` : ""}`);
+  }).catch(() => text(node, "coverage unavailable"));
+  return node;
+}
+
 function exportsBar(s) {
   const status = el("span", { class: "muted" });
   const done = (kind) => s.jobs.some((j) => j.kind === kind && j.state === "done");
@@ -314,7 +326,7 @@ export async function showSession(id, defectNumber = null) {
     el("h3", {}, `${s.structure} — ${s.id}`),
     el("p", { class: "muted" }, `${new Date(s.started_at).toLocaleString()} · ${duration(s.duration_s)} · operator ${s.operator || "–"} · robot ${s.robot_name || "–"} · ${s.status}`
       + ` · ${s.frames} frames, ${s.clouds} clouds · ${jobs}`),
-    detailsForm(s), exportsBar(s), jobsBar(s, () => showSession(s.id)),
+    detailsForm(s), exportsBar(s), jobsBar(s, () => showSession(s.id)), coverageNote(s),
     el("div", { class: "review" },
       el("div", {}, toolbar(), el("div", { id: "mosaic-viewer", class: "mosaic-viewer" })),
       el("aside", { id: "defect-detail", class: "defect-detail" }, el("p", { class: "muted" }, "Select a defect (click it, or j / k)."))),
