@@ -92,6 +92,11 @@ class Settings(BaseSettings):
         default=True,
         description="grow the 3D map during a session (ICP in a worker process) and show it",
     )
+    live_detect: bool = Field(
+        default=True,
+        description="search each frame for defects as it arrives (a worker process) and show "
+        "them on the Drive page's coverage map",
+    )
 
     def uvicorn_options(self) -> dict[str, Any]:
         """What ``uvicorn.Config`` needs of these settings: TLS, the connection guard, the

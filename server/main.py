@@ -27,6 +27,7 @@ from server.link.connection import router as robot_router
 from server.link.group_commit import GroupCommit
 from server.link.ingest import Ingest
 from server.live.hub import LiveHub
+from server.live.live_detect import LiveDetect
 from server.live.live_map import LiveMap
 from server.live.scenes import Scenes
 from server.state import AppState
@@ -95,6 +96,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.scenes = Scenes(settings.view3d_port)
             if settings.live_map:
                 state.live_map = LiveMap(state.factory, state.scenes.live)
+        if settings.live_detect:
+            state.live_detect = LiveDetect(
+                state.factory, state.hub, asyncio.get_running_loop(), settings.detect_method
+            )
         state.jobs.start()
         reaper = asyncio.create_task(_end_quiet_sessions(state))
         try:
@@ -106,6 +111,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.writer.close()
             if state.live_map is not None:
                 state.live_map.close()
+            if state.live_detect is not None:
+                state.live_detect.close()
             if state.scenes is not None:
                 state.scenes.close()
             state.engine.dispose()

@@ -14,6 +14,7 @@ from server.link.group_commit import GroupCommit
 from server.link.ingest import Ingest
 from server.link.limits import MalformedGuard
 from server.live.hub import LiveHub
+from server.live.live_detect import LiveDetect
 from server.live.live_map import LiveMap
 from server.live.scenes import Scenes
 from server.reports.coverage import QualityCache
@@ -33,6 +34,7 @@ class AppState:
     jobs: JobRunner
     writer: GroupCommit
     scenes: Scenes | None = None  # the 3D views (live and per session), when switched on
+    live_detect: LiveDetect | None = None  # defects of each frame as it arrives, shown live
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
     quality: QualityCache = field(default_factory=QualityCache)  # frame sharpness, exposure
     logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per client

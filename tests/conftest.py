@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,6 +11,10 @@ from typing import Any
 import pytest
 
 from server.config import Settings
+
+# frames are searched for defects live only where a test asks for it (most tests record many
+# frames; every station they start, in this process or as a subprocess, reads this default)
+os.environ.setdefault("STEELSCAN_LIVE_DETECT", "false")
 from server.link.robots import create_robot
 from server.loopback import BackgroundServer, free_port
 from server.storage.db import make_engine, make_sessionmaker, upgrade

@@ -208,6 +208,13 @@ class RobotConnection:
         live_map = self.state.live_map
         if live_map is not None and message.type is MessageType.CLOUD and result.status == "stored":
             live_map.offer(sid, message.payload, message.meta)
+        live_detect = self.state.live_detect
+        if (
+            live_detect is not None
+            and message.type is MessageType.FRAME
+            and result.status == "stored"
+        ):
+            live_detect.offer(sid, message.seq, message.payload, message.meta)
         if result.session_ended and self.state.settings.auto_process:
             await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, sid)
 

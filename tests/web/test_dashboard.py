@@ -161,7 +161,9 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
             page.locator(".defect-box").count() == page.locator("#defects tr[data-defect]").count()
         )
         assert "crack" in page.inner_text("#defects") or "corrosion" in page.inner_text("#defects")
-        wait_js(page, "document.querySelector('#session-coverage').textContent.includes('m² imaged')")
+        wait_js(
+            page, "document.querySelector('#session-coverage').textContent.includes('m² imaged')"
+        )
         # defects carry their session number (#1, #2, ...) in the table and on the mosaic
         numbers = page.locator("#defects tr[data-defect] td:first-child").all_inner_texts()
         assert sorted(numbers, key=lambda n: int(n[1:])) == [

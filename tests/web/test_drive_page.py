@@ -23,7 +23,13 @@ pytestmark = [
 
 @pytest.fixture
 def settings(tmp_path) -> Settings:  # type: ignore[no-untyped-def]
-    return Settings(data_dir=tmp_path / "data", job_workers=1, auto_process=False, view3d=False)
+    return Settings(
+        data_dir=tmp_path / "data",
+        job_workers=1,
+        auto_process=False,
+        view3d=False,
+        live_detect=True,
+    )
 
 
 @pytest.fixture
@@ -156,17 +162,23 @@ def test_after_the_session_ends_the_page_shows_no_stale_video_or_telemetry(
 def test_the_coverage_map_shows_the_frames_and_the_gap_left_between_lanes(
     live_server: LiveServer, robot: TeleopRobot
 ) -> None:
-    """Two lanes of frames captured from the page with a strip between them left out: the
-    Drive page's coverage map places every frame, says how much is imaged and lists the
-    one hole where the strip is."""
+    """Two lanes of frames captured from the page with a strip between them left out, the
+    first over one of the simulator's cracks: the Drive page's coverage map places every
+    frame, says how much is imaged, lists the one hole where the strip is and shows the
+    crack found in the frames as they arrived."""
     from playwright.sync_api import sync_playwright
 
     sim = robot.sim
     sim.auto_capture = False
     along, across = sim.camera.footprint_m
     gap = 0.04
-    spots = [(0.35 + i * along * 0.8, 0.3) for i in range(4)]
-    spots += [(x, 0.3 + across + gap) for x, _ in spots]
+    crack = max(
+        (d for d in sim.structure.defects if d.defect_class == "crack"), key=lambda d: d.length_m
+    )
+    cx, cy = crack.bbox_m[0] + crack.bbox_m[2] / 2, crack.bbox_m[1] + crack.bbox_m[3] / 2
+    mount = sim.camera.mount_x_m  # frames are centred this far ahead of the robot
+    spots = [(cx - mount + (i - 1.5) * along * 0.8, cy) for i in range(4)]
+    spots += [(x, cy + across + gap) for x, _ in spots]
     errors: list[str] = []
     with sync_playwright() as pw:
         browser, page = open_page(pw, live_server.url, errors, 1440, 900)
@@ -181,9 +193,12 @@ def test_the_coverage_map_shows_the_frames_and_the_gap_left_between_lanes(
         summary = page.inner_text("#coverage-summary")
         assert "imaged at ≤ 0.3 mm/px" in summary and "1 hole" in summary
         hole = page.inner_text("#coverage-holes li")
-        y_gap = 0.3 + across / 2 + gap / 2
+        y_gap = cy + across / 2 + gap / 2
         assert f"y {y_gap:.2f} m" in hole, hole
-        assert f"× {gap * 100:.0f} cm" in hole, hole
+        height_cm = float(hole.split("× ")[1].split()[0])  # the strip's width, to a grid cell
+        assert abs(height_cm - gap * 100) <= 1.0, hole
+        wait_js(page, "Number(document.querySelector('#coverage-map').dataset.found || 0) >= 1")
+        assert "seen in frames:" in page.inner_text("#coverage-summary")
         shot(page, "drive-coverage")
         browser.close()
     assert errors == []

@@ -8,11 +8,11 @@ import { on } from "./live.js";
 
 const POLL_MS = 1500;
 const THUMB_W = 160;
-const state = { sid: null, camera: null, frames: [], trail: [], pose: null, cov: null, busy: false };
+const state = { sid: null, camera: null, frames: [], trail: [], pose: null, cov: null, busy: false, found: [] };
 let canvas; let ctx;
 
 function reset(sid) {
-  Object.assign(state, { sid, camera: null, frames: [], trail: [], pose: null, cov: null });
+  Object.assign(state, { sid, camera: null, frames: [], trail: [], pose: null, cov: null, found: [] });
   if (sid) apiJSON(`/api/sessions/${sid}`).then((s) => { if (state.sid === sid) state.camera = s.calibration?.camera || null; }).catch(() => {});
   draw();
 }
@@ -60,6 +60,12 @@ async function fetchMissing(sid) {
 }
 
 function onEvent(ev) {
+  if (ev.type === "frame_defects" && ev.session_id === state.sid) { // searched as it arrived
+    for (const d of ev.defects) state.found.push({ seq: ev.seq, ...d });
+    canvas.dataset.found = String(state.found.length);
+    draw(); summary();
+    return;
+  }
   if (ev.type === "telemetry" && ev.session_id === state.sid && ev.data.pose) {
     const p = ev.data.pose;
     state.pose = p;
@@ -126,6 +132,12 @@ function draw() {
     ctx.lineWidth = (f.counts ? 1 : 2.5) * px;
     ctx.stroke();
   }
+  for (const d of state.found) { // defects seen in single frames (the detect job confirms them)
+    const [x, y, w, h] = d.world_box;
+    ctx.strokeStyle = d.defect_class === "crack" ? "#ff3b30" : "#ffcc00";
+    ctx.lineWidth = 2 * px;
+    ctx.strokeRect(x - 3 * px, y - 3 * px, w + 6 * px, h + 6 * px);
+  }
   if (state.trail.length > 1) {
     ctx.beginPath(); state.trail.forEach((p, i) => (i ? ctx.lineTo(p.x, p.y) : ctx.moveTo(p.x, p.y)));
     ctx.strokeStyle = "#e0a030"; ctx.lineWidth = 2 * px; ctx.stroke();
@@ -156,9 +168,11 @@ function summary() {
   const why = {};
   for (const f of cov.frames) if (!f.counts) why[f.why_not] = (why[f.why_not] || 0) + 1;
   const notCounted = Object.entries(why).map(([r, n]) => `${n} ${r}`).join(", ");
+  const cracks = state.found.filter((d) => d.defect_class === "crack").length;
+  const found = state.found.length ? ` · seen in frames: ${cracks} crack, ${state.found.length - cracks} corrosion` : "";
   text(out, `imaged at ≤ ${cov.required_mm_per_px} mm/px: ${fmt(cov.area_imaged_m2, 3)} of ${fmt(cov.area_surface_m2, 3)} m² `
     + `(${fmt(cov.fraction_imaged * 100, 1)} %) · ${cov.holes.length} hole${cov.holes.length === 1 ? "" : "s"}`
-    + `${notCounted ? ` · frames not counted: ${notCounted}` : ""}`);
+    + `${notCounted ? ` · frames not counted: ${notCounted}` : ""}${found}`);
   list.replaceChildren(...cov.holes.slice(0, 8).map((h, i) => el("li", {},
     `hole ${i + 1} at x ${fmt(h.x_m, 2)} m, y ${fmt(h.y_m, 2)} m — ${fmt(h.bbox_m[2] * 100, 0)} × ${fmt(h.bbox_m[3] * 100, 0)} cm`)));
 }

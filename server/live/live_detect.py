@@ -1,0 +1,118 @@
+"""Defects found in each camera frame while the robot inspects: every stored frame with a
+pose is searched in a worker process (the detector would starve the event loop here) and
+its defects, placed on the structure through the frame's pose, go to the browsers as a
+``frame_defects`` event within about a second of capture. Nothing is stored: the ``detect``
+job searches every frame and the mosaic after the session (and when the worker falls
+behind, frames are skipped here, not there)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import multiprocessing
+import threading
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any
+
+import numpy as np
+
+from server.jobs.orphans import init_worker
+
+log = logging.getLogger(__name__)
+MAX_PENDING = 2  # frames waiting for the worker; beyond, frames are skipped
+
+
+def _detect(
+    jpeg: bytes, camera_pose: list[float], px_per_m: float, method: str
+) -> list[dict[str, Any]]:
+    """In the worker: the defects of one frame as world boxes (metres)."""
+    import cv2
+
+    from processing.poses import world_box
+    from server.jobs.detect import detect_in
+
+    image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        return []
+    found = detect_in(image, 1000.0 / px_per_m, workers=1, method=method)[2]  # type: ignore[arg-type]
+    size = (image.shape[1], image.shape[0])
+    return [
+        {
+            "defect_class": d.defect_class,
+            "world_box": list(world_box(d.bbox, np.asarray(camera_pose), px_per_m, size)),
+            "length_mm": d.length_mm,
+        }
+        for d in found
+    ]
+
+
+class LiveDetect:
+    """Feeds stored frames to the worker and their defects to the browsers."""
+
+    def __init__(
+        self, factory: Any, hub: Any, loop: asyncio.AbstractEventLoop, method: str
+    ) -> None:
+        self.factory = factory
+        self.hub = hub
+        self.loop = loop
+        self.method = method
+        self.skipped = 0
+        self._pool: ProcessPoolExecutor | None = None
+        self._pending = 0
+        self._lock = threading.Lock()
+        self._cameras: dict[str, tuple[float, list[float]] | None] = {}
+
+    def _camera(self, session_id: str) -> tuple[float, list[float]] | None:
+        """px_per_m and T_robot_camera of a session's calibration (looked up once)."""
+        if session_id not in self._cameras:
+            from server.storage.models import InspectionSession
+
+            with self.factory() as db:
+                s = db.get(InspectionSession, session_id)
+                cam = (s.calibration or {}).get("camera", {}) if s is not None else {}
+            ppm = float(cam.get("px_per_m") or 0)
+            self._cameras[session_id] = (
+                (ppm, list(cam.get("T_robot_camera", [0.0, 0.0, 0.0]))) if ppm > 0 else None
+            )
+        return self._cameras[session_id]
+
+    def offer(self, session_id: str, seq: int, jpeg: bytes, meta: dict[str, Any]) -> bool:
+        """Queue one stored frame; False when it is skipped (no pose or camera scale, or the
+        worker is behind)."""
+        from processing.poses import compose_se2
+
+        pose, camera = meta.get("pose"), self._camera(session_id)
+        if not isinstance(pose, dict) or camera is None:
+            return False
+        with self._lock:
+            if self._pending >= MAX_PENDING:
+                self.skipped += 1
+                return False
+            self._pending += 1
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker
+                )
+            pool = self._pool
+        ppm, T_rc = camera
+        robot = np.array([float(pose["x"]), float(pose["y"]), float(pose.get("yaw", 0.0))])
+        cam = compose_se2(robot, np.asarray(T_rc, dtype=np.float64)).tolist()
+        future = pool.submit(_detect, jpeg, cam, ppm, self.method)
+        future.add_done_callback(lambda f: self._publish(session_id, seq, f))
+        return True
+
+    def _publish(self, session_id: str, seq: int, future: Future[list[dict[str, Any]]]) -> None:
+        with self._lock:
+            self._pending -= 1
+        try:
+            defects = future.result()
+        except Exception:  # a courtesy view: the detect job is the record
+            log.warning("live detection: frame %s of %s failed", seq, session_id, exc_info=True)
+            return
+        event = {"type": "frame_defects", "session_id": session_id, "seq": seq, "defects": defects}
+        self.loop.call_soon_threadsafe(self.hub.publish_json, event)
+
+    def close(self) -> None:
+        """Stop the worker."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
