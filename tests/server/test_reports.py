@@ -213,6 +213,11 @@ def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, 
     ):
         assert expected in text, expected
     assert "No mosaic: No mosaic" not in text and "Duration 0 s" not in text
+    assert "by anonymous" in text  # the reviewer's name on one line
+    assert "Steel structure inspection report" in doc[0].get_textpage().get_text_range()
+    cover = list(doc[0].get_objects())  # no mosaic picture on the cover: it has its own page
+    assert not any(o.type == pypdfium2.raw.FPDF_PAGEOBJ_IMAGE for o in cover)
+    assert any(o.type == pypdfium2.raw.FPDF_PAGEOBJ_IMAGE for o in doc[2].get_objects())
     # one number per defect everywhere: the API's, the PDF's and the CSV's
     numbers = {d["id"]: d["number"] for d in defects}
     assert sorted(numbers.values()) == list(range(1, len(defects) + 1))

@@ -226,6 +226,12 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
             if t != "–"
         ]
         assert lengths == sorted(lengths, reverse=True)
+        # one format per quantity: lengths to 0.1 mm, widths to 0.01 mm, positions to 1 mm
+        for column, decimals in ((3, 1), (4, 2), (6, 3), (7, 3)):
+            cells = page.locator(
+                f"#defects tr[data-defect] td:nth-child({column})"
+            ).all_inner_texts()
+            assert all(c == "–" or len(c.split(".")[1]) == decimals for c in cells), (column, cells)
         # filters hide the boxes on the mosaic too
         page.select_option("#filter-class", "corrosion")
         rows = page.locator("#defects tr[data-defect]").count()

@@ -70,6 +70,17 @@ def test_estop_is_within_reach_at_every_width_and_a_banner_shows_it_engaged(
     with sync_playwright() as pw:
         browser, page = open_page(pw, live_server.url, errors, width, height)
         assert "test-robot" in page.inner_text("#robot-state")  # its name, not a session id
+        # plots with units and legends; an idle robot's speed on a small axis, not 0–100
+        page.wait_for_timeout(1200)
+        plots = {p["title"]: p for p in page.evaluate("window.steelscanStats.plots()")}
+        assert set(plots) == {
+            "speed (m/s)",
+            "batteries (V)",
+            "adhesion margin (× needed)",
+            "ACK latency (ms)",
+        }
+        assert plots["speed (m/s)"]["legend"] == ["mean wheel speed"]
+        assert -0.5 < plots["speed (m/s)"]["min"] < 0 < plots["speed (m/s)"]["max"] < 0.5
         page.mouse.wheel(0, 2000)  # scrolled down to the telemetry: the header stays
         page.wait_for_timeout(300)
         assert in_view(page, "#estop")

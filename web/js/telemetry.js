@@ -111,6 +111,10 @@ function makePlot(title, keys, labels, colours, units, span) {
   plots.push({ plot, keys });
 }
 
+// what the tests read: each plot's title and y range
+stats.plots = () => plots.map(({ plot }) => ({ title: plot.root.querySelector(".u-title")?.textContent,
+  min: plot.scales.y.min, max: plot.scales.y.max, legend: [...plot.root.querySelectorAll(".u-legend .u-label")].map((l) => l.textContent) }));
+
 function redraw() {
   if (document.getElementById("view-drive").hidden) return;
   for (const { plot, keys } of plots) plot.setData([series.t, ...keys.map((k) => series[k])]);
