@@ -8,17 +8,12 @@ behind, frames are skipped here, not there)."""
 from __future__ import annotations
 
 import asyncio
-import logging
-import multiprocessing
-import threading
-from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
 
-from server.jobs.orphans import init_worker
+from server.live.worker import LiveWorker
 
-log = logging.getLogger(__name__)
 MAX_PENDING = 2  # frames waiting for the worker; beyond, frames are skipped
 
 
@@ -56,10 +51,7 @@ class LiveDetect:
         self.hub = hub
         self.loop = loop
         self.method = method
-        self.skipped = 0
-        self._pool: ProcessPoolExecutor | None = None
-        self._pending = 0
-        self._lock = threading.Lock()
+        self.worker = LiveWorker("live detection", MAX_PENDING)
         self._cameras: dict[str, tuple[float, list[float]] | None] = {}
 
     def _camera(self, session_id: str) -> tuple[float, list[float]] | None:
@@ -84,35 +76,17 @@ class LiveDetect:
         pose, camera = meta.get("pose"), self._camera(session_id)
         if not isinstance(pose, dict) or camera is None:
             return False
-        with self._lock:
-            if self._pending >= MAX_PENDING:
-                self.skipped += 1
-                return False
-            self._pending += 1
-            if self._pool is None:
-                self._pool = ProcessPoolExecutor(
-                    1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker
-                )
-            pool = self._pool
         ppm, T_rc = camera
         robot = np.array([float(pose["x"]), float(pose["y"]), float(pose.get("yaw", 0.0))])
         cam = compose_se2(robot, np.asarray(T_rc, dtype=np.float64)).tolist()
-        future = pool.submit(_detect, jpeg, cam, ppm, self.method)
-        future.add_done_callback(lambda f: self._publish(session_id, seq, f))
-        return True
 
-    def _publish(self, session_id: str, seq: int, future: Future[list[dict[str, Any]]]) -> None:
-        with self._lock:
-            self._pending -= 1
-        try:
-            defects = future.result()
-        except Exception:  # a courtesy view: the detect job is the record
-            log.warning("live detection: frame %s of %s failed", seq, session_id, exc_info=True)
-            return
-        event = {"type": "frame_defects", "session_id": session_id, "seq": seq, "defects": defects}
-        self.loop.call_soon_threadsafe(self.hub.publish_json, event)
+        def publish(defects: list[dict[str, Any]]) -> None:  # in the pool's thread
+            event = {"type": "frame_defects", "session_id": session_id, "seq": seq}
+            event["defects"] = defects
+            self.loop.call_soon_threadsafe(self.hub.publish_json, event)
+
+        return self.worker.submit(_detect, jpeg, cam, ppm, self.method, done=publish)
 
     def close(self) -> None:
         """Stop the worker."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        self.worker.close()

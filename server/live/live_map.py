@@ -9,15 +9,12 @@ cloud after the session (the live view skips clouds when its worker falls behind
 from __future__ import annotations
 
 import logging
-import multiprocessing
-import threading
-from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from server.jobs.orphans import init_worker
+from server.live.worker import LiveWorker
 
 log = logging.getLogger(__name__)
 MAX_PENDING = 3  # clouds waiting for the worker; beyond, the live view skips (the job uses all)
@@ -56,11 +53,13 @@ class LiveMap:
     def __init__(self, factory: Any, scene: Any) -> None:
         self.factory = factory
         self.scene = scene
-        self.skipped = 0
-        self._pool: ProcessPoolExecutor | None = None
-        self._pending = 0
-        self._lock = threading.Lock()
+        self.worker = LiveWorker("live map", MAX_PENDING)
         self._mounts: dict[str, NDArray[np.float64] | None] = {}
+
+    @property
+    def skipped(self) -> int:
+        """Clouds the live map skipped because its worker was behind."""
+        return self.worker.skipped
 
     def _mount(self, session_id: str) -> NDArray[np.float64] | None:
         """T_robot_tof of a session's calibration (looked up once)."""
@@ -85,36 +84,14 @@ class LiveMap:
         pose, mount = meta.get("pose"), self._mount(session_id)
         if not isinstance(pose, dict) or mount is None:
             return False
-        with self._lock:
-            if self._pending >= MAX_PENDING:
-                self.skipped += 1
-                return False
-            self._pending += 1
-            if self._pool is None:
-                self._pool = ProcessPoolExecutor(
-                    1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker
-                )
-            pool = self._pool
         guess = se2_to_se3(float(pose["x"]), float(pose["y"]), float(pose["yaw"])) @ mount
-        future = pool.submit(_place, session_id, payload, dict(meta), guess)
-        future.add_done_callback(lambda f: self._show(session_id, f))
-        return True
 
-    def _show(
-        self, session_id: str, future: Future[tuple[int, NDArray[np.float32], NDArray[np.float32]]]
-    ) -> None:
-        with self._lock:
-            self._pending -= 1
-        try:
-            clouds, points, trajectory = future.result()
-        except Exception:  # the live view is a courtesy: the job builds the real map
-            log.warning(
-                "live map: a cloud of session %s could not be placed", session_id, exc_info=True
-            )
-            return
-        self.scene.show_live_map(session_id, points, clouds, trajectory)
+        def show(placed: tuple[int, NDArray[np.float32], NDArray[np.float32]]) -> None:
+            clouds, points, trajectory = placed
+            self.scene.show_live_map(session_id, points, clouds, trajectory)
+
+        return self.worker.submit(_place, session_id, payload, dict(meta), guess, done=show)
 
     def close(self) -> None:
         """Stop the worker."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        self.worker.close()

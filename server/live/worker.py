@@ -1,0 +1,61 @@
+"""One worker process for a live view's heavy work (ICP, a detector), which would starve the
+event loop and the viser server in the station's own process: at most ``max_pending``
+items wait, beyond that items are skipped (the jobs after the session use every item),
+and each result goes to a callback in the pool's thread."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any
+
+from server.jobs.orphans import init_worker
+
+log = logging.getLogger(__name__)
+
+
+class LiveWorker:
+    """A lazily started single-process pool with a bound on waiting items."""
+
+    def __init__(self, what: str, max_pending: int) -> None:
+        self.what = what
+        self.max_pending = max_pending
+        self.skipped = 0
+        self._pool: ProcessPoolExecutor | None = None
+        self._pending = 0
+        self._lock = threading.Lock()
+
+    def submit(self, fn: Callable[..., Any], *args: Any, done: Callable[[Any], None]) -> bool:
+        """Run ``fn(*args)`` in the worker and hand its result to ``done``; False (skipped)
+        when the worker is behind. A failure is logged: live views are a courtesy."""
+        with self._lock:
+            if self._pending >= self.max_pending:
+                self.skipped += 1
+                return False
+            self._pending += 1
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker
+                )
+            pool = self._pool
+
+        def finished(future: Future[Any]) -> None:
+            with self._lock:
+                self._pending -= 1
+            try:
+                result = future.result()
+            except Exception:
+                log.warning("%s: an item failed", self.what, exc_info=True)
+                return
+            done(result)
+
+        pool.submit(fn, *args).add_done_callback(finished)
+        return True
+
+    def close(self) -> None:
+        """Stop the worker."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
