@@ -16,7 +16,7 @@ from server.config import Settings
 from tests.conftest import LiveServer
 from tests.server.test_ingest import frame, msg, robot_ws, start
 from tests.server.test_jobs import wait_job
-from tests.web.test_dashboard import CHROMIUM, CHROMIUM_ARGS, shot, wait_js, watch_errors
+from tests.web.browser import CHROMIUM, launch, shot, wait_js, watch_errors
 
 pytestmark = [
     pytest.mark.slow,
@@ -53,7 +53,7 @@ def test_robots_accounts_import_and_jobs(live_server: LiveServer, tmp_path: Path
     errors: list[str] = []
     exported_session(live_server, tmp_path / "bridge.mcap")
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        browser = launch(pw)
         page = browser.new_page(viewport={"width": 1280, "height": 900})
         watch_errors(page, errors, [])
         page.on("dialog", lambda d: d.accept())

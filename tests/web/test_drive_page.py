@@ -12,7 +12,7 @@ import pytest
 from robot_link.sim.teleop import TeleopRobot, start_teleop_robot
 from server.config import Settings
 from tests.conftest import LiveServer
-from tests.web.test_dashboard import CHROMIUM, CHROMIUM_ARGS, shot, wait_js, watch_errors
+from tests.web.browser import CHROMIUM, launch, shot, wait_js, watch_errors
 
 pytestmark = [
     pytest.mark.slow,
@@ -40,7 +40,7 @@ def robot(live_server: LiveServer) -> Iterator[TeleopRobot]:
 
 
 def open_page(pw, url: str, errors: list[str], width: int, height: int):  # type: ignore[no-untyped-def]
-    browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+    browser = launch(pw)
     page = browser.new_page(viewport={"width": width, "height": height})
     watch_errors(page, errors, [])
     page.goto(url + "/")

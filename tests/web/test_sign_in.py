@@ -10,7 +10,7 @@ import pytest
 from server.storage.models import Role
 from tests.conftest import LiveServer
 from tests.server.test_auth import add_user
-from tests.web.test_dashboard import CHROMIUM, CHROMIUM_ARGS, shot, wait_js
+from tests.web.browser import CHROMIUM, launch, shot, wait_js
 
 pytestmark = [
     pytest.mark.slow,
@@ -25,7 +25,7 @@ def test_sign_in_throttle_and_sign_out(live_server: LiveServer) -> None:
     add_user(live_server, "otto", Role.operator)
     errors: list[str] = []
     with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        browser = launch(pw)
         page = browser.new_page()
         page.on("pageerror", lambda exc: errors.append(str(exc)))
         page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
