@@ -17,10 +17,11 @@ from processing.mapping.icp import (
     structure_fitness,
     structure_share,
 )
+from processing.mapping.landmarks import PlaneLandmarks
 from processing.mapping.params import MapParams
 from processing.mapping.selection import fuse_map, select
 from processing.mapping.tracking import Tracker
-from processing.planes import Plane, extract_planes, plane_edge, plane_frame, same_plane, to_frame
+from processing.planes import extract_planes
 
 reg = o3d.pipelines.registration
 
@@ -84,13 +85,7 @@ class IncrementalMap:
             # ICP's heading step minus the odometry's, where the structure fixes it, over its configured
             # error
         ] = []
-        self._planes: list[list[Plane]] = []  # large planes of each cloud (sensor frame)
-        self._landmarks: list[
-            list[tuple[int, int]]
-        ] = []  # each landmark's sightings (cloud, plane index)
-        self._landmark_poses: list[
-            NDArray[np.float64]
-        ] = []  # T_world_landmark: a frame on the plane, z along its normal
+        self.landmarks = PlaneLandmarks(params.planes)
         self._fused = o3d.geometry.PointCloud()
         self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
         self.tracker = Tracker(params.tracking, params.select.voxel_m)
@@ -130,7 +125,7 @@ class IncrementalMap:
         i = len(self._pcds)
         self._pcds.append(pcd)
         self._guesses.append(guess)
-        self._planes.append(
+        self.landmarks.planes.append(
             extract_planes(np.asarray(pcd.points), np.asarray(pcd.normals))
             if self.params.planes.enabled and pcd.has_normals()
             else []
@@ -139,7 +134,7 @@ class IncrementalMap:
             pose = guess if guess is not None else np.eye(4)
             self._append_node(pose)
             self._facts.append((1.0, 0.0, False, 0))
-            self._associate_planes(0)
+            self.landmarks.associate(0, pose)
             return pose
         previous = self._guesses[i - 1]
         if guess is not None and previous is not None:
@@ -175,7 +170,7 @@ class IncrementalMap:
                     register_pair(pcd, self._pcds[j], self._relative(j, i), self.params.icp),
                     uncertain=False,
                 )
-            self._associate_planes(i)
+            self.landmarks.associate(i, np.asarray(self.graph.nodes[i].pose))
             loops = self._close_loops(i)
             # every ``optimise_every`` clouds, and less often as the graph grows (each
             # optimisation and re-fusion costs time in proportion to the clouds so far)
@@ -258,98 +253,7 @@ class IncrementalMap:
     @property
     def plane_landmarks(self) -> int:
         """Landmarks seen often enough to tie the clouds that see them."""
-        return sum(len(s) >= self.params.planes.min_sightings for s in self._landmarks)
-
-    def _landmark_plane(self, m: int) -> Plane:
-        """Landmark m as a plane in the world (its node's z axis and origin)."""
-        T = self._landmark_poses[m]
-        return Plane(T[:3, 2].copy(), float(-T[:3, 2] @ T[:3, 3]), T[None, :3, 3].copy())
-
-    def _associate_planes(self, i: int) -> None:
-        """Match cloud i's large planes to the landmarks (current estimate); an unmatched one
-        becomes a landmark, its node a frame on the plane (z along its normal)."""
-        p = self.params
-        pose = np.asarray(self.graph.nodes[i].pose)
-        for k, plane in enumerate(self._planes[i]):
-            world = to_frame(plane, pose)
-            m = next(
-                (
-                    m
-                    for m in range(len(self._landmarks))
-                    if same_plane(
-                        world,
-                        self._landmark_plane(m),
-                        p.planes.max_angle_deg,
-                        p.planes.max_offset_m,
-                    )
-                ),
-                None,
-            )
-            if m is None:
-                self._landmarks.append([(i, k)])
-                self._landmark_poses.append(plane_frame(world))
-            else:
-                self._landmarks[m].append((i, k))
-
-    def _merge_landmarks(self) -> None:
-        """Merge landmarks that the optimised poses show to be one plane (seen apart before)."""
-        p = self.params
-        m = 0
-        while m < len(self._landmarks):
-            other = next(
-                (
-                    o
-                    for o in range(m + 1, len(self._landmarks))
-                    if same_plane(
-                        self._landmark_plane(m),
-                        self._landmark_plane(o),
-                        p.planes.max_angle_deg,
-                        p.planes.max_offset_m,
-                    )
-                ),
-                None,
-            )
-            if other is None:
-                m += 1
-                continue
-            self._landmarks[m] += self._landmarks.pop(other)
-            self._landmark_poses.pop(other)
-
-    def _landmark_edges(self, first_node: int) -> tuple[list[int], list[reg.PoseGraphEdge]]:
-        """The landmarks seen often enough to tie clouds (their nodes numbered from
-        ``first_node`` in that order) and the edges from each sighting to its landmark's
-        node: :func:`plane_edge` against the plane z = 0 of the landmark's frame, uncertain
-        (the robust optimisation can drop a sighting that disagrees), and a weak prior tying
-        each landmark to its first sighting along what planes leave free."""
-        p = self.params
-        active = [
-            m
-            for m, sightings in enumerate(self._landmarks)
-            if len(sightings) >= p.planes.min_sightings
-        ]
-        edges = []
-        on_plane = Plane(np.array([0.0, 0.0, 1.0]), 0.0, np.zeros((1, 3)))
-        for node, m in enumerate(active, start=first_node):
-            T_L = np.linalg.inv(self._landmark_poses[m])
-            for i, k in self._landmarks[m]:
-                measurement, info = plane_edge(
-                    self._planes[i][k],
-                    on_plane,
-                    T_L @ np.asarray(self.graph.nodes[i].pose),
-                    p.planes.sigma_m,
-                )
-                edges.append(reg.PoseGraphEdge(i, node, measurement, info, uncertain=True))
-            anchor = self._landmarks[m][0][0]
-            edges.append(
-                reg.PoseGraphEdge(
-                    anchor,
-                    node,
-                    T_L @ np.asarray(self.graph.nodes[anchor].pose),
-                    np.eye(6),
-                    uncertain=False,
-                )
-            )
-        return active, edges
+        return self.landmarks.tying
 
     def _close_loops(self, i: int, *, optimised: bool = False) -> int:
         """Loop closures from cloud i to the nearest earlier clouds of the same place,
@@ -433,9 +337,11 @@ class IncrementalMap:
         graph = reg.PoseGraph()
         for node in self.graph.nodes:
             graph.nodes.append(node)
-        active, landmark_edges = self._landmark_edges(n)
+        active, landmark_edges = self.landmarks.edges(
+            n, lambda i: np.asarray(self.graph.nodes[i].pose)
+        )
         for m in active:
-            graph.nodes.append(reg.PoseGraphNode(self._landmark_poses[m]))
+            graph.nodes.append(reg.PoseGraphNode(self.landmarks.poses[m]))
         for edge in list(self.graph.edges) + landmark_edges:
             graph.edges.append(edge)
         option = reg.GlobalOptimizationOption(
@@ -461,7 +367,7 @@ class IncrementalMap:
         self.graph = kept
         self._pose_buffer[:n] = [np.asarray(node.pose) for node in kept.nodes]
         for node, m in enumerate(active, start=n):
-            self._landmark_poses[m] = np.asarray(graph.nodes[node].pose).copy()
+            self.landmarks.poses[m] = np.asarray(graph.nodes[node].pose).copy()
         self._fused_upto = 0  # every pose may have moved: fuse again
 
     @property
@@ -484,11 +390,11 @@ class IncrementalMap:
         more if either changed the graph; the poses, the fused map and the per-cloud facts."""
         if self.params.pose_graph:
             self.optimise()
-            landmarks = len(self._landmarks)
-            self._merge_landmarks()
+            landmarks = len(self.landmarks)
+            self.landmarks.merge()
             if (
                 sum(self._close_loops(i, optimised=True) for i in range(len(self._pcds)))
-                or len(self._landmarks) < landmarks
+                or len(self.landmarks) < landmarks
             ):
                 self.optimise()
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
