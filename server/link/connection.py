@@ -207,7 +207,7 @@ class RobotConnection:
         self.relay(message)
         live_map = self.state.live_map
         if live_map is not None and message.type is MessageType.CLOUD and result.status == "stored":
-            live_map.offer(sid, message.payload, message.meta)
+            live_map.offer(sid, message.payload, message.meta, message.timestamp)
         live_detect = self.state.live_detect
         if (
             live_detect is not None

@@ -22,14 +22,21 @@ DISPLAY_POINTS = 150_000
 OPTIMISE_EVERY = 10
 
 _maps: dict[str, Any] = {}  # in the worker process: session id -> IncrementalMap
+_odometry: dict[str, list[tuple[float, NDArray[np.float64]]]] = {}  # (time, odometry pose)
 
 
 def _place(
-    session_id: str, payload: bytes, meta: dict[str, Any], guess: NDArray[np.float64]
-) -> tuple[int, NDArray[np.float32], NDArray[np.float32]]:
+    session_id: str,
+    payload: bytes,
+    meta: dict[str, Any],
+    guess: NDArray[np.float64],
+    t: float,
+) -> tuple[int, NDArray[np.float32], NDArray[np.float32], NDArray[np.float64]]:
     """In the worker: decode one cloud, add it to its session's map; (clouds, map points,
-    sensor positions)."""
-    from processing.mapping import IncrementalMap, MapParams
+    sensor positions, corrections): each cloud's time (robot clock) and the planar
+    correction (dx, dy, dyaw) that takes its odometry pose to where the map placed it."""
+    from processing.mapping import IncrementalMap, MapParams, TrackingParams
+    from processing.poses import se2_of_matrix
     from robot_link.clouds import decode_cloud
     from server.live.scene3d import display_points
 
@@ -37,13 +44,26 @@ def _place(
     live = _maps.get(session_id)
     if live is None:
         _maps.clear()  # one live session at a time: a new one replaces the old
-        live = _maps[session_id] = IncrementalMap(MapParams(), optimise_every=OPTIMISE_EVERY)
+        _odometry.clear()
+        # as the ``map`` job: the station's dense clouds and wheel odometry suit the
+        # pairwise graph (tracking is for sparse sequences with poor odometry)
+        params = MapParams(tracking=TrackingParams(enabled=False))
+        live = _maps[session_id] = IncrementalMap(params, optimise_every=OPTIMISE_EVERY)
     live.add(points, guess, shape=(meta["height"], meta["width"]))
+    odometry = _odometry.setdefault(session_id, [])
+    odometry.append((t, guess))
     poses = live.poses
+    corrections = np.array(
+        [
+            [t_k, *se2_of_matrix(pose @ np.linalg.inv(odo))]
+            for (t_k, odo), pose in zip(odometry, poses)
+        ]
+    )
     return (
         len(poses),
         display_points(live.points, DISPLAY_POINTS),
         poses[:, :3, 3].astype(np.float32),
+        corrections,
     )
 
 
@@ -54,6 +74,9 @@ class LiveMap:
         self.factory = factory
         self.scene = scene
         self.worker = LiveWorker("live map", MAX_PENDING)
+        # session id -> (N, 4): time and the planar correction of each mapped cloud's
+        # odometry pose (the coverage map places frames with it)
+        self.corrections: dict[str, NDArray[np.float64]] = {}
         self._mounts: dict[str, NDArray[np.float64] | None] = {}
 
     @property
@@ -76,9 +99,9 @@ class LiveMap:
             self._mounts[session_id] = np.asarray(T, dtype=np.float64) if T is not None else None
         return self._mounts[session_id]
 
-    def offer(self, session_id: str, payload: bytes, meta: dict[str, Any]) -> bool:
-        """Queue one stored cloud for the live map; False when it is skipped (no odometry
-        pose or mount, or the worker is behind)."""
+    def offer(self, session_id: str, payload: bytes, meta: dict[str, Any], t: float = 0.0) -> bool:
+        """Queue one stored cloud (taken at ``t``, robot clock) for the live map; False when
+        it is skipped (no odometry pose or mount, or the worker is behind)."""
         from processing.poses import se2_to_se3
 
         pose, mount = meta.get("pose"), self._mount(session_id)
@@ -86,11 +109,12 @@ class LiveMap:
             return False
         guess = se2_to_se3(float(pose["x"]), float(pose["y"]), float(pose["yaw"])) @ mount
 
-        def show(placed: tuple[int, NDArray[np.float32], NDArray[np.float32]]) -> None:
-            clouds, points, trajectory = placed
+        def show(placed: tuple[int, Any, Any, NDArray[np.float64]]) -> None:
+            clouds, points, trajectory, corrections = placed
+            self.corrections = {session_id: corrections}  # the live session's only
             self.scene.show_live_map(session_id, points, clouds, trajectory)
 
-        return self.worker.submit(_place, session_id, payload, dict(meta), guess, done=show)
+        return self.worker.submit(_place, session_id, payload, dict(meta), guess, t, done=show)
 
     def close(self) -> None:
         """Stop the worker."""

@@ -5,12 +5,14 @@ a live session's map is asked for every second or two and only new frames are re
 
 from __future__ import annotations
 
+import json
 import threading
 from collections import OrderedDict
 from typing import Any
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -69,9 +71,13 @@ def session_coverage(
     params: CoverageParams,
     *,
     with_grid: bool = True,
+    corrections: NDArray[np.float64] | None = None,
 ) -> dict[str, Any]:
     """The coverage of a session as JSON: frames (footprint corners, verdict), surface and
-    imaged areas, holes, and (``with_grid``) the grid as run-length rows for drawing."""
+    imaged areas, holes, and (``with_grid``) the grid as run-length rows for drawing.
+    Each frame is placed by the best registration there is: the mosaic's (the stitch job's
+    image registration), else ``corrections`` (N, 4: time, dx, dy, dyaw; the live map's
+    registration of the odometry, the cloud nearest in time), else its odometry pose."""
     s = db.get(InspectionSession, session_id)
     camera = (s.calibration or {}).get("camera", {}) if s is not None else {}
     px_per_m = float(camera.get("px_per_m") or 0) or None
@@ -85,11 +91,20 @@ def session_coverage(
     )
     mm_per_px = 1000.0 / px_per_m if px_per_m else None
     verdicts = frame_verdicts([cache.get(files, f) for f in frames], mm_per_px, params)
-    polys = []
+    polys, placed_by = [], []
+    mosaic = _mosaic_cameras(files, session_id)
     if px_per_m:
         for f in frames:
-            cam = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw or 0.0]), T_rc)
+            robot = np.array([f.pose_x, f.pose_y, f.pose_yaw or 0.0])
+            if f.seq in mosaic:
+                cam, by = mosaic[f.seq], "mosaic"
+            elif corrections is not None and len(corrections):
+                k = int(np.abs(corrections[:, 0] - f.timestamp).argmin())
+                cam, by = compose_se2(compose_se2(corrections[k, 1:], robot), T_rc), "live map"
+            else:
+                cam, by = compose_se2(robot, T_rc), "odometry"
             polys.append(footprint(cam, px_per_m, (f.width, f.height)))
+            placed_by.append(by)
     cov = coverage_map(polys, [not v for v in verdicts], params)
     out: dict[str, Any] = {
         "required_mm_per_px": params.required_mm_per_px,
@@ -100,8 +115,9 @@ def session_coverage(
                 "footprint": poly.round(4).tolist(),
                 "counts": not verdict,
                 "why_not": verdict or None,
+                "placed_by": by,
             }
-            for f, poly, verdict in zip(frames, polys, verdicts)
+            for f, poly, verdict, by in zip(frames, polys, verdicts, placed_by)
         ],
         "frames_not_counted": sum(1 for v in verdicts if v),
         "area_surface_m2": cov.area_surface_m2,
@@ -121,6 +137,25 @@ def session_coverage(
             "holes_rle": [_runs(row) for row in hole_mask(cov)],
         }
     return out
+
+
+def _mosaic_cameras(files: SessionFiles, session_id: str) -> dict[int, np.ndarray]:
+    """Camera poses (x, y, yaw; world) of the frames the stitch job placed with confidence
+    on a world-referenced mosaic, by frame seq."""
+    try:
+        world = json.loads((files.results_dir(session_id) / "mosaic.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    if not world.get("world_referenced"):
+        return {}
+    (ox, oy), scale = world["origin_m"], float(world["px_per_m"])
+    return {
+        int(f["frame"]): np.array(
+            [ox + f["x"] / scale, oy + f["y"] / scale, np.radians(f["theta_deg"])]
+        )
+        for f in world.get("frames", [])
+        if f.get("confident")
+    }
 
 
 def _runs(row: np.ndarray) -> list[int]:

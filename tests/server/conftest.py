@@ -17,6 +17,10 @@ from server.config import Settings
 from server.loopback import BackgroundServer, free_port
 from tests.conftest import LiveServer, make_token
 
+# the simulator's true camera pose (x, y, yaw) of each frame of the processed inspection,
+# in capture order, by session id: what placement on the structure is scored against
+TRUE_CAMERA_POSES: dict[str, list[list[float]]] = {}
+
 
 @pytest.fixture(scope="package")
 def inspected(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveServer, str]]:
@@ -33,9 +37,11 @@ def inspected(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveSe
             link = RobotLink(server.url, token)
             await link.start()
             try:
-                return (
-                    await InspectionSim(link, SimConfig(seed=11, lanes=2, time_scale=0.0)).run()
-                ).session_id
+                result = await InspectionSim(
+                    link, SimConfig(seed=11, lanes=2, time_scale=0.0)
+                ).run()
+                TRUE_CAMERA_POSES[str(result.session_id)] = result.frame_poses_true
+                return result.session_id
             finally:
                 await link.close()
 

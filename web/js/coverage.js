@@ -1,6 +1,7 @@
 // The Drive page's coverage map: a plan view of the surface in world coordinates (x along,
 // y across) with the robot's pose and heading, its trajectory, each captured frame placed at
-// its pose (the live mosaic, from odometry), and what the station says counts as imaged at
+// its odometry pose as it arrives and then where the station's registration puts it (the
+// live 3D map's while the robot drives, the mosaic's after), and what counts as imaged at
 // the required resolution: footprints that do not count outlined red, holes filled red.
 import { api, apiJSON, el, fmt, text } from "./api.js";
 import { selectedSession } from "./drive.js";
@@ -112,10 +113,14 @@ function draw() {
   ctx.setTransform(k, 0, 0, k, (W - k * (b.x1 + b.x0)) / 2, (H - k * (b.y1 + b.y0)) / 2);
   const px = 1 / k;
   const grid = state.cov?.grid;
-  for (const f of state.frames) { // the live mosaic: each frame at its odometry pose
+  // the live mosaic: each frame where the station placed it (the mosaic's or the live map's
+  // registration), at its odometry pose until the station has placed it
+  const placed = new Map((state.cov?.frames || []).map((f) => [f.seq, f.footprint]));
+  for (const f of state.frames) {
     if (!f.bmp) continue;
-    ctx.save(); ctx.translate(f.cx, f.cy); ctx.rotate(f.yaw);
-    ctx.drawImage(f.bmp, -f.w / 2, -f.h / 2, f.w, f.h);
+    const at = placed.has(f.seq) ? fromFootprint(placed.get(f.seq)) : f;
+    ctx.save(); ctx.translate(at.cx, at.cy); ctx.rotate(at.yaw);
+    ctx.drawImage(f.bmp, -at.w / 2, -at.h / 2, at.w, at.h);
     ctx.restore();
   }
   if (grid) {

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query
@@ -28,9 +29,15 @@ async def read_coverage(
     sharp and exposed, against the surface in view (the hull of all frame footprints): each
     frame's footprint and whether it counts (else why not), the areas, and the holes with
     their positions (metres, world frame), largest first. Live sessions grow as frames
-    arrive."""
+    arrive, placed by odometry refined by the live 3D map's registration while it runs."""
     get_session_or_404(db, session_id)
     params = CoverageParams(required_mm_per_px=state.settings.coverage_mm_per_px)
+    live = state.live_map.corrections.get(session_id) if state.live_map is not None else None
     return await run_in_threadpool(
-        session_coverage, db, state.files, state.quality, session_id, params, with_grid=grid
+        partial(session_coverage, with_grid=grid, corrections=live),
+        db,
+        state.files,
+        state.quality,
+        session_id,
+        params,
     )
