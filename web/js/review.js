@@ -2,6 +2,7 @@
 // over the Deep Zoom pyramid) with the defects drawn on it, the defect table with filters,
 // sorting and review (confirm / reject, CS1–CS4, comment; keyboard shortcuts), the 3D view.
 import { jobsBar } from "./jobs.js";
+import { replay } from "./replay.js";
 import { on } from "./live.js";
 import { attachTools, toolbar } from "./mosaic_tools.js";
 import { api, apiJSON, authHeaders, download, duration, el, fmt, patchJSON, text, token } from "./api.js";
@@ -129,57 +130,10 @@ function showDetail(d) {
     replayFor(d));
 }
 
-// The replay strip: the frames the defect was seen in, each with the moment's pose and
-// telemetry; click (or scrub) to see one large.
+// The replay strip and timeline, kept while the same defect stays selected.
 function replayFor(d) {
-  if (view.replay?.id === d.id) return view.replay.node;
-  const node = el("div", { id: "replay", class: "replay" }, el("p", { class: "muted small" }, "finding the frames it was seen in…"));
-  view.replay = { id: d.id, node };
-  apiJSON(`/api/sessions/${view.session.id}/defects/${d.id}/sightings`).then((seen) => {
-    if (view.replay?.id !== d.id) return;
-    if (!seen.length) { node.replaceChildren(el("p", { class: "muted small" }, "not seen in any stored frame")); return; }
-    const big = el("img", { class: "replay-frame", alt: "frame" });
-    const caption = el("p", { class: "small replay-caption" });
-    const scrub = el("input", { type: "range", min: "0", max: String(seen.length - 1), value: "0", "aria-label": "frames the defect was seen in" });
-    const thumbs = seen.map((f, i) => {
-      const img = el("img", { alt: `frame ${f.seq}`, loading: "lazy" });
-      frameImage(f.image_url).then((url) => { if (url) img.src = url; });
-      return el("button", { class: "replay-thumb", dataset: { seq: f.seq }, title: `frame ${f.seq}`, onclick: () => show(i) }, img);
-    });
-    const show = (i) => {
-      const f = seen[i];
-      scrub.value = String(i);
-      thumbs.forEach((t, j) => t.classList.toggle("selected", j === i));
-      frameImage(f.image_url).then((url) => { if (url) big.src = url; });
-      const t = f.telemetry?.data || {};
-      const wheels = t.wheel_speed_mps || [];
-      text(caption, [`frame ${f.seq}`, `+${clock(f.t_s)}`,
-        f.pose ? `x ${fmt(f.pose.x, 3)} m, y ${fmt(f.pose.y, 3)} m, heading ${fmt((f.pose.yaw * 180) / Math.PI, 1)}°` : "no pose",
-        t.battery_v ? `battery ${fmt(t.battery_v.main)} V` : null,
-        wheels.length ? `speed ${fmt(wheels.reduce((a, v) => a + v, 0) / wheels.length)} m/s` : null,
-        typeof t.adhesion_margin === "number" ? `adhesion ${fmt(t.adhesion_margin)}×` : null,
-        f.telemetry ? `telemetry ${fmt(f.telemetry.dt_s, 2)} s from the frame` : "no telemetry"].filter(Boolean).join(" · "));
-      node.dataset.shown = String(f.seq);
-    };
-    scrub.addEventListener("input", () => show(Number(scrub.value)));
-    node.replaceChildren(el("h4", {}, `Seen in ${seen.length} frame${seen.length === 1 ? "" : "s"}`),
-      el("div", { class: "replay-strip" }, ...thumbs), scrub, big, caption);
-    show(0);
-  }).catch((e) => node.replaceChildren(el("p", { class: "muted small" }, `frames unavailable: ${e.message}`)));
-  return node;
-}
-
-const frameURLs = new Map();
-function frameImage(path) {
-  if (!frameURLs.has(path)) {
-    frameURLs.set(path, api(path).then((r) => (r.ok ? r.blob() : null)).then((b) => (b ? URL.createObjectURL(b) : null)).catch(() => null));
-  }
-  return frameURLs.get(path);
-}
-
-function clock(seconds) {
-  const t = Math.max(0, Math.round(seconds));
-  return `${String(Math.floor(t / 60)).padStart(2, "0")}:${String(t % 60).padStart(2, "0")}`;
+  if (view.replay?.id !== d.id) view.replay = { id: d.id, node: replay(view.session.id, d.id) };
+  return view.replay.node;
 }
 
 function onKey(e) {
