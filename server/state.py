@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
@@ -37,6 +38,7 @@ class AppState:
     live_detect: LiveDetect | None = None  # defects of each frame as it arrives, shown live
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
     quality: QualityCache = field(default_factory=QualityCache)  # frame sharpness, exposure
+    coverage_memo: dict[str, Any] = field(default_factory=dict)  # session -> (key, coverage)
     logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per client
     malformed: MalformedGuard = field(default_factory=MalformedGuard)  # per robot
     passwords: PasswordBudget = field(default_factory=PasswordBudget)  # hashing, station-wide

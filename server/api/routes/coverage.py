@@ -6,12 +6,16 @@ from functools import partial
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Query
+from sqlalchemy import func, select
 from starlette.concurrency import run_in_threadpool
 
 from processing.coverage import CoverageParams
 from server.api.deps import SessionDep, StateDep, get_current_user
 from server.api.queries import get_session_or_404
 from server.reports.coverage import session_coverage
+from server.storage.models import Frame
+
+MEMO_SESSIONS = 16  # sessions whose last coverage is kept
 
 router = APIRouter(
     prefix="/api/sessions", tags=["coverage"], dependencies=[Depends(get_current_user)]
@@ -33,7 +37,23 @@ async def read_coverage(
     get_session_or_404(db, session_id)
     params = CoverageParams(required_mm_per_px=state.settings.coverage_mm_per_px)
     live = state.live_map.corrections.get(session_id) if state.live_map is not None else None
-    return await run_in_threadpool(
+    # the answer changes only with new frames, a new mosaic or a new live registration:
+    # pages that ask every second or two for a quiet session get the last one
+    frames = db.execute(
+        select(func.count(), func.max(Frame.seq)).where(Frame.session_id == session_id)
+    ).one()
+    mosaic = state.files.results_dir(session_id) / "mosaic.json"
+    key = (
+        tuple(frames),
+        mosaic.stat().st_mtime_ns if mosaic.is_file() else 0,
+        hash(live.tobytes()) if live is not None else 0,
+        grid,
+        params,
+    )
+    memo = state.coverage_memo.get(session_id)
+    if memo is not None and memo[0] == key:
+        return memo[1]
+    result = await run_in_threadpool(
         partial(session_coverage, with_grid=grid, corrections=live),
         db,
         state.files,
@@ -41,3 +61,7 @@ async def read_coverage(
         session_id,
         params,
     )
+    state.coverage_memo[session_id] = (key, result)
+    while len(state.coverage_memo) > MEMO_SESSIONS:
+        state.coverage_memo.pop(next(iter(state.coverage_memo)))
+    return result
