@@ -28,7 +28,7 @@ from processing.crack_filter import (
     sample_surface,
 )
 from processing.defects import Components
-from processing.learned import learned_cracks
+from processing.learned import LearnedParams, learned_cracks
 from processing.peaks import dominant_peaks, smooth_histogram, valley_emphasis_threshold
 from processing.region_growing import grow_regions
 from processing.ridges import line_emphasis
@@ -153,9 +153,10 @@ def defect_masks(
     tile_px: int = 1024,
     overlap_px: int = 64,
     workers: int = 2,
+    learned_params: LearnedParams = LearnedParams(),
 ) -> DefectMasks:
-    """Crack (``crack_method``) and rust masks of a BGR image of any size, tile by tile on
-    ``workers`` threads; only ``valid`` pixels count; components lying along ``seams``
+    """Crack (``crack_method``, the network's settings in ``learned_params``) and rust masks
+    of a BGR image of any size, tile by tile on ``workers`` threads; only ``valid`` pixels count; components lying along ``seams``
     (exposure steps where mosaic frames meet: straight dark edges) are not cracks, nor
     are cracks on a rust patch's rim (counted as corrosion). ``proposed`` measures its
     thresholds in ``surface`` (sampled from the image when not given), the same in every
@@ -185,7 +186,7 @@ def defect_masks(
 
     # the network runs once over the image (its own tiles, all cores to each)
     learned = (
-        learned_cracks(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+        learned_cracks(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), learned_params)
         if crack_method == "learned" and min(shape) >= 3
         else None
     )

@@ -1,4 +1,4 @@
-"""The ``steelscan`` command: ``demo``, ``serve``, ``sim``, ``detect``, ``stitch``, ``map``, ``bench``,
+"""The ``steelscan`` command: ``demo``, ``serve``, ``worker``, ``sim``, ``detect``, ``stitch``, ``map``, ``bench``,
 ``report``, ``export``, ``import`` and ``admin`` (``steelscan --help``)."""
 
 from __future__ import annotations
@@ -35,6 +35,18 @@ def cmd_serve(args: argparse.Namespace) -> int:
         log_config=uvicorn_log_config(),
         **settings.uvicorn_options(),
     )
+    return 0
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    """Run a Celery job worker until stopped (its settings from STEELSCAN_*)."""
+    if args.data_dir:
+        os.environ["STEELSCAN_DATA_DIR"] = args.data_dir
+    if args.broker:
+        os.environ["STEELSCAN_BROKER_URL"] = args.broker
+    from server.jobs.queue import run_worker
+
+    run_worker(args.concurrency or os.cpu_count() or 1)
     return 0
 
 
@@ -251,6 +263,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tls-cert", help="PEM certificate: serve HTTPS, robots connect over wss://")
     s.add_argument("--tls-key", help="PEM private key of --tls-cert")
     s.set_defaults(func=cmd_serve)
+
+    s = sub.add_parser("worker", help="run a job worker (STEELSCAN_JOB_BACKEND=celery)")
+    s.add_argument("--data-dir", help="the data directory the station and every worker mount")
+    s.add_argument("--broker", help="Celery broker URL (default STEELSCAN_BROKER_URL)")
+    s.add_argument("--concurrency", type=int, help="job processes (default: one per core)")
+    s.set_defaults(func=cmd_worker)
 
     s = sub.add_parser("demo", help="ground station + simulated robot + processing, end to end")
     s.add_argument("--data-dir")

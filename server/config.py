@@ -62,7 +62,34 @@ class Settings(BaseSettings):
         "(its robot never sent SESSION_END) and its files closed",
     )
     fsync: bool = Field(default=False, description="fsync every stored file (power-loss safety)")
-    job_workers: int = Field(default=2, ge=1, description="worker processes for processing jobs")
+    job_workers: int = Field(
+        default=2, ge=1, description="worker processes for processing jobs (job_backend local)"
+    )
+    job_backend: Literal["local", "celery"] = Field(
+        default="local",
+        description="where jobs run: the station's own worker processes, or Celery workers "
+        "(steelscan worker, on this or other machines mounting the same data_dir)",
+    )
+    broker_url: str = Field(
+        default="redis://127.0.0.1:6379/0", description="Celery's broker (job_backend celery)"
+    )
+    job_lease_s: float = Field(
+        default=60.0,
+        gt=0,
+        description="a running job whose worker has not been heard of for this long is "
+        "handed to another worker",
+    )
+    job_fanout: int = Field(
+        default=4,
+        ge=0,
+        description="other workers a Celery job asks to help with its independent parts "
+        "(frames, pairs, segments)",
+    )
+    worker_threads: int = Field(
+        default=1,
+        ge=1,
+        description="threads one job uses on a Celery worker process (scale with processes)",
+    )
     auto_process: bool = Field(default=True, description="run jobs when a session ends")
     coverage_mm_per_px: float = Field(
         default=0.3,

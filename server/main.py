@@ -46,12 +46,19 @@ def build_state(settings: Settings) -> AppState:
     engine = db.make_engine(url)
     factory = db.make_sessionmaker(engine)
     files = SessionFiles(settings.data_dir, fsync=settings.fsync)
+    send = None
+    if settings.job_backend == "celery":
+        from server.jobs.queue import CeleryQueue
+
+        send = CeleryQueue(settings).send
     runner = JobRunner(
         factory,
         url,
         str(settings.data_dir.resolve()),
         settings.job_workers,
         defaults={"detect": {"method": settings.detect_method}},
+        send=send,
+        lease_s=settings.job_lease_s,
     )
     reserve = DiskReserve(settings.data_dir, settings.min_free_bytes)
     ingest = Ingest(factory, files, reserve)

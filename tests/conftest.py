@@ -39,9 +39,59 @@ def make_token(settings: Settings, name: str = "test-robot") -> str:
         engine.dispose()
 
 
+DATABASES = ("sqlite", "postgresql")
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    """Tests marked ``databases`` run once per database; the others on the one
+    ``STEELSCAN_TEST_DATABASE`` names (SQLite unless set)."""
+    if "database" in metafunc.fixturenames and metafunc.definition.get_closest_marker("databases"):
+        metafunc.parametrize("database", DATABASES, indirect=True)
+
+
+@pytest.fixture(scope="session")
+def postgres() -> Iterator[Any]:
+    """A PostgreSQL server of the test run's own (Debian's package, a temporary cluster)."""
+    from bench.services import Postgres
+
+    server = Postgres()
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+@pytest.fixture(scope="session")
+def redis_server() -> Iterator[Any]:
+    """A Redis server of the test run's own (Debian's package)."""
+    from bench.services import Redis
+
+    server = Redis()
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
 @pytest.fixture
-def settings(tmp_path: Path) -> Settings:
-    return Settings(data_dir=tmp_path / "data", job_workers=1)
+def database(request: pytest.FixtureRequest) -> str:
+    """Which database the test's station uses: "sqlite" or "postgresql"."""
+    kind = getattr(request, "param", os.environ.get("STEELSCAN_TEST_DATABASE", "sqlite"))
+    assert kind in DATABASES, kind
+    return kind
+
+
+@pytest.fixture
+def database_url(request: pytest.FixtureRequest, database: str, tmp_path: Path) -> str:
+    """A fresh, empty database of that kind."""
+    if database == "postgresql":
+        return request.getfixturevalue("postgres").new_database()
+    return f"sqlite:///{tmp_path / 'data' / 'steelscan.db'}"
+
+
+@pytest.fixture
+def settings(tmp_path: Path, database_url: str) -> Settings:
+    return Settings(data_dir=tmp_path / "data", job_workers=1, database_url=database_url)
 
 
 @pytest.fixture

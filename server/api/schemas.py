@@ -36,6 +36,10 @@ class JobPublic(ORM):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    attempt: int = Field(
+        description="attempts that have taken the job (a lost worker's job is taken again)"
+    )
+    worker: str | None = Field(description="where the latest attempt runs or ran")
 
 
 class JobCreate(BaseModel):

@@ -3,37 +3,78 @@
 from __future__ import annotations
 
 import json
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 import cv2
 import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.jobs import leases
 from server.storage.files import SessionFiles, write_atomic
-from server.storage.models import InspectionSession, Job
+from server.storage.models import InspectionSession
+
+T = TypeVar("T")
+R = TypeVar("R")
+Part = Callable[[SessionFiles, Any, Any], Any]  # (files, shared, item) -> result
+
+
+class JobLost(Exception):
+    """The attempt no longer holds its job: cancelled, or taken over by another worker."""
+
+
+class Fanout(Protocol):
+    """Runs a job's independent parts on other workers as well (:mod:`server.jobs.parts`)."""
+
+    def __call__(
+        self, ctx: JobContext, fn: Part, shared: Any, items: Sequence[Any]
+    ) -> list[Any]: ...
 
 
 @dataclass
 class JobContext:
     """What a job body gets: its row's ids and parameters, the database and the data
-    directory."""
+    directory; the attempt that holds the job, the threads it may use and, on a job queue,
+    the way to spread its parts over other workers."""
 
     job_id: int
     session_id: str
     factory: sessionmaker[Session]
     files: SessionFiles
     params: dict[str, Any] = field(default_factory=dict)
+    attempt: int = 0
+    threads: int = 2
+    fanout: Fanout | None = None
+    lost: threading.Event = field(default_factory=threading.Event)
 
     def progress(self, fraction: float, message: str = "") -> None:
-        """Record progress (0-1) and a short message."""
-        with self.factory() as db:
-            job = db.get(Job, self.job_id)
-            if job is not None:
-                job.progress = float(min(max(fraction, 0.0), 1.0))
-                job.message = message
-                db.commit()
+        """Record progress (0-1) and a short message; raises :class:`JobLost` when the
+        attempt no longer holds the job, so the body stops there."""
+        self.check()
+        if not leases.beat(
+            self.factory, self.job_id, self.attempt, progress=fraction, message=message
+        ):
+            self.lost.set()
+            raise JobLost(self.job_id)
+
+    def check(self) -> None:
+        """Raise :class:`JobLost` if the heartbeat found the job cancelled or taken over."""
+        if self.lost.is_set():
+            raise JobLost(self.job_id)
+
+    def map(self, fn: Part, shared: Any, items: Sequence[Any]) -> list[Any]:
+        """``[fn(files, shared, item) for item in items]``, in order: spread over the job
+        queue's workers when there is one, else on this process's threads. ``fn`` is a
+        module-level function; ``shared`` and the items are picklable and small (ids and
+        paths: a part reads what it needs from the data directory)."""
+        if self.fanout is not None and len(items) > 1:
+            return self.fanout(self, fn, shared, items)
+        with ThreadPoolExecutor(max_workers=max(1, self.threads)) as pool:
+            return list(pool.map(lambda item: fn(self.files, shared, item), items))
 
     def session(self) -> InspectionSession:
         """The job's session row."""
@@ -48,6 +89,35 @@ class JobContext:
         d = self.files.results_dir(self.session_id)
         d.mkdir(parents=True, exist_ok=True)
         return d
+
+
+class Heartbeat:
+    """Renews a running job's lease every ``interval_s`` on a thread of its own, so that a
+    long stretch without progress reports does not look like a lost worker; sets the
+    context's ``lost`` when the job was cancelled or taken over."""
+
+    def __init__(self, ctx: JobContext, interval_s: float) -> None:
+        self.ctx, self.interval_s = ctx, interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="job-heartbeat", daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            try:
+                held = leases.beat(self.ctx.factory, self.ctx.job_id, self.ctx.attempt)
+            except Exception:  # the database is away for a moment: the next beat tries again
+                continue
+            if not held:
+                self.ctx.lost.set()
+                return
+
+    def __enter__(self) -> Heartbeat:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
 
 
 def write_png(path: Path, image: np.ndarray) -> None:

@@ -20,11 +20,12 @@ from processing.crack_filter import CrackParams, SurfaceStats, measure_surface
 from processing.defects import Defect as Defect_
 from processing.defects import measure_defects
 from processing.detection import CrackMethod, defect_masks
-from processing.learned import load_model
+from processing.learned import LearnedParams, load_model
 from processing.poses import compose_se2, world_box
 from processing.surface import on_surface, surface_level
 from server.jobs.banded import detect_banded
 from server.jobs.context import JobContext, params_record, write_png
+from server.storage.files import SessionFiles
 from server.storage.models import Defect, Frame
 
 MOSAIC_IN_MEMORY_PX = 48_000_000  # larger mosaics are searched band by band with bounded memory
@@ -73,9 +74,18 @@ def detect_in(
     workers: int = 2,
     method: CrackMethod = "proposed",
     surface: SurfaceStats | None = None,
+    network_threads: int = 2,
 ) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
     """Crack (by ``method``) and rust masks of one image and its measured defects."""
-    masks = defect_masks(image, valid, seams, crack_method=method, surface=surface, workers=workers)
+    masks = defect_masks(
+        image,
+        valid,
+        seams,
+        crack_method=method,
+        surface=surface,
+        workers=workers,
+        learned_params=LearnedParams(threads=network_threads),
+    )
     with ThreadPoolExecutor(max_workers=workers) as pool:  # labelling and distances release the GIL
         rust = pool.submit(
             measure_defects,
@@ -96,7 +106,8 @@ def detect_in(
 
 
 def _detect_frames(ctx: JobContext) -> list[Defect]:
-    """Defects of every camera frame, placed on the structure through the frame's pose."""
+    """Defects of every camera frame, placed on the structure through the frame's pose; the
+    frames are independent parts (:meth:`JobContext.map`: threads here, or other workers)."""
     calib = ctx.session().calibration.get("camera", {})
     px_per_m = float(calib.get("px_per_m", 0)) or None
     T_rc = np.array(calib.get("T_robot_camera", [0.0, 0.0, 0.0]))
@@ -105,27 +116,36 @@ def _detect_frames(ctx: JobContext) -> list[Defect]:
             db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq))
         )
     mm_per_px = 1000.0 / px_per_m if px_per_m else None
-
-    def detect(f: Frame) -> tuple[tuple[int, int], list[Defect_]] | None:
-        try:
-            img = cv2.imdecode(np.frombuffer(ctx.files.payload(f), np.uint8), cv2.IMREAD_COLOR)
-        except OSError:
-            return None
-        if img is None:
-            return None
-        found = detect_in(img, mm_per_px, workers=1, method=_method(ctx))[2]
-        return (img.shape[1], img.shape[0]), found
-
+    ctx.progress(0.0, f"{len(frames)} frames")
+    found = ctx.map(
+        detect_frame,
+        (mm_per_px, _method(ctx), ctx.threads),
+        [(f.path, f.data_offset, f.size_bytes) for f in frames],
+    )
+    ctx.progress(0.5, "frames done")
     rows: list[Defect] = []
-    with ThreadPoolExecutor(
-        max_workers=2
-    ) as pool:  # a frame per core: decoding and detection release the GIL
-        for i, (f, done) in enumerate(zip(frames, pool.map(detect, frames))):
-            if i % 10 == 0:
-                ctx.progress(0.5 * i / max(len(frames), 1), f"frames {i}/{len(frames)}")
-            if done is not None:
-                rows += _frame_rows(ctx, f, done[1], done[0], px_per_m, T_rc)
+    for f, done in zip(frames, found):
+        if done is not None:
+            rows += _frame_rows(ctx, f, done[1], done[0], px_per_m, T_rc)
     return rows
+
+
+def detect_frame(
+    files: SessionFiles,
+    shared: tuple[float | None, CrackMethod, int],
+    where: tuple[str, int, int],
+) -> tuple[tuple[int, int], list[Defect_]] | None:
+    """One stored frame's (width, height) and defects (None: unreadable); ``shared`` is
+    (mm per pixel, crack method, the network's threads)."""
+    mm_per_px, method, threads = shared
+    try:
+        img = cv2.imdecode(np.frombuffer(files.read(*where), np.uint8), cv2.IMREAD_COLOR)
+    except OSError:
+        return None
+    if img is None:
+        return None
+    found = detect_in(img, mm_per_px, workers=1, method=method, network_threads=threads)[2]
+    return (img.shape[1], img.shape[0]), found
 
 
 def _frame_rows(
@@ -164,7 +184,7 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     if int(world["width_px"]) * int(world["height_px"]) > MOSAIC_IN_MEMORY_PX:
         found = _detect_mosaic_banded(ctx, out, mm_per_px, surface)
     else:
-        found = _detect_mosaic(out, mm_per_px, _method(ctx), surface)
+        found = _detect_mosaic(out, mm_per_px, _method(ctx), surface, ctx.threads)
     mosaic_rows: list[Defect] = []
     for d in found:
         x, y, w, h = d.bbox
@@ -246,8 +266,10 @@ def _detect_mosaic(
     mm_per_px: float | None,
     method: CrackMethod = "proposed",
     surface: SurfaceStats | None = None,
+    threads: int = 2,
 ) -> list[Defect_]:
-    """Defects of a mosaic that fits in memory, found in one pass; writes the mask PNGs."""
+    """Defects of a mosaic that fits in memory, found in one pass on ``threads``; writes the
+    mask PNGs."""
     mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
     if mosaic is None:
         raise ValueError("mosaic.png cannot be read")
@@ -261,7 +283,16 @@ def _detect_mosaic(
     )
     seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
     valid = on_surface(mosaic, coverage)
-    cracks, rust, found = detect_in(mosaic, mm_per_px, valid, seams, method=method, surface=surface)
+    cracks, rust, found = detect_in(
+        mosaic,
+        mm_per_px,
+        valid,
+        seams,
+        workers=threads,
+        method=method,
+        surface=surface,
+        network_threads=threads,
+    )
     write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
     write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
     return found

@@ -1,20 +1,27 @@
-"""In-process job runner: a dispatcher thread feeding a pool of worker processes."""
+"""The station's job dispatcher: a thread that hands each queued job, once the jobs it
+depends on have ended, to a pool of worker processes of its own (the default) or to a job
+queue (Celery workers anywhere, :mod:`server.jobs.queue`)."""
 
 from __future__ import annotations
 
 import logging
 import multiprocessing
 import threading
+from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from functools import partial
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.jobs import leases
 from server.jobs.orphans import init_worker
 from server.jobs.worker import JOB_KINDS, PIPELINE, run_job
 from server.storage.models import Job, JobState, utcnow
+
+Send = Callable[[int], None]  # hands a job id to a job queue
 
 log = logging.getLogger(__name__)
 
@@ -24,6 +31,9 @@ class JobRunner:
 
     A job's failure (an exception, or its worker process dying) marks that job failed with
     the reason and leaves the runner and the server running.
+
+    With ``send`` (a job queue), jobs are handed to it instead, each once, and again when
+    its worker's heartbeat stops for a lease; the workers claim them (:mod:`leases`).
     """
 
     def __init__(
@@ -33,9 +43,13 @@ class JobRunner:
         data_dir: str,
         workers: int,
         defaults: dict[str, dict[str, Any]] | None = None,
+        *,
+        send: Send | None = None,
+        lease_s: float = leases.LEASE_S,
     ) -> None:
         """``defaults``: parameters per job kind, under those a caller gives."""
         self.factory = factory
+        self.send, self.lease_s = send, lease_s
         self.defaults = defaults or {}
         self.database_url = database_url
         self.data_dir = data_dir
@@ -47,14 +61,16 @@ class JobRunner:
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
-        """Fail jobs a crash interrupted, then start dispatching."""
-        with self.factory() as db:
-            for job in db.scalars(select(Job).where(Job.state == JobState.running)):
-                job.state = JobState.failed
-                job.error = "interrupted: the ground station stopped while the job ran"
-                job.finished_at = utcnow()
-            db.commit()
-        self._pool = self._new_pool()
+        """Fail jobs a crash of the station interrupted (its own workers died with it; a job
+        queue's workers carry on), then start dispatching."""
+        if self.send is None:
+            with self.factory() as db:
+                for job in db.scalars(select(Job).where(Job.state == JobState.running)):
+                    job.state = JobState.failed
+                    job.error = "interrupted: the ground station stopped while the job ran"
+                    job.finished_at = utcnow()
+                db.commit()
+            self._pool = self._new_pool()
         self._thread = threading.Thread(target=self._loop, name="job-dispatcher", daemon=True)
         self._thread.start()
 
@@ -98,6 +114,12 @@ class JobRunner:
         self._wake.set()
         return job_id
 
+    def cancel(self, job_id: int, by: str) -> bool:
+        """Cancel a queued or running job (False: it had ended); jobs waiting on it fail."""
+        done = leases.cancel(self.factory, job_id, by)
+        self._wake.set()
+        return done
+
     def enqueue_pipeline(self, session_id: str) -> list[int]:
         """Queue every processing stage of a session in dependency order."""
         ids: dict[str, int] = {}
@@ -128,31 +150,69 @@ class JobRunner:
                 db.scalars(select(Job).where(Job.state == JobState.queued).order_by(Job.id))
             )
             for job in queued:
-                if job.id in self._running or len(self._running) >= self.workers:
+                if self.send is None and (
+                    job.id in self._running or len(self._running) >= self.workers
+                ):
+                    continue
+                if self.send is not None and job.dispatched_at is not None:
                     continue
                 deps = [db.get(Job, d) for d in job.params.get("after", [])]
-                if any(d is not None and d.state == JobState.failed for d in deps):
+                if any(
+                    d is not None and d.state in (JobState.failed, JobState.cancelled) for d in deps
+                ):
                     job.state = JobState.failed
-                    job.error = "a job it depends on failed"
+                    job.error = "a job it depends on failed or was cancelled"
                     job.finished_at = utcnow()
                     db.commit()
                     continue
                 if any(d is not None and d.state != JobState.done for d in deps):
                     continue
                 used = [db.get(Job, u) for u in job.params.get("uses", [])]
-                if any(
-                    u is not None and u.state not in (JobState.done, JobState.failed) for u in used
-                ):
+                if any(u is not None and u.state not in leases.ENDED for u in used):
                     continue
-                self._submit(job.id)
+                if self.send is None:
+                    self._submit(job.id)
+                else:
+                    self._hand_over(db, job.id)
+            if self.send is not None:
+                self._hand_over_lost(db)
+
+    def _hand_over(self, db: Session, job_id: int) -> None:
+        """Give a job to the queue once (marked first: a crash in between leaves it to the
+        lease, never to two deliveries at once)."""
+        assert self.send is not None
+        db.execute(update(Job).where(Job.id == job_id).values(dispatched_at=utcnow()))
+        db.commit()
+        self.send(job_id)
+
+    def _hand_over_lost(self, db: Session) -> None:
+        """Hand jobs out again whose worker stopped beating for a lease (killed, its machine
+        gone) and that were not handed out since: a fresh attempt takes them over."""
+        stale = leases.stale_before(self.lease_s)
+        lost = db.scalars(
+            select(Job.id).where(
+                Job.state == JobState.running,
+                or_(Job.heartbeat_at.is_(None), Job.heartbeat_at < stale),
+                or_(Job.dispatched_at.is_(None), Job.dispatched_at < stale),
+            )
+        ).all()
+        for job_id in lost:
+            log.warning("job %d: its worker stopped answering; handing it out again", job_id)
+            self._hand_over(db, job_id)
+
+    @property
+    def _run(self) -> Callable[[int], object]:
+        return partial(
+            run_job, database_url=self.database_url, data_dir=self.data_dir, lease_s=self.lease_s
+        )
 
     def _submit(self, job_id: int) -> None:
         assert self._pool is not None
         try:
-            future = self._pool.submit(run_job, job_id, self.database_url, self.data_dir)
+            future = self._pool.submit(self._run, job_id)
         except BrokenProcessPool:
             self._pool = self._new_pool()
-            future = self._pool.submit(run_job, job_id, self.database_url, self.data_dir)
+            future = self._pool.submit(self._run, job_id)
         self._running[job_id] = future
         future.add_done_callback(lambda f, jid=job_id: self._finished(jid, f))
 
@@ -162,13 +222,7 @@ class JobRunner:
         if exc is not None:
             # run_job records its own failures; reaching here means the worker itself died.
             log.error("job %d: worker failed: %r", job_id, exc)
-            with self.factory() as db:
-                job = db.get(Job, job_id)
-                if job is not None and job.state not in (JobState.done, JobState.failed):
-                    job.state = JobState.failed
-                    job.error = f"worker process failed: {exc!r}"
-                    job.finished_at = utcnow()
-                    db.commit()
+            leases.fail_unless_ended(self.factory, job_id, f"worker process failed: {exc!r}")
             if isinstance(exc, BrokenProcessPool):
                 self._pool = self._new_pool()
         self._wake.set()

@@ -12,18 +12,20 @@ import traceback
 from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.jobs.context import JobContext
+from server.jobs import leases
+from server.jobs.context import Fanout, Heartbeat, JobContext, JobLost
 from server.jobs.detect import run_detect
 from server.jobs.export import run_export
+from server.jobs.leases import LEASE_S
 from server.jobs.map import run_map
 from server.jobs.stitch import run_stitch
 from server.storage.db import make_engine, make_sessionmaker
 from server.storage.files import SessionFiles
-from server.storage.models import Job, JobState, utcnow
+from server.storage.models import Job, JobState
 
 log = logging.getLogger(__name__)
 
@@ -43,43 +45,57 @@ JOB_KINDS: dict[str, Callable[[JobContext], dict[str, Any]]] = {
 
 
 @lru_cache(maxsize=4)
-def _factory(database_url: str) -> sessionmaker[Session]:
+def factory_for(database_url: str) -> sessionmaker[Session]:
     return make_sessionmaker(make_engine(database_url))
 
 
-def run_job(job_id: int, database_url: str, data_dir: str) -> None:
-    """Run one job to completion, recording success or the reason it failed."""
-    factory = _factory(database_url)
-    with factory() as db:
-        job = db.get(Job, job_id)
-        if job is None:
-            return
-        job.state, job.started_at, job.progress, job.error = JobState.running, utcnow(), 0.0, None
-        db.commit()
-        kind, session_id, params = job.kind, job.session_id, dict(job.params or {})
-    ctx = JobContext(job_id, session_id, factory, SessionFiles(Path(data_dir)), params)
-    try:
-        result = JOB_KINDS[kind](ctx)
-    except Exception as exc:  # a job's failure is recorded, never raised into the runner
-        log.error("job %d (%s) failed:\n%s", job_id, kind, traceback.format_exc())
-        _finish(factory, job_id, JobState.failed, error=f"{type(exc).__name__}: {exc}")
-        return
-    _finish(factory, job_id, JobState.done, result=result)
+Outcome = Literal["done", "failed", "lost", "held", "ended"]
 
 
-def _finish(
-    factory: sessionmaker[Session],
+def run_job(
     job_id: int,
-    state: JobState,
+    database_url: str,
+    data_dir: str,
     *,
-    error: str | None = None,
-    result: dict[str, Any] | None = None,
-) -> None:
+    worker: str = "station",
+    lease_s: float = LEASE_S,
+    threads: int = 2,
+    fanout: Fanout | None = None,
+) -> Outcome:
+    """Run one job to completion under a lease (:mod:`server.jobs.leases`), recording
+    success or the reason it failed. The outcome: ``done``/``failed``; ``lost`` when the
+    attempt was cancelled or taken over while it ran (its result dropped); ``held`` when a
+    live attempt elsewhere holds the job; ``ended`` when there was nothing to run."""
+    factory = factory_for(database_url)
+    attempt = leases.claim(factory, job_id, worker, lease_s)
+    if attempt is None:
+        return "held" if leases.holder_alive_for(factory, job_id, lease_s) is not None else "ended"
     with factory() as db:
         job = db.get(Job, job_id)
-        if job is None:
-            return
-        job.state, job.finished_at, job.error = state, utcnow(), error
-        if result is not None:
-            job.result, job.progress = result, 1.0
-        db.commit()
+        assert job is not None
+        kind, session_id, params = job.kind, job.session_id, dict(job.params or {})
+    ctx = JobContext(
+        job_id,
+        session_id,
+        factory,
+        SessionFiles(Path(data_dir)),
+        params,
+        attempt=attempt,
+        threads=threads,
+        fanout=fanout,
+    )
+    with Heartbeat(ctx, lease_s / 4):
+        try:
+            result = JOB_KINDS[kind](ctx)
+        except JobLost:
+            log.info("job %d (%s) attempt %d: cancelled or taken over", job_id, kind, attempt)
+            return "lost"
+        except Exception as exc:  # a job's failure is recorded, never raised into the runner
+            log.error("job %d (%s) failed:\n%s", job_id, kind, traceback.format_exc())
+            held = leases.finish(
+                factory, job_id, attempt, JobState.failed, error=f"{type(exc).__name__}: {exc}"
+            )
+            return "failed" if held else "lost"
+    return (
+        "done" if leases.finish(factory, job_id, attempt, JobState.done, result=result) else "lost"
+    )

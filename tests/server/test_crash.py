@@ -10,6 +10,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from sqlalchemy import create_engine, text
 
 from robot_link.client import RobotLink
 from robot_link.protocol import MessageType
@@ -22,16 +23,18 @@ from tests.server.test_ingest import JPEG
 pytestmark = pytest.mark.slow  # an end-to-end run
 
 
-def serve(data_dir: Path, port: int) -> subprocess.Popen:
-    return serve_process(data_dir, port, STEELSCAN_AUTO_PROCESS="false")
+def serve(data_dir: Path, port: int, database_url: str = "") -> subprocess.Popen:
+    env = {"STEELSCAN_DATABASE_URL": database_url} if database_url else {}
+    return serve_process(data_dir, port, STEELSCAN_AUTO_PROCESS="false", **env)
 
 
-def test_sigkill_mid_session_loses_nothing(tmp_path: Path) -> None:
+@pytest.mark.databases
+def test_sigkill_mid_session_loses_nothing(tmp_path: Path, database_url: str) -> None:
     data = tmp_path / "data"
-    token = make_token(Settings(data_dir=data))
+    token = make_token(Settings(data_dir=data, database_url=database_url))
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    first = serve(data, port)
+    first = serve(data, port, database_url)
     frames = 60
 
     async def robot() -> tuple[str, subprocess.Popen, RobotLink]:
@@ -48,7 +51,7 @@ def test_sigkill_mid_session_loses_nothing(tmp_path: Path) -> None:
                 await asyncio.sleep(0.3)  # some of it acknowledged, some in flight...
                 first.send_signal(signal.SIGKILL)  # ...when the station dies without warning
                 await asyncio.to_thread(first.wait)
-                second = await asyncio.to_thread(serve, data, port)
+                second = await asyncio.to_thread(serve, data, port, database_url)
             await asyncio.sleep(0.005)
         await link.flush(timeout_s=60)
         await link.close()
@@ -62,22 +65,29 @@ def test_sigkill_mid_session_loses_nothing(tmp_path: Path) -> None:
     finally:
         second.terminate()
         second.wait(timeout=30)
-    db = sqlite3.connect(data / "steelscan.db")
-    assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
-    rows = db.execute(
-        "SELECT COUNT(*), COUNT(DISTINCT seq) FROM frames WHERE session_id = ?", (sid,)
-    ).fetchone()
-    assert rows == (frames, frames)
-    # every row's payload is where the row says: a JPEG of the stored size in its segment file
-    # (bytes of an append the crash cut short may follow, but no row points at them)
-    from server.storage.files import SessionFiles
+    if database_url.startswith("sqlite"):
+        check = sqlite3.connect(data / "steelscan.db")
+        assert check.execute("PRAGMA integrity_check").fetchone() == ("ok",)
+        check.close()
+    engine = create_engine(database_url)
+    with engine.connect() as db:
+        rows = db.execute(
+            text("SELECT COUNT(*), COUNT(DISTINCT seq) FROM frames WHERE session_id = :s"),
+            {"s": sid},
+        ).one()
+        assert tuple(rows) == (frames, frames)
+        # every row's payload is where the row says: a JPEG of the stored size in its segment
+        # file (bytes of an append the crash cut short may follow, but no row points at them)
+        from server.storage.files import SessionFiles
 
-    store = SessionFiles(data)
-    for path, offset, size in db.execute(
-        "SELECT path, data_offset, size_bytes FROM frames WHERE session_id = ?", (sid,)
-    ):
-        payload = store.read(path, offset, size)
-        assert payload.startswith(b"\xff\xd8") and len(payload) == size
+        store = SessionFiles(data)
+        for path, offset, size in db.execute(
+            text("SELECT path, data_offset, size_bytes FROM frames WHERE session_id = :s"),
+            {"s": sid},
+        ):
+            payload = store.read(path, offset, size)
+            assert payload.startswith(b"\xff\xd8") and len(payload) == size
+    engine.dispose()
 
 
 def _alive_children(pid: int) -> list[int]:

@@ -1,4 +1,5 @@
-"""The robot websocket against the real uvicorn server, SQLite file and data directory."""
+"""The robot websocket against the real uvicorn server, data directory and database (each
+test that takes ``settings`` runs on SQLite and on PostgreSQL)."""
 
 import asyncio
 import time
@@ -15,6 +16,8 @@ from robot_link.clouds import encode_depth_png
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
 from tests.conftest import LiveServer
 from tests.media import jpeg
+
+pytestmark = pytest.mark.databases
 
 JPEG = jpeg(640, 480)
 
@@ -225,14 +228,11 @@ def test_api_docs_need_no_internet(live_server: LiveServer) -> None:
         assert httpx.get(live_server.url + a).status_code == 200, a
 
 
-def test_a_robot_over_its_rate_limit_is_slowed_not_lost(tmp_path) -> None:
-    from server.config import Settings
+def test_a_robot_over_its_rate_limit_is_slowed_not_lost(settings) -> None:  # type: ignore[no-untyped-def]
     from server.loopback import BackgroundServer, free_port
     from tests.conftest import make_token
 
-    settings = Settings(
-        data_dir=tmp_path / "data", job_workers=1, robot_messages_per_s=100, robot_message_burst=10
-    )
+    settings = settings.model_copy(update={"robot_messages_per_s": 100, "robot_message_burst": 10})
     token = make_token(settings)
     server = BackgroundServer(settings, free_port())
     server.start()
@@ -256,17 +256,15 @@ def test_a_robot_over_its_rate_limit_is_slowed_not_lost(tmp_path) -> None:
         server.stop()
 
 
-def test_group_commit_stores_a_lone_message_at_once_and_batches_under_load(tmp_path) -> None:
+def test_group_commit_stores_a_lone_message_at_once_and_batches_under_load(settings) -> None:  # type: ignore[no-untyped-def]
     """A quiet station stores a message on the caller's thread (acknowledged without a
     hand-off); a burst goes to the writer's group commits; every message is stored once."""
-    from server.config import Settings
     from server.link.group_commit import QUIET_S, GroupCommit
     from server.link.ingest import Ingest
     from server.link.robots import create_robot
     from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.storage.files import SessionFiles
 
-    settings = Settings(data_dir=tmp_path / "data")
     upgrade(settings.resolved_database_url())
     factory = make_sessionmaker(make_engine(settings.resolved_database_url()))
     create_robot(factory, "r")
@@ -300,13 +298,11 @@ def test_group_commit_stores_a_lone_message_at_once_and_batches_under_load(tmp_p
         )
 
 
-def _ingest(tmp_path):  # type: ignore[no-untyped-def]
-    from server.config import Settings
+def _ingest(settings):  # type: ignore[no-untyped-def]
     from server.link.ingest import Ingest
     from server.storage.db import make_engine, make_sessionmaker, upgrade
     from server.storage.files import SessionFiles
 
-    settings = Settings(data_dir=tmp_path / "data")
     upgrade(settings.resolved_database_url())
     factory = make_sessionmaker(make_engine(settings.resolved_database_url()))
     return (
@@ -316,12 +312,12 @@ def _ingest(tmp_path):  # type: ignore[no-untyped-def]
     )
 
 
-def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(settings) -> None:  # type: ignore[no-untyped-def]
     from sqlalchemy import select
 
     from server.storage.models import Cloud, Frame, ReceivedMessage, TelemetrySample
 
-    factory, ingest, _ = _ingest(tmp_path)
+    factory, ingest, _ = _ingest(settings)
     sid = uuid.uuid4()
     intrinsics = {"fx": 195.0, "fy": 196.5, "cx": 111.5, "cy": 85.5}
     try:
@@ -385,7 +381,9 @@ def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(tmp_path)
 def test_the_write_ahead_log_is_checkpointed_off_the_ingest_path(tmp_path) -> None:  # type: ignore[no-untyped-def]
     import sqlite3
 
-    factory, ingest, db_path = _ingest(tmp_path)
+    from server.config import Settings
+
+    factory, ingest, db_path = _ingest(Settings(data_dir=tmp_path / "data"))
     sid = uuid.uuid4()
 
     def frames_in_main_file() -> int:

@@ -1,5 +1,6 @@
 from pathlib import Path
 
+import pytest
 from sqlalchemy import create_engine, inspect, text
 
 from server.storage.db import downgrade, make_engine, upgrade
@@ -27,8 +28,9 @@ def tables(url: str) -> set[str]:
         engine.dispose()
 
 
-def test_upgrade_downgrade_upgrade(tmp_path: Path) -> None:
-    url = f"sqlite:///{tmp_path / 'm.db'}"
+@pytest.mark.databases
+def test_upgrade_downgrade_upgrade(database_url: str) -> None:
+    url = database_url
     upgrade(url)
     assert tables(url) == TABLES
     downgrade(url, "base")
@@ -37,11 +39,12 @@ def test_upgrade_downgrade_upgrade(tmp_path: Path) -> None:
     assert tables(url) == TABLES
 
 
-def test_migrations_match_the_models(tmp_path: Path) -> None:
+@pytest.mark.databases
+def test_migrations_match_the_models(database_url: str) -> None:
     from alembic.autogenerate import compare_metadata
     from alembic.runtime.migration import MigrationContext
 
-    url = f"sqlite:///{tmp_path / 'm.db'}"
+    url = database_url
     upgrade(url)
     engine = create_engine(url)
     with engine.connect() as conn:

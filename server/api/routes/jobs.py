@@ -1,4 +1,4 @@
-"""Processing jobs: list a session's, start one, read one."""
+"""Processing jobs: list a session's, start one, read one, cancel one."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from sqlalchemy import select
 from server.api.deps import OperatorUser, SessionDep, StateDep, get_current_user
 from server.api.queries import get_session_or_404
 from server.api.schemas import JobCreate, JobPublic
-from server.errors import NotFound
+from server.errors import Conflict, NotFound
 from server.storage.models import Job
 
 router = APIRouter(prefix="/api", tags=["jobs"], dependencies=[Depends(get_current_user)])
@@ -53,4 +53,24 @@ def read_job(db: SessionDep, job_id: Annotated[int, Path(ge=1, le=2**63 - 1)]) -
     job = db.get(Job, job_id)
     if job is None:
         raise NotFound(f"job {job_id} not found")
+    return job
+
+
+@router.post("/jobs/{job_id}/cancel", response_model=JobPublic)
+def cancel_job(
+    db: SessionDep,
+    state: StateDep,
+    user: OperatorUser,
+    job_id: Annotated[int, Path(ge=1, le=2**63 - 1)],
+) -> Job:
+    """Cancel a queued or running job (operator role): a running one stops at its next
+    progress report, wherever its worker is; jobs that need its result fail. 409 when the
+    job has ended."""
+    if db.get(Job, job_id) is None:
+        raise NotFound(f"job {job_id} not found")
+    if not state.jobs.cancel(job_id, user.name):
+        raise Conflict(f"job {job_id} has ended already")
+    db.expire_all()
+    job = db.get(Job, job_id)
+    assert job is not None
     return job

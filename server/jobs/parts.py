@@ -1,0 +1,166 @@
+"""One job's independent parts spread over several workers through the shared data
+directory: only ids and a folder's name pass through the broker.
+
+The job's worker writes a *plan* (the part function, what every part shares, the chunks of
+items) into ``DATA/.parts/<name>/``, asks other workers for help (a Celery group of
+``steelscan.part`` tasks) and works through the chunks itself too. A chunk is taken by
+creating its claim file exclusively, done, and its result written atomically beside it; the
+claim file is touched while the chunk runs. Chunks another worker took but left silent for
+a lease are done again by the job's worker, so a helper lost mid-chunk costs time, never a
+result; helpers that come late find every chunk taken and return. Nothing waits on a
+helper, so a job never deadlocks on a busy queue.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import shutil
+import threading
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from server.jobs.context import JobContext, Part
+from server.storage.files import SessionFiles, write_atomic
+
+log = logging.getLogger(__name__)
+
+PARTS_DIR = ".parts"
+POLL_S = 0.05
+CHUNKS_PER_WORKER = 4  # chunks per worker taking part: evens out chunks of unequal cost
+
+
+def chunked(items: Sequence[Any], pieces: int) -> list[list[Any]]:
+    """``items`` in ``pieces`` consecutive runs of near-equal length (none empty)."""
+    pieces = max(1, min(pieces, len(items)))
+    edges = [round(len(items) * k / pieces) for k in range(pieces + 1)]
+    return [list(items[a:b]) for a, b in zip(edges, edges[1:]) if b > a]
+
+
+class FolderFanout:
+    """:class:`~server.jobs.context.Fanout` over the shared data directory; ``ask(job_id,
+    name, helpers)`` asks ``helpers`` other workers to call :func:`help_with`."""
+
+    def __init__(self, ask: Callable[[int, str, int], None], helpers: int, lease_s: float) -> None:
+        self.ask, self.helpers, self.lease_s = ask, helpers, lease_s
+
+    def __call__(self, ctx: JobContext, fn: Part, shared: Any, items: Sequence[Any]) -> list[Any]:
+        chunks = chunked(items, CHUNKS_PER_WORKER * (self.helpers + 1))
+        name = f"{ctx.job_id}-{ctx.attempt}-{uuid.uuid4().hex[:8]}"
+        folder = ctx.files.data_dir / PARTS_DIR / name
+        folder.mkdir(parents=True)
+        try:
+            write_atomic(folder / "plan.pkl", pickle.dumps((fn, shared, chunks)))
+            if self.helpers:
+                self.ask(ctx.job_id, name, min(self.helpers, len(chunks) - 1))
+            work_through(folder, ctx.files, self.lease_s / 4, stop=ctx.check)
+            results = _collect(folder, ctx.files, len(chunks), self.lease_s, ctx)
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+        return [r for chunk in results for r in chunk]
+
+
+def help_with(data_dir: Path, name: str, lease_s: float) -> int:
+    """A helper's part: work through a plan's chunks that nobody has taken; the number done
+    (0 when the plan is gone or every chunk was taken)."""
+    folder = Path(data_dir) / PARTS_DIR / name
+    if not (folder / "plan.pkl").is_file():
+        return 0
+    return work_through(folder, SessionFiles(Path(data_dir)), lease_s / 4)
+
+
+def work_through(
+    folder: Path, files: SessionFiles, touch_s: float, stop: Callable[[], None] = lambda: None
+) -> int:
+    """Take and do chunks until none is left to take; the number done."""
+    try:
+        fn, shared, chunks = pickle.loads((folder / "plan.pkl").read_bytes())
+    except (OSError, EOFError, pickle.UnpicklingError):
+        return 0  # the plan was removed: the job finished without us
+    done = 0
+    for i in range(len(chunks)):
+        stop()
+        if not _take(folder / f"{i}.claim"):
+            continue
+        _run_chunk(folder, files, fn, shared, chunks, i, touch_s)
+        done += 1
+    return done
+
+
+def _take(claim: Path) -> bool:
+    try:
+        os.close(os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+    except FileExistsError:
+        return False
+    except FileNotFoundError:  # the folder is gone
+        return False
+    return True
+
+
+def _run_chunk(
+    folder: Path,
+    files: SessionFiles,
+    fn: Part,
+    shared: Any,
+    chunks: list[list[Any]],
+    i: int,
+    touch_s: float,
+) -> None:
+    claim, stop = folder / f"{i}.claim", threading.Event()
+
+    def touch() -> None:
+        while not stop.wait(touch_s):
+            try:
+                os.utime(claim)
+            except OSError:
+                return
+
+    toucher = threading.Thread(target=touch, name="part-claim", daemon=True)
+    toucher.start()
+    try:
+        result = [fn(files, shared, item) for item in chunks[i]]
+    finally:
+        stop.set()
+        toucher.join()
+    try:
+        write_atomic(folder / f"{i}.pkl", pickle.dumps(result))
+    except FileNotFoundError:
+        pass  # the job's worker finished the chunk itself and cleared the plan
+
+
+def _collect(
+    folder: Path, files: SessionFiles, n: int, lease_s: float, ctx: JobContext
+) -> list[list[Any]]:
+    """Every chunk's result, in order: waits for helpers' chunks, redoing those whose claim
+    went silent for a lease."""
+    fn, shared, chunks = pickle.loads((folder / "plan.pkl").read_bytes())
+    results: list[list[Any] | None] = [None] * n
+    while True:
+        ctx.check()
+        for i in range(n):
+            if results[i] is not None:
+                continue
+            out = folder / f"{i}.pkl"
+            if out.is_file():
+                results[i] = pickle.loads(out.read_bytes())
+                continue
+            claim = folder / f"{i}.claim"
+            try:
+                silent = time.time() - claim.stat().st_mtime > lease_s
+            except FileNotFoundError:
+                silent = True
+            if silent:
+                log.warning(
+                    "job %d: part %d of %s lost its worker; doing it here",
+                    ctx.job_id,
+                    i,
+                    folder.name,
+                )
+                _run_chunk(folder, files, fn, shared, chunks, i, lease_s / 4)
+        if all(r is not None for r in results):
+            return results  # type: ignore[return-value]
+        time.sleep(POLL_S)
