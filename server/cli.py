@@ -12,6 +12,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from server.admin_commands import cmd_create_robot, cmd_create_user
 from server.errors import CommandError
 from server.jobs.allocator import keep_arrays_on_heap
 from server.logs import RedactSecrets, uvicorn_log_config
@@ -44,8 +45,10 @@ def cmd_worker(args: argparse.Namespace) -> int:
         os.environ["STEELSCAN_DATA_DIR"] = args.data_dir
     if args.broker:
         os.environ["STEELSCAN_BROKER_URL"] = args.broker
-    from server.jobs.queue import run_worker
+    from server.jobs.queue import ping_worker, run_worker
 
+    if args.ping:
+        return 0 if ping_worker() else 1
     run_worker(args.concurrency or os.cpu_count() or 1)
     return 0
 
@@ -122,56 +125,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
         lanes=args.lanes,
         seed=args.seed,
     )
-
-
-def cmd_create_robot(args: argparse.Namespace) -> int:
-    """Register a robot and print its token."""
-    from server.errors import Conflict
-    from server.link.robots import create_robot
-    from server.storage.db import make_engine, make_sessionmaker, upgrade
-
-    settings = settings_from_args(args)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    url = settings.resolved_database_url()
-    upgrade(url)
-    try:
-        token = create_robot(make_sessionmaker(make_engine(url)), args.name)
-    except (Conflict, ValueError) as exc:
-        raise CommandError(str(exc)) from None
-    print(token)
-    return 0
-
-
-def _read_password() -> str:
-    if sys.stdin.isatty():
-        import getpass
-
-        first = getpass.getpass("Password: ")
-        if getpass.getpass("Again: ") != first:
-            raise CommandError("the two passwords differ")
-        return first
-    line = sys.stdin.readline()
-    return line.rstrip("\r\n")
-
-
-def cmd_create_user(args: argparse.Namespace) -> int:
-    """Create an operator account; the password comes from stdin."""
-    from server.api.accounts import create_user
-    from server.errors import Conflict
-    from server.storage.db import make_engine, make_sessionmaker, upgrade
-    from server.storage.models import Role
-
-    settings = settings_from_args(args)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    url = settings.resolved_database_url()
-    upgrade(url)
-    password = _read_password()
-    try:
-        create_user(make_sessionmaker(make_engine(url)), args.name, password, Role(args.role))
-    except (Conflict, ValueError) as exc:
-        raise CommandError(str(exc)) from None
-    print(f"created {args.role} {args.name}", file=sys.stderr)
-    return 0
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
@@ -268,6 +221,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data-dir", help="the data directory the station and every worker mount")
     s.add_argument("--broker", help="Celery broker URL (default STEELSCAN_BROKER_URL)")
     s.add_argument("--concurrency", type=int, help="job processes (default: one per core)")
+    s.add_argument(
+        "--ping", action="store_true", help="exit 0 if a worker on this host answers (health check)"
+    )
     s.set_defaults(func=cmd_worker)
 
     s = sub.add_parser("demo", help="ground station + simulated robot + processing, end to end")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 from functools import lru_cache
 from typing import Any
 
@@ -124,6 +125,13 @@ def _init_worker_process(**_: Any) -> None:
         pass
     keep_arrays_on_heap()
     cv2.setNumThreads(_settings().worker_threads)
+
+
+def ping_worker(timeout_s: float = 3.0) -> bool:
+    """Whether a worker on this host answers through the broker (a container's health)."""
+    host = socket.gethostname()
+    replies = worker_app().control.ping(timeout=timeout_s)
+    return any(name.endswith(f"@{host}") for reply in replies for name in reply)
 
 
 def run_worker(concurrency: int, loglevel: str = "INFO") -> None:

@@ -1,0 +1,71 @@
+"""A job's parts spread through the data directory: helpers take chunks nobody has taken;
+a chunk whose helper went silent is done again by the job's worker; results come back in
+order, each item once."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from server.jobs.context import JobContext
+from server.jobs.parts import PARTS_DIR, FolderFanout, chunked, help_with
+from server.storage.files import SessionFiles
+
+
+def who_did_it(files: SessionFiles, shared: float, item: int) -> tuple[int, int]:
+    time.sleep(shared)
+    return item, threading.get_ident()
+
+
+def context(tmp_path: Path) -> JobContext:
+    return JobContext(7, "s", None, SessionFiles(tmp_path), attempt=1)  # type: ignore[arg-type]
+
+
+def test_chunks_cover_the_items_in_order() -> None:
+    for n, pieces in ((10, 3), (3, 8), (1, 4), (100, 16)):
+        chunks = chunked(list(range(n)), pieces)
+        assert [x for c in chunks for x in c] == list(range(n))
+        assert len(chunks) == min(n, pieces) and all(chunks)
+
+
+def test_helpers_take_chunks_and_results_come_back_in_order(tmp_path: Path) -> None:
+    threads: list[threading.Thread] = []
+
+    def ask(job_id: int, name: str, helpers: int) -> None:
+        for _ in range(helpers):
+            t = threading.Thread(target=help_with, args=(tmp_path, name, 5.0))
+            t.start()
+            threads.append(t)
+
+    items = list(range(40))
+    out = FolderFanout(ask, 2, lease_s=5.0)(context(tmp_path), who_did_it, 0.01, items)
+    for t in threads:
+        t.join()
+    assert [i for i, _ in out] == items
+    assert len({who for _, who in out}) > 1  # the helpers did some of it
+    assert not any((tmp_path / PARTS_DIR).iterdir())  # the plan is cleared
+
+
+def test_a_chunk_a_lost_helper_took_is_done_again(tmp_path: Path) -> None:
+    """A helper that claimed a chunk and died (its claim file no longer touched)."""
+
+    def ask(job_id: int, name: str, helpers: int) -> None:
+        folder = tmp_path / PARTS_DIR / name
+        _, _, chunks = pickle.loads((folder / "plan.pkl").read_bytes())
+        claim = folder / f"{len(chunks) - 1}.claim"
+        claim.touch()
+        os.utime(claim, (time.time() - 60, time.time() - 60))
+
+    items: list[Any] = list(range(12))
+    t0 = time.monotonic()
+    out = FolderFanout(ask, 1, lease_s=1.0)(context(tmp_path), who_did_it, 0.0, items)
+    assert [i for i, _ in out] == items
+    assert time.monotonic() - t0 < 10
+
+
+def test_a_helper_coming_late_finds_nothing_to_do(tmp_path: Path) -> None:
+    assert help_with(tmp_path, "7-1-gone", 5.0) == 0

@@ -1,0 +1,196 @@
+"""Jobs on Celery workers against real services: PostgreSQL, Redis, the station and
+``steelscan worker`` processes sharing one data directory. A worker killed mid-job costs
+time, never a result; a job completes once; cancelling stops it wherever it runs."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+from websockets.sync.client import connect
+
+from robot_link.protocol import MessageType, decode_message
+from server.config import Settings
+from server.loopback import BackgroundServer, free_port
+from tests.conftest import make_token
+from tests.server.test_ingest import msg, ws_url
+from tests.server.test_jobs import wait_job
+
+pytestmark = pytest.mark.slow  # real services and worker processes
+LEASE_S = 3.0
+
+
+@dataclass
+class Cluster:
+    url: str
+    token: str
+    settings: Settings
+    workers: list[subprocess.Popen]
+    logs: list[Path]
+
+    def start_worker(self) -> None:
+        env = {
+            **os.environ,
+            "STEELSCAN_DATA_DIR": str(self.settings.data_dir),
+            "STEELSCAN_DATABASE_URL": self.settings.resolved_database_url(),
+            "STEELSCAN_BROKER_URL": self.settings.broker_url,
+            "STEELSCAN_JOB_LEASE_S": str(LEASE_S),
+        }
+        log = self.settings.data_dir.parent / f"worker{len(self.workers)}.log"
+        with log.open("wb") as out:
+            self.workers.append(
+                subprocess.Popen(
+                    [sys.executable, "-m", "server.cli", "worker", "--concurrency", "1"],
+                    env=env,
+                    stdout=out,
+                    stderr=subprocess.STDOUT,
+                    start_new_session=True,  # its own process group: killed whole
+                )
+            )
+        self.logs.append(log)
+
+    def holder(self, worker: str) -> int:
+        """Index of the worker whose process (group) runs an attempt ("name:pid")."""
+        pid = int(worker.rsplit(":", 1)[1])
+        for i, w in enumerate(self.workers):
+            if os.getpgid(pid) == w.pid:
+                return i
+        raise AssertionError(f"no worker of ours runs {worker}")
+
+
+@pytest.fixture
+def cluster(tmp_path: Path, postgres, redis_server) -> Iterator[Cluster]:  # type: ignore[no-untyped-def]
+    settings = Settings(
+        data_dir=tmp_path / "data",
+        database_url=postgres.new_database(),
+        job_backend="celery",
+        broker_url=redis_server.url,
+        job_lease_s=LEASE_S,
+        auto_process=False,
+        view3d=False,
+        live_map=False,
+    )
+    token = make_token(settings)
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    c = Cluster(server.url, token, settings, [], [])
+    try:
+        c.start_worker()
+        c.start_worker()
+        yield c
+    finally:
+        for w in c.workers:
+            if w.poll() is None:
+                os.killpg(w.pid, signal.SIGTERM)
+        for w in c.workers:
+            try:
+                w.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(w.pid, signal.SIGKILL)
+        server.stop()
+
+
+def record(c: Cluster, frames: int) -> str:
+    """A session of ``frames`` camera frames of a lawn-mower sweep."""
+    from tests.processing.test_stitching import sweep
+
+    s = sweep(frames=frames, seed=31)
+    sid = uuid.uuid4()
+    calib = {"camera": {"px_per_m": 1000.0, "T_robot_camera": [0.0, 0.0, 0.0]}}
+    with connect(ws_url(c), additional_headers={"Authorization": f"Bearer {c.token}"}) as ws:  # type: ignore[arg-type]
+        start = {"structure": "plate", "operator": "t", "calibration": calib}
+        ws.send(msg(sid, 1, MessageType.SESSION_START, start))
+        for k, (jpeg, p) in enumerate(zip(s.frames, s.odometry), 2):
+            pose = {"x": p[0] / 1000, "y": p[1] / 1000, "yaw": p[2]}
+            meta = {"width": 320, "height": 240, "pose": pose}
+            ws.send(msg(sid, k, MessageType.FRAME, meta, jpeg))
+        for _ in range(frames + 1):
+            assert decode_message(ws.recv(timeout=10)).type is MessageType.ACK
+    return str(sid)
+
+
+def start_job(c: Cluster, sid: str, kind: str) -> int:
+    r = httpx.post(f"{c.url}/api/sessions/{sid}/jobs", json={"kind": kind})
+    assert r.status_code == 202, r.text
+    return int(r.json()["id"])
+
+
+def wait_running(c: Cluster, job_id: int, timeout_s: float = 60) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = httpx.get(f"{c.url}/api/jobs/{job_id}").json()
+        if job["state"] == "running" and job["worker"]:
+            return job
+        assert job["state"] == "queued", job
+        time.sleep(0.02)
+    raise AssertionError(f"job {job_id} never started")
+
+
+def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster) -> None:
+    sid = record(cluster, 60)
+    stitch = wait_job(cluster.url, start_job(cluster, sid, "stitch"))
+    assert stitch["state"] == "done", stitch
+    assert stitch["attempt"] == 1 and stitch["worker"].startswith("steelscan-")
+    detect_id = start_job(cluster, sid, "detect")
+    seen = [wait_running(cluster, detect_id)["progress"]]
+    detect = wait_job(cluster.url, detect_id)
+    assert detect["state"] == "done", detect
+    defects = httpx.get(f"{cluster.url}/api/sessions/{sid}/defects").json()["data"]
+    frame_rows = [d for d in defects if d["source"] == "frame"]
+    assert len(frame_rows) == detect["result"]["frame_defects"]  # every part's rows, once
+    assert detect["result"]["frame_defects"] > 0
+    # the frames were spread: both workers did parts of the one job
+    helped = [
+        sum(int(line.split(": ")[-1].split()[0]) for line in log.read_text().splitlines()
+            if f"job {detect_id}: " in line and "parts of" in line)
+        for log in cluster.logs
+    ]  # fmt: skip
+    holder = cluster.holder(detect["worker"])
+    assert helped[1 - holder] > 0, (helped, [p.read_text()[-2000:] for p in cluster.logs])
+    assert seen[0] >= 0.0
+
+
+@pytest.mark.parametrize("what", ["process", "worker"])
+def test_a_worker_killed_mid_job_costs_time_not_the_result(cluster: Cluster, what: str) -> None:
+    """``process``: the job's process dies (the worker puts the task back); ``worker``: the
+    whole worker with its broker connection (the station hands the job out again once its
+    lease has run out). Either way another attempt completes it, once."""
+    sid = record(cluster, 120)
+    assert wait_job(cluster.url, start_job(cluster, sid, "stitch"))["state"] == "done"
+    job_id = start_job(cluster, sid, "detect")
+    running = wait_running(cluster, job_id)
+    holder = cluster.holder(running["worker"])
+    if what == "process":
+        os.kill(int(running["worker"].rsplit(":", 1)[1]), signal.SIGKILL)
+    else:
+        os.killpg(cluster.workers[holder].pid, signal.SIGKILL)
+    job = wait_job(cluster.url, job_id, timeout_s=120)
+    assert job["state"] == "done", job
+    assert job["attempt"] >= 2 and job["worker"] != running["worker"]
+    defects = httpx.get(f"{cluster.url}/api/sessions/{sid}/defects").json()["data"]
+    assert sum(d["source"] == "frame" for d in defects) == job["result"]["frame_defects"]
+    assert sum(d["source"] == "mosaic" for d in defects) == job["result"]["defects"]
+
+
+def test_cancelling_stops_a_running_job_and_what_needs_it(cluster: Cluster) -> None:
+    sid = record(cluster, 120)
+    stitch_id = start_job(cluster, sid, "stitch")
+    wait_running(cluster, stitch_id)
+    detect_id = start_job(cluster, sid, "detect")  # waits for the stitch
+    r = httpx.post(f"{cluster.url}/api/jobs/{stitch_id}/cancel")
+    assert r.status_code == 200 and r.json()["state"] == "cancelled"
+    assert httpx.post(f"{cluster.url}/api/jobs/{stitch_id}/cancel").status_code == 409
+    detect = wait_job(cluster.url, detect_id)
+    assert detect["state"] == "failed" and "cancelled" in detect["error"]
+    time.sleep(2 * LEASE_S)  # the attempt notices at its next beat and its result is dropped
+    stitch = httpx.get(f"{cluster.url}/api/jobs/{stitch_id}").json()
+    assert stitch["state"] == "cancelled" and stitch["result"] == {}
