@@ -12,6 +12,7 @@ from bench.common import Result
 from bench.detect import bench_detect
 from bench.ingest import bench_ingest
 from bench.map import bench_map
+from bench.scale import bench_scale
 from bench.stitch import bench_stitch
 from bench.stitch_scale import bench_stitch_scale
 from bench.teleop import bench_teleop
@@ -24,6 +25,7 @@ BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {
     "ingest": bench_ingest,
     "stitch-scale": bench_stitch_scale,
     "teleop": bench_teleop,
+    "scale": bench_scale,
 }
 DEFAULT = [
     "detect",
@@ -31,7 +33,7 @@ DEFAULT = [
     "map",
     "ingest",
     "teleop",
-]  # stitch-scale takes many minutes: run it by name
+]  # stitch-scale and scale take many minutes: run them by name
 
 
 def run_benchmarks(

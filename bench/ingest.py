@@ -152,9 +152,11 @@ async def _echo_ceiling(seconds: float) -> float:
             return count / elapsed
 
 
-def _load(
+def drive_robots(
     port: int, token: str, robots: int, seconds: float, fps: float | None
 ) -> tuple[list[tuple[str, int]], list[float], float]:
+    """``robots`` robots streaming frames for ``seconds`` (at ``fps``, or as fast as the window
+    allows): each one's (session, frames acknowledged), every ACK latency (s), the wall time."""
     latencies: list[float] = []
     url = f"ws://127.0.0.1:{port}/ws/robot"
 
@@ -189,17 +191,23 @@ def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Itera
             settings.data_dir, port, STEELSCAN_AUTO_PROCESS="false", STEELSCAN_VIEW3D="false"
         )
         try:
-            flood, flood_lat, flood_s = _load(port, token, ROBOTS, min(10.0, field_seconds), None)
+            flood, flood_lat, flood_s = drive_robots(
+                port, token, ROBOTS, min(10.0, field_seconds), None
+            )
             # the flood leaves a gigabyte or more of dirty pages; written back now, or the
             # field phase would measure the kernel's writeback of the flood
             os.sync()
-            field, field_lat, field_s = _load(port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS)
+            field, field_lat, field_s = drive_robots(
+                port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS
+            )
             os.sync()
             attacked: list[tuple[list[tuple[str, int]], list[float], float]] = []
             attackers = under_attack(
                 port,
                 attacker,
-                lambda: attacked.append(_load(port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS)),
+                lambda: attacked.append(
+                    drive_robots(port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS)
+                ),
             )
             field_attacked, attacked_lat, _ = attacked[0]
             stored = {

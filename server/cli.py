@@ -330,7 +330,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "names",
         nargs="*",
-        help="benchmarks to run: detect, stitch, map, ingest, teleop (the default set), stitch-scale",
+        help="benchmarks to run: detect, stitch, map, ingest, teleop (the default set), stitch-scale, scale",
     )
     s.add_argument(
         "--dataset", help="one dataset folder with images/ and masks/ (detect; default: all)"

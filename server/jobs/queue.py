@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 
 JOB_TASK = "steelscan.job"
 PART_TASK = "steelscan.part"
-WORKER_NICE = 5  # below the station's live link when both share a machine
+WORKER_NICE = 10  # well below the station's live link when both share a machine
 
 
 def make_app(broker_url: str, lease_s: float = leases.LEASE_S) -> Celery:

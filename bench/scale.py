@@ -1,0 +1,282 @@
+"""``steelscan bench scale``: the station on PostgreSQL with Celery workers, on this machine.
+
+- A long simulated session (2,000 camera frames by default, ``--limit`` for another count)
+  is recorded through the robot protocol and stitched; its detect job then runs on one
+  worker process, and again on two: the wall time of the stage spread over workers (the
+  frames) and of the whole job, one against two.
+- The live link while a big job runs: four robots at a camera's 30 frames/s, with the
+  workers idle and then while they process the session; ingest rate and ACK p99 of each.
+- Ingest flood (4 robots, 16 frames in flight) on PostgreSQL against SQLite.
+
+PostgreSQL and Redis are Debian's packages started in temporary folders
+(:mod:`bench.services`); the station and the workers are separate processes, as deployed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+from websockets.asyncio.client import connect
+
+from bench.common import Result
+from bench.ingest import ROBOTS, drive_robots
+from bench.services import Postgres, Redis
+from robot_link.protocol import Message, MessageType, decode_message, encode_message
+from robot_link.sim.sweeps import LazySweep, SweepConfig
+
+FRAMES = 2000
+FRAME_SIZE = (320, 240)
+LIVE_ROBOTS = 4
+LIVE_FPS = 30.0
+LIVE_S = 15.0
+FLOOD_S = 10.0
+PX_PER_M = 1000.0
+
+
+def _record(port: int, token: str, frames: int) -> str:
+    """A lawn-mower session of ``frames`` frames with odometry, through the robot protocol."""
+    sweep = LazySweep(
+        SweepConfig(frames=frames, pattern="lawnmower", lanes=8, frame_size=FRAME_SIZE, seed=41)
+    )
+    sid = uuid.uuid4()
+    calib = {"camera": {"px_per_m": PX_PER_M, "T_robot_camera": [0.0, 0.0, 0.0]}}
+
+    async def run() -> None:
+        async with connect(
+            f"ws://127.0.0.1:{port}/ws/robot",
+            additional_headers={"Authorization": f"Bearer {token}"},
+            max_size=2**22,
+        ) as ws:
+            start = {"structure": "long span", "operator": "bench", "calibration": calib}
+            await ws.send(encode_message(Message(MessageType.SESSION_START, sid, 1, 0.0, start)))
+            await ws.recv()
+            window = 64
+            for k in range(frames):
+                ok, buf = cv2.imencode(".jpg", sweep[k], [cv2.IMWRITE_JPEG_QUALITY, 90])
+                assert ok
+                p = sweep.odometry[k]
+                meta = {
+                    "width": FRAME_SIZE[0],
+                    "height": FRAME_SIZE[1],
+                    "pose": {"x": p[0] / PX_PER_M, "y": p[1] / PX_PER_M, "yaw": float(p[2])},
+                }
+                msg = Message(MessageType.FRAME, sid, k + 2, float(k), meta, buf.tobytes())
+                await ws.send(encode_message(msg))
+                if k >= window:
+                    decode_message(await ws.recv())
+            for _ in range(min(window, frames)):
+                decode_message(await ws.recv())
+            end = Message(MessageType.SESSION_END, sid, frames + 2, float(frames), {})
+            await ws.send(encode_message(end))
+            await ws.recv()
+
+    asyncio.run(run())
+    return str(sid)
+
+
+class _Workers:
+    """``steelscan worker`` processes (one job process each) against the station's services."""
+
+    def __init__(self, env: dict[str, str], logs: Path) -> None:
+        self.env, self.logs, self.procs = env, logs, []  # type: list[subprocess.Popen[bytes]]
+
+    def add(self) -> None:
+        log = (self.logs / f"worker{len(self.procs)}.log").open("ab")
+        self.procs.append(
+            subprocess.Popen(
+                [sys.executable, "-m", "server.cli", "worker", "--concurrency", "1"],
+                env=self.env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        )
+        log.close()
+        time.sleep(3.0)  # connected to the broker before jobs are sent
+
+    def stop(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in self.procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+
+
+def _job(url: str, sid: str, kind: str) -> tuple[dict, float]:
+    t0 = time.perf_counter()
+    job_id = httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": kind}).json()["id"]
+    while True:
+        job = httpx.get(f"{url}/api/jobs/{job_id}").json()
+        if job["state"] in ("done", "failed", "cancelled"):
+            if job["state"] != "done":
+                raise RuntimeError(f"{kind} job {job['state']}: {job['error']}")
+            return job, time.perf_counter() - t0
+        time.sleep(0.1)
+
+
+def _p99_ms(latencies: list[float]) -> float:
+    return round(float(np.percentile(np.array(latencies) * 1000, 99)), 2)
+
+
+def _station(
+    data: Path, database_url: str, env: dict[str, str]
+) -> tuple[subprocess.Popen[bytes], int, str]:
+    from server.config import Settings
+    from server.link.robots import create_robot
+    from server.loopback import free_port, serve_process
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
+
+    upgrade(database_url)
+    engine = make_engine(database_url)
+    token = create_robot(make_sessionmaker(engine), f"bench-{uuid.uuid4().hex[:6]}")
+    engine.dispose()
+    Settings(data_dir=data)  # the settings parse
+    port = free_port()
+    proc = serve_process(
+        data,
+        port,
+        STEELSCAN_DATABASE_URL=database_url,
+        STEELSCAN_AUTO_PROCESS="false",
+        STEELSCAN_VIEW3D="false",
+        STEELSCAN_LIVE_MAP="false",
+        STEELSCAN_LIVE_DETECT="false",
+        **env,
+    )
+    return proc, port, token
+
+
+def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
+    """Two Celery workers against one on a long session's parallel stage; the live link
+    with and without a big job on the workers; ingest on PostgreSQL against SQLite."""
+    frames = int(limit or FRAMES)
+    root = Path(tempfile.mkdtemp(prefix="steelscan-scale-"))
+    pg, redis = Postgres(), Redis()
+    try:
+        queue_env = {"STEELSCAN_JOB_BACKEND": "celery", "STEELSCAN_BROKER_URL": redis.url}
+        data = root / "data"
+        db_url = pg.new_database()
+        station, port, token = _station(data, db_url, queue_env)
+        url = f"http://127.0.0.1:{port}"
+        workers = _Workers(
+            {
+                **os.environ,
+                **queue_env,
+                "STEELSCAN_DATA_DIR": str(data),
+                "STEELSCAN_DATABASE_URL": db_url,
+            },
+            root,
+        )
+        try:
+            sid = _record(port, token, frames)
+            workers.add()
+            stitch, stitch_s = _job(url, sid, "stitch")
+            one, one_s = _job(url, sid, "detect")
+            workers.add()
+            two, two_s = _job(url, sid, "detect")
+            par1, par2 = one["result"]["seconds"]["frames"], two["result"]["seconds"]["frames"]
+            yield {
+                "name": "scale.parallel_stage_speedup",
+                "value": round(par1 / par2, 2),
+                "unit": "x",
+                "target": 1.6,
+                "stage": "detect job, frames (spread over workers)",
+                "frames": frames,
+                "one_worker_s": par1,
+                "two_workers_s": par2,
+                "cores": os.cpu_count(),
+            }
+            yield {
+                "name": "scale.detect_job_speedup",
+                "value": round(one_s / two_s, 2),
+                "unit": "x",
+                "one_worker_s": round(one_s, 1),
+                "two_workers_s": round(two_s, 1),
+                "mosaic_stage_s": [
+                    one["result"]["seconds"]["mosaic"],
+                    two["result"]["seconds"]["mosaic"],
+                ],
+                "note": "the mosaic stage runs on one worker",
+            }
+            yield {
+                "name": "scale.stitch_job_one_worker",
+                "value": round(stitch_s, 1),
+                "unit": "s",
+                "frames": frames,
+                "mosaic_px": [stitch["result"]["width_px"], stitch["result"]["height_px"]],
+            }
+            quiet, quiet_lat, quiet_s = drive_robots(port, token, LIVE_ROBOTS, LIVE_S, LIVE_FPS)
+            busy_box: list[tuple[dict, float]] = []
+            big = threading.Thread(target=lambda: busy_box.append(_job(url, sid, "detect")))
+            big.start()
+            time.sleep(2.0)  # the job is under way on both workers
+            busy, busy_lat, busy_s = drive_robots(port, token, LIVE_ROBOTS, LIVE_S, LIVE_FPS)
+            still_running = big.is_alive()
+            big.join()
+            q_rate = sum(a for _, a in quiet) / quiet_s
+            b_rate = sum(a for _, a in busy) / busy_s
+            yield {
+                "name": "scale.live_ack_p99_with_job",
+                "value": _p99_ms(busy_lat),
+                "unit": "ms",
+                "baseline": _p99_ms(quiet_lat),
+                "baseline_is": "the same robots with the workers idle",
+                "ratio": round(_p99_ms(busy_lat) / _p99_ms(quiet_lat), 2),
+                "robots": LIVE_ROBOTS,
+                "fps_per_robot": LIVE_FPS,
+                "job_ran_throughout": still_running,
+            }
+            yield {
+                "name": "scale.live_frames_per_second_with_job",
+                "value": round(b_rate, 1),
+                "unit": "frames/s",
+                "baseline": round(q_rate, 1),
+                "ratio": round(b_rate / q_rate, 3),
+                "offered": LIVE_ROBOTS * LIVE_FPS,
+            }
+        finally:
+            workers.stop()
+            station.terminate()
+            station.wait(timeout=30)
+        rates = {}
+        for name, url_db in (
+            ("postgresql", pg.new_database()),
+            ("sqlite", f"sqlite:///{root / 'flood' / 'steelscan.db'}"),
+        ):
+            flood_dir = root / f"flood-{name}"
+            proc, fport, ftoken = _station(flood_dir, url_db, {})
+            try:
+                done, _, secs = drive_robots(fport, ftoken, ROBOTS, FLOOD_S, None)
+                rates[name] = sum(a for _, a in done) / secs
+            finally:
+                proc.terminate()
+                proc.wait(timeout=30)
+        yield {
+            "name": "scale.ingest_flood_postgresql",
+            "value": round(rates["postgresql"], 1),
+            "unit": "frames/s",
+            "baseline": round(rates["sqlite"], 1),
+            "baseline_is": "the same flood on SQLite",
+            "ratio": round(rates["postgresql"] / rates["sqlite"], 3),
+            "robots": ROBOTS,
+        }
+    finally:
+        redis.stop()
+        pg.stop()
+        shutil.rmtree(root, ignore_errors=True)
