@@ -113,16 +113,20 @@ class CeleryQueue:
 
 @worker_process_init.connect
 def _init_worker_process(**_: Any) -> None:
-    """Each worker process: below the live link in priority, arrays on the heap, and one
-    thread per library (a process per core scales: ``--concurrency``)."""
+    """Each worker process: idle priority (below the live link of a station on the same
+    machine), arrays on the heap, and one thread per library (a process per core scales:
+    ``--concurrency``)."""
     import cv2
 
     from server.jobs.allocator import keep_arrays_on_heap
 
-    try:
-        os.nice(WORKER_NICE)
-    except OSError:
-        pass
+    try:  # runs only when nothing else wants the CPU: a station on the same machine first
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (OSError, AttributeError):
+        try:
+            os.nice(WORKER_NICE)
+        except OSError:
+            pass
     keep_arrays_on_heap()
     cv2.setNumThreads(_settings().worker_threads)
 

@@ -211,3 +211,28 @@ def test_a_job_the_station_died_in_is_marked_failed_on_restart(settings) -> None
         assert job["state"] == "failed" and "interrupted" in job["error"]
     finally:
         server.stop()
+
+
+@pytest.mark.databases
+def test_a_cancelled_job_never_runs_and_what_needs_it_fails(live_server: LiveServer) -> None:
+    sid = uuid.uuid4()
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
+        ws.send(start(sid))
+        decode_message(ws.recv(timeout=10))
+    url = live_server.url
+    jobs = [  # one worker: the second waits behind the first
+        httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": kind}).json()["id"]
+        for kind in ("map", "stitch", "detect")
+    ]
+    r = httpx.post(f"{url}/api/jobs/{jobs[1]}/cancel")
+    assert r.status_code == 200 and r.json()["state"] == "cancelled", r.text
+    assert "cancelled by" in r.json()["error"]
+    assert httpx.post(f"{url}/api/jobs/{jobs[1]}/cancel").status_code == 409
+    assert httpx.post(f"{url}/api/jobs/999999/cancel").status_code == 404
+    assert wait_job(url, jobs[0])["state"] == "failed"  # no clouds: it ran, and failed
+    detect = wait_job(url, jobs[2])
+    assert detect["state"] == "failed" and "cancelled" in detect["error"]
+    stitch = httpx.get(f"{url}/api/jobs/{jobs[1]}").json()
+    assert stitch["state"] == "cancelled" and stitch["started_at"] is None

@@ -1,10 +1,12 @@
 // The session page's processing bar: each stage's state and a button to run it again
-// (operator role); the page reloads the session when the job is done.
+// (operator role), the running job's progress (wherever its worker is) and a button to
+// cancel it; the page reloads the session when the job is done.
 import { api, apiJSON, el, text } from "./api.js";
 
 const STAGES = [["stitch", "mosaic"], ["map", "3D map"], ["detect", "defect detection"], ["export", "MCAP export"]];
 
 const said = new Map(); // session id -> the bar's last message (kept across the page's reload)
+const watching = new Set(); // ids of jobs a bar is following
 
 export function jobsBar(s, reload) {
   const out = el("span", { id: "job-status", class: "small", role: "status" }, said.get(s.id) || "");
@@ -16,17 +18,35 @@ export function jobsBar(s, reload) {
     return el("button", { dataset: { job: kind }, title: `${label}: ${state}`, onclick: () => run(kind, label) },
       `${j?.state === "done" ? "Re-run" : "Run"} ${label}`);
   });
+  const cancel = el("button", { id: "job-cancel", hidden: true }, "Cancel");
+  const labelOf = (kind) => (STAGES.find(([k]) => k === kind) || [kind, kind])[1];
   async function run(kind, label) {
     const res = await api(`/api/sessions/${s.id}/jobs`, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ kind }) });
     if (!res.ok) { say(`${label}: not started (HTTP ${res.status}: ${(await res.json().catch(() => ({}))).detail || ""})`); return; }
-    let job = await res.json();
+    await watch(await res.json(), label);
+  }
+  async function watch(job, label) {
+    cancel.hidden = false;
+    cancel.onclick = async () => {
+      const res = await api(`/api/jobs/${job.id}/cancel`, { method: "POST" });
+      if (!res.ok) say(`${label}: not cancelled (HTTP ${res.status})`);
+    };
+    text(cancel, `Cancel ${label}`);
     while (job.state === "queued" || job.state === "running") {
-      say(`${label}: ${job.state} ${Math.round((job.progress || 0) * 100)} %${job.message ? ` (${job.message})` : ""}`);
+      const where = job.worker ? ` on ${job.worker}` : "";
+      say(`${label}: ${job.state}${where} ${Math.round((job.progress || 0) * 100)} %${job.message ? ` (${job.message})` : ""}`);
       await new Promise((r) => setTimeout(r, 1000));
       job = await apiJSON(`/api/jobs/${job.id}`);
     }
+    cancel.hidden = true;
     say(job.state === "done" ? `${label}: done` : `${label}: ${job.state}${job.error ? ` — ${job.error}` : ""}`);
     if (job.state === "done") reload();
   }
-  return el("div", { class: "exports", id: "jobs-bar" }, el("span", { class: "muted" }, "Processing:"), ...buttons, out);
+  // a job already under way when the page opens is followed too
+  const active = s.jobs.filter((j) => j.state === "queued" || j.state === "running").pop();
+  if (active && !watching.has(active.id)) {
+    watching.add(active.id);
+    watch(active, labelOf(active.kind)).finally(() => watching.delete(active.id));
+  }
+  return el("div", { class: "exports", id: "jobs-bar" }, el("span", { class: "muted" }, "Processing:"), ...buttons, cancel, out);
 }
