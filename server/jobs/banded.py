@@ -1,9 +1,9 @@
 """Defect detection on mosaics of any size with bounded memory.
 
-The mosaic PNG is read top to bottom by libvips in bands (each with ``overlap`` rows of
-context above and below); a band's masks are computed in memory and its core rows written
-to raw scratch files (crack mask, rust mask, crack contrast), which are then streamed into
-``crack_mask.png`` and ``corrosion_mask.png``. Components are labelled per band and joined
+The mosaic PNG is unpacked by libvips into a raw scratch file; each band (with ``overlap``
+rows of context above and below) is an independent part whose masks are computed in memory
+and its core rows written to raw scratch files (crack mask, rust mask, crack contrast),
+which are then gathered and streamed into ``crack_mask.png`` and ``corrosion_mask.png``. Components are labelled per band and joined
 across band seams; each joined defect is then measured on a crop of the scratch files
 (memory-mapped), so a defect that crosses a seam is measured whole, exactly as in one pass.
 """
@@ -11,9 +11,10 @@ across band seams; each joined defect is then measured on a crop of the scratch 
 from __future__ import annotations
 
 import shutil
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -24,6 +25,7 @@ from scipy.cluster.hierarchy import DisjointSet
 from processing.defects import Defect, measure_defects, moved, seam_links
 from processing.detection import DefectMasks
 from processing.surface import on_surface
+from server.storage.files import write_atomic
 
 CLASSES = ("crack", "corrosion")
 Masks = Callable[[NDArray[np.uint8], NDArray[np.bool_], NDArray[np.bool_] | None], DefectMasks]
@@ -49,26 +51,62 @@ class _Parts:
     last_row: NDArray[np.int32] | None = None
 
 
-def _rows(path: Path, bands: int, rows: int) -> Iterator[NDArray[np.uint8]]:
-    """The image at ``path`` in successive blocks of ``rows`` rows. libvips decodes a PNG
-    once for random access: into memory when small, into a temporary file on disk when
-    large (beyond its disc threshold, 100 MB by default), so memory stays bounded."""
-    img = pyvips.Image.new_from_file(str(path), access="random")
+def _unpack(png: Path, raw: Path, bands: int) -> None:
+    """A PNG's first ``bands`` channels as a raw (H, W, bands) uint8 file, streamed by
+    libvips top to bottom (bounded memory), for bands to be read from anywhere."""
+    img = pyvips.Image.new_from_file(str(png), access="sequential")
     if img.bands > bands:
         img = img.extract_band(0, n=bands)
-    for y in range(0, img.height, rows):
-        h = min(rows, img.height - y)
-        block = np.ndarray(
-            buffer=img.crop(0, y, img.width, h).write_to_memory(),
-            dtype=np.uint8,
-            shape=(h, img.width, img.bands),
-        )
-        yield (
-            cv2.cvtColor(block, cv2.COLOR_RGB2BGR) if bands == 3 else block[..., 0]
-        )  # OpenCV's channel order
+    img.cast("uchar").rawsave(str(raw))
+
+
+@dataclass(frozen=True)
+class BandPlan:
+    """What every band's part shares: the unpacked mosaic in ``scratch`` and how to search it."""
+
+    scratch: str
+    width: int
+    height: int
+    overlap: int
+    level: float
+    masks: Masks
+    have_seams: bool
+
+
+MapBands = Callable[[Callable[..., None], BandPlan, list[tuple[int, tuple[int, int]]]], list[None]]
+
+
+def _serial(fn: Callable[..., None], plan: BandPlan, items: list[Any]) -> list[None]:
+    return [fn(None, plan, item) for item in items]
+
+
+def band_masks(_files: object, plan: BandPlan, band: tuple[int, tuple[int, int]]) -> None:
+    """One band's crack, corrosion and contrast core rows, computed with ``overlap`` rows of
+    context above and below, written beside the plan (a part: any worker may run it)."""
+    index, (y0, y1) = band
+    scratch, w, h = Path(plan.scratch), plan.width, plan.height
+    a0, a1 = max(0, y0 - plan.overlap), min(h, y1 + plan.overlap)
+
+    def rows(name: str, bands: int) -> NDArray[np.uint8]:
+        shape = (h, w, bands) if bands > 1 else (h, w)
+        return np.array(np.memmap(scratch / name, dtype=np.uint8, mode="r", shape=shape)[a0:a1])
+
+    image = cv2.cvtColor(rows("image.raw", 3), cv2.COLOR_RGB2BGR)  # OpenCV's channel order
+    coverage = rows("coverage.raw", 1)
+    seams = rows("seams.raw", 1) > 0 if plan.have_seams else None
+    found = plan.masks(image, on_surface(image, coverage, plan.level), seams)
+    a, b = y0 - a0, y1 - a0
+    contrast = np.clip(np.round(np.where(found.cracks[a:b], found.contrast[a:b], 0)), 0, 255)
+    for name, part in (
+        ("crack", found.cracks[a:b]),
+        ("corrosion", found.rust[a:b]),
+        ("contrast", contrast),
+    ):
+        write_atomic(scratch / f"band{index}.{name}", part.astype(np.uint8).tobytes())
 
 
 BUDGET_BYTES = 768 * 2**20  # a band's working set, context rows included
+MIN_BAND_ROWS = 128  # twice the context rows: thinner bands would mostly repeat context
 BYTES_PER_PX = 96  # measured: the detectors' intermediates per pixel of a band
 
 
@@ -76,7 +114,7 @@ def band_rows(
     width: int, overlap: int, budget_bytes: int = BUDGET_BYTES, per_px: int = BYTES_PER_PX
 ) -> int:
     """Core rows per band so that a band with its context rows fits the memory budget."""
-    return int(max(128, budget_bytes // max(1, width * per_px) - 2 * overlap))
+    return int(max(MIN_BAND_ROWS, budget_bytes // max(1, width * per_px) - 2 * overlap))
 
 
 def detect_banded(
@@ -88,16 +126,37 @@ def detect_banded(
     rows: int | None = None,
     overlap: int = 64,
     progress: Callable[[float, str], None] = lambda f, m: None,
+    map_bands: MapBands = _serial,
+    parallel: int = 1,
+    min_bands: int = 1,
 ) -> list[Defect]:
     """Cracks and corrosion of ``results/mosaic.png`` (with its coverage and seams), band by
-    band; writes the two mask PNGs and returns the measured defects (mosaic pixels)."""
+    band; writes the two mask PNGs and returns the measured defects (mosaic pixels).
+
+    The mosaic is unpacked once into a raw scratch file; the bands are independent parts
+    (``map_bands``: in turn, on threads, or on other workers; ``parallel`` of them at once
+    share the memory budget; at least ``min_bands`` of them, for workers to share); their
+    masks are then labelled in order, joined across seams, and measured."""
     header = pyvips.Image.new_from_file(str(results / "mosaic.png"))
     width, height = header.width, header.height
-    rows = rows or band_rows(width, overlap)
+    rows = rows or min(
+        band_rows(width, overlap, BUDGET_BYTES // max(1, parallel)),
+        max(MIN_BAND_ROWS, -(-height // max(1, min_bands))),
+    )
     scratch = results / ".detect-scratch"
     shutil.rmtree(scratch, ignore_errors=True)
     scratch.mkdir()
     try:
+        have_seams = (results / "mosaic_seams.png").is_file()
+        _unpack(results / "mosaic.png", scratch / "image.raw", 3)
+        _unpack(results / "mosaic_coverage.png", scratch / "coverage.raw", 1)
+        if have_seams:
+            _unpack(results / "mosaic_seams.png", scratch / "seams.raw", 1)
+        progress(0.1, "mosaic unpacked")
+        cores = [(y, min(y + rows, height)) for y in range(0, height, rows)]
+        plan = BandPlan(str(scratch), width, height, overlap, level, masks, have_seams)
+        map_bands(band_masks, plan, list(enumerate(cores)))
+        progress(0.8, f"{len(cores)} bands searched")
         maps = {
             name: np.memmap(
                 scratch / f"{name}.raw", mode="w+", dtype=np.uint8, shape=(height, width)
@@ -105,49 +164,13 @@ def detect_banded(
             for name in ("crack", "corrosion", "contrast")
         }
         parts = {c: _Parts() for c in CLASSES}
-        have_seams = (results / "mosaic_seams.png").is_file()
-        streams = [
-            _rows(results / "mosaic.png", 3, rows),
-            _rows(results / "mosaic_coverage.png", 1, rows),
-        ]
-        if have_seams:
-            streams.append(_rows(results / "mosaic_seams.png", 1, rows))
-        buffers: list[NDArray[np.uint8] | None] = [None] * len(streams)
-        buf_y0, core_y0, band = 0, 0, 0
-        exhausted = False
-        while core_y0 < height:
-            core_y1 = min(core_y0 + rows, height)
-            # read until the buffer reaches past the core's context (or the image ends)
-            while not exhausted and (
-                buffers[0] is None or buf_y0 + len(buffers[0]) < min(core_y1 + overlap, height)
-            ):
-                blocks = [next(s, None) for s in streams]
-                if blocks[0] is None:
-                    exhausted = True
-                    break
-                buffers = [
-                    b if buf is None else np.concatenate([buf, b])
-                    for buf, b in zip(buffers, blocks)
-                ]  # type: ignore[list-item]
-            image, coverage = buffers[0], buffers[1]
-            seams = buffers[2] > 0 if have_seams else None
-            assert image is not None and coverage is not None
-            found_in = masks(image, on_surface(image, coverage, level), seams)
-            cracks, rust, contrast = found_in.cracks, found_in.rust, found_in.contrast
-            a, b = core_y0 - buf_y0, core_y1 - buf_y0
-            maps["crack"][core_y0:core_y1] = cracks[a:b]
-            maps["corrosion"][core_y0:core_y1] = rust[a:b]
-            maps["contrast"][core_y0:core_y1] = np.clip(
-                np.round(np.where(cracks[a:b], contrast[a:b], 0)), 0, 255
-            )
-            for name, mask in (("crack", cracks[a:b]), ("corrosion", rust[a:b])):
-                _label(parts[name], mask, band, core_y0)
-            progress(core_y1 / height, f"mosaic rows {core_y1}/{height}")
-            # keep only the context the next core needs
-            core_y0, band = core_y1, band + 1
-            drop = max(0, (core_y0 - overlap) - buf_y0)
-            buffers = [buf[drop:] if buf is not None else None for buf in buffers]
-            buf_y0 += drop
+        for band, (y0, y1) in enumerate(cores):
+            for name in ("crack", "corrosion", "contrast"):
+                part = np.fromfile(scratch / f"band{band}.{name}", dtype=np.uint8)
+                maps[name][y0:y1] = part.reshape(y1 - y0, width)
+            for name in CLASSES:
+                _label(parts[name], np.asarray(maps[name][y0:y1]) > 0, band, y0)
+        progress(0.9, "bands joined")
         for name, out in (("crack", "crack_mask.png"), ("corrosion", "corrosion_mask.png")):
             maps[name].flush()
             _save_mask(scratch / f"{name}.raw", results / out, width, height)

@@ -30,6 +30,7 @@ from server.storage.files import SessionFiles
 from server.storage.models import Defect, Frame
 
 MOSAIC_IN_MEMORY_PX = 48_000_000  # larger mosaics are searched band by band with bounded memory
+BANDS_TO_SHARE = 16  # on a job queue every mosaic is searched in bands, at least these many
 
 
 def _defect_row(
@@ -184,7 +185,10 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     mm_per_px = 1000.0 / px_per_m if referenced else None
     ctx.progress(0.6, "mosaic")
     surface = _frame_surface(ctx)
-    if int(world["width_px"]) * int(world["height_px"]) > MOSAIC_IN_MEMORY_PX:
+    if (
+        ctx.fanout is not None
+        or int(world["width_px"]) * int(world["height_px"]) > MOSAIC_IN_MEMORY_PX
+    ):
         found = _detect_mosaic_banded(ctx, out, mm_per_px, surface)
     else:
         found = _detect_mosaic(out, mm_per_px, _method(ctx), surface, ctx.threads)
@@ -314,9 +318,22 @@ def _detect_mosaic_banded(
     if overview is None:
         raise ValueError("mosaic_overview.png cannot be read")
     level = surface_level(overview, np.any(overview > 0, axis=2))
-    masks = partial(defect_masks, crack_method=_method(ctx), surface=surface)
+    masks = partial(
+        defect_masks,
+        crack_method=_method(ctx),
+        surface=surface,
+        workers=ctx.threads,
+        learned_params=LearnedParams(threads=ctx.threads),
+    )
     return detect_banded(
-        out, masks, mm_per_px, level, progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m)
+        out,
+        masks,
+        mm_per_px,
+        level,
+        progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m),
+        map_bands=ctx.map,
+        parallel=ctx.threads if ctx.fanout is None else 1,  # bands in memory at once here
+        min_bands=1 if ctx.fanout is None else BANDS_TO_SHARE,
     )
 
 

@@ -91,11 +91,12 @@ class _PoisonedIngest(Ingest):
         return super()._add_rows(conn, message, sid, robot_id, batch)
 
 
-def test_a_message_the_database_refuses_fails_only_itself(tmp_path: Path) -> None:
-    factory, _, _ = _ingest(tmp_path)
+@pytest.mark.databases
+def test_a_message_the_database_refuses_fails_only_itself(settings) -> None:  # type: ignore[no-untyped-def]
+    factory, _, _ = _ingest(settings)
     from server.storage.files import SessionFiles
 
-    ingest = _PoisonedIngest(factory, SessionFiles(tmp_path / "data"))
+    ingest = _PoisonedIngest(factory, SessionFiles(settings.data_dir))
     sid = uuid.uuid4()
     items = [(decode_message(start(sid)), None)]
     items += [(decode_message(frame(sid, seq)), None) for seq in range(2, 31)]
@@ -140,10 +141,11 @@ def test_an_oversize_message_gets_an_error_and_is_dropped_not_resent(
         )
 
 
+@pytest.mark.databases
 def test_nothing_sent_after_a_session_end_is_stored_but_resends_from_before_are(
-    tmp_path: Path,
+    settings,  # type: ignore[no-untyped-def]
 ) -> None:
-    factory, ingest, _ = _ingest(tmp_path)
+    factory, ingest, _ = _ingest(settings)
     sid = uuid.uuid4()
     end = msg(sid, 4, MessageType.SESSION_END, {"reason": "done"})
     results = ingest.store_many(
@@ -153,7 +155,7 @@ def test_nothing_sent_after_a_session_end_is_stored_but_resends_from_before_are(
     assert isinstance(results[3], IngestError) and "after its end" in str(results[3])
     assert not results[3].retry
     ingest.close()
-    _, fresh, _ = _ingest(tmp_path)  # the end is known from the database too
+    _, fresh, _ = _ingest(settings)  # the end is known from the database too
     late = fresh.store_many([(decode_message(frame(sid, 3)), None)])  # sent before the end
     after = fresh.store_many([(decode_message(frame(sid, 6)), None)])
     assert getattr(late[0], "status", None) == "stored"
@@ -161,11 +163,12 @@ def test_nothing_sent_after_a_session_end_is_stored_but_resends_from_before_are(
     fresh.close()
 
 
-def test_robots_cannot_add_to_a_session_they_did_not_record(tmp_path: Path) -> None:
+@pytest.mark.databases
+def test_robots_cannot_add_to_a_session_they_did_not_record(settings) -> None:  # type: ignore[no-untyped-def]
     from server.link.robots import create_robot
     from server.storage.models import InspectionSession
 
-    factory, ingest, _ = _ingest(tmp_path)
+    factory, ingest, _ = _ingest(settings)
     create_robot(factory, "first")
     create_robot(factory, "second")
     imported, theirs = uuid.uuid4(), uuid.uuid4()
