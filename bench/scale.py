@@ -17,9 +17,7 @@ from __future__ import annotations
 import asyncio
 import os
 import shutil
-import signal
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -34,7 +32,7 @@ from websockets.asyncio.client import connect
 
 from bench.common import Result
 from bench.ingest import ROBOTS, drive_robots
-from bench.services import Postgres, Redis
+from bench.services import Postgres, Redis, start_worker, stop_workers
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
 from robot_link.sim.sweeps import LazySweep, SweepConfig
 
@@ -95,28 +93,11 @@ class _Workers:
         self.env, self.logs, self.procs = env, logs, []  # type: list[subprocess.Popen[bytes]]
 
     def add(self) -> None:
-        log = (self.logs / f"worker{len(self.procs)}.log").open("ab")
-        self.procs.append(
-            subprocess.Popen(
-                [sys.executable, "-m", "server.cli", "worker", "--concurrency", "1"],
-                env=self.env,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
-        )
-        log.close()
+        self.procs.append(start_worker(self.env, self.logs / f"worker{len(self.procs)}.log"))
         time.sleep(3.0)  # connected to the broker before jobs are sent
 
     def stop(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGTERM)
-        for p in self.procs:
-            try:
-                p.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
+        stop_workers(self.procs)
 
 
 def _job(url: str, sid: str, kind: str) -> tuple[dict, float]:

@@ -142,3 +142,33 @@ class Redis:
         except subprocess.TimeoutExpired:
             self.proc.kill()
         shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def start_worker(env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:
+    """``steelscan worker`` with one job process, in a process group of its own (stopped or
+    killed whole), its settings from ``env``, its output appended to ``log``."""
+    import sys
+
+    with log.open("ab") as out:
+        return subprocess.Popen(
+            [sys.executable, "-m", "server.cli", "worker", "--concurrency", "1"],
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+
+def stop_workers(workers: list[subprocess.Popen[bytes]], grace_s: float = 30.0) -> None:
+    """SIGTERM each worker's group (a warm shutdown), SIGKILL what is left after ``grace_s``."""
+    import signal
+
+    for w in workers:
+        if w.poll() is None:
+            os.killpg(w.pid, signal.SIGTERM)
+    for w in workers:
+        try:
+            w.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(w.pid, signal.SIGKILL)
+            w.wait()

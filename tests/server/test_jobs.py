@@ -215,12 +215,9 @@ def test_a_job_the_station_died_in_is_marked_failed_on_restart(settings) -> None
 
 @pytest.mark.databases
 def test_a_cancelled_job_never_runs_and_what_needs_it_fails(live_server: LiveServer) -> None:
-    sid = uuid.uuid4()
-    with connect(
-        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
-    ) as ws:
-        ws.send(start(sid))
-        decode_message(ws.recv(timeout=10))
+    from tests.server.test_reports import empty_session
+
+    sid = empty_session(live_server)
     url = live_server.url
     jobs = [  # one worker: the second waits behind the first
         httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": kind}).json()["id"]

@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import time
 import uuid
 from collections.abc import Iterator
@@ -18,6 +17,7 @@ import httpx
 import pytest
 from websockets.sync.client import connect
 
+from bench.services import start_worker, stop_workers
 from robot_link.protocol import MessageType, decode_message
 from server.config import Settings
 from server.loopback import BackgroundServer, free_port
@@ -46,16 +46,7 @@ class Cluster:
             "STEELSCAN_JOB_LEASE_S": str(LEASE_S),
         }
         log = self.settings.data_dir.parent / f"worker{len(self.workers)}.log"
-        with log.open("wb") as out:
-            self.workers.append(
-                subprocess.Popen(
-                    [sys.executable, "-m", "server.cli", "worker", "--concurrency", "1"],
-                    env=env,
-                    stdout=out,
-                    stderr=subprocess.STDOUT,
-                    start_new_session=True,  # its own process group: killed whole
-                )
-            )
+        self.workers.append(start_worker(env, log))
         self.logs.append(log)
 
     def holder(self, worker: str) -> int:
@@ -88,14 +79,7 @@ def cluster(tmp_path: Path, postgres, redis_server) -> Iterator[Cluster]:  # typ
         c.start_worker()
         yield c
     finally:
-        for w in c.workers:
-            if w.poll() is None:
-                os.killpg(w.pid, signal.SIGTERM)
-        for w in c.workers:
-            try:
-                w.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(w.pid, signal.SIGKILL)
+        stop_workers(c.workers, grace_s=20)
         server.stop()
 
 
