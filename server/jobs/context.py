@@ -8,7 +8,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -18,8 +18,6 @@ from server.jobs import leases
 from server.storage.files import SessionFiles, write_atomic
 from server.storage.models import InspectionSession
 
-T = TypeVar("T")
-R = TypeVar("R")
 Part = Callable[[SessionFiles, Any, Any], Any]  # (files, shared, item) -> result
 
 

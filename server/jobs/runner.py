@@ -62,8 +62,15 @@ class JobRunner:
 
     def start(self) -> None:
         """Fail jobs a crash of the station interrupted (its own workers died with it; a job
-        queue's workers carry on), then start dispatching."""
-        if self.send is None:
+        queue's workers carry on, and queued jobs are handed to the queue again, in case the
+        crash came between marking and sending), then start dispatching."""
+        if self.send is not None:
+            with self.factory() as db:
+                db.execute(
+                    update(Job).where(Job.state == JobState.queued).values(dispatched_at=None)
+                )
+                db.commit()
+        else:
             with self.factory() as db:
                 for job in db.scalars(select(Job).where(Job.state == JobState.running)):
                     job.state = JobState.failed
@@ -178,8 +185,8 @@ class JobRunner:
                 self._hand_over_lost(db)
 
     def _hand_over(self, db: Session, job_id: int) -> None:
-        """Give a job to the queue once (marked first: a crash in between leaves it to the
-        lease, never to two deliveries at once)."""
+        """Give a job to the queue once (marked first; a crash in between is mended at the
+        next start, and a second delivery finds the job claimed: :mod:`leases`)."""
         assert self.send is not None
         db.execute(update(Job).where(Job.id == job_id).values(dispatched_at=utcnow()))
         db.commit()
