@@ -219,11 +219,25 @@ def se3_exp(xi: NDArray[np.floating]) -> NDArray[np.float64]:
     for a right perturbation T · exp(xi) (rotation and translation apart: exact for the
     rotation, first order for the coupling, which the iterations absorb)."""
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+    w = np.asarray(xi[:3], dtype=np.float64)
+    theta = float(np.sqrt(w @ w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-8:  # Rodrigues' formula to first order
+        T[:3, :3] += K
+    else:
+        T[:3, :3] += np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * (K @ K)
     T[:3, 3] = xi[3:]
     return T
 
 
 def se3_log(T: NDArray[np.floating]) -> NDArray[np.float64]:
     """(ω, v) of a 4x4 transform: rotation vector and translation (the inverse of :func:`se3_exp`)."""
-    return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
+    R = np.asarray(T[:3, :3], dtype=np.float64)
+    cos = float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))
+    if cos < -0.99:  # near a half turn the axis is not in R - Rᵀ: the general solver
+        w = Rotation.from_matrix(R).as_rotvec()
+    else:
+        vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2
+        theta = float(np.arccos(cos))
+        w = vee if theta < 1e-8 else vee * (theta / np.sin(theta))
+    return np.concatenate([w, np.asarray(T[:3, 3], dtype=np.float64)])

@@ -89,34 +89,39 @@ def register_to_map(
     T = prediction.copy()
     P_inv = np.linalg.inv(prediction)
     matched = 0
-    for distance in distances:
+    for level, distance in enumerate(distances):
         scale = distance / 3
+        last = level == len(distances) - 1
+        tolerance = params.final_tolerance if last else params.coarse_tolerance
         for _ in range(params.max_iterations):
             R = T[:3, :3]
             world = points @ R.T + T[:3, 3]
-            gap, nearest = tree.query(world, distance_upper_bound=distance, workers=-1)
-            ok = np.isfinite(gap)
-            ok[ok] &= (
-                np.abs(np.einsum("ij,ij->i", map_normals[nearest[ok]], normals[ok] @ R.T))
-                > params.min_normal_cos
-            )
-            matched = int(ok.sum())
+            # one thread: a cloud is a few thousand points, and starting threads costs more
+            gap, nearest = tree.query(world, distance_upper_bound=distance)
+            ok = np.flatnonzero(np.isfinite(gap))
+            n = map_normals[nearest[ok]]
+            agree = np.abs(np.einsum("ij,ij->i", n, normals[ok] @ R.T)) > params.min_normal_cos
+            ok, n = ok[agree], n[agree]
+            matched = len(ok)
             if matched < params.min_points:
                 return prediction.copy(), matched
-            n = map_normals[nearest[ok]]
             r = np.einsum("ij,ij->i", world[ok] - map_points[nearest[ok]], n)
             w = (scale**2 / (scale**2 + r**2)) ** 2 / scale**2
             n_sensor = n @ R
-            J = np.hstack([np.cross(points[ok], n_sensor), n_sensor])
-            H_data, g_data = observable_part(
-                (J * w[:, None]).T @ J, (J * w[:, None]).T @ r, reach_m, params.degenerate_ratio
-            )
+            q = points[ok]
+            J = np.empty((matched, 6))
+            J[:, 0] = q[:, 1] * n_sensor[:, 2] - q[:, 2] * n_sensor[:, 1]  # q × n
+            J[:, 1] = q[:, 2] * n_sensor[:, 0] - q[:, 0] * n_sensor[:, 2]
+            J[:, 2] = q[:, 0] * n_sensor[:, 1] - q[:, 1] * n_sensor[:, 0]
+            J[:, 3:] = n_sensor
+            Jw = J.T * w
+            H_data, g_data = observable_part(Jw @ J, Jw @ r, reach_m, params.degenerate_ratio)
             e = se3_log(P_inv @ T)
             H = H_data + prior_information
             g = g_data + prior_information @ e
             step = -np.linalg.solve(H, g)
             T = T @ se3_exp(step)
-            if np.abs(step).max() < 1e-5:
+            if np.abs(step).max() < tolerance:
                 break
     return T, matched
 

@@ -56,3 +56,19 @@ def test_transfer_correction_carries_a_better_estimate_to_other_instants() -> No
     assert got[3] == pytest.approx(
         apply(3.0, query_odo[3]), abs=1e-9
     )  # held beyond the last reference
+
+
+def test_se3_exp_and_log_are_rodrigues_and_its_inverse_at_every_angle() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from processing.poses import se3_exp, se3_log
+
+    rng = np.random.default_rng(3)
+    for scale in (1e-12, 1e-6, 1e-2, 0.5, 2.0, 3.0, 3.14):
+        for _ in range(50):
+            axis = rng.normal(size=3)
+            xi = np.concatenate([axis / np.linalg.norm(axis) * scale, rng.normal(size=3)])
+            T = se3_exp(xi)
+            assert np.allclose(T[:3, :3], Rotation.from_rotvec(xi[:3]).as_matrix(), atol=1e-12)
+            assert np.allclose(T[:3, 3], xi[3:]) and np.allclose(T[3], [0, 0, 0, 1])
+            assert np.allclose(se3_log(T), xi, atol=1e-9 if scale < 3.0 else 1e-6)
