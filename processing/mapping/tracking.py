@@ -93,22 +93,28 @@ def register_to_map(
         scale = distance / 3
         last = level == len(distances) - 1
         tolerance = params.final_tolerance if last else params.coarse_tolerance
+        # coarse to fine in points too: each halving of the distance doubles the density,
+        # down to every point at the last (and never below what a registration needs)
+        stride = min(
+            2 ** (len(distances) - 1 - level), max(1, len(points) // (8 * params.min_points))
+        )
+        pts, nrm = points[::stride], normals[::stride]
         for _ in range(params.max_iterations):
             R = T[:3, :3]
-            world = points @ R.T + T[:3, 3]
+            world = pts @ R.T + T[:3, 3]
             # one thread: a cloud is a few thousand points, and starting threads costs more
             gap, nearest = tree.query(world, distance_upper_bound=distance)
             ok = np.flatnonzero(np.isfinite(gap))
             n = map_normals[nearest[ok]]
-            agree = np.abs(np.einsum("ij,ij->i", n, normals[ok] @ R.T)) > params.min_normal_cos
+            agree = np.abs(np.einsum("ij,ij->i", n, nrm[ok] @ R.T)) > params.min_normal_cos
             ok, n = ok[agree], n[agree]
             matched = len(ok)
             if matched < params.min_points:
                 return prediction.copy(), matched
             r = np.einsum("ij,ij->i", world[ok] - map_points[nearest[ok]], n)
-            w = (scale**2 / (scale**2 + r**2)) ** 2 / scale**2
+            w = stride * (scale**2 / (scale**2 + r**2)) ** 2 / scale**2  # as if every point
             n_sensor = n @ R
-            q = points[ok]
+            q = pts[ok]
             J = np.empty((matched, 6))
             J[:, 0] = q[:, 1] * n_sensor[:, 2] - q[:, 2] * n_sensor[:, 1]  # q × n
             J[:, 1] = q[:, 2] * n_sensor[:, 0] - q[:, 0] * n_sensor[:, 2]
