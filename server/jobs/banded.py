@@ -2,14 +2,18 @@
 
 The mosaic PNG is unpacked by libvips into a raw scratch file; each band (with ``overlap``
 rows of context above and below) is an independent part whose masks are computed in memory
-and its core rows written to raw scratch files (crack mask, rust mask, crack contrast),
-which are then gathered and streamed into ``crack_mask.png`` and ``corrosion_mask.png``. Components are labelled per band and joined
-across band seams; each joined defect is then measured on a crop of the scratch files
-(memory-mapped), so a defect that crosses a seam is measured whole, exactly as in one pass.
+and whose core rows are written to raw band files (crack mask, rust mask, crack contrast).
+The band files are then read in order: components are labelled per band and joined across
+band seams, ``crack_mask.png`` and ``corrosion_mask.png`` are streamed from them, and each
+joined defect is measured on a crop of them, so a defect that crosses a seam is measured
+whole, exactly as in one pass. Every scratch file is written behind
+(:mod:`server.storage.write_behind`): a job's hundreds of megabytes do not stall the live
+link's writes on the same disk.
 """
 
 from __future__ import annotations
 
+import functools
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,6 +30,7 @@ from processing.defects import Defect, measure_defects, moved, seam_links
 from processing.detection import DefectMasks
 from processing.surface import on_surface
 from server.storage.files import write_atomic
+from server.storage.write_behind import save_behind
 
 CLASSES = ("crack", "corrosion")
 Masks = Callable[[NDArray[np.uint8], NDArray[np.bool_], NDArray[np.bool_] | None], DefectMasks]
@@ -57,7 +62,7 @@ def _unpack(png: Path, raw: Path, bands: int) -> None:
     img = pyvips.Image.new_from_file(str(png), access="sequential")
     if img.bands > bands:
         img = img.extract_band(0, n=bands)
-    img.cast("uchar").rawsave(str(raw))
+    save_behind(img.cast("uchar"), raw, ".raw")
 
 
 @dataclass(frozen=True)
@@ -157,23 +162,14 @@ def detect_banded(
         plan = BandPlan(str(scratch), width, height, overlap, level, masks, have_seams)
         map_bands(band_masks, plan, list(enumerate(cores)))
         progress(0.8, f"{len(cores)} bands searched")
-        maps = {
-            name: np.memmap(
-                scratch / f"{name}.raw", mode="w+", dtype=np.uint8, shape=(height, width)
-            )
-            for name in ("crack", "corrosion", "contrast")
-        }
+        maps = {n: _Joined(scratch, n, cores, width) for n in ("crack", "corrosion", "contrast")}
         parts = {c: _Parts() for c in CLASSES}
-        for band, (y0, y1) in enumerate(cores):
-            for name in ("crack", "corrosion", "contrast"):
-                part = np.fromfile(scratch / f"band{band}.{name}", dtype=np.uint8)
-                maps[name][y0:y1] = part.reshape(y1 - y0, width)
+        for band, (y0, _) in enumerate(cores):
             for name in CLASSES:
-                _label(parts[name], np.asarray(maps[name][y0:y1]) > 0, band, y0)
+                _label(parts[name], maps[name].band(band) > 0, band, y0)
         progress(0.9, "bands joined")
         for name, out in (("crack", "crack_mask.png"), ("corrosion", "corrosion_mask.png")):
-            maps[name].flush()
-            _save_mask(scratch / f"{name}.raw", results / out, width, height)
+            _save_mask(maps[name].vips(), results / out)
         found: list[Defect] = []
         for name in CLASSES:
             found += _measure(
@@ -187,6 +183,41 @@ def detect_banded(
         return found
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+
+
+class _Joined:
+    """One of the bands' outputs (crack, corrosion or contrast) joined into the mosaic's
+    rows without a copy: read by slices, by band, or streamed by libvips from the band files."""
+
+    def __init__(self, scratch: Path, name: str, cores: list[tuple[int, int]], width: int):
+        self.files = [scratch / f"band{k}.{name}" for k in range(len(cores))]
+        self.cores, self.width = cores, width
+        self.shape = (cores[-1][1] if cores else 0, width)
+
+    def band(self, k: int) -> NDArray[np.uint8]:
+        """Band ``k``'s core rows, shape (rows, W)."""
+        y0, y1 = self.cores[k]
+        return np.fromfile(self.files[k], dtype=np.uint8).reshape(y1 - y0, self.width)
+
+    def __getitem__(self, key: tuple[slice, slice]) -> NDArray[np.uint8]:
+        """Rows ``ys`` and columns ``xs`` of the joined mosaic (plain slices)."""
+        ys, xs = key
+        y_lo, y_hi, _ = ys.indices(self.shape[0])
+        pieces = []
+        for path, (y0, y1) in zip(self.files, self.cores):
+            a, b = max(y_lo, y0), min(y_hi, y1)
+            if a < b:
+                rows = np.memmap(path, dtype=np.uint8, mode="r", shape=(y1 - y0, self.width))
+                pieces.append(np.array(rows[a - y0 : b - y0, xs]))
+        return np.concatenate(pieces) if pieces else np.zeros((0, 0), np.uint8)
+
+    def vips(self) -> pyvips.Image:
+        """The whole mask as one libvips image, (H, W), read band file by band file."""
+        rows = [
+            pyvips.Image.rawload(str(path), self.width, y1 - y0, 1)
+            for path, (y0, y1) in zip(self.files, self.cores)
+        ]
+        return functools.reduce(lambda top, below: top.join(below, "vertical"), rows)
 
 
 def _label(acc: _Parts, mask: NDArray[np.bool_], band: int, y0: int) -> None:
@@ -207,8 +238,8 @@ def _label(acc: _Parts, mask: NDArray[np.bool_], band: int, y0: int) -> None:
 
 def _measure(
     acc: _Parts,
-    mask: NDArray[np.uint8],
-    contrast: NDArray[np.uint8] | None,
+    mask: _Joined,
+    contrast: _Joined | None,
     name: str,
     mm_per_px: float | None,
     first_id: int,
@@ -237,9 +268,8 @@ def _measure(
     return [moved(d, 0, 0, first_id + i) for i, d in enumerate(found)]
 
 
-def _save_mask(raw: Path, out: Path, width: int, height: int) -> None:
-    """A 0/1 raw scratch mask as a 0/255 PNG, streamed by libvips, written atomically."""
-    img = pyvips.Image.rawload(str(raw), width, height, 1).copy(interpretation="b-w")
+def _save_mask(mask: pyvips.Image, out: Path) -> None:
+    """A 0/1 mask as a 0/255 PNG, streamed by libvips, written atomically."""
     tmp = out.with_name(f".{out.name}.tmp.png")
-    (img * 255).cast("uchar").pngsave(str(tmp), compression=3)
+    save_behind((mask.copy(interpretation="b-w") * 255).cast("uchar"), tmp, ".png", compression=3)
     tmp.replace(out)

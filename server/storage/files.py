@@ -8,6 +8,8 @@ import time
 from pathlib import Path
 from typing import Any, BinaryIO
 
+from server.storage.write_behind import WriteBehind
+
 SEGMENT_BYTES = 512 * 2**20  # payload segment files are closed and a new one started beyond this
 
 
@@ -116,14 +118,15 @@ class SessionFiles:
 
 
 def write_atomic(path: Path, data: bytes, *, fsync: bool = False) -> Path:
-    """Write ``data`` to ``path`` so readers never see a half-written file."""
+    """Write ``data`` to ``path`` so readers never see a half-written file (large data
+    written behind: :mod:`server.storage.write_behind`)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=path.suffix)
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as fh:
+        with WriteBehind(tmp) as fh:  # a large file is written back as it is written
             fh.write(data)
             if fsync:
-                fh.flush()
                 os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:

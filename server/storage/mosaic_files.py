@@ -4,7 +4,8 @@ the coverage mask and the world mapping, written from a stream of bands.
 Bands go to a raw scratch file as they are finished (bounded memory for any mosaic size);
 libvips then streams that file into the PNG, the Deep Zoom pyramid (``mosaic.dzi`` plus
 ``mosaic_files/<level>/<col>_<row>.jpg``, the layout OpenSeadragon reads) and the overview.
-Every output appears atomically (written under a temporary name, then renamed).
+Every output appears atomically (written under a temporary name, then renamed); the scratch
+and the full-resolution PNGs are written behind (:mod:`server.storage.write_behind`).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 import pyvips
 
 from processing.stitching import Band, MosaicLayout
+from server.storage.write_behind import WriteBehind, save_behind
 
 OVERVIEW_MAX_PX = 2048
 TILE_SIZE = 254  # + 1 px overlap on each side = 256 px tiles
@@ -60,7 +62,7 @@ def write_mosaic(
     try:
         raw, cov = scratch / "mosaic.raw", scratch / "coverage.raw"
         rows = 0
-        with raw.open("wb") as f_img, cov.open("wb") as f_cov:
+        with WriteBehind(raw) as f_img, WriteBehind(cov) as f_cov:
             for band in bands:
                 if band.y0 != rows:
                     raise ValueError(
@@ -90,8 +92,8 @@ def _save_all(
     layout: MosaicLayout,
     pyramid: bool,
 ) -> MosaicFiles:
-    image.pngsave(str(scratch / "mosaic.png"), compression=3)
-    coverage.pngsave(str(scratch / "mosaic_coverage.png"), compression=3)
+    save_behind(image, scratch / "mosaic.png", ".png", compression=3)
+    save_behind(coverage, scratch / "mosaic_coverage.png", ".png", compression=3)
     scale = min(1.0, OVERVIEW_MAX_PX / max(layout.width, layout.height, 1))
     small = image.resize(scale, kernel="linear") if scale < 1.0 else image
     small.pngsave(str(scratch / "mosaic_overview.png"))
