@@ -251,14 +251,27 @@ def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Messag
     if not isinstance(meta_obj, dict):
         raise ProtocolError(f"meta must be a JSON object, got {type(meta_obj).__name__}")
     meta = _validate_meta(mtype, meta_obj)
-    if b"\\u" in raw_meta:  # an escape may spell a lone surrogate, which UTF-8 cannot hold
+    if b"\\u" in raw_meta:  # an escape may spell what no database can store as text
         try:
             json.dumps(meta, ensure_ascii=False).encode("utf-8")
         except UnicodeEncodeError:
             raise ProtocolError("meta holds a lone UTF-16 surrogate (\\ud800-\\udfff)") from None
+        if b"\\u0000" in raw_meta and _holds_nul(meta):
+            raise ProtocolError("meta holds a NUL character (\\u0000)")
     payload = data[HEADER_BYTES + meta_len :]
     _check_payload(mtype, meta, payload)
     return Message(mtype, uuid.UUID(bytes=sid), seq, timestamp, meta, payload)
+
+
+def _holds_nul(value: Any) -> bool:
+    """Whether a NUL character is in any string (key or value) of a JSON value."""
+    if isinstance(value, str):
+        return "\x00" in value
+    if isinstance(value, dict):
+        return any(_holds_nul(k) or _holds_nul(v) for k, v in value.items())
+    if isinstance(value, list):
+        return any(_holds_nul(v) for v in value)
+    return False
 
 
 def _check_seq(mtype: MessageType, seq: int) -> None:

@@ -15,6 +15,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
+from sqlalchemy.exc import DataError
 
 from server.api.accounts import accounts_exist
 from server.api.deps import get_current_user
@@ -137,6 +138,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # as FastAPI's own, written as ASCII: the refused input may hold what UTF-8 cannot
         body = json.dumps({"detail": jsonable_encoder(exc.errors())}, ensure_ascii=True)
         return Response(body, status_code=422, media_type="application/json")
+
+    @app.exception_handler(DataError)
+    async def unstorable(_: Request, exc: DataError) -> JSONResponse:
+        # a value the database refuses (on PostgreSQL: a NUL in text, a number out of range)
+        reason = str(exc.orig).splitlines()[0] if exc.orig is not None else "invalid value"
+        return JSONResponse({"detail": f"a value cannot be stored: {reason}"}, status_code=422)
 
     @app.exception_handler(NotFound)
     async def not_found(_: Request, exc: NotFound) -> JSONResponse:

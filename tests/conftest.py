@@ -42,11 +42,20 @@ def make_token(settings: Settings, name: str = "test-robot") -> str:
 DATABASES = ("sqlite", "postgresql")
 
 
+def _databases() -> tuple[str, ...]:
+    """The databases the stations of the tests run on: both, unless
+    ``STEELSCAN_TEST_DATABASE`` names one."""
+    one = os.environ.get("STEELSCAN_TEST_DATABASE")
+    if one and one not in DATABASES:
+        raise pytest.UsageError(f"STEELSCAN_TEST_DATABASE={one!r}: one of {DATABASES}")
+    return (one,) if one else DATABASES
+
+
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
-    """Tests marked ``databases`` run once per database; the others on the one
-    ``STEELSCAN_TEST_DATABASE`` names (SQLite unless set)."""
-    if "database" in metafunc.fixturenames and metafunc.definition.get_closest_marker("databases"):
-        metafunc.parametrize("database", DATABASES, indirect=True)
+    """Every test whose station stores anything (it asks for ``database``, ``database_url``
+    or ``settings``) runs once on SQLite and once on PostgreSQL."""
+    if "database" in metafunc.fixturenames:
+        metafunc.parametrize("database", _databases(), indirect=True)
 
 
 @pytest.fixture(scope="session")
@@ -76,9 +85,7 @@ def redis_server() -> Iterator[Any]:
 @pytest.fixture
 def database(request: pytest.FixtureRequest) -> str:
     """Which database the test's station uses: "sqlite" or "postgresql"."""
-    kind = getattr(request, "param", os.environ.get("STEELSCAN_TEST_DATABASE", "sqlite"))
-    assert kind in DATABASES, kind
-    return kind
+    return str(request.param)
 
 
 @pytest.fixture

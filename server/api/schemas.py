@@ -9,11 +9,14 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validat
 
 
 def _encodable(text: str) -> str:
-    """Text that can be stored as UTF-8 (JSON allows lone surrogates such as \\ud800)."""
+    """Text that either database can store: valid UTF-8 (JSON allows lone surrogates such as
+    \\ud800) without NUL characters (PostgreSQL's text cannot hold them)."""
     try:
         text.encode("utf-8")
     except UnicodeEncodeError:
         raise ValueError("text must be valid Unicode (no lone surrogates)") from None
+    if "\x00" in text:
+        raise ValueError("text must not hold NUL characters (\\u0000)")
     return text
 
 

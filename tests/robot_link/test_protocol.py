@@ -151,7 +151,10 @@ def _meta_bytes(mtype: int, meta: bytes) -> bytes:
         (_meta_bytes(5, b'{"x":' + b"[" * 5000 + b"]" * 5000 + b"}"), "nested too deeply"),
         (_meta_bytes(5, b'{"x":' + b"7" * 5000 + b"}"), "out of range"),
         (_meta_bytes(5, b'{"note": "G3 \\ud800"}'), "lone UTF-16 surrogate"),
+        (_meta_bytes(5, b'{"note": "G3\\u0000"}'), "NUL character"),
+        (_meta_bytes(1, b'{"structure": "span", "extra": {"k\\u0000": 1}}'), "NUL character"),
     ],
+    ids=lambda v: v if isinstance(v, str) else "",  # named by the error (the bytes hold a time)
 )
 def test_malformed_messages_get_a_clear_error(data: bytes, fragment: str) -> None:
     with pytest.raises(ProtocolError, match=re.escape(fragment)):

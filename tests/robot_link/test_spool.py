@@ -65,8 +65,10 @@ def test_a_restarted_robot_resends_what_was_never_acknowledged(
     assert link.spool is not None and len(link.spool) == 0 and link.stats.spool_bytes == 0
 
 
-def test_an_outage_longer_than_the_window_loses_nothing(tmp_path: Path) -> None:
-    settings = Settings(data_dir=tmp_path / "data", job_workers=1, auto_process=False)
+def test_an_outage_longer_than_the_window_loses_nothing(tmp_path: Path, database_url: str) -> None:
+    settings = Settings(
+        database_url=database_url, data_dir=tmp_path / "data", job_workers=1, auto_process=False
+    )
     token = make_token(settings)
     port = free_port()
     url = f"http://127.0.0.1:{port}"

@@ -28,7 +28,6 @@ def serve(data_dir: Path, port: int, database_url: str = "") -> subprocess.Popen
     return serve_process(data_dir, port, STEELSCAN_AUTO_PROCESS="false", **env)
 
 
-@pytest.mark.databases
 def test_sigkill_mid_session_loses_nothing(tmp_path: Path, database_url: str) -> None:
     data = tmp_path / "data"
     token = make_token(Settings(data_dir=data, database_url=database_url))
@@ -116,12 +115,14 @@ def _alive(pids: list[int]) -> list[int]:
 
 
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGTERM])
-def test_job_workers_end_with_the_station(tmp_path: Path, how: signal.Signals) -> None:
+def test_job_workers_end_with_the_station(
+    tmp_path: Path, database_url: str, how: signal.Signals
+) -> None:
     """Killed or stopped, the station leaves no worker process behind."""
     data = tmp_path / "data"
-    token = make_token(Settings(data_dir=data))
+    token = make_token(Settings(data_dir=data, database_url=database_url))
     port = free_port()
-    proc = serve(data, port)
+    proc = serve(data, port, database_url)
     url = f"http://127.0.0.1:{port}"
     try:
 

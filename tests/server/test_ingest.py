@@ -17,8 +17,6 @@ from robot_link.protocol import Message, MessageType, decode_message, encode_mes
 from tests.conftest import LiveServer
 from tests.media import jpeg
 
-pytestmark = pytest.mark.databases
-
 JPEG = jpeg(640, 480)
 
 

@@ -91,7 +91,6 @@ class _PoisonedIngest(Ingest):
         return super()._add_rows(conn, message, sid, robot_id, batch)
 
 
-@pytest.mark.databases
 def test_a_message_the_database_refuses_fails_only_itself(settings) -> None:  # type: ignore[no-untyped-def]
     factory, _, _ = _ingest(settings)
     from server.storage.files import SessionFiles
@@ -141,7 +140,6 @@ def test_an_oversize_message_gets_an_error_and_is_dropped_not_resent(
         )
 
 
-@pytest.mark.databases
 def test_nothing_sent_after_a_session_end_is_stored_but_resends_from_before_are(
     settings,  # type: ignore[no-untyped-def]
 ) -> None:
@@ -163,7 +161,6 @@ def test_nothing_sent_after_a_session_end_is_stored_but_resends_from_before_are(
     fresh.close()
 
 
-@pytest.mark.databases
 def test_robots_cannot_add_to_a_session_they_did_not_record(settings) -> None:  # type: ignore[no-untyped-def]
     from server.link.robots import create_robot
     from server.storage.models import InspectionSession
@@ -235,7 +232,9 @@ def _open_files_of(sid: uuid.UUID) -> int:
     return count
 
 
-def test_a_session_its_robot_abandoned_is_ended_and_its_files_closed(tmp_path: Path) -> None:
+def test_a_session_its_robot_abandoned_is_ended_and_its_files_closed(
+    tmp_path: Path, database_url: str
+) -> None:
     """No SESSION_END and no message for the idle time: the station ends the session,
     closes its files, and still takes what the robot sends if it comes back."""
     from server.config import Settings
@@ -243,7 +242,11 @@ def test_a_session_its_robot_abandoned_is_ended_and_its_files_closed(tmp_path: P
     from tests.conftest import make_token
 
     settings = Settings(
-        data_dir=tmp_path / "data", job_workers=1, auto_process=False, session_idle_s=0.8
+        data_dir=tmp_path / "data",
+        database_url=database_url,
+        job_workers=1,
+        auto_process=False,
+        session_idle_s=0.8,
     )
     token = make_token(settings)
     server = BackgroundServer(settings, free_port())
@@ -273,7 +276,7 @@ def test_a_session_its_robot_abandoned_is_ended_and_its_files_closed(tmp_path: P
 
 
 def test_slow_or_many_connections_from_one_address_cannot_keep_a_robot_out(
-    tmp_path: Path,
+    tmp_path: Path, database_url: str
 ) -> None:
     """Sockets from one address sending a partial request head are capped per address and
     closed at the head deadline; a robot from another address connects all along."""
@@ -285,6 +288,7 @@ def test_slow_or_many_connections_from_one_address_cannot_keep_a_robot_out(
 
     settings = Settings(
         data_dir=tmp_path / "data",
+        database_url=database_url,
         job_workers=1,
         max_connections_per_client=20,
         request_head_timeout_s=1.0,

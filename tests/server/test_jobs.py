@@ -6,7 +6,6 @@ import uuid
 import cv2
 import httpx
 import numpy as np
-import pytest
 from sqlalchemy import select
 from websockets.sync.client import connect
 
@@ -26,7 +25,6 @@ def wait_job(url: str, job_id: int, timeout_s: float = 120) -> dict:
     raise AssertionError(f"job {job_id} did not finish")
 
 
-@pytest.mark.databases
 def test_a_failing_job_is_marked_failed_with_its_reason(live_server: LiveServer) -> None:
     sid = uuid.uuid4()
     with connect(
@@ -68,7 +66,6 @@ def test_unknown_job_kind_is_a_422(live_server: LiveServer) -> None:
     assert r.status_code == 422
 
 
-@pytest.mark.databases
 def test_stitch_job_serves_a_deep_zoom_pyramid_of_the_session(live_server: LiveServer) -> None:
     from tests.processing.test_stitching import sweep
 
@@ -213,7 +210,6 @@ def test_a_job_the_station_died_in_is_marked_failed_on_restart(settings) -> None
         server.stop()
 
 
-@pytest.mark.databases
 def test_a_cancelled_job_never_runs_and_what_needs_it_fails(live_server: LiveServer) -> None:
     from tests.server.test_reports import empty_session
 

@@ -13,8 +13,6 @@ from server.jobs import leases
 from server.storage.db import make_engine, make_sessionmaker, upgrade
 from server.storage.models import InspectionSession, Job, JobState
 
-pytestmark = pytest.mark.databases
-
 
 @pytest.fixture
 def factory(database_url: str):  # type: ignore[no-untyped-def]

@@ -22,8 +22,9 @@ from tests.server.test_ingest import robot_ws
 
 
 @pytest.fixture
-def settings(tmp_path) -> Settings:  # type: ignore[no-untyped-def]
+def settings(tmp_path, database_url: str) -> Settings:  # type: ignore[no-untyped-def]
     return Settings(
+        database_url=database_url,
         data_dir=tmp_path / "data",
         job_workers=1,
         auto_process=False,

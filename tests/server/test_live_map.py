@@ -18,8 +18,10 @@ from tests.conftest import LiveServer
 
 
 @pytest.fixture
-def settings(tmp_path) -> Settings:  # type: ignore[no-untyped-def]
-    return Settings(data_dir=tmp_path / "data", job_workers=1, auto_process=False)
+def settings(tmp_path, database_url: str) -> Settings:  # type: ignore[no-untyped-def]
+    return Settings(
+        database_url=database_url, data_dir=tmp_path / "data", job_workers=1, auto_process=False
+    )
 
 
 def test_the_live_map_refines_frame_placement(live_server: LiveServer) -> None:

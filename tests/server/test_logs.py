@@ -52,11 +52,11 @@ def test_the_filter_keeps_uvicorn_style_arguments_and_masks_them() -> None:
     assert record.getMessage() == f"token={MASK}"
 
 
-def test_a_session_with_accounts_logs_no_secret(tmp_path: Path) -> None:
+def test_a_session_with_accounts_logs_no_secret(tmp_path: Path, database_url: str) -> None:
     data, log = tmp_path / "data", tmp_path / "serve.log"
-    robot_token = make_token(Settings(data_dir=data))
+    robot_token = make_token(Settings(data_dir=data, database_url=database_url))
     password, wrong = "correct horse battery", "hunter2-wrong"
-    engine = make_engine(Settings(data_dir=data).resolved_database_url())
+    engine = make_engine(database_url)
     try:
         create_user(make_sessionmaker(engine), "ada", password, Role.admin)
     finally:
@@ -64,7 +64,12 @@ def test_a_session_with_accounts_logs_no_secret(tmp_path: Path) -> None:
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     proc = serve_process(
-        data, port, log=log, STEELSCAN_AUTO_PROCESS="false", STEELSCAN_VIEW3D="false"
+        data,
+        port,
+        log=log,
+        STEELSCAN_AUTO_PROCESS="false",
+        STEELSCAN_VIEW3D="false",
+        STEELSCAN_DATABASE_URL=database_url,
     )
     try:
         assert (

@@ -1,6 +1,5 @@
 from pathlib import Path
 
-import pytest
 from sqlalchemy import create_engine, inspect, text
 
 from server.storage.db import downgrade, make_engine, upgrade
@@ -28,7 +27,6 @@ def tables(url: str) -> set[str]:
         engine.dispose()
 
 
-@pytest.mark.databases
 def test_upgrade_downgrade_upgrade(database_url: str) -> None:
     url = database_url
     upgrade(url)
@@ -39,7 +37,6 @@ def test_upgrade_downgrade_upgrade(database_url: str) -> None:
     assert tables(url) == TABLES
 
 
-@pytest.mark.databases
 def test_migrations_match_the_models(database_url: str) -> None:
     from alembic.autogenerate import compare_metadata
     from alembic.runtime.migration import MigrationContext

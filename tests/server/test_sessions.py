@@ -19,8 +19,14 @@ from tests.server.test_ingest import robot_ws
 
 
 @pytest.fixture
-def settings(tmp_path) -> Settings:  # type: ignore[no-untyped-def]
-    return Settings(data_dir=tmp_path / "data", job_workers=1, auto_process=False, view3d=False)
+def settings(tmp_path, database_url: str) -> Settings:  # type: ignore[no-untyped-def]
+    return Settings(
+        database_url=database_url,
+        data_dir=tmp_path / "data",
+        job_workers=1,
+        auto_process=False,
+        view3d=False,
+    )
 
 
 def record(server: LiveServer, structure: str, location: str, t0: float, seconds: float) -> str:
@@ -103,3 +109,22 @@ def test_the_users_who_drive_a_robot_become_the_sessions_operator(
                     break
         session = httpx.get(f"{live_server.url}/api/sessions/{sid}").json()
         assert session["operator"] == "anonymous"  # no accounts: the anonymous admin drove it
+
+
+def test_text_a_database_cannot_store_is_refused_with_a_clear_error(
+    live_server: LiveServer,
+) -> None:
+    """A NUL character (PostgreSQL's text cannot hold one) in a search, a name or a note is
+    a 422 that says so, on either database; nothing reaches the database half-written."""
+    url = live_server.url
+    sid = record(live_server, "girder 7", "span 2", 0.0, 10.0)
+    r = httpx.get(f"{url}/api/sessions", params={"q": "gird\x00er"})
+    assert r.status_code == 422 and "NUL" in r.text
+    r = httpx.patch(f"{url}/api/sessions/{sid}", json={"notes": "crack at\x00 weld"})
+    assert r.status_code == 422 and "NUL" in r.text
+    assert httpx.get(f"{url}/api/sessions/{sid}").json()["notes"] in ("", None)
+    r = httpx.post(f"{url}/api/robots", json={"name": "crawler\x00"})
+    assert r.status_code == 422 and "NUL" in r.text
+    assert [
+        s["id"] for s in httpx.get(f"{url}/api/sessions", params={"q": "girder"}).json()["data"]
+    ] == [sid]

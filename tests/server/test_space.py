@@ -51,9 +51,15 @@ async def _send_session(link: RobotLink, frames: int) -> None:
     await link.send(MessageType.SESSION_END, {"reason": "done"})
 
 
-def test_below_the_reserve_robots_keep_their_data_until_there_is_room(tmp_path: Path) -> None:
+def test_below_the_reserve_robots_keep_their_data_until_there_is_room(
+    tmp_path: Path, database_url: str
+) -> None:
     full = Settings(
-        data_dir=tmp_path / "data", job_workers=1, auto_process=False, min_free_bytes=2**60
+        database_url=database_url,
+        data_dir=tmp_path / "data",
+        job_workers=1,
+        auto_process=False,
+        min_free_bytes=2**60,
     )
     token = make_token(full)
     spool_dir = tmp_path / "spool"

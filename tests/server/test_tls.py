@@ -35,9 +35,15 @@ def _self_signed(folder: Path) -> tuple[Path, Path]:
     return cert, key
 
 
-def test_robots_send_over_wss_to_a_station_they_trust(tmp_path: Path) -> None:
+def test_robots_send_over_wss_to_a_station_they_trust(tmp_path: Path, database_url: str) -> None:
     cert, key = _self_signed(tmp_path)
-    settings = Settings(data_dir=tmp_path / "data", job_workers=1, tls_cert=cert, tls_key=key)
+    settings = Settings(
+        database_url=database_url,
+        data_dir=tmp_path / "data",
+        job_workers=1,
+        tls_cert=cert,
+        tls_key=key,
+    )
     token = make_token(settings)
     server = BackgroundServer(settings, free_port())
     server.start()

@@ -11,6 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import func, select
 
 from server.api.deps import SessionDep, StateDep, require
+from server.api.schemas import Text
 from server.errors import NotFound
 from server.link.robots import create_robot
 from server.storage.models import InspectionSession, Robot, Role
@@ -32,7 +33,7 @@ class RobotRow(BaseModel):
 
 class RobotCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    name: Annotated[str, Field(min_length=1, max_length=200)]
+    name: Annotated[Text, Field(min_length=1, max_length=200)]
 
 
 class RobotToken(BaseModel):

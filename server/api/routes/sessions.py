@@ -9,7 +9,7 @@ from sqlalchemy import func, or_, select
 
 from server.api.deps import OperatorUser, SessionDep, get_current_user
 from server.api.queries import MAX_INT, count_query, get_session_or_404, session_public
-from server.api.schemas import SessionPublic, SessionsPublic, SessionUpdate
+from server.api.schemas import SessionPublic, SessionsPublic, SessionUpdate, Text
 from server.storage.models import InspectionSession, Robot, SessionStatus
 
 router = APIRouter(
@@ -23,7 +23,7 @@ def read_sessions(
     skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0,
     limit: Annotated[int, Query(ge=1, le=500)] = 100,
     q: Annotated[
-        str,
+        Text,
         Query(
             max_length=200,
             description="words that must each appear in the structure, location, operator, "

@@ -11,11 +11,12 @@ from sqlalchemy import delete, func, select
 
 from server.api.accounts import create_user, set_password
 from server.api.deps import AdminUser, SessionDep, StateDep, require
+from server.api.schemas import Text
 from server.errors import Conflict, NotFound
 from server.storage.models import AuthToken, Role, User
 
 router = APIRouter(prefix="/api/users", tags=["users"], dependencies=[Depends(require(Role.admin))])
-Name = Annotated[str, Field(min_length=1, max_length=200)]
+Name = Annotated[Text, Field(min_length=1, max_length=200)]
 
 
 class UserRow(BaseModel):
