@@ -237,7 +237,7 @@ def test_a_robot_over_its_rate_limit_is_slowed_not_lost(settings) -> None:  # ty
     try:
 
         async def run() -> RobotLink:
-            link = RobotLink(server.url, token, window=64)
+            link = RobotLink(server.url, token, window=64, max_backoff_s=0.5)
             await link.start()
             await link.send(MessageType.SESSION_START, {"structure": "chatty robot"})
             for i in range(60):
