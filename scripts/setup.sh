@@ -5,9 +5,11 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 need_apt=()
-ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || need_apt+=(libusb-1.0-0)
+# grep reads all of ldconfig's list: with -q it stops at the first match, and pipefail then
+# counts ldconfig's broken pipe as the library missing
+ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null || need_apt+=(libusb-1.0-0)
 # Open3D's CPU rendering path also wants libgomp; present on Debian images with gcc.
-ldconfig -p 2>/dev/null | grep -q 'libgomp.so.1' || need_apt+=(libgomp1)
+ldconfig -p 2>/dev/null | grep 'libgomp.so.1' >/dev/null || need_apt+=(libgomp1)
 if [ "${STEELSCAN_BROWSER_TESTS:-1}" = "1" ] && ! command -v chromium >/dev/null 2>&1; then
   need_apt+=(chromium)
 fi

@@ -42,7 +42,7 @@ def make_token(settings: Settings, name: str = "test-robot") -> str:
 DATABASES = ("sqlite", "postgresql")
 
 
-def _databases() -> tuple[str, ...]:
+def databases_under_test() -> tuple[str, ...]:
     """The databases the stations of the tests run on: both, unless
     ``STEELSCAN_TEST_DATABASE`` names one."""
     one = os.environ.get("STEELSCAN_TEST_DATABASE")
@@ -55,7 +55,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     """Every test whose station stores anything (it asks for ``database``, ``database_url``
     or ``settings``) runs once on SQLite and once on PostgreSQL."""
     if "database" in metafunc.fixturenames:
-        metafunc.parametrize("database", _databases(), indirect=True)
+        metafunc.parametrize("database", databases_under_test(), indirect=True)
 
 
 @pytest.fixture(scope="session")

@@ -206,6 +206,8 @@ class RobotConnection:
             self.state.hub.attach_robot(sid, senders[sid], self.robot_name)
         self.relay(message)
         live_map = self.state.live_map
+        if live_map is not None and message.type is MessageType.SESSION_START:
+            live_map.warm()
         if live_map is not None and message.type is MessageType.CLOUD and result.status == "stored":
             live_map.offer(sid, message.payload, message.meta, message.timestamp)
         live_detect = self.state.live_detect

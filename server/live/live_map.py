@@ -67,6 +67,13 @@ def _place(
     )
 
 
+def _warm() -> None:
+    """In the worker: what placing the first cloud needs, loaded ahead of it."""
+    import processing.mapping  # noqa: F401  (Open3D and the pose graph)
+    import robot_link.clouds  # noqa: F401
+    import server.live.scene3d  # noqa: F401
+
+
 class LiveMap:
     """Feeds stored clouds to the worker and their map to the 3D view."""
 
@@ -98,6 +105,10 @@ class LiveMap:
                 )
             self._mounts[session_id] = np.asarray(T, dtype=np.float64) if T is not None else None
         return self._mounts[session_id]
+
+    def warm(self) -> None:
+        """A session has started: get the worker ready before its first cloud."""
+        self.worker.warm(_warm)
 
     def offer(self, session_id: str, payload: bytes, meta: dict[str, Any], t: float = 0.0) -> bool:
         """Queue one stored cloud (taken at ``t``, robot clock) for the live map; False when

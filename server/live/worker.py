@@ -28,6 +28,19 @@ class LiveWorker:
         self._pending = 0
         self._lock = threading.Lock()
 
+    def _started(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker
+            )
+        return self._pool
+
+    def warm(self, fn: Callable[[], Any]) -> None:
+        """Start the worker and run ``fn`` there (imports, a model) ahead of the first item,
+        which would otherwise wait for them while the items after it are skipped."""
+        with self._lock:
+            self._started().submit(fn)
+
     def submit(self, fn: Callable[..., Any], *args: Any, done: Callable[[Any], None]) -> bool:
         """Run ``fn(*args)`` in the worker and hand its result to ``done``; False (skipped)
         when the worker is behind. A failure is logged: live views are a courtesy."""
@@ -36,11 +49,7 @@ class LiveWorker:
                 self.skipped += 1
                 return False
             self._pending += 1
-            if self._pool is None:
-                self._pool = ProcessPoolExecutor(
-                    1, mp_context=multiprocessing.get_context("spawn"), initializer=init_worker
-                )
-            pool = self._pool
+            pool = self._started()
 
         def finished(future: Future[Any]) -> None:
             with self._lock:

@@ -1,6 +1,6 @@
 """Fixtures of the server tests: one simulated inspection, processed, that the report,
-coverage and defect tests read (one per test run: it takes a simulated inspection and the
-whole pipeline)."""
+coverage and defect tests read (one per database and test run: it takes a simulated
+inspection and the whole pipeline)."""
 
 from __future__ import annotations
 
@@ -15,19 +15,24 @@ from robot_link.client import RobotLink
 from robot_link.sim.inspection import InspectionSim, SimConfig
 from server.config import Settings
 from server.loopback import BackgroundServer, free_port
-from tests.conftest import LiveServer, make_token
+from tests.conftest import LiveServer, databases_under_test, make_token
 
 # the simulator's true camera pose (x, y, yaw) of each frame of the processed inspection,
 # in capture order, by session id: what placement on the structure is scored against
 TRUE_CAMERA_POSES: dict[str, list[list[float]]] = {}
 
 
-@pytest.fixture(scope="package")
-def inspected(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[LiveServer, str]]:
-    """A live server that holds one simulated inspection, fully processed."""
-    settings = Settings(
-        data_dir=tmp_path_factory.mktemp("reports") / "data", job_workers=2, view3d=False
-    )
+@pytest.fixture(scope="package", params=databases_under_test())
+def inspected(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[tuple[LiveServer, str]]:
+    """A live server that holds one simulated inspection, fully processed (one per database)."""
+    data = tmp_path_factory.mktemp("reports") / "data"
+    if request.param == "postgresql":
+        database_url = request.getfixturevalue("postgres").new_database()
+    else:
+        database_url = f"sqlite:///{data / 'steelscan.db'}"
+    settings = Settings(data_dir=data, database_url=database_url, job_workers=2, view3d=False)
     token = make_token(settings)
     server = BackgroundServer(settings, free_port())
     server.start()

@@ -29,7 +29,7 @@ def test_the_live_map_refines_frame_placement(live_server: LiveServer) -> None:
         link = RobotLink(live_server.url, live_server.token)
         await link.start()
         try:
-            return await InspectionSim(link, SimConfig(seed=21, lanes=2, time_scale=6.0)).run()
+            return await InspectionSim(link, SimConfig(seed=21, lanes=2, time_scale=3.0)).run()
         finally:
             await link.close()
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
 import re
 import subprocess
 import sys
@@ -241,6 +242,7 @@ def test_mcap_opens_with_foxglove_schemas_and_reimports_losslessly(
         capture_output=True,
         text=True,
         timeout=120,
+        env={**os.environ, "STEELSCAN_DATABASE_URL": live.settings.resolved_database_url()},
     )
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
