@@ -22,15 +22,8 @@ from tests.server.test_ingest import robot_ws
 
 
 @pytest.fixture
-def settings(tmp_path, database_url: str) -> Settings:  # type: ignore[no-untyped-def]
-    return Settings(
-        database_url=database_url,
-        data_dir=tmp_path / "data",
-        job_workers=1,
-        auto_process=False,
-        view3d=False,
-        live_detect=True,
-    )
+def settings(settings: Settings) -> Settings:
+    return settings.model_copy(update={"auto_process": False, "view3d": False, "live_detect": True})
 
 
 def test_a_crack_in_a_frame_reaches_the_browsers_placed_on_the_structure(

@@ -18,10 +18,8 @@ from tests.conftest import LiveServer
 
 
 @pytest.fixture
-def settings(tmp_path, database_url: str) -> Settings:  # type: ignore[no-untyped-def]
-    return Settings(
-        database_url=database_url, data_dir=tmp_path / "data", job_workers=1, auto_process=False
-    )
+def settings(settings: Settings) -> Settings:
+    return settings.model_copy(update={"auto_process": False})
 
 
 def test_the_live_map_refines_frame_placement(live_server: LiveServer) -> None:

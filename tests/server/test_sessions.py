@@ -19,14 +19,8 @@ from tests.server.test_ingest import robot_ws
 
 
 @pytest.fixture
-def settings(tmp_path, database_url: str) -> Settings:  # type: ignore[no-untyped-def]
-    return Settings(
-        database_url=database_url,
-        data_dir=tmp_path / "data",
-        job_workers=1,
-        auto_process=False,
-        view3d=False,
-    )
+def settings(settings: Settings) -> Settings:
+    return settings.model_copy(update={"auto_process": False, "view3d": False})
 
 
 def record(server: LiveServer, structure: str, location: str, t0: float, seconds: float) -> str:
