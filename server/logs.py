@@ -4,31 +4,27 @@
 from __future__ import annotations
 
 import copy
-import functools
 import logging
 import re
 from typing import Any
 
+from server.tokens import TOKEN_PREFIX
+
 MASK = "***"
 
 
-@functools.cache
-def _secrets() -> re.Pattern[str]:
-    """The pattern of a secret (built on first use: the robot tokens' prefix lives with the
-    database code, which a CLI command that never logs need not import)."""
-    from server.link.robots import TOKEN_PREFIX
-
-    return re.compile(
-        r"(?P<query>(?<![\w-])(?:token|access_token|password)=)[^&\s\"']+"
-        r"|(?P<bearer>Bearer\s+)[A-Za-z0-9._~+/=-]+"
-        rf"|(?P<robot>{re.escape(TOKEN_PREFIX)})[A-Za-z0-9_-]+",
-        re.IGNORECASE,
-    )
+# a secret: a token or password in a query string, a bearer credential, a robot token
+_SECRETS = re.compile(
+    r"(?P<query>(?<![\w-])(?:token|access_token|password)=)[^&\s\"']+"
+    r"|(?P<bearer>Bearer\s+)[A-Za-z0-9._~+/=-]+"
+    rf"|(?P<robot>{re.escape(TOKEN_PREFIX)})[A-Za-z0-9_-]+",
+    re.IGNORECASE,
+)
 
 
 def redact(text: str) -> str:
     """``text`` with every token, password or bearer credential replaced by :data:`MASK`."""
-    return _secrets().sub(
+    return _SECRETS.sub(
         lambda m: (m.group("query") or m.group("bearer") or m.group("robot")) + MASK, text
     )
 

@@ -141,8 +141,11 @@ class IncrementalMap:
             step = np.linalg.inv(previous) @ guess
         else:
             step = self._steps[-1] if self._steps else np.eye(4)
+        tracked = self.params.tracking.enabled
         result = register_pair(pcd, self._pcds[i - 1], step, self.params.icp)
-        if result is None:
+        if tracked:  # the step is already registered (to the map, which holds the previous cloud)
+            seed, facts = step, self._tracked_facts(len(pcd.points))
+        elif result is None:
             seed, facts = step, (0.0, 0.0, True, 6)
         else:
             seed, degenerate = constrain_to_observable(
@@ -177,6 +180,14 @@ class IncrementalMap:
             if self.optimise_every and (loops or (i + 1) % max(self.optimise_every, i // 10) == 0):
                 self.optimise()
         return np.asarray(self.graph.nodes[i].pose)
+
+    def _tracked_facts(self, points: int) -> tuple[float, float, bool, int]:
+        """Fitness, RMSE (not measured: 0), placed by the prediction, degenerate directions of
+        the cloud just tracked."""
+        found = self.tracker.last
+        if found is None:
+            return 0.0, 0.0, True, 6
+        return min(1.0, found.matched / max(points, 1)), 0.0, False, found.degenerate
 
     def _relative(self, t: int, s: int) -> NDArray[np.float64]:
         """T_t_s from the current estimate."""

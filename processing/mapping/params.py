@@ -32,9 +32,10 @@ class TrackingParams:
     final_distance_voxels: float = 1.5  # the last search distance, in voxels of the selection
     max_iterations: int = 15
     # an iteration's step (rad, m) below this ends a search distance: coarse ones only bring
-    # the cloud near (the last one refines), so they stop sooner
-    coarse_tolerance: float = 1e-4
-    final_tolerance: float = 1e-5
+    # the cloud near (a millimetre a metre out), the last one refines to a tenth of that,
+    # far below any ToF camera's range noise
+    coarse_tolerance: float = 1e-3
+    final_tolerance: float = 1e-4
     min_normal_cos: float = 0.7  # a match's normals (cloud's and map's) agree this well
     # directions the geometry fixes less than this share of the strongest half do: prior only
     degenerate_ratio: float = 0.001

@@ -20,6 +20,8 @@ sensor or structure; the last search distance is a multiple of the selection's v
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
@@ -27,22 +29,17 @@ from scipy.spatial import cKDTree
 
 from processing.mapping.icp import eigen_projector
 from processing.mapping.params import TrackingParams
+from processing.mapping.voxel_map import VoxelMap
 from processing.poses import se3_exp, se3_log
 
 
-def voxel_mean(
-    points: NDArray[np.float64], normals: NDArray[np.float64], voxel_m: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Points (K, 3) and normals (K, 3) averaged per voxel of ``voxel_m``: (M, 3) means and
-    (M, 3) unit normals (the map, where many clouds' points of one surface fall together)."""
-    k = np.floor(points / voxel_m).astype(np.int64) + (1 << 20)
-    key = (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
-    _, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
-    sums = np.zeros((len(count), 6))
-    np.add.at(sums, inverse, np.hstack([points, normals]))
-    mean = sums[:, :3] / count[:, None]
-    normal = sums[:, 3:] / np.maximum(np.linalg.norm(sums[:, 3:], axis=1, keepdims=True), 1e-12)
-    return mean, normal
+class Registration(NamedTuple):
+    """A cloud's registered pose T_world_sensor (4, 4), the matches it rests on and the
+    directions (0-6) the geometry left to the prediction at the last search distance."""
+
+    pose: NDArray[np.float64]
+    matched: int
+    degenerate: int
 
 
 def search_distances(
@@ -51,15 +48,13 @@ def search_distances(
     """Correspondence distances, coarse to fine: from three errors of the motion (a rotation
     of ``sigma_rad`` per axis moves a point ``reach_m`` from the sensor by 2·r·sin(θ/2), a
     translation of ``sigma_m`` per axis by √3·σ) down to ``final_distance_voxels`` voxels,
-    halving."""
+    halving (a half within 1.5 times the last distance is the last distance)."""
     final = params.final_distance_voxels * voxel_m
     spread = 2 * reach_m * np.sin(sigma_rad * np.sqrt(3) / 2) + sigma_m * np.sqrt(3)
-    first = float(np.clip(3 * spread, final, params.max_distance_m))
-    distances = [first]
-    while distances[-1] / 2 > final:
-        distances.append(distances[-1] / 2)
-    if distances[-1] > final:
-        distances.append(final)
+    distances = [float(np.clip(3 * spread, final, params.max_distance_m))]
+    while distances[-1] > final:
+        half = distances[-1] / 2
+        distances.append(half if half >= 1.5 * final else final)
     return distances
 
 
@@ -72,10 +67,10 @@ def register_to_map(
     prior_information: NDArray[np.float64],
     distances: list[float],
     params: TrackingParams,
-) -> tuple[NDArray[np.float64], int]:
+) -> Registration:
     """Pose T_world_sensor (4, 4) of a cloud (``points``, ``normals``: (K, 3), sensor frame)
-    against a map (``map_points``, ``map_normals``: (M, 3), world frame), and the number of
-    matches it rests on.
+    against a map (``map_points``, ``map_normals``: (M, 3), world frame), the number of
+    matches it rests on and the directions its geometry left to the prediction.
 
     Minimises Σ ρ(nᵀ(T q − p)) + eᵀ Λ e over T, ρ the Geman-McClure kernel of scale d/3 for
     each search distance d in turn, e = log(prediction⁻¹ T) the deviation from the
@@ -84,11 +79,12 @@ def register_to_map(
     normals disagree (``min_normal_cos``) are not used (a web's point is not matched to the
     plate beside it).
     """
-    tree = cKDTree(map_points)
+    # sliding-midpoint tree: built in half the time and queried faster on surface samples
+    tree = cKDTree(map_points, balanced_tree=False, compact_nodes=False)
     reach_m = float(np.sqrt(np.mean(np.einsum("ij,ij->i", points, points))))
     T = prediction.copy()
     P_inv = np.linalg.inv(prediction)
-    matched = 0
+    matched = degenerate = 0
     for level, distance in enumerate(distances):
         scale = distance / 3
         last = level == len(distances) - 1
@@ -110,7 +106,7 @@ def register_to_map(
             ok, n = ok[agree], n[agree]
             matched = len(ok)
             if matched < params.min_points:
-                return prediction.copy(), matched
+                return Registration(prediction.copy(), matched, 6)
             r = np.einsum("ij,ij->i", world[ok] - map_points[nearest[ok]], n)
             w = stride * (scale**2 / (scale**2 + r**2)) ** 2 / scale**2  # as if every point
             n_sensor = n @ R
@@ -121,7 +117,9 @@ def register_to_map(
             J[:, 2] = q[:, 0] * n_sensor[:, 1] - q[:, 1] * n_sensor[:, 0]
             J[:, 3:] = n_sensor
             Jw = J.T * w
-            H_data, g_data = observable_part(Jw @ J, Jw @ r, reach_m, params.degenerate_ratio)
+            H_data, g_data, degenerate = observable_part(
+                Jw @ J, Jw @ r, reach_m, params.degenerate_ratio
+            )
             e = se3_log(P_inv @ T)
             H = H_data + prior_information
             g = g_data + prior_information @ e
@@ -129,24 +127,24 @@ def register_to_map(
             T = T @ se3_exp(step)
             if np.abs(step).max() < tolerance:
                 break
-    return T, matched
+    return Registration(T, matched, degenerate)
 
 
 def observable_part(
     H: NDArray[np.float64], g: NDArray[np.float64], reach_m: float, ratio: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
     """The normal equations (H (6, 6), g (6,)) kept only along the directions the geometry
     observes: with rotations scaled by ``reach_m`` (the points' RMS distance, so both parts are
     in metres), eigen-directions of H weaker than ``ratio`` of half its trace are dropped
     (:func:`~processing.mapping.icp.eigen_projector`). Along a flat plate's own plane, or
     about its normal, noisy normals give point-to-plane a little spurious information that
     would slide the cloud; without it the prior holds there (degeneracy-aware registration,
-    Zhang et al. 2016)."""
+    Zhang et al. 2016). Also returns how many directions were dropped."""
     S = np.diag([1 / reach_m] * 3 + [1.0] * 3)  # x_scaled = S⁻¹ x
     S_inv = np.diag([reach_m] * 3 + [1.0] * 3)
     Hs = S @ H @ S
-    P, _ = eigen_projector(Hs, ratio)
-    return S_inv @ P @ Hs @ P @ S_inv, S_inv @ P @ S @ g
+    P, dropped = eigen_projector(Hs, ratio)
+    return S_inv @ P @ Hs @ P @ S_inv, S_inv @ P @ S @ g, dropped
 
 
 class Tracker:
@@ -157,14 +155,12 @@ class Tracker:
     def __init__(self, params: TrackingParams = TrackingParams(), voxel_m: float = 0.02) -> None:
         self.params = params
         self.voxel_m = voxel_m
-        self._points: list[NDArray[np.float64]] = []  # sensor frame
-        self._normals: list[NDArray[np.float64]] = []
+        self.map = VoxelMap(voxel_m)
         self._poses: list[NDArray[np.float64]] = []
-        self._boxes: list[NDArray[np.float64]] = []  # (2, 3) world bounds of each cloud
         self._guesses: list[NDArray[np.float64] | None] = []
-        self._corrections: list[
-            tuple[float, float]
-        ] = []  # mean square per axis: rotation, translation
+        # mean square correction per axis: rotation, translation
+        self._corrections: list[tuple[float, float]] = []
+        self.last: Registration | None = None  # the last cloud's registration (None: predicted)
 
     def sigmas(self) -> tuple[float, float]:
         """The prediction's error per axis, rotation (rad) and translation (m): the RMS of the
@@ -183,22 +179,6 @@ class Tracker:
             return self._poses[-1] @ np.linalg.inv(self._poses[-2]) @ self._poses[-1]
         return self._poses[-1].copy()
 
-    def _local_map(
-        self, lo: NDArray[np.float64], hi: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The earlier clouds' points and normals within [lo, hi] (world), per voxel."""
-        points, normals = [], []
-        for q, n, T, box in zip(self._points, self._normals, self._poses, self._boxes):
-            if np.any(box[1] < lo) or np.any(box[0] > hi):
-                continue
-            world = q @ T[:3, :3].T + T[:3, 3]
-            inside = np.all((world >= lo) & (world <= hi), axis=1)
-            points.append(world[inside])
-            normals.append(n[inside] @ T[:3, :3].T)
-        if not points or sum(len(p) for p in points) == 0:
-            return np.zeros((0, 3)), np.zeros((0, 3))
-        return voxel_mean(np.concatenate(points), np.concatenate(normals), self.voxel_m)
-
     def track(
         self, pcd: o3d.geometry.PointCloud, guess: NDArray[np.float64] | None = None
     ) -> NDArray[np.float64]:
@@ -210,6 +190,7 @@ class Tracker:
             if pcd.has_normals()
             else np.zeros_like(points)
         )
+        self.last = None
         if not self._poses:
             pose = np.eye(4) if guess is None else guess.copy()
         else:
@@ -221,10 +202,10 @@ class Tracker:
                 distances = search_distances(sigma_rad, sigma_m, reach, self.params, self.voxel_m)
                 world = points @ prediction[:3, :3].T + prediction[:3, 3]
                 lo, hi = world.min(axis=0) - distances[0], world.max(axis=0) + distances[0]
-                map_points, map_normals = self._local_map(lo, hi)
+                map_points, map_normals = self.map.crop(lo, hi)
                 if len(map_points) >= self.params.min_points:
                     info = np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
-                    pose, matched = register_to_map(
+                    found = register_to_map(
                         points,
                         normals,
                         map_points,
@@ -234,17 +215,11 @@ class Tracker:
                         distances,
                         self.params,
                     )
-                    if matched >= self.params.min_points:
+                    if found.matched >= self.params.min_points:
+                        pose, self.last = found.pose, found
                         c = se3_log(np.linalg.inv(prediction) @ pose)
                         self._corrections.append((c[:3] @ c[:3] / 3, c[3:] @ c[3:] / 3))
-        self._points.append(points)
-        self._normals.append(normals)
         self._poses.append(pose)
         self._guesses.append(guess)
-        world = points @ pose[:3, :3].T + pose[:3, 3]
-        self._boxes.append(
-            np.array([world.min(axis=0), world.max(axis=0)])
-            if len(points)
-            else np.full((2, 3), np.inf)
-        )
+        self.map.add(points @ pose[:3, :3].T + pose[:3, 3], normals @ pose[:3, :3].T)
         return pose

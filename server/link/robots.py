@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.errors import Conflict
 from server.storage.models import Robot
+from server.tokens import TOKEN_PREFIX
 
 
 def hash_token(token: str) -> str:
@@ -19,15 +20,10 @@ def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 
 
-TOKEN_PREFIX = "ssr_"
-
-
 def create_robot(factory: sessionmaker[Session], name: str) -> str:
     """Register a robot and return its new token (shown once, never stored in clear)."""
     if not name.strip():
         raise ValueError("robot name must not be empty")
-    # a prefix marks it as a steelscan robot token (for secret scanners) and keeps it from
-    # starting with "-", which a command line would read as an option
     token = TOKEN_PREFIX + secrets.token_urlsafe(32)
     with factory() as db:
         db.add(Robot(name=name.strip(), token_hash=hash_token(token)))

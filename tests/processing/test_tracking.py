@@ -12,7 +12,7 @@ from processing.mapping import (
     register_to_map,
     select,
 )
-from processing.mapping.tracking import search_distances, voxel_mean
+from processing.mapping.tracking import search_distances
 from processing.metrics import absolute_trajectory_error
 from processing.poses import se3_exp, se3_log
 from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_sweep
@@ -40,7 +40,7 @@ def test_a_cloud_is_pulled_onto_the_map_from_centimetres_off() -> None:
     map_points = points @ truth[:3, :3].T + truth[:3, 3] + rng.normal(0, 0.003, points.shape)
     map_normals = normals @ truth[:3, :3].T
     weak = np.diag([1 / np.radians(10) ** 2] * 3 + [1 / 0.1**2] * 3)
-    T, matched = register_to_map(
+    T, matched, _ = register_to_map(
         points,
         normals,
         map_points,
@@ -64,7 +64,7 @@ def test_where_the_geometry_says_nothing_the_prediction_holds() -> None:
     seen = [select(plate + rng.normal(0, 0.002, plate.shape)) for _ in range(2)]
     prediction = se3_exp(np.array([0, 0, 0.02, 0.03, -0.01, 0.0]))
     prior = np.diag([1 / np.radians(5) ** 2] * 3 + [1 / 0.05**2] * 3)
-    T, _ = register_to_map(
+    T, _, _ = register_to_map(
         np.asarray(seen[0].points),
         np.asarray(seen[0].normals),
         np.asarray(seen[1].points),
@@ -87,16 +87,6 @@ def test_search_distances_run_from_the_motion_error_down_to_the_voxel() -> None:
     assert wide[-1] == pytest.approx(0.03) and all(a > b for a, b in zip(wide, wide[1:]))
     assert search_distances(np.radians(0.1), 0.001, 1.0, p, 0.02) == [pytest.approx(0.03)]
     assert search_distances(1.0, 1.0, 1.0, p, 0.02)[0] == p.max_distance_m
-
-
-def test_voxel_mean_averages_points_and_normals_per_voxel() -> None:
-    points = np.array([[0.001, 0.001, 0.001], [0.009, 0.001, 0.001], [0.5, 0.5, 0.5]])
-    normals = np.array([[0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0]])
-    mean, normal = voxel_mean(points, normals, 0.01)
-    assert len(mean) == 2
-    k = int(np.argmin(mean[:, 0]))
-    assert mean[k] == pytest.approx([0.005, 0.001, 0.001])
-    assert normal[k] == pytest.approx([0, np.sqrt(0.5), np.sqrt(0.5)])
 
 
 def test_the_prior_is_measured_tight_for_good_odometry_and_loose_for_poor() -> None:
