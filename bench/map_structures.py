@@ -40,33 +40,23 @@ def registration_floor(
     the earlier clouds placed at their ``truth`` poses, from the odometry's step out of the
     true previous pose, held by a prior of the odometry's true errors per axis
     (``odometry_sigmas``: rad, m)."""
-    from processing.mapping import MapParams, register_to_map, select
-    from processing.mapping.tracking import search_distances
+    from processing.mapping import MapParams, select
+    from processing.mapping.tracking import register_near
     from processing.mapping.voxel_map import VoxelMap
 
     params = MapParams()
-    voxel = params.select.voxel_m
-    sigma_rad, sigma_m = odometry_sigmas
-    prior = np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
-    seen = VoxelMap(voxel)
+    seen = VoxelMap(params.select.voxel_m)
     poses = [truth[0]]
     for i, cloud in enumerate(clouds):
         pcd = select(cloud, params.select, shape)
         points = np.asarray(pcd.points)
         normals = np.asarray(pcd.normals) if pcd.has_normals() else np.zeros_like(points)
-        if i and len(points) and pcd.has_normals():
+        if i:
             prediction = truth[i - 1] @ np.linalg.inv(odometry[i - 1]) @ odometry[i]
-            reach = float(np.sqrt(np.einsum("ij,ij->i", points, points).max()))
-            distances = search_distances(sigma_rad, sigma_m, reach, params.tracking, voxel)
-            world = points @ prediction[:3, :3].T + prediction[:3, 3]
-            near = seen.crop(world.min(axis=0) - distances[0], world.max(axis=0) + distances[0])
-            poses.append(
-                register_to_map(
-                    points, normals, *near, prediction, prior, distances, params.tracking
-                ).pose
+            found = register_near(
+                points, normals, seen, prediction, odometry_sigmas, params.tracking
             )
-        elif i:
-            poses.append(truth[i - 1] @ np.linalg.inv(odometry[i - 1]) @ odometry[i])
+            poses.append(prediction if found is None else found.pose)
         seen.add(points @ truth[i][:3, :3].T + truth[i][:3, 3], normals @ truth[i][:3, :3].T)
     return np.array(poses)
 

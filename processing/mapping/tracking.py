@@ -147,6 +147,36 @@ def observable_part(
     return S_inv @ P @ Hs @ P @ S_inv, S_inv @ P @ S @ g, dropped
 
 
+def register_near(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    seen: VoxelMap,
+    prediction: NDArray[np.float64],
+    sigmas: tuple[float, float],
+    params: TrackingParams,
+) -> Registration | None:
+    """A cloud (``points``, ``normals``: (K, 3), sensor frame) registered
+    (:func:`register_to_map`) to the part of the map ``seen`` around where ``prediction``
+    puts it, held by a prior of the prediction's errors per axis (``sigmas``: rad, m) that
+    also sets the search distances; None where the cloud or the map there has too few
+    points."""
+    if len(points) < params.min_points:
+        return None
+    sigma_rad, sigma_m = sigmas
+    reach = float(np.sqrt(np.einsum("ij,ij->i", points, points).max()))
+    distances = search_distances(sigma_rad, sigma_m, reach, params, seen.voxel_m)
+    world = points @ prediction[:3, :3].T + prediction[:3, 3]
+    map_points, map_normals = seen.crop(
+        world.min(axis=0) - distances[0], world.max(axis=0) + distances[0]
+    )
+    if len(map_points) < params.min_points:
+        return None
+    prior = np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
+    return register_to_map(
+        points, normals, map_points, map_normals, prediction, prior, distances, params
+    )
+
+
 class Tracker:
     """Poses of clouds as they come, each registered to the map of all earlier ones
     (:func:`register_to_map`), predicted by the odometry (or, without it, by the last
@@ -196,29 +226,14 @@ class Tracker:
         else:
             prediction = self._prediction(guess)
             pose = prediction
-            sigma_rad, sigma_m = self.sigmas()
-            if len(points) >= self.params.min_points and pcd.has_normals():
-                reach = float(np.sqrt(np.einsum("ij,ij->i", points, points).max()))
-                distances = search_distances(sigma_rad, sigma_m, reach, self.params, self.voxel_m)
-                world = points @ prediction[:3, :3].T + prediction[:3, 3]
-                lo, hi = world.min(axis=0) - distances[0], world.max(axis=0) + distances[0]
-                map_points, map_normals = self.map.crop(lo, hi)
-                if len(map_points) >= self.params.min_points:
-                    info = np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
-                    found = register_to_map(
-                        points,
-                        normals,
-                        map_points,
-                        map_normals,
-                        prediction,
-                        info,
-                        distances,
-                        self.params,
-                    )
-                    if found.matched >= self.params.min_points:
-                        pose, self.last = found.pose, found
-                        c = se3_log(np.linalg.inv(prediction) @ pose)
-                        self._corrections.append((c[:3] @ c[:3] / 3, c[3:] @ c[3:] / 3))
+            if pcd.has_normals():
+                found = register_near(
+                    points, normals, self.map, prediction, self.sigmas(), self.params
+                )
+                if found is not None and found.matched >= self.params.min_points:
+                    pose, self.last = found.pose, found
+                    c = se3_log(np.linalg.inv(prediction) @ pose)
+                    self._corrections.append((c[:3] @ c[:3] / 3, c[3:] @ c[3:] / 3))
         self._poses.append(pose)
         self._guesses.append(guess)
         self.map.add(points @ pose[:3, :3].T + pose[:3, 3], normals @ pose[:3, :3].T)
