@@ -184,7 +184,6 @@ class Tracker:
 
     def __init__(self, params: TrackingParams = TrackingParams(), voxel_m: float = 0.02) -> None:
         self.params = params
-        self.voxel_m = voxel_m
         self.map = VoxelMap(voxel_m)
         self._poses: list[NDArray[np.float64]] = []
         self._guesses: list[NDArray[np.float64] | None] = []
