@@ -23,10 +23,13 @@ from robot_link.protocol import (
 from server.errors import IngestError
 from server.link.limits import TokenBucket
 from server.link.robots import authenticate_robot, hash_token
+from server.storage.space import is_disk_full
 
 log = logging.getLogger(__name__)
 router = APIRouter()
 IN_FLIGHT = 64
+FULL_LOG_INTERVAL_S = 10.0  # a full disk is logged at most this often (every message hits it)
+_full_logged = -float("inf")
 
 
 def _bearer(websocket: WebSocket) -> str | None:
@@ -182,6 +185,15 @@ class RobotConnection:
             await self.send_error(message.session_id, message.seq, str(exc), retry=exc.retry)
             return
         except Exception as exc:  # noqa: BLE001  the station's own fault: never "dropped"
+            if is_disk_full(exc):
+                _log_disk_full(exc)
+                await self.send_error(
+                    message.session_id,
+                    message.seq,
+                    "ground station storage is full: retry later",
+                    retry=True,
+                )
+                return
             log.exception("ingest: could not store seq %d", message.seq)
             await self.send_error(
                 message.session_id,
@@ -278,6 +290,15 @@ class RobotConnection:
                     "robot": self.robot_name,
                 }
             )
+
+
+def _log_disk_full(exc: BaseException) -> None:
+    """One warning, without a traceback, per FULL_LOG_INTERVAL_S while the disk is full."""
+    global _full_logged
+    now = time.monotonic()
+    if now - _full_logged >= FULL_LOG_INTERVAL_S:
+        _full_logged = now
+        log.warning("ingest: the data directory's disk is full (%s); robots asked to retry", exc)
 
 
 @router.websocket("/ws/robot")

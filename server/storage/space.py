@@ -3,6 +3,7 @@ robot data with "retry later" before SQLite or the filesystem fail half-way."""
 
 from __future__ import annotations
 
+import errno
 import shutil
 import threading
 import time
@@ -66,3 +67,18 @@ class DiskReserve:
                 self._free = 0  # the data directory is gone or unreadable: store nothing
             self._asked = now
         return self._free
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what caused it) says the filesystem or SQLite ran out of room:
+    ``ENOSPC``/``EDQUOT``, or SQLite's "database or disk is full" (SQLITE_FULL)."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        if isinstance(cause, OSError) and cause.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if "database or disk is full" in str(cause):
+            return True
+        cause = cause.__cause__ or cause.__context__
+    return False

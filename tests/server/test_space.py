@@ -5,6 +5,7 @@ is stored once there is room again."""
 from __future__ import annotations
 
 import asyncio
+import errno
 import os
 import shutil
 import sqlite3
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from sqlalchemy.exc import OperationalError
 
 from robot_link.client import LinkError, RobotLink
 from robot_link.protocol import MessageType
@@ -23,7 +25,7 @@ from robot_link.spool import Spool
 from server.config import Settings
 from server.errors import IngestError
 from server.loopback import BackgroundServer, free_port
-from server.storage.space import DiskReserve
+from server.storage.space import DiskReserve, is_disk_full
 from tests.conftest import make_token
 from tests.server.test_ingest import JPEG
 
@@ -42,6 +44,21 @@ def test_the_reserve_refuses_with_retry_and_reports_itself(tmp_path: Path) -> No
     tight.claim(2**20)
     with pytest.raises(IngestError):
         tight.claim(2 * 2**20)
+
+
+def test_a_full_disk_is_recognised_through_the_layers_that_wrap_it() -> None:
+    full = sqlite3.OperationalError("database or disk is full")
+    assert is_disk_full(OperationalError("COMMIT", {}, full))
+    assert is_disk_full(OSError(errno.ENOSPC, "No space left on device"))
+    try:
+        try:
+            raise OSError(errno.EDQUOT, "Disk quota exceeded")
+        except OSError:
+            raise RuntimeError("write failed")  # noqa: B904  chained implicitly, as in a handler
+    except RuntimeError as wrapped:
+        assert is_disk_full(wrapped)
+    assert not is_disk_full(sqlite3.OperationalError("database is locked"))
+    assert not is_disk_full(OSError(errno.EACCES, "Permission denied"))
 
 
 async def _send_session(link: RobotLink, frames: int) -> None:
@@ -135,17 +152,20 @@ def test_a_full_filesystem_makes_the_robot_wait_not_forget(tmp_path: Path) -> No
         f"exec {' '.join(steelscan)} serve --data-dir {data} --port {port}"
     )
     env = {**os.environ, "STEELSCAN_MIN_FREE_BYTES": "0", "STEELSCAN_AUTO_PROCESS": "false"}
+    # the station's log goes to a file: a pipe nobody reads would stall it once full
+    log_path = tmp_path / "station.log"
+    station_log = log_path.open("wb")
     serve = subprocess.Popen(
         ["unshare", "-rm", "sh", "-c", script],
         env=env,
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
+        stderr=station_log,
     )
     url = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 60
         while True:
-            assert serve.poll() is None, serve.stderr.read() if serve.stderr else ""
+            assert serve.poll() is None, log_path.read_text()[-4000:]
             try:
                 if httpx.get(f"{url}/api/health", timeout=1).status_code == 200:
                     break
@@ -189,7 +209,10 @@ def test_a_full_filesystem_makes_the_robot_wait_not_forget(tmp_path: Path) -> No
             await link.close()
             return link
 
-        link = asyncio.run(deliver())
+        try:
+            link = asyncio.run(deliver())
+        except LinkError as exc:
+            raise AssertionError(f"{exc}; station log:\n{log_path.read_text()[-4000:]}") from exc
         session = httpx.get(f"{url}/api/sessions/{link.session_id}").json()
         assert session["status"] == "ended" and session["frames"] > 0 and session["clouds"] > 0
         assert len(Spool(spool)) == 0
@@ -208,3 +231,4 @@ def test_a_full_filesystem_makes_the_robot_wait_not_forget(tmp_path: Path) -> No
     finally:
         serve.terminate()
         serve.wait(timeout=30)
+        station_log.close()
