@@ -38,6 +38,32 @@ class PoseEstimate:
 CONSECUTIVE_RUN = 8  # consecutive pairs registered by one thread in a row
 
 
+@dataclass(frozen=True)
+class PairRequest:
+    """A pair to register: frame j in frame i's coordinates from ``start`` (dx, dy, dθ),
+    with each of ``tries`` in turn until one verifies."""
+
+    i: int
+    j: int
+    start: NDArray[np.float64]
+    tries: tuple[RegistrationParams, ...]
+
+
+PairSpread = Callable[[Sequence[PairRequest]], list[PairMeasurement | None]]
+"""Registers many pairs, results in order: on this process's threads by default, or spread
+over other processes that load the frames themselves (a job queue's workers)."""
+
+
+def measure_pair(load: Callable[[int], Level], request: PairRequest) -> PairMeasurement | None:
+    """One :class:`PairRequest` registered with frames from ``load`` (None: no try verified)."""
+    for params in request.tries:
+        found = register_pair(load(request.i), load(request.j), request.start, params)
+        if found is not None:
+            delta, score, mi, mj = found
+            return PairMeasurement(request.i, request.j, delta, score, mi, mj)
+    return None
+
+
 def _runs(count: int, workers: int) -> list[range]:
     """0..count split into runs of about :data:`CONSECUTIVE_RUN`, as many per worker."""
     pieces = max(1, workers) * max(1, -(-count // (max(1, workers) * CONSECUTIVE_RUN)))
@@ -185,18 +211,13 @@ def _consecutive_from_images(
 
 
 def _consecutive_from_odometry(
-    reg: _PairRegistrar, guess: NDArray[np.float64]
+    reg: _PairRegistrar, guess: NDArray[np.float64], spread: PairSpread
 ) -> tuple[list[PairMeasurement | None], NDArray[np.float64]]:
     """Consecutive pairs measured from the odometry's steps (their priors); where the
     odometry was too far off (wheel slip), the images alone decide."""
     n = len(guess)
     priors = np.array([relative_se2(guess[k], guess[k + 1]) for k in range(n - 1)]).reshape(-1, 3)
-    runs = _runs(n - 1, reg.params.workers)
-    consecutive = [
-        m
-        for run in reg.pool.map(lambda ks: [reg.measure((k, k + 1), priors[k]) for k in ks], runs)
-        for m in run
-    ]
+    consecutive = spread([PairRequest(k, k + 1, priors[k], (reg.params,)) for k in range(n - 1)])
     lost = [k for k, m in enumerate(consecutive) if m is None]
     for k, (m, _) in zip(lost, reg.pool.map(reg.measure_blind, lost)):
         consecutive[k] = m
@@ -204,17 +225,35 @@ def _consecutive_from_odometry(
 
 
 def _other_pairs(
-    reg: _PairRegistrar, chained: NDArray[np.float64], size: tuple[int, int]
+    params: RegistrationParams,
+    chained: NDArray[np.float64],
+    size: tuple[int, int],
+    spread: PairSpread,
 ) -> list[PairMeasurement | None]:
     """Every other overlapping pair (lane neighbours, revisits), registered from the chain:
     near it first (accurate where consecutive pairs registered), then wider."""
-    near = replace(reg.params, search_px=max(8, reg.params.search_px // 3))
+    near = replace(params, search_px=max(8, params.search_px // 3))
+    return spread(
+        [
+            PairRequest(i, j, relative_se2(chained[i], chained[j]), (near, params))
+            for i, j in candidate_pairs(chained, size, skip_consecutive=True)
+        ]
+    )
 
-    def measure_other(p: tuple[int, int]) -> PairMeasurement | None:
-        start = relative_se2(chained[p[0]], chained[p[1]])
-        return reg.measure(p, start, params=near) or reg.measure(p, start)
 
-    return list(reg.pool.map(measure_other, candidate_pairs(chained, size, skip_consecutive=True)))
+def _threads_spread(
+    load: Callable[[int], Level], pool: ThreadPoolExecutor, workers: int
+) -> PairSpread:
+    """Pairs registered on ``pool``, each thread taking runs of neighbouring requests (the
+    threads then prepare different frames instead of waiting for the same one)."""
+
+    def spread(requests: Sequence[PairRequest]) -> list[PairMeasurement | None]:
+        def run(ks: range) -> list[PairMeasurement | None]:
+            return [measure_pair(load, requests[k]) for k in ks]
+
+        return [m for found in pool.map(run, _runs(len(requests), workers)) for m in found]
+
+    return spread
 
 
 def _solve(
@@ -245,6 +284,7 @@ def estimate_poses(
     guess: NDArray[np.float64] | None,
     params: RegistrationParams = RegistrationParams(),
     progress: Callable[[float, str], None] | None = None,
+    spread: PairSpread | None = None,
 ) -> PoseEstimate:
     """Globally consistent frame poses from images (and an odometry guess when given).
 
@@ -255,6 +295,7 @@ def estimate_poses(
        ``max_residual_px`` are dropped and the graph solved again.
     Frames that no accepted pair reaches keep their odometry placement and are flagged.
     ``load(k)`` gives frame k's grey levels; it is called from ``params.workers`` threads.
+    ``spread`` registers the pairs of steps 2 and 3 elsewhere (default: those threads).
     """
     report = progress or (lambda f, m: None)
     if n == 0:
@@ -262,17 +303,18 @@ def estimate_poses(
     h, w = load(0).shape
     with ThreadPoolExecutor(max(1, params.workers)) as pool:
         reg = _PairRegistrar(load, params, pool)
+        pairs = spread or _threads_spread(load, pool, params.workers)
         report(0.05, "registering consecutive frames")
         if guess is None:
             consecutive, priors = _consecutive_from_images(reg, n)
             guess = chain_se2(np.zeros(3), list(priors))
         else:
             guess = np.asarray(guess, dtype=np.float64)
-            consecutive, priors = _consecutive_from_odometry(reg, guess)
+            consecutive, priors = _consecutive_from_odometry(reg, guess, pairs)
         chained = chain_se2(
             guess[0], [m.delta if m is not None else priors[k] for k, m in enumerate(consecutive)]
         )
         report(0.4, "registering overlapping frames")
-        others = _other_pairs(reg, chained, (w, h))
+        others = _other_pairs(params, chained, (w, h), pairs)
     report(0.8, "solving the pose graph")
     return _solve(chained, [m for m in consecutive + others if m is not None], priors, params)

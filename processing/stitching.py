@@ -17,14 +17,14 @@ the whole mosaic in memory for small jobs and tests).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.alignment import estimate_poses
+from processing.alignment import PairSpread, estimate_poses
 from processing.blending import feather_weight, paper_blend_mask, render_bands
 from processing.exposure import solve_gains
 from processing.frame_cache import FrameCache, estimate_flat_field, prepare_frames
@@ -66,12 +66,15 @@ def plan_mosaic(
     px_per_m: float = 1.0,
     params: StitchParams = StitchParams(),
     progress: Progress | None = None,
+    spread: Callable[[FrameCache], PairSpread] | None = None,
 ) -> tuple[MosaicLayout, FrameCache]:
     """Frame poses (registered and solved globally), exposure gains and the mosaic's extent.
 
     ``poses`` (N, 3) are camera-centre poses in world *pixels* (see :func:`camera_poses`),
     or None to estimate the motion from the images alone (then ``px_per_m`` only labels
-    the scale).
+    the scale). ``spread(frames)`` registers pairs of the frames as prepared at that point
+    (their flat-field correction) elsewhere, e.g. on other processes; default: on
+    ``params.registration.workers`` threads here.
     """
     n = len(source)
     if px_per_m <= 0:
@@ -89,12 +92,24 @@ def plan_mosaic(
         confident, measurements, rejected = np.ones(1, bool), [], 0
     else:
         est = estimate_poses(
-            frames.level, n, poses, params.registration, _scaled(progress, 0.0, 0.5)
+            frames.level,
+            n,
+            poses,
+            params.registration,
+            _scaled(progress, 0.0, 0.5),
+            spread(frames) if spread is not None else None,
         )
         if params.vignetting and _correct_vignetting(frames, est.measurements, params):
             # registration sees the surface evenly lit now: register again from the solution
             again = replace(params.registration, search_px=8)  # the first solution is close
-            est = estimate_poses(frames.level, n, est.poses, again, _scaled(progress, 0.5, 1.0))
+            est = estimate_poses(
+                frames.level,
+                n,
+                est.poses,
+                again,
+                _scaled(progress, 0.5, 1.0),
+                spread(frames) if spread is not None else None,
+            )
         est_poses, confident, measurements, rejected = (
             est.poses,
             est.confident,

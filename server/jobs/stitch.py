@@ -2,14 +2,24 @@
 
 from __future__ import annotations
 
+import hashlib
+import threading
+import time
 from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from sqlalchemy import select
 
+from processing.alignment import PairRequest, PairSpread, measure_pair
+from processing.frame_cache import FrameCache
+from processing.registration import PairMeasurement
 from processing.stitching import StitchParams, camera_poses, plan_mosaic, render_bands
 from server.jobs.context import JobContext, params_record
+from server.storage.files import SessionFiles
 from server.storage.models import Frame
 from server.storage.mosaic_files import (
     StoredImages,
@@ -18,6 +28,81 @@ from server.storage.mosaic_files import (
     image_header,
     write_mosaic,
 )
+
+HELPER_CACHE_BYTES = 64 * 2**20  # decoded frames a helping worker keeps (its chunks are runs)
+_own: dict[str, FrameCache] = {}  # frames of the stitch jobs this process runs, by preparation
+_helping: list[tuple[str, FrameCache]] = []  # the one preparation this process helps with
+_prepared_lock = threading.Lock()
+
+
+@dataclass(frozen=True)
+class StoredFrames:
+    """How a worker helping with the pairs loads the session's frames itself: where each is
+    stored, their shape and the flat-field correction in use; ``key`` names that preparation."""
+
+    key: str
+    where: list[tuple[str, int | None, int]]
+    shape: tuple[int, ...]
+    inv_flat: NDArray[np.float32] | None
+
+
+def _frames_of(files: SessionFiles, stored: StoredFrames) -> FrameCache:
+    """The frames prepared as ``stored`` says: the job's own on its worker, else loaded
+    here (one preparation kept at a time)."""
+    with _prepared_lock:
+        if stored.key in _own:
+            return _own[stored.key]
+        if _helping and _helping[0][0] == stored.key:
+            return _helping[0][1]
+        where = stored.where
+        frames = FrameCache(
+            StoredImages(lambda k: files.read(*where[k]), len(where)), HELPER_CACHE_BYTES
+        )
+        frames.shape, frames.inv_flat = stored.shape, stored.inv_flat
+        _helping[:] = [(stored.key, frames)]
+        return frames
+
+
+def register_pair_part(
+    files: SessionFiles, stored: StoredFrames, request: PairRequest
+) -> PairMeasurement | None:
+    """One pair of a stitch job, registered wherever the job queue runs it."""
+    return measure_pair(_frames_of(files, stored).level, request)
+
+
+def spread_pairs(
+    ctx: JobContext, where: list[tuple[str, int | None, int]]
+) -> Callable[[FrameCache], PairSpread]:
+    """The stitch's pair registrations as parts of the job (:meth:`JobContext.map`); the
+    job's own worker does its share with the frames it has already prepared."""
+
+    def spread(frames: FrameCache) -> PairSpread:
+        flat = frames.inv_flat
+        digest = (
+            "none" if flat is None else hashlib.blake2b(flat.tobytes(), digest_size=8).hexdigest()
+        )
+        stored = StoredFrames(
+            f"{ctx.job_id}-{ctx.attempt}-{digest}", where, frames.shape or (), flat
+        )
+        with _prepared_lock:
+            _own[stored.key] = frames
+
+        def pairs(requests: Sequence[PairRequest]) -> list[PairMeasurement | None]:
+            return ctx.map(register_pair_part, stored, list(requests))
+
+        return pairs
+
+    return spread
+
+
+def _forget_prepared(ctx: JobContext) -> None:
+    """Drop the frames this job prepared (here, and the preparation helped with)."""
+    prefix = f"{ctx.job_id}-{ctx.attempt}-"
+    with _prepared_lock:
+        for key in [k for k in _own if k.startswith(prefix)]:
+            del _own[key]
+        if _helping and _helping[0][0].startswith(prefix):
+            _helping.clear()
 
 
 def run_stitch(ctx: JobContext) -> dict[str, Any]:
@@ -54,12 +139,22 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         robot = np.array([[f.pose_x, f.pose_y, f.pose_yaw] for f in use], dtype=np.float64)
         guess = camera_poses(robot, T_rc, px_per_m)
     source = StoredImages(lambda k: ctx.files.payload(use[k]), len(use))
-    layout, loaded = plan_mosaic(
-        source,
-        guess,
-        px_per_m=px_per_m if with_pose and px_per_m else 1.0,
-        progress=lambda f, m: ctx.progress(0.7 * f, m),
-    )
+    params = StitchParams()
+    params = replace(params, registration=replace(params.registration, workers=ctx.threads))
+    where = [(f.path, f.data_offset, f.size_bytes) for f in use]
+    t0 = time.perf_counter()
+    try:
+        layout, loaded = plan_mosaic(
+            source,
+            guess,
+            px_per_m=px_per_m if with_pose and px_per_m else 1.0,
+            params=params,
+            progress=lambda f, m: ctx.progress(0.7 * f, m),
+            spread=spread_pairs(ctx, where) if ctx.fanout is not None else None,
+        )
+    finally:
+        _forget_prepared(ctx)
+    t_pairs = time.perf_counter() - t0
     out = ctx.results_dir()
     world = {
         "world_referenced": with_pose,
@@ -69,9 +164,13 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     files = write_mosaic(
         out,
         layout,
-        render_bands(layout, loaded, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)),
+        render_bands(layout, loaded, params, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)),
         world=world,
     )
+    seconds = {  # per stage: the pairs are spread over workers, rendering is not
+        "pairs": round(t_pairs, 3),
+        "render": round(time.perf_counter() - t0 - t_pairs, 3),
+    }
     return {
         "mosaic_path": str(files.mosaic),
         "overview_path": str(files.overview),
@@ -87,5 +186,6 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         "pairs": layout.pairs,
         "rejected_pairs": layout.rejected_pairs,
         "overview_scale": files.overview_scale,
-        "params": params_record(StitchParams()),
+        "seconds": seconds,
+        "params": params_record(params),
     }

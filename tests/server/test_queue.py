@@ -121,9 +121,14 @@ def wait_running(c: Cluster, job_id: int, timeout_s: float = 60) -> dict:
 
 def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster) -> None:
     sid = record(cluster, 60)
-    stitch = wait_job(cluster.url, start_job(cluster, sid, "stitch"))
+    stitch_id = start_job(cluster, sid, "stitch")
+    stitch = wait_job(cluster.url, stitch_id)
     assert stitch["state"] == "done", stitch
     assert stitch["attempt"] == 1 and stitch["worker"].startswith("steelscan-")
+    assert stitch["result"]["pairs"] > 59 and set(stitch["result"]["seconds"]) == {
+        "pairs",
+        "render",
+    }
     detect_id = start_job(cluster, sid, "detect")
     wait_running(cluster, detect_id)
     seen = set()  # the progress the workers report, as the dashboard reads it
@@ -137,13 +142,14 @@ def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster) -> None:
     assert len(frame_rows) == detect["result"]["frame_defects"]  # every part's rows, once
     assert detect["result"]["frame_defects"] > 0
     # the frames were spread: both workers did parts of the one job
-    helped = [
-        sum(int(line.split(": ")[-1].split()[0]) for line in log.read_text().splitlines()
-            if f"job {detect_id}: " in line and "parts of" in line)
-        for log in cluster.logs
-    ]  # fmt: skip
-    holder = cluster.holder(detect["worker"])
-    assert helped[1 - holder] > 0, (helped, [p.read_text()[-2000:] for p in cluster.logs])
+    for job in (stitch, detect):  # the pairs of the one, the frames of the other
+        helped = [
+            sum(int(line.split(": ")[-1].split()[0]) for line in log.read_text().splitlines()
+                if f"job {job['id']}: " in line and "parts of" in line)
+            for log in cluster.logs
+        ]  # fmt: skip
+        holder = cluster.holder(job["worker"])
+        assert helped[1 - holder] > 0, (helped, [p.read_text()[-2000:] for p in cluster.logs])
 
 
 @pytest.mark.parametrize("what", ["process", "worker"])

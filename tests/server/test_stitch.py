@@ -1,0 +1,80 @@
+"""The stitch job's pair registrations as parts of the job: a worker that helps loads the
+session's frames itself, with the flat-field correction in use, and measures exactly what
+the job's own threads would."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from processing.stitching import StitchParams, plan_mosaic
+from processing.vignetting import radius2
+from robot_link.sim.sweeps import LazySweep, SweepConfig
+from server.jobs.context import JobContext
+from server.jobs.parts import FolderFanout
+from server.jobs.stitch import spread_pairs
+from server.storage.files import SessionFiles
+from server.storage.mosaic_files import StoredImages
+
+HELPER = (
+    "import json, sys; from server.jobs.parts import help_with; "
+    "print(json.dumps(help_with(sys.argv[1], sys.argv[2], 60.0)))"
+)
+
+
+def test_pairs_registered_by_another_process_equal_those_of_the_jobs_threads(
+    tmp_path: Path,
+) -> None:
+    sweep = LazySweep(SweepConfig(frames=24, lanes=2, frame_size=(320, 240), seed=5))
+    # a lens falloff: the flat field is measured and every pair registered again with it
+    xx, yy = np.meshgrid(np.arange(320), np.arange(240))
+    falloff = (1 - 0.1 * radius2(xx, yy, (320, 240)))[..., None]
+    files = SessionFiles(tmp_path)
+    where = []
+    for k in range(len(sweep)):
+        image = np.clip(sweep[k] * falloff, 0, 255).astype(np.uint8)
+        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        assert ok
+        rel = f"sessions/s/frames/{k:04d}.jpg"
+        files.write(rel, jpeg.tobytes())
+        where.append((rel, None, len(jpeg)))
+    guess = np.asarray(sweep.odometry, dtype=np.float64)
+    params = StitchParams()
+    done_by_helper: list[int] = []
+
+    def ask(job_id: int, name: str, helpers: int) -> None:
+        # the helper, a process of its own, takes every chunk before the job's worker looks
+        out = subprocess.run(
+            [sys.executable, "-c", HELPER, str(tmp_path), name],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        done_by_helper.append(json.loads(out.stdout.splitlines()[-1]))
+
+    ctx = JobContext(
+        1,
+        "s",
+        None,  # type: ignore[arg-type]
+        files,
+        attempt=1,
+        fanout=FolderFanout(ask, 1, lease_s=60.0),
+    )
+
+    def source() -> StoredImages:
+        return StoredImages(lambda k: files.read(*where[k]), len(where))
+
+    here, loaded = plan_mosaic(source(), guess, params=params)
+    assert loaded.inv_flat is not None
+    spread, _ = plan_mosaic(source(), guess, params=params, spread=spread_pairs(ctx, where))
+    # consecutive, then other pairs; again with the flat field
+    assert len(done_by_helper) == 4 and all(n > 0 for n in done_by_helper)
+    assert spread.pairs == here.pairs > len(sweep) - 1  # lane neighbours too
+    np.testing.assert_allclose(spread.poses_px, here.poses_px, atol=1e-9)
+    np.testing.assert_allclose(spread.gains, here.gains, atol=1e-9)
+    assert not any((tmp_path / ".parts").iterdir())  # the plans are cleared
