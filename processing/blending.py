@@ -58,6 +58,42 @@ def band_rows(layout: MosaicLayout, params: StitchParams, in_flight: int = 1) ->
     return max(32, -(-max(layout.height, 1) // bands))
 
 
+class BandPainter:
+    """Renders any band of the mosaic of ``layout`` from ``frames``, in any order and from
+    any thread (or process: each holding its own painter)."""
+
+    def __init__(
+        self, layout: MosaicLayout, frames: FrameCache, params: StitchParams = StitchParams()
+    ) -> None:
+        self.layout, self.frames, self.params = layout, frames, params
+        n = len(layout.poses_px)
+        self.boxes = np.array([layout.footprint(k) for k in range(n)]).reshape(-1, 4)
+        # feather weights in 1/255 steps: at least 1 inside the frame, 0 on its outermost
+        # pixels (so no pixel blends in the black outside a frame); frames are warped as
+        # 8-bit with the weight as their last channel
+        weight = np.maximum(np.round(255 * feather_weight(layout.frame_size)), 1).astype(np.uint8)
+        weight[[0, -1], :] = weight[:, [0, -1]] = 0
+        self.weight = weight
+        self.flat_c = None
+        if frames.inv_flat is not None:
+            self.flat_c = (
+                cv2.merge([frames.inv_flat] * layout.channels)
+                if layout.channels > 1
+                else frames.inv_flat
+            )
+
+    def __call__(self, y0: int, y1: int, acc: NDArray[np.float32] | None = None) -> Band:
+        """Rows ``y0 .. y1`` (``acc``: a zeroed (≥ y1 - y0, W, C + 1) float32 accumulator
+        to reuse; left zeroed again)."""
+        y1 = min(self.layout.height, y1)
+        hits = np.nonzero((self.boxes[:, 1] < y1) & (self.boxes[:, 3] > y0))[0]
+        if acc is not None:
+            acc = acc[: y1 - y0]
+        return _render_band(
+            self.layout, self.frames, self.params, y0, y1, hits, self.weight, self.flat_c, acc
+        )
+
+
 def render_bands(
     layout: MosaicLayout,
     frames: FrameCache,
@@ -66,39 +102,21 @@ def render_bands(
 ) -> Iterator[Band]:
     """The mosaic, top to bottom, one band at a time (bounded memory for any size); bands
     are rendered on ``params.registration.workers`` threads, at most that many at once."""
-    n = len(layout.poses_px)
-    boxes = np.array([layout.footprint(k) for k in range(n)])
     workers = max(1, params.registration.workers)
     rows = band_rows(layout, params, workers)
-    # feather weights in 1/255 steps: at least 1 inside the frame, 0 on its outermost pixels
-    # (so no pixel blends in the black outside a frame); frames are warped as 8-bit with
-    # the weight as their last channel
-    weight = np.maximum(np.round(255 * feather_weight(layout.frame_size)), 1).astype(np.uint8)
-    weight[[0, -1], :] = weight[:, [0, -1]] = 0
-    flat_c = None
-    if frames.inv_flat is not None:
-        flat_c = (
-            cv2.merge([frames.inv_flat] * layout.channels)
-            if layout.channels > 1
-            else frames.inv_flat
-        )
-    starts = list(range(0, layout.height, rows))
-
+    paint = BandPainter(layout, frames, params)
     scratch = local()  # each worker thread's accumulator, reused band after band (no fresh pages)
 
     def render(y0: int) -> Band:
-        y1 = min(layout.height, y0 + rows)
-        hits = np.nonzero((boxes[:, 1] < y1) & (boxes[:, 3] > y0))[0]
         if params.blend == "feather" and getattr(scratch, "acc", None) is None:
             scratch.acc = np.zeros(
                 (rows, layout.width, layout.channels + 1), np.float32
             )  # zeroed again as read
-        acc = scratch.acc[: y1 - y0] if params.blend == "feather" else None
-        return _render_band(layout, frames, params, y0, y1, hits, weight, flat_c, acc)
+        return paint(y0, y0 + rows, scratch.acc if params.blend == "feather" else None)
 
     with ThreadPoolExecutor(workers) as pool:
         pending: deque[Future[Band]] = deque()
-        for y0 in starts:
+        for y0 in range(0, layout.height, rows):
             pending.append(pool.submit(render, y0))
             if len(pending) >= workers:
                 yield _done(pending.popleft(), layout, progress)

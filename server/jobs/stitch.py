@@ -8,6 +8,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -15,23 +16,34 @@ from numpy.typing import NDArray
 from sqlalchemy import select
 
 from processing.alignment import PairRequest, PairSpread, measure_pair
+from processing.blending import BandPainter, band_rows
 from processing.frame_cache import FrameCache
 from processing.registration import PairMeasurement
-from processing.stitching import StitchParams, camera_poses, plan_mosaic, render_bands
+from processing.stitching import (
+    MosaicLayout,
+    StitchParams,
+    camera_poses,
+    plan_mosaic,
+    render_bands,
+)
 from server.jobs.context import JobContext, params_record
 from server.storage.files import SessionFiles
 from server.storage.models import Frame
 from server.storage.mosaic_files import (
+    BandFill,
     StoredImages,
     decodes,
     frame_records,
     image_header,
+    write_band,
     write_mosaic,
 )
 
 HELPER_CACHE_BYTES = 64 * 2**20  # decoded frames a helping worker keeps (its chunks are runs)
 _own: dict[str, FrameCache] = {}  # frames of the stitch jobs this process runs, by preparation
 _helping: list[tuple[str, FrameCache]] = []  # the one preparation this process helps with
+_painter: list[tuple[str, BandPainter]] = []  # the last mosaic this process painted bands of
+_scratch = threading.local()  # a thread's band accumulator
 _prepared_lock = threading.Lock()
 
 
@@ -70,6 +82,18 @@ def register_pair_part(
     return measure_pair(_frames_of(files, stored).level, request)
 
 
+def _stored(
+    ctx: JobContext, where: list[tuple[str, int | None, int]], frames: FrameCache
+) -> StoredFrames:
+    """``frames`` as helpers load them; this worker's own parts use ``frames`` themselves."""
+    flat = frames.inv_flat
+    digest = "none" if flat is None else hashlib.blake2b(flat.tobytes(), digest_size=8).hexdigest()
+    stored = StoredFrames(f"{ctx.job_id}-{ctx.attempt}-{digest}", where, frames.shape or (), flat)
+    with _prepared_lock:
+        _own[stored.key] = frames
+    return stored
+
+
 def spread_pairs(
     ctx: JobContext, where: list[tuple[str, int | None, int]]
 ) -> Callable[[FrameCache], PairSpread]:
@@ -77,15 +101,7 @@ def spread_pairs(
     job's own worker does its share with the frames it has already prepared."""
 
     def spread(frames: FrameCache) -> PairSpread:
-        flat = frames.inv_flat
-        digest = (
-            "none" if flat is None else hashlib.blake2b(flat.tobytes(), digest_size=8).hexdigest()
-        )
-        stored = StoredFrames(
-            f"{ctx.job_id}-{ctx.attempt}-{digest}", where, frames.shape or (), flat
-        )
-        with _prepared_lock:
-            _own[stored.key] = frames
+        stored = _stored(ctx, where, frames)
 
         def pairs(requests: Sequence[PairRequest]) -> list[PairMeasurement | None]:
             return ctx.map(register_pair_part, stored, list(requests))
@@ -95,14 +111,77 @@ def spread_pairs(
     return spread
 
 
+@dataclass(frozen=True)
+class BandJob:
+    """What a worker rendering bands of a mosaic needs: the frames, the layout, the
+    options, the raw files to write into (relative to the data directory), rows a band."""
+
+    frames: StoredFrames
+    layout: MosaicLayout
+    params: StitchParams
+    raw: str
+    coverage: str
+    rows: int
+
+
+def render_band_part(files: SessionFiles, job: BandJob, y0: int) -> None:
+    """One band of a stitch job's mosaic, rendered and written in place wherever the job
+    queue runs it."""
+    paint = _painter_for(files, job)
+    acc = None
+    if job.params.blend == "feather":  # each thread's accumulator, reused band after band
+        acc = getattr(_scratch, job.frames.key, None)
+        if acc is None:
+            _scratch.__dict__.clear()
+            acc = np.zeros((job.rows, job.layout.width, job.layout.channels + 1), np.float32)
+            setattr(_scratch, job.frames.key, acc)
+    write_band(files.resolve(job.raw), files.resolve(job.coverage), paint(y0, y0 + job.rows, acc))
+
+
+def _painter_for(files: SessionFiles, job: BandJob) -> BandPainter:
+    with _prepared_lock:
+        if _painter and _painter[0][0] == job.frames.key:
+            return _painter[0][1]
+    paint = BandPainter(job.layout, _frames_of(files, job.frames), job.params)
+    with _prepared_lock:
+        _painter[:] = [(job.frames.key, paint)]
+    return paint
+
+
+def fill_over_workers(
+    ctx: JobContext,
+    where: list[tuple[str, int | None, int]],
+    layout: MosaicLayout,
+    frames: FrameCache,
+    params: StitchParams,
+) -> BandFill:
+    """The mosaic's bands as parts of the job, each written in place by whoever renders it."""
+
+    def fill(raw: Path, coverage: Path, height: int) -> None:
+        rows = band_rows(layout, params)
+        job = BandJob(
+            _stored(ctx, where, frames),
+            layout,
+            params,
+            str(raw.relative_to(ctx.files.data_dir)),
+            str(coverage.relative_to(ctx.files.data_dir)),
+            rows,
+        )
+        ctx.map(render_band_part, job, list(range(0, height, rows)))
+
+    return fill
+
+
 def _forget_prepared(ctx: JobContext) -> None:
     """Drop the frames this job prepared (here, and the preparation helped with)."""
     prefix = f"{ctx.job_id}-{ctx.attempt}-"
     with _prepared_lock:
         for key in [k for k in _own if k.startswith(prefix)]:
             del _own[key]
-        if _helping and _helping[0][0].startswith(prefix):
-            _helping.clear()
+        for held in (_helping, _painter):
+            if held and held[0][0].startswith(prefix):
+                held.clear()
+    _scratch.__dict__.clear()
 
 
 def run_stitch(ctx: JobContext) -> dict[str, Any]:
@@ -152,24 +231,29 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
             progress=lambda f, m: ctx.progress(0.7 * f, m),
             spread=spread_pairs(ctx, where) if ctx.fanout is not None else None,
         )
+        t_pairs = time.perf_counter() - t0
+        world = {
+            "world_referenced": with_pose,
+            "frames": frame_records(layout, [f.seq for f in use]),
+            "skipped_frames": [f.seq for f in skipped],
+        }
+        if ctx.fanout is not None:
+            ctx.progress(0.75, "rendering the mosaic's bands on the workers")
+        files = write_mosaic(
+            ctx.results_dir(),
+            layout,
+            fill_over_workers(ctx, where, layout, loaded, params)
+            if ctx.fanout is not None
+            else render_bands(
+                layout, loaded, params, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)
+            ),
+            world=world,
+        )
     finally:
         _forget_prepared(ctx)
-    t_pairs = time.perf_counter() - t0
-    out = ctx.results_dir()
-    world = {
-        "world_referenced": with_pose,
-        "frames": frame_records(layout, [f.seq for f in use]),
-        "skipped_frames": [f.seq for f in skipped],
-    }
-    files = write_mosaic(
-        out,
-        layout,
-        render_bands(layout, loaded, params, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)),
-        world=world,
-    )
-    seconds = {  # per stage: the pairs are spread over workers, rendering is not
-        "pairs": round(t_pairs, 3),
-        "render": round(time.perf_counter() - t0 - t_pairs, 3),
+    seconds = {  # per stage, both spread over workers on a job queue
+        "pairs": round(t_pairs, 3),  # with the pose graph, solved on the job's worker
+        "render": round(time.perf_counter() - t0 - t_pairs, 3),  # the files written here
     }
     return {
         "mosaic_path": str(files.mosaic),

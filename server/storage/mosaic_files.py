@@ -11,6 +11,7 @@ and the full-resolution PNGs are written behind (:mod:`server.storage.write_behi
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -46,35 +47,34 @@ def _raw_image(path: Path, width: int, height: int, bands: int) -> pyvips.Image:
     return img.copy(interpretation="srgb" if bands == 3 else "b-w")
 
 
+BandFill = Callable[[Path, Path, int], None]
+"""Fills the raw image and coverage files (preallocated, ``rows`` tall) with every band,
+in any order (:func:`write_band`): e.g. bands rendered by several processes at once."""
+
+
 def write_mosaic(
     out: Path,
     layout: MosaicLayout,
-    bands: Iterable[Band],
+    bands: Iterable[Band] | BandFill,
     *,
     pyramid: bool = True,
     world: dict[str, Any] | None = None,
 ) -> MosaicFiles:
-    """Write the mosaic of ``layout`` from its ``bands`` (top to bottom) into ``out``."""
+    """Write the mosaic of ``layout`` from its ``bands`` (top to bottom, or a fill of the
+    raw files) into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     scratch = out / ".mosaic-scratch"
     shutil.rmtree(scratch, ignore_errors=True)
     scratch.mkdir()
     try:
         raw, cov = scratch / "mosaic.raw", scratch / "coverage.raw"
-        rows = 0
-        with WriteBehind(raw) as f_img, WriteBehind(cov) as f_cov:
-            for band in bands:
-                if band.y0 != rows:
-                    raise ValueError(
-                        f"band at row {band.y0} arrived out of order (expected {rows})"
-                    )
-                img = band.image
-                img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 else img
-                f_img.write(np.ascontiguousarray(img).tobytes())
-                f_cov.write((band.coverage.astype(np.uint8) * 255).tobytes())
-                rows += img.shape[0]
-        if rows != layout.height:
-            raise ValueError(f"mosaic has {rows} rows, layout says {layout.height}")
+        if callable(bands):
+            for path, channels in ((raw, layout.channels), (cov, 1)):
+                with path.open("wb") as fh:
+                    fh.truncate(layout.width * layout.height * channels)
+            bands(raw, cov, layout.height)
+        else:
+            _stream_bands(raw, cov, layout, bands)
         image = _raw_image(raw, layout.width, layout.height, layout.channels)
         coverage = _raw_image(cov, layout.width, layout.height, 1)
         files = _save_all(out, scratch, image, coverage, layout, pyramid)
@@ -82,6 +82,40 @@ def write_mosaic(
         return files
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _band_bytes(band: Band) -> tuple[bytes, bytes]:
+    img = band.image
+    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 else img
+    return np.ascontiguousarray(img).tobytes(), (band.coverage.astype(np.uint8) * 255).tobytes()
+
+
+def _stream_bands(raw: Path, cov: Path, layout: MosaicLayout, bands: Iterable[Band]) -> None:
+    rows = 0
+    with WriteBehind(raw) as f_img, WriteBehind(cov) as f_cov:
+        for band in bands:
+            if band.y0 != rows:
+                raise ValueError(f"band at row {band.y0} arrived out of order (expected {rows})")
+            img, covered = _band_bytes(band)
+            f_img.write(img)
+            f_cov.write(covered)
+            rows += band.image.shape[0]
+    if rows != layout.height:
+        raise ValueError(f"mosaic has {rows} rows, layout says {layout.height}")
+
+
+def write_band(raw: Path, cov: Path, band: Band) -> None:
+    """One band written in place into the preallocated raw files of a :data:`BandFill`."""
+    img, covered = _band_bytes(band)
+    width = band.coverage.shape[1]
+    for path, data, channels in ((raw, img, len(img) // len(covered)), (cov, covered, 1)):
+        fd, view, at = os.open(path, os.O_WRONLY), memoryview(data), band.y0 * width * channels
+        try:
+            while view:
+                done = os.pwrite(fd, view, at)
+                view, at = view[done:], at + done
+        finally:
+            os.close(fd)
 
 
 def _save_all(

@@ -12,14 +12,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from processing.stitching import StitchParams, plan_mosaic
+from processing.stitching import StitchParams, plan_mosaic, render_bands
 from processing.vignetting import radius2
 from robot_link.sim.sweeps import LazySweep, SweepConfig
 from server.jobs.context import JobContext
 from server.jobs.parts import FolderFanout
-from server.jobs.stitch import spread_pairs
+from server.jobs.stitch import fill_over_workers, spread_pairs
 from server.storage.files import SessionFiles
-from server.storage.mosaic_files import StoredImages
+from server.storage.mosaic_files import StoredImages, write_mosaic
 
 HELPER = (
     "import json, sys; from server.jobs.parts import help_with; "
@@ -27,7 +27,7 @@ HELPER = (
 )
 
 
-def test_pairs_registered_by_another_process_equal_those_of_the_jobs_threads(
+def test_pairs_and_bands_done_by_another_process_equal_those_of_the_jobs_threads(
     tmp_path: Path,
 ) -> None:
     sweep = LazySweep(SweepConfig(frames=24, lanes=2, frame_size=(320, 240), seed=5))
@@ -44,7 +44,7 @@ def test_pairs_registered_by_another_process_equal_those_of_the_jobs_threads(
         files.write(rel, jpeg.tobytes())
         where.append((rel, None, len(jpeg)))
     guess = np.asarray(sweep.odometry, dtype=np.float64)
-    params = StitchParams()
+    params = StitchParams(band_bytes=2**20)  # many bands
     done_by_helper: list[int] = []
 
     def ask(job_id: int, name: str, helpers: int) -> None:
@@ -77,4 +77,15 @@ def test_pairs_registered_by_another_process_equal_those_of_the_jobs_threads(
     assert spread.pairs == here.pairs > len(sweep) - 1  # lane neighbours too
     np.testing.assert_allclose(spread.poses_px, here.poses_px, atol=1e-9)
     np.testing.assert_allclose(spread.gains, here.gains, atol=1e-9)
+
+    mine = write_mosaic(tmp_path / "here", here, render_bands(here, loaded, params))
+    done_by_helper.clear()
+    theirs = write_mosaic(
+        tmp_path / "results",
+        here,
+        fill_over_workers(ctx, where, here, loaded, params),
+    )
+    assert len(done_by_helper) == 1 and done_by_helper[0] > 1  # bands rendered by the helper
+    for a, b in ((mine.mosaic, theirs.mosaic), (mine.coverage, theirs.coverage)):
+        np.testing.assert_array_equal(cv2.imread(str(a)), cv2.imread(str(b)))
     assert not any((tmp_path / ".parts").iterdir())  # the plans are cleared
