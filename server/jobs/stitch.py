@@ -39,7 +39,7 @@ from server.storage.mosaic_files import (
     write_mosaic,
 )
 
-HELPER_CACHE_BYTES = 64 * 2**20  # decoded frames a helping worker keeps (its chunks are runs)
+HELPER_CACHE_BYTES = StitchParams().cache_bytes  # decoded frames a helping worker keeps
 _own: dict[str, FrameCache] = {}  # frames of the stitch jobs this process runs, by preparation
 _helping: list[tuple[str, FrameCache]] = []  # the one preparation this process helps with
 _painter: list[tuple[str, BandPainter]] = []  # the last mosaic this process painted bands of
@@ -248,6 +248,8 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
                 layout, loaded, params, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)
             ),
             world=world,
+            save_map=ctx.map if ctx.fanout is not None else None,
+            data_dir=ctx.files.data_dir,
         )
     finally:
         _forget_prepared(ctx)

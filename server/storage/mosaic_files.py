@@ -59,9 +59,12 @@ def write_mosaic(
     *,
     pyramid: bool = True,
     world: dict[str, Any] | None = None,
+    save_map: SaveMap | None = None,
+    data_dir: Path | None = None,
 ) -> MosaicFiles:
     """Write the mosaic of ``layout`` from its ``bands`` (top to bottom, or a fill of the
-    raw files) into ``out``."""
+    raw files) into ``out``; with ``save_map`` the outputs (PNG, coverage, overview, Deep
+    Zoom pyramid) are saved as parts of a job, ``out`` inside the shared ``data_dir``."""
     out.mkdir(parents=True, exist_ok=True)
     scratch = out / ".mosaic-scratch"
     shutil.rmtree(scratch, ignore_errors=True)
@@ -75,9 +78,7 @@ def write_mosaic(
             bands(raw, cov, layout.height)
         else:
             _stream_bands(raw, cov, layout, bands)
-        image = _raw_image(raw, layout.width, layout.height, layout.channels)
-        coverage = _raw_image(cov, layout.width, layout.height, 1)
-        files = _save_all(out, scratch, image, coverage, layout, pyramid)
+        files = _save_all(out, scratch, layout, pyramid, save_map, data_dir)
         _write_world(files.world, layout, files, world or {})
         return files
     finally:
@@ -118,20 +119,37 @@ def write_band(raw: Path, cov: Path, band: Band) -> None:
             os.close(fd)
 
 
-def _save_all(
-    out: Path,
-    scratch: Path,
-    image: pyvips.Image,
-    coverage: pyvips.Image,
-    layout: MosaicLayout,
-    pyramid: bool,
-) -> MosaicFiles:
-    save_behind(image, scratch / "mosaic.png", ".png", compression=3)
-    save_behind(coverage, scratch / "mosaic_coverage.png", ".png", compression=3)
-    scale = min(1.0, OVERVIEW_MAX_PX / max(layout.width, layout.height, 1))
-    small = image.resize(scale, kernel="linear") if scale < 1.0 else image
-    small.pngsave(str(scratch / "mosaic_overview.png"))
-    if pyramid:
+@dataclass(frozen=True)
+class RawMosaic:
+    """The finished raw files of a mosaic in ``scratch`` (relative to the data directory
+    when other workers save its outputs), what they hold, and the overview's scale."""
+
+    scratch: str
+    width: int
+    height: int
+    channels: int
+    overview_scale: float
+
+
+SaveMap = Callable[[Callable[[Any, RawMosaic, str], None], RawMosaic, list[str]], list[Any]]
+"""Runs ``fn(files, raw, what)`` for each output (``JobContext.map``: other workers too)."""
+
+
+def save_output(scratch: Path, raw: RawMosaic, what: str) -> None:
+    """One output of a mosaic (``mosaic``, ``coverage``, ``overview``, ``pyramid``) saved
+    from its raw files into ``scratch``; outputs are independent of each other."""
+    if what == "coverage":
+        coverage = _raw_image(scratch / "coverage.raw", raw.width, raw.height, 1)
+        save_behind(coverage, scratch / "mosaic_coverage.png", ".png", compression=3)
+        return
+    image = _raw_image(scratch / "mosaic.raw", raw.width, raw.height, raw.channels)
+    if what == "mosaic":
+        save_behind(image, scratch / "mosaic.png", ".png", compression=3)
+    elif what == "overview":
+        scale = raw.overview_scale
+        small = image.resize(scale, kernel="linear") if scale < 1.0 else image
+        small.pngsave(str(scratch / "mosaic_overview.png"))
+    elif what == "pyramid":
         image.dzsave(
             str(scratch / "mosaic"),
             tile_size=TILE_SIZE,
@@ -139,6 +157,33 @@ def _save_all(
             suffix=".jpg[Q=88]",
             depth="onepixel",
         )
+    else:
+        raise ValueError(f"no mosaic output {what!r}")
+
+
+def save_output_part(files: Any, raw: RawMosaic, what: str) -> None:
+    """:func:`save_output` as a part of a job, on whichever worker takes it."""
+    save_output(files.resolve(raw.scratch), raw, what)
+
+
+def _save_all(
+    out: Path,
+    scratch: Path,
+    layout: MosaicLayout,
+    pyramid: bool,
+    save_map: SaveMap | None,
+    data_dir: Path | None,
+) -> MosaicFiles:
+    scale = min(1.0, OVERVIEW_MAX_PX / max(layout.width, layout.height, 1))
+    outputs = ["pyramid"] * pyramid + ["mosaic", "coverage", "overview"]  # longest first
+    if save_map is not None and data_dir is not None:
+        rel = str(scratch.relative_to(data_dir))
+        raw = RawMosaic(rel, layout.width, layout.height, layout.channels, scale)
+        save_map(save_output_part, raw, outputs)
+    else:
+        raw = RawMosaic(str(scratch), layout.width, layout.height, layout.channels, scale)
+        for what in outputs:
+            save_output(scratch, raw, what)
     for name in ("mosaic.png", "mosaic_coverage.png", "mosaic_overview.png"):
         (scratch / name).replace(out / name)
     dzi = None

@@ -84,8 +84,17 @@ def test_pairs_and_bands_done_by_another_process_equal_those_of_the_jobs_threads
         tmp_path / "results",
         here,
         fill_over_workers(ctx, where, here, loaded, params),
+        save_map=ctx.map,
+        data_dir=tmp_path,
     )
-    assert len(done_by_helper) == 1 and done_by_helper[0] > 1  # bands rendered by the helper
-    for a, b in ((mine.mosaic, theirs.mosaic), (mine.coverage, theirs.coverage)):
+    # the bands rendered by the helper, then the PNGs, overview and pyramid saved by it
+    assert len(done_by_helper) == 2 and done_by_helper[0] > 1 and done_by_helper[1] == 4
+    for a, b in (
+        (mine.mosaic, theirs.mosaic),
+        (mine.coverage, theirs.coverage),
+        (mine.overview, theirs.overview),
+        (mine.dzi.parent / "mosaic_files/0/0_0.jpg", theirs.dzi.parent / "mosaic_files/0/0_0.jpg"),
+    ):
         np.testing.assert_array_equal(cv2.imread(str(a)), cv2.imread(str(b)))
+    assert mine.dzi.read_text() == theirs.dzi.read_text()
     assert not any((tmp_path / ".parts").iterdir())  # the plans are cleared
