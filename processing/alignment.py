@@ -47,6 +47,7 @@ class PairRequest:
     j: int
     start: NDArray[np.float64]
     tries: tuple[RegistrationParams, ...]
+    angles: tuple[float, ...] = (0.0,)  # turns searched around the start's (radians)
 
 
 PairSpread = Callable[[Sequence[PairRequest]], list[PairMeasurement | None]]
@@ -57,7 +58,9 @@ over other processes that load the frames themselves (a job queue's workers)."""
 def measure_pair(load: Callable[[int], Level], request: PairRequest) -> PairMeasurement | None:
     """One :class:`PairRequest` registered with frames from ``load`` (None: no try verified)."""
     for params in request.tries:
-        found = register_pair(load(request.i), load(request.j), request.start, params)
+        found = register_pair(
+            load(request.i), load(request.j), request.start, params, angles=request.angles
+        )
         if found is not None:
             delta, score, mi, mj = found
             return PairMeasurement(request.i, request.j, delta, score, mi, mj)
@@ -109,20 +112,13 @@ class _PairRegistrar:
         )
         self.views: dict[tuple[int, int], PhaseView] = {}
 
-    def measure(
-        self,
-        pair: tuple[int, int],
-        start: NDArray[np.float64],
-        angles: Sequence[float] = (0.0,),
-        params: RegistrationParams | None = None,
+    def measure_blind_guess(
+        self, pair: tuple[int, int], start: NDArray[np.float64]
     ) -> PairMeasurement | None:
-        """The pair registered from ``start`` (searching ``angles``), or None."""
-        chosen = params or (self.params if len(angles) == 1 else self.blind_params)
-        found = register_pair(self.load(pair[0]), self.load(pair[1]), start, chosen, angles=angles)
-        if found is None:
-            return None
-        delta, score, mi, mj = found
-        return PairMeasurement(pair[0], pair[1], delta, score, mi, mj)
+        """The pair registered from an image-only guess (searching :data:`BLIND_ANGLES`)."""
+        return measure_pair(
+            self.load, PairRequest(pair[0], pair[1], start, (self.blind_params,), BLIND_ANGLES)
+        )
 
     def _phase_view(self, k: int, scale: int) -> PhaseView:
         view = self.views.get((k, scale))
@@ -156,7 +152,7 @@ class _PairRegistrar:
         first_guess = None
         for g in self._blind_guesses(k, previous):
             first_guess = g if first_guess is None else first_guess
-            m = self.measure((k, k + 1), g, BLIND_ANGLES)
+            m = self.measure_blind_guess((k, k + 1), g)
             if m is not None:
                 tried.append(m)
                 if m.score > SURE_MATCH:
@@ -199,7 +195,7 @@ def _consecutive_from_images(
     for k in [k for k, m in enumerate(consecutive) if m is None]:
         near = _nearest_measured(consecutive, k)
         for j in near:
-            found = reg.measure((k, k + 1), consecutive[j].delta, BLIND_ANGLES)  # type: ignore[union-attr]
+            found = reg.measure_blind_guess((k, k + 1), consecutive[j].delta)  # type: ignore[union-attr]
             if found is not None:
                 consecutive[k] = found
                 break

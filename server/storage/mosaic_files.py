@@ -23,6 +23,7 @@ import numpy as np
 import pyvips
 
 from processing.stitching import Band, MosaicLayout
+from server.storage.files import SessionFiles
 from server.storage.write_behind import WriteBehind, save_behind
 
 OVERVIEW_MAX_PX = 2048
@@ -161,7 +162,7 @@ def save_output(scratch: Path, raw: RawMosaic, what: str) -> None:
         raise ValueError(f"no mosaic output {what!r}")
 
 
-def save_output_part(files: Any, raw: RawMosaic, what: str) -> None:
+def save_output_part(files: SessionFiles, raw: RawMosaic, what: str) -> None:
     """:func:`save_output` as a part of a job, on whichever worker takes it."""
     save_output(files.resolve(raw.scratch), raw, what)
 
