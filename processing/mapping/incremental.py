@@ -9,6 +9,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from processing.mapping.graph_optimiser import GraphOptions, optimise_pose_graph
 from processing.mapping.icp import (
     constrain_to_observable,
     mutual_overlap,
@@ -338,11 +339,10 @@ class IncrementalMap:
         self.loop_closures += added
         return added
 
-    def optimise(self) -> None:
-        """Optimise the pose graph with the plane landmarks' nodes (robust: Open3D's line
-        process prunes loop closures and plane sightings that disagree)."""
-        if len(self.graph.nodes) < 3:
-            return
+    def full_graph(self) -> tuple[reg.PoseGraph, list[int]]:
+        """The graph to optimise: the clouds' nodes and edges (odometry edges calibrated:
+        :meth:`odometry_error_scale`), then the nodes of the plane landmarks that tie clouds
+        and their sighting edges; and those landmarks' indices."""
         self._calibrate_odometry_edges()
         n = len(self.graph.nodes)
         graph = reg.PoseGraph()
@@ -355,19 +355,23 @@ class IncrementalMap:
             graph.nodes.append(reg.PoseGraphNode(self.landmarks.poses[m]))
         for edge in list(self.graph.edges) + landmark_edges:
             graph.edges.append(edge)
-        option = reg.GlobalOptimizationOption(
-            max_correspondence_distance=self.params.icp.max_correspondence_m,
-            edge_prune_threshold=0.25,
-            preference_loop_closure=self.params.loops.preference,
-            reference_node=0,
+        return graph, active
+
+    def optimise(self) -> None:
+        """Optimise the pose graph with the plane landmarks' nodes (robust: the line process
+        prunes loop closures and plane sightings that disagree;
+        :func:`~processing.mapping.graph_optimiser.optimise_pose_graph`)."""
+        if len(self.graph.nodes) < 3:
+            return
+        n = len(self.graph.nodes)
+        graph, active = self.full_graph()
+        graph = optimise_pose_graph(
+            graph,
+            GraphOptions(
+                max_correspondence_m=self.params.icp.max_correspondence_m,
+                preference=self.params.loops.preference,
+            ),
         )
-        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            reg.global_optimization(
-                graph,
-                reg.GlobalOptimizationLevenbergMarquardt(),
-                reg.GlobalOptimizationConvergenceCriteria(),
-                option,
-            )
         kept = reg.PoseGraph()
         for k in range(n):
             kept.nodes.append(graph.nodes[k])
