@@ -64,7 +64,8 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
     trajectory error (ATE, RPE, drift as a share of the path) and time per cloud on long
     simulated ToF sweeps along the deck plate's girder (:func:`_sweeps`, the first ``limit``
     clouds), for this pipeline, odometry alone and Open3D's tutorial pipeline (FPFH +
-    RANSAC + ICP, cloud to cloud)."""
+    RANSAC + ICP, cloud to cloud); then the pose-graph optimisation of long sessions
+    against Open3D's (:mod:`bench.map_graph`)."""
     from bench.map_structures import bench_map_structures
 
     yield from bench_map_structures(1, max(limit, 3)) if limit else bench_map_structures()
@@ -142,6 +143,9 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
             "ratio": round(ours_ms / base_ms, 3),
             "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
         }
+    from bench.map_graph import bench_map_graph
+
+    yield from bench_map_graph(limit)
 
 
 STRUCTURE_POINTS = 30  # points off the deck plate for a cloud to say anything beyond it
