@@ -65,6 +65,7 @@ from processing.mapping.icp import (
     within_bounds,
 )
 from processing.mapping.incremental import IncrementalMap, MapResult
+from processing.mapping.pairwise import CloudMeasurement, measure_run
 from processing.mapping.params import (
     IcpParams,
     LoopParams,
@@ -78,6 +79,7 @@ from processing.mapping.selection import clean_cloud, filter_organised, fuse_map
 from processing.mapping.tracking import Tracker, register_to_map
 
 __all__ = [
+    "CloudMeasurement",
     "IcpParams",
     "IncrementalMap",
     "LoopParams",
@@ -94,9 +96,11 @@ __all__ = [
     "filter_organised",
     "fuse_map",
     "match",
+    "measure_run",
     "mutual_overlap",
     "plane_information",
     "register_clouds",
+    "register_measured",
     "register_to_map",
     "select",
     "structure_fitness",
@@ -147,6 +151,33 @@ def register_clouds(
     graph_map = IncrementalMap(params)
     for i, cloud in enumerate(clouds):
         graph_map.add(cloud, None if initial_poses is None else initial_poses[i], shape)
+    return _finished(graph_map)
+
+
+def register_measured(
+    measured: Sequence[CloudMeasurement],
+    initial_poses: NDArray[np.floating],
+    *,
+    params: MapParams = MapParams(),
+) -> MapResult:
+    """The map of clouds measured apart in runs (:func:`measure_run`, in order, one per
+    cloud) with their odometry poses ``initial_poses`` (N, 4, 4): the graph joined,
+    loops closed and optimised as :func:`register_clouds` does (without tracking)."""
+    if len(measured) != len(initial_poses) or not measured:
+        raise ValueError(
+            f"one odometry pose per measured cloud: {len(measured)} clouds, "
+            f"{len(initial_poses)} poses"
+        )
+    if params.tracking.enabled:
+        raise ValueError("clouds measured apart are joined without tracking")
+    graph_map = IncrementalMap(params)
+    for m, guess in zip(measured, np.asarray(initial_poses, dtype=np.float64)):
+        graph_map.attach(m, guess)
+    return _finished(graph_map)
+
+
+def _finished(graph_map: IncrementalMap) -> MapResult:
+    params = graph_map.params
     if graph_map.usable_clouds == 0:  # e.g. clouds in millimetres: every point "beyond" range
         raise ValueError(
             f"no cloud has {params.icp.min_points} or more points within {params.select.max_range_m} m of the sensor "

@@ -7,22 +7,20 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from processing.mapping.graph_optimiser import GraphOptions, optimise_pose_graph
 from processing.mapping.icp import (
-    constrain_to_observable,
     mutual_overlap,
     plane_information,
     register_pair,
     structure_fitness,
-    structure_share,
 )
 from processing.mapping.landmarks import PlaneLandmarks
+from processing.mapping.pairwise import CloudMeasurement, PairEdge, Step, edge_of, measure_step
 from processing.mapping.params import MapParams
 from processing.mapping.selection import fuse_map, select
 from processing.mapping.tracking import Tracker
-from processing.planes import extract_planes
+from processing.planes import Plane, extract_planes
 
 reg = o3d.pipelines.registration
 
@@ -124,57 +122,78 @@ class IncrementalMap:
         if self.params.tracking.enabled:  # the tracked pose is the graph's odometry
             guess = self.tracker.track(pcd, guess)
         i = len(self._pcds)
-        self._pcds.append(pcd)
-        self._guesses.append(guess)
-        self.landmarks.planes.append(
+        step = None
+        if i > 0:
+            previous = self._guesses[i - 1]
+            if guess is not None and previous is not None:
+                odometry = np.linalg.inv(previous) @ guess
+            else:
+                odometry = self._steps[-1] if self._steps else np.eye(4)
+            tracked = self._tracked_facts(len(pcd.points)) if self.params.tracking.enabled else None
+            step = measure_step(
+                pcd, self._pcds[i - 1], odometry, guess is not None, i, self.params.icp, tracked
+            )
+        edges = []
+        if self.params.pose_graph and step is not None:
+            pose = np.asarray(self.graph.nodes[i - 1].pose) @ step.seed
+            for j in range(max(0, i - self.params.neighbours), i - 1):
+                init = np.linalg.inv(np.asarray(self.graph.nodes[j].pose)) @ pose
+                edge = edge_of(pcd, self._pcds[j], j, init, self.params.icp)
+                if edge is not None:
+                    edges.append(edge)
+        planes = (
             extract_planes(np.asarray(pcd.points), np.asarray(pcd.normals))
             if self.params.planes.enabled and pcd.has_normals()
             else []
         )
-        if i == 0:
+        return self._attach(pcd, planes, step, edges, guess)
+
+    def attach(
+        self, measured: CloudMeasurement, guess: NDArray[np.floating] | None = None
+    ) -> NDArray[np.float64]:
+        """Place the next cloud as measured apart (:func:`~processing.mapping.pairwise.
+        measure_run`) given its odometry pose ``guess``; its pose. Clouds attached in order
+        give the graph :meth:`add` gives from the same clouds and odometry, edges to earlier
+        clouds measured from the odometry's chain rather than the graph's current poses."""
+        guess = None if guess is None else np.asarray(guess, dtype=np.float64)
+        return self._attach(measured.cloud(), measured.planes, measured.step, measured.edges, guess)
+
+    def _attach(
+        self,
+        pcd: o3d.geometry.PointCloud,
+        planes: list[Plane],
+        step: Step | None,
+        edges: list[PairEdge],
+        guess: NDArray[np.float64] | None,
+    ) -> NDArray[np.float64]:
+        i = len(self._pcds)
+        self._pcds.append(pcd)
+        self._guesses.append(guess)
+        self.landmarks.planes.append(planes)
+        if i == 0 or step is None:
             pose = guess if guess is not None else np.eye(4)
             self._append_node(pose)
             self._facts.append((1.0, 0.0, False, 0))
-            self.landmarks.associate(0, pose)
+            self.landmarks.associate(i, pose)
             return pose
-        previous = self._guesses[i - 1]
-        if guess is not None and previous is not None:
-            step = np.linalg.inv(previous) @ guess
-        else:
-            step = self._steps[-1] if self._steps else np.eye(4)
-        tracked = self.params.tracking.enabled
-        result = register_pair(pcd, self._pcds[i - 1], step, self.params.icp)
-        if tracked:  # the step is already registered (to the map, which holds the previous cloud)
-            seed, facts = step, self._tracked_facts(len(pcd.points))
-        elif result is None:
-            seed, facts = step, (0.0, 0.0, True, 6)
-        else:
-            seed, degenerate = constrain_to_observable(
-                step, result, pcd, self._pcds[i - 1], self.params.icp
+        if step.heading_gap is not None:
+            up = np.asarray(self.graph.nodes[i - 1].pose)[2, :3]  # the world's z in cloud i-1
+            self._heading_gaps.append(
+                float(step.heading_gap @ up) / self._odometry_sigma(step.step)[0]
             )
-            if (
-                guess is None
-            ):  # no odometry to hold the weak directions: ICP's weak evidence beats a guess
-                seed = np.asarray(result.transformation)
-            facts = (float(result.fitness), float(result.inlier_rmse), False, degenerate)
-            if guess is not None:
-                self._record_heading_gap(i, step, result)
-        self._steps.append(step if guess is not None else seed)
-        self._facts.append(facts)
-        pose = np.asarray(self.graph.nodes[i - 1].pose) @ seed
+        self._steps.append(step.step if guess is not None else step.seed)
+        self._facts.append(step.facts)
+        pose = np.asarray(self.graph.nodes[i - 1].pose) @ step.seed
         self._append_node(pose)
         self._add_odometry_edge(i)
         if self.params.pose_graph:
-            if result is not None:
-                self._add_edge(i, i - 1, result, uncertain=False)
-            for j in range(max(0, i - self.params.neighbours), i - 1):
-                self._add_edge(
-                    i,
-                    j,
-                    register_pair(pcd, self._pcds[j], self._relative(j, i), self.params.icp),
-                    uncertain=False,
+            for edge in ([step.edge] if step.edge is not None else []) + edges:
+                self.graph.edges.append(
+                    reg.PoseGraphEdge(
+                        i, edge.target, edge.transformation, edge.information, uncertain=False
+                    )
                 )
-            self.landmarks.associate(i, np.asarray(self.graph.nodes[i].pose))
+            self.landmarks.associate(i, pose)
             loops = self._close_loops(i)
             # every ``optimise_every`` clouds, and less often as the graph grows (each
             # optimisation and re-fusion costs time in proportion to the clouds so far)
@@ -210,21 +229,6 @@ class IncrementalMap:
         return float(np.radians(p.odometry.sigma_deg_per_m * d + 0.2)), max(
             p.odometry.sigma_frac * d, p.odometry.sigma_floor_m
         )
-
-    def _record_heading_gap(
-        self, i: int, step: NDArray[np.float64], result: reg.RegistrationResult
-    ) -> None:
-        """Heading difference between the odometry's step into cloud i and ICP's, kept when
-        ICP's is trustworthy (a close match whose structure, not only the plate, fixes it)."""
-        if result.fitness < 0.9 or structure_share(self._pcds[i]) < 0.15:
-            return
-        gap = Rotation.from_matrix(
-            np.asarray(result.transformation)[:3, :3] @ step[:3, :3].T
-        ).as_rotvec()
-        up = np.asarray(self.graph.nodes[i - 1].pose)[
-            2, :3
-        ]  # the world's z axis in cloud i-1's frame
-        self._heading_gaps.append(float(gap @ up) / self._odometry_sigma(step)[0])
 
     def odometry_error_scale(self) -> float:
         """How much larger the odometry's heading error is than configured (>= 1): the robust
