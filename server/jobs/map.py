@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -10,12 +12,47 @@ import open3d as o3d
 from numpy.typing import NDArray
 from sqlalchemy import select
 
-from processing.mapping import MapParams, TrackingParams, register_clouds
+from processing.mapping import (
+    CloudMeasurement,
+    MapParams,
+    TrackingParams,
+    measure_run,
+    register_clouds,
+    register_measured,
+)
 from processing.poses import format_tum, robot_poses_from_camera, se2_to_se3, transfer_correction
 from robot_link.clouds import decode_cloud
 from server.jobs.context import JobContext, params_record
-from server.storage.files import write_atomic
+from server.storage.files import SessionFiles, write_atomic
 from server.storage.models import Cloud, Frame
+
+RUN_CLOUDS = 32  # clouds a part registers (each also registers to the few before its first)
+
+
+@dataclass(frozen=True)
+class CloudRun:
+    """What a worker registering a run of a session's clouds needs: where each usable
+    cloud is stored with its decoding metadata, their odometry poses (N, 4, 4), the
+    parameters and the organised shape."""
+
+    where: list[tuple[str, int | None, int, dict[str, Any]]]
+    guesses: NDArray[np.float64]
+    params: MapParams
+    shape: tuple[int, int] | None
+
+
+def measure_run_part(
+    files: SessionFiles, run: CloudRun, span: tuple[int, int]
+) -> list[CloudMeasurement]:
+    """Clouds ``span`` (first, end) of a map job, each registered to the clouds before it
+    (:func:`~processing.mapping.measure_run`), wherever the job queue runs it."""
+    first, end = span
+    start = max(0, first - run.params.neighbours)
+    clouds = [
+        decode_cloud(files.read(path, offset, size), meta)
+        for path, offset, size, meta in run.where[start:end]
+    ]
+    return measure_run(clouds, run.guesses[start:end], first, first - start, run.params, run.shape)
 
 
 def run_map(ctx: JobContext) -> dict[str, Any]:
@@ -28,7 +65,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         )
     if not rows:
         raise ValueError("the session has no ToF clouds")
-    clouds, guesses, stamps, seqs, skipped = [], [], [], [], []
+    clouds, guesses, stamps, seqs, skipped, where = [], [], [], [], [], []
     shapes = {(c.height, c.width) for c in rows}
     shape = shapes.pop() if len(shapes) == 1 else None  # organised depth images: filtered as images
     if shape is not None and min(shape) < 2:
@@ -44,6 +81,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
             skipped.append(c.seq)
             continue
         clouds.append(pts)
+        where.append((c.path, c.data_offset, c.size_bytes, meta))
         stamps.append(c.timestamp)
         seqs.append(c.seq)
         if c.pose_x is not None:
@@ -62,12 +100,28 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         guesses = [se2_to_se3(*p) @ T_rt for p in robot]
         params = MapParams(refine=False, tracking=TrackingParams(enabled=False))
     ctx.progress(0.3, "registering")
-    result = register_clouds(
-        clouds,
-        np.array(guesses) if len(guesses) == len(clouds) else None,
-        params=params,
-        shape=shape,
-    )
+    t0 = time.perf_counter()
+    if params.refine and len(guesses) == len(clouds):
+        # each run of clouds registered to the clouds before it wherever the queue runs it,
+        # then joined into one graph, its loops closed and optimised here
+        run = CloudRun(where, np.array(guesses), params, shape)
+        spans = [(a, min(a + RUN_CLOUDS, len(clouds))) for a in range(0, len(clouds), RUN_CLOUDS)]
+        measured = [m for part in ctx.map(measure_run_part, run, spans) for m in part]
+        t_pairs = time.perf_counter() - t0
+        ctx.progress(0.6, "joining the graph")
+        result = register_measured(measured, run.guesses, params=params)
+    else:
+        result = register_clouds(
+            clouds,
+            np.array(guesses) if len(guesses) == len(clouds) else None,
+            params=params,
+            shape=shape,
+        )
+        t_pairs = 0.0
+    seconds = {  # the pairs spread over workers on a job queue; the graph on this one
+        "pairs": round(t_pairs, 3),
+        "graph": round(time.perf_counter() - t0 - t_pairs, 3),
+    }
     out = ctx.results_dir()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
     tmp = out / ".map.tmp.ply"
@@ -93,6 +147,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         # large planes (deck plate, web) tying the clouds that see them
         "plane_landmarks": result.plane_landmarks,
         "mean_fitness": float(result.fitness.mean()),
+        "seconds": seconds,
         "params": params_record(params),
     }
 
