@@ -33,6 +33,7 @@ from websockets.asyncio.client import connect
 
 from bench.common import Result
 from bench.ingest import ROBOTS, drive_robots
+from bench.scale_map import map_results, record_clouds
 from bench.services import Postgres, Redis, start_worker, stop_workers
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
 from robot_link.sim.sweeps import LazySweep, SweepConfig
@@ -167,12 +168,16 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
         )
         try:
             sid = _record(port, token, frames)
+            tof_sid = record_clouds(port, token, limit)
             workers.add()
             stitch, stitch_s = _job(url, sid, "stitch")
             one, one_s = _job(url, sid, "detect")
+            map1, map1_s = _job(url, tof_sid, "map")
             workers.add()
             stitch2, stitch2_s = _job(url, sid, "stitch")
             two, two_s = _job(url, sid, "detect")
+            map2, map2_s = _job(url, tof_sid, "map")
+            yield from map_results(map1, map1_s, map2, map2_s)
             par1, par2 = one["result"]["seconds"]["frames"], two["result"]["seconds"]["frames"]
             yield {
                 "name": "scale.parallel_stage_speedup",

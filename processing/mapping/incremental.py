@@ -10,12 +10,10 @@ from numpy.typing import NDArray
 
 from processing.mapping.graph_optimiser import GraphOptions, optimise_pose_graph
 from processing.mapping.icp import (
-    mutual_overlap,
     plane_information,
-    register_pair,
-    structure_fitness,
 )
 from processing.mapping.landmarks import PlaneLandmarks
+from processing.mapping.loops import close_loop, loop_candidates
 from processing.mapping.pairwise import CloudMeasurement, PairEdge, Step, edge_of, measure_step
 from processing.mapping.params import MapParams
 from processing.mapping.selection import fuse_map, select
@@ -272,73 +270,18 @@ class IncrementalMap:
         return self.landmarks.tying
 
     def _close_loops(self, i: int, *, optimised: bool = False) -> int:
-        """Loop closures from cloud i to the nearest earlier clouds of the same place,
-        searched coarse to fine (the drift accumulated by then can exceed ICP's reach).
-        From ``optimised`` poses, a candidate whose views do not already overlap within
-        ``loop_prefilter_m`` (the optimised error is centimetres at most) is not searched:
-        the neighbouring lanes' views, which ICP cannot tie, cost nothing."""
-        p = self.params
-        if i <= p.loops.min_gap:
-            return 0
-        poses = self.poses
-        dist = np.linalg.norm(poses[: i - p.loops.min_gap, :3, 3] - poses[i, :3, 3], axis=1)
-        # clouds looking another way (the other lane, driven the other way) see other things
-        facing = poses[: i - p.loops.min_gap, :3, 2] @ poses[i, :3, 2] >= np.cos(
-            np.radians(p.loops.max_view_angle_deg)
-        )
-        dist[~facing] = np.inf
+        """Loop closures from cloud i to the nearest earlier clouds of the same place
+        (:mod:`processing.mapping.loops`), from the current or the ``optimised`` poses;
+        how many were added."""
         added = 0
-        for j in np.argsort(dist)[: p.loops.per_cloud]:
-            if dist[j] > p.loops.radius_m:
-                break
-            if (i, int(j)) in self._looped:
+        for j in loop_candidates(self.poses, i, self.params.loops):
+            if (i, j) in self._looped:
                 continue
-            if (
-                optimised
-                and min(len(self._pcds[i].points), len(self._pcds[int(j)].points))
-                < p.icp.min_points
-            ):
-                continue
-            if (
-                optimised
-                and mutual_overlap(
-                    self._pcds[i],
-                    self._pcds[int(j)],
-                    self._relative(int(j), i),
-                    p.loops.prefilter_m,
-                )
-                < p.loops.min_overlap
-            ):
-                continue
-            result = register_pair(
-                self._pcds[i],
-                self._pcds[j],
-                self._relative(int(j), i),
-                p.icp,
-                coarse=p.loops.search_m,
-                min_fitness=p.loops.min_fitness,
-                bounds=(p.loops.max_correction_m, p.loops.max_correction_deg),
+            result = close_loop(
+                self._pcds[i], self._pcds[j], self._relative(j, i), self.params, optimised=optimised
             )
-            if (
-                result is not None
-                and structure_fitness(self._pcds[i], result, p.loops.min_structure_points)
-                < p.loops.min_structure_fitness
-            ):
-                result = None
-            if (
-                result is not None
-                and p.loops.min_overlap > 0
-                and mutual_overlap(
-                    self._pcds[i],
-                    self._pcds[int(j)],
-                    np.asarray(result.transformation),
-                    p.loops.overlap_m,
-                )
-                < p.loops.min_overlap
-            ):
-                result = None
-            if self._add_edge(i, int(j), result, uncertain=True):
-                self._looped.add((i, int(j)))
+            if self._add_edge(i, j, result, uncertain=True):
+                self._looped.add((i, j))
                 added += 1
         self.loop_closures += added
         return added
