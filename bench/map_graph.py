@@ -11,8 +11,13 @@ import numpy as np
 
 from bench.common import Result
 
-# lanes across the plate and the route's length along it: sessions of about 140 and 380 clouds
-SESSIONS = (((0.56, 0.74), (0.15, 1.3)), ((0.5, 0.62, 0.74, 0.86), (0.15, 2.5)))
+# lanes across the plate and the route's length along it: sessions of about 130, 380 and
+# 530 clouds
+SESSIONS = (
+    ((0.56, 0.74), (0.15, 1.3)),
+    ((0.5, 0.62, 0.74, 0.86), (0.15, 2.5)),
+    ((0.26, 0.38, 0.5, 0.62, 0.74, 0.86), (0.15, 2.5)),
+)
 
 
 def bench_map_graph(limit: int | None = None) -> Iterator[Result]:

@@ -142,38 +142,68 @@ def _residual(
     return float(np.sum(confidence * chi2 + mu * (np.sqrt(confidence) - 1) ** 2))
 
 
+class _Pattern:
+    """Where every edge's four 6 × 6 blocks (and the diagonal) fall in the compressed
+    columns of the 6N × 6N normal matrix: computed once per optimisation, so each
+    iteration only sums the blocks' values into place."""
+
+    def __init__(self, source: NDArray[np.int64], target: NDArray[np.int64], n: int) -> None:
+        idx = np.arange(6)
+        self.s6 = (source * 6)[:, None] + idx  # (E, 6)
+        self.t6 = (target * 6)[:, None] + idx
+        rows, cols = [], []
+        for a, b in (
+            (self.s6, self.s6),
+            (self.t6, self.t6),
+            (self.s6, self.t6),
+            (self.t6, self.s6),
+        ):
+            rows.append(np.broadcast_to(a[:, :, None], (len(source), 6, 6)).ravel())
+            cols.append(np.broadcast_to(b[:, None, :], (len(source), 6, 6)).ravel())
+        diagonal = np.arange(6 * n)
+        rows.append(diagonal)
+        cols.append(diagonal)
+        r, c = np.concatenate(rows), np.concatenate(cols)
+        size = 6 * n
+        keys, self.slot = np.unique(c * size + r, return_inverse=True)  # column-major order
+        self.indices = (keys % size).astype(np.int32)
+        self.indptr = np.searchsorted(keys // size, np.arange(size + 1)).astype(np.int32)
+        self.diagonal = np.searchsorted(keys, diagonal * size + diagonal)
+        self.size = size
+
+    def matrix(self, block: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The matrix's stored values for the edges' ``block`` (E, 6, 6): +ss, +tt, -st, -ts."""
+        flat = block.ravel()
+        values = np.concatenate([flat, flat, -flat, -flat, np.zeros(self.size)])
+        return np.bincount(self.slot, weights=values, minlength=len(self.indices))
+
+    def csc(self, data: NDArray[np.float64], lam: float) -> sp.csc_matrix:
+        """The matrix of stored values ``data`` with ``lam`` added to its diagonal."""
+        damped = data.copy()
+        damped[self.diagonal] += lam
+        return sp.csc_matrix((damped, self.indices, self.indptr), shape=(self.size, self.size))
+
+
 def _linear_system(
     g: PoseGraphArrays,
+    pattern: _Pattern,
     X_inv: NDArray[np.float64],
     poses: NDArray[np.float64],
     zeta: NDArray[np.float64],
     confidence: NDArray[np.float64],
-) -> tuple[sp.csc_matrix, NDArray[np.float64]]:
-    """The weighted normal equations H (6N, 6N, sparse) and b (6N,) at ``poses``; the
-    target's Jacobian is minus the source's."""
-    n = len(poses)
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The weighted normal equations at ``poses``: H's stored values (``pattern``) and b
+    (6N,); the target's Jacobian is minus the source's."""
     A = X_inv @ _rigid_inverse(poses)[g.target]
     Ts = poses[g.source]
     # Js[:, :, k]: the misalignment's change for a left perturbation of the source along k
     Js = np.stack([_linearised(A @ G @ Ts) for G in _GENERATORS], axis=-1)
     JtI = np.einsum("eji,ejk->eik", Js, g.information) * confidence[:, None, None]
-    block = JtI @ Js  # (E, 6, 6): +ss, +tt, -st, -ts
     grad = np.einsum("eij,ej->ei", JtI, zeta)  # Jsᵀ l Λ ζ
-    idx = np.arange(6)
-    s6 = (g.source * 6)[:, None] + idx  # (E, 6)
-    t6 = (g.target * 6)[:, None] + idx
-    rows, cols, vals = [], [], []
-    for a, b_, sign in ((s6, s6, 1.0), (t6, t6, 1.0), (s6, t6, -1.0), (t6, s6, -1.0)):
-        rows.append(np.broadcast_to(a[:, :, None], block.shape).ravel())
-        cols.append(np.broadcast_to(b_[:, None, :], block.shape).ravel())
-        vals.append(sign * block.ravel())
-    H = sp.csc_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(6 * n, 6 * n)
-    )
-    b = np.zeros(6 * n)
-    np.add.at(b, s6.ravel(), -grad.ravel())
-    np.add.at(b, t6.ravel(), grad.ravel())
-    return H, b
+    b = np.zeros(pattern.size)
+    np.add.at(b, pattern.s6.ravel(), -grad.ravel())
+    np.add.at(b, pattern.t6.ravel(), grad.ravel())
+    return pattern.matrix(JtI @ Js), b
 
 
 def _solve(A: sp.csc_matrix, b: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -233,16 +263,16 @@ def _levenberg_marquardt(g: PoseGraphArrays, options: GraphOptions) -> PoseGraph
     residual = _residual(g, zeta, confidence, mu)
     confidence = _confidence(g, zeta, mu)
     x = _pose_vector(poses)
-    H, b = _linear_system(g, X_inv, poses, zeta, confidence)
-    lam = 1e-5 * H.diagonal().max()
+    pattern = _Pattern(g.source, g.target, len(poses))
+    H, b = _linear_system(g, pattern, X_inv, poses, zeta, confidence)
+    lam = 1e-5 * H[pattern.diagonal].max()
     ni, rho = 2.0, 0.0
-    eye = sp.identity(H.shape[0], format="csc")
     stop = b.max() < options.min_right_term
     iteration = 0
     while not stop:
         lm = 0
         while True:
-            delta = _solve(H + lam * eye, b)
+            delta = _solve(pattern.csc(H, lam), b)
             stop = np.linalg.norm(delta) < options.min_relative_increment * (
                 np.linalg.norm(x) + options.min_relative_increment
             )
@@ -262,7 +292,7 @@ def _levenberg_marquardt(g: PoseGraphArrays, options: GraphOptions) -> PoseGraph
                     ni, residual, zeta, poses = 2.0, new_residual, zeta_new, trial
                     x = _pose_vector(poses)
                     confidence = _confidence(g, zeta, mu)
-                    H, b = _linear_system(g, X_inv, poses, zeta, confidence)
+                    H, b = _linear_system(g, pattern, X_inv, poses, zeta, confidence)
                     stop = b.max() < options.min_right_term
                     if stop:
                         break
