@@ -9,9 +9,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from processing.mapping.graph_optimiser import GraphOptions, optimise_pose_graph
-from processing.mapping.icp import (
-    plane_information,
-)
+from processing.mapping.icp import plane_information
 from processing.mapping.landmarks import PlaneLandmarks
 from processing.mapping.loops import close_loop, loop_candidates
 from processing.mapping.pairwise import CloudMeasurement, PairEdge, Step, edge_of, measure_step
