@@ -369,14 +369,10 @@ def open3d_graph(g: PoseGraphArrays) -> reg.PoseGraph:
     return graph
 
 
-def optimise_pose_graph(
-    graph: reg.PoseGraph, options: GraphOptions = GraphOptions()
-) -> reg.PoseGraph:
-    """An Open3D pose graph optimised (:func:`optimise_graph`); graphs of up to
-    ``DENSE_UP_TO`` nodes by Open3D itself, whose dense system is faster at that size (the
-    two agree to 1e-10 m)."""
-    if len(graph.nodes) > DENSE_UP_TO:
-        return open3d_graph(optimise_graph(graph_arrays(graph), options))
+def open3d_optimise(graph: reg.PoseGraph, options: GraphOptions = GraphOptions()) -> reg.PoseGraph:
+    """A copy of an Open3D pose graph optimised by Open3D's own ``global_optimization``
+    (its dense system), with ``options``' correspondence distance, pruning, preference and
+    reference node."""
     out = reg.PoseGraph(graph)
     option = reg.GlobalOptimizationOption(
         max_correspondence_distance=options.max_correspondence_m,
@@ -392,3 +388,14 @@ def optimise_pose_graph(
             option,
         )
     return out
+
+
+def optimise_pose_graph(
+    graph: reg.PoseGraph, options: GraphOptions = GraphOptions()
+) -> reg.PoseGraph:
+    """An Open3D pose graph optimised (:func:`optimise_graph`); graphs of up to
+    ``DENSE_UP_TO`` nodes by Open3D itself (:func:`open3d_optimise`), whose dense system is
+    faster at that size (the two agree to 1e-10 m)."""
+    if len(graph.nodes) > DENSE_UP_TO:
+        return open3d_graph(optimise_graph(graph_arrays(graph), options))
+    return open3d_optimise(graph, options)

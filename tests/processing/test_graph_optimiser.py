@@ -10,6 +10,7 @@ from processing.mapping.graph_optimiser import (
     PoseGraphArrays,
     graph_arrays,
     open3d_graph,
+    open3d_optimise,
     optimise_graph,
     optimise_pose_graph,
 )
@@ -17,22 +18,6 @@ from processing.metrics import absolute_trajectory_error
 from robot_link.sim.tof_sweeps import TofSweepConfig, tof_sweep
 
 reg = o3d.pipelines.registration
-
-
-def _open3d(graph: reg.PoseGraph, options: GraphOptions) -> reg.PoseGraph:
-    out = reg.PoseGraph(graph)
-    reg.global_optimization(
-        out,
-        reg.GlobalOptimizationLevenbergMarquardt(),
-        reg.GlobalOptimizationConvergenceCriteria(),
-        reg.GlobalOptimizationOption(
-            max_correspondence_distance=options.max_correspondence_m,
-            edge_prune_threshold=options.edge_prune_threshold,
-            preference_loop_closure=options.preference,
-            reference_node=options.reference_node,
-        ),
-    )
-    return out
 
 
 def _step(rng: np.random.Generator, deg: float, m: float) -> np.ndarray:
@@ -60,7 +45,7 @@ def test_the_sparse_optimisation_is_open3ds_on_a_maps_graph(map_graph) -> None:
     graph, options = map_graph
     assert len(graph.nodes) > DENSE_UP_TO  # a graph the station optimises sparsely
     assert any(e.uncertain for e in graph.edges)
-    theirs = graph_arrays(_open3d(graph, options))
+    theirs = graph_arrays(open3d_optimise(graph, options))
     ours = optimise_graph(graph_arrays(graph), options)
     before = graph_arrays(graph).poses
     moved = np.abs(theirs.poses[:, :3, 3] - before[:, :3, 3]).max()
@@ -119,7 +104,7 @@ def test_a_loop_closure_that_disagrees_is_pruned_and_the_rest_hold_the_truth() -
     assert absolute_trajectory_error(ours.poses, truth) < 0.1 * absolute_trajectory_error(
         g.poses, truth
     )
-    theirs = graph_arrays(_open3d(open3d_graph(g), options))
+    theirs = graph_arrays(open3d_optimise(open3d_graph(g), options))
     assert np.abs(ours.poses - theirs.poses).max() < 1e-8
 
 
