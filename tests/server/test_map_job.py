@@ -3,9 +3,6 @@ session's clouds itself and registers exactly what the job's own threads would."
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,15 +10,9 @@ import numpy as np
 from processing.mapping import MapParams, TrackingParams, register_clouds, register_measured
 from robot_link.clouds import encode_xyz
 from robot_link.sim.tof_sweeps import TofSweepConfig, tof_sweep
-from server.jobs.context import JobContext
 from server.jobs.map import CloudRun, measure_run_part
-from server.jobs.parts import FolderFanout
 from server.storage.files import SessionFiles
-
-HELPER = (
-    "import json, sys; from server.jobs.parts import help_with; "
-    "print(json.dumps(help_with(sys.argv[1], sys.argv[2], 60.0)))"
-)
+from tests.server.helping import helped_context
 
 
 def test_runs_of_clouds_registered_by_another_process_join_into_the_whole_map(
@@ -36,26 +27,7 @@ def test_runs_of_clouds_registered_by_another_process_join_into_the_whole_map(
         payload = encode_xyz(cloud)
         files.write(rel, payload)
         where.append((rel, None, len(payload), {"encoding": "xyz_f32", "width": w, "height": h}))
-    done_by_helper: list[int] = []
-
-    def ask(job_id: int, name: str, helpers: int) -> None:
-        # the helper, a process of its own, takes every run before the job's worker looks
-        out = subprocess.run(
-            [sys.executable, "-c", HELPER, str(tmp_path), name],
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        done_by_helper.append(json.loads(out.stdout.splitlines()[-1]))
-
-    ctx = JobContext(
-        1,
-        "s",
-        None,  # type: ignore[arg-type]
-        files,
-        attempt=1,
-        fanout=FolderFanout(ask, 1, lease_s=60.0),
-    )
+    ctx, done_by_helper = helped_context(tmp_path)
     params = MapParams(tracking=TrackingParams(enabled=False))
     run = CloudRun(where, sweep.odometry, params, (h, w))
     n = len(sweep.clouds)

@@ -4,9 +4,6 @@ the job's own threads would."""
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -15,16 +12,10 @@ import numpy as np
 from processing.stitching import StitchParams, plan_mosaic, render_bands
 from processing.vignetting import radius2
 from robot_link.sim.sweeps import LazySweep, SweepConfig
-from server.jobs.context import JobContext
-from server.jobs.parts import FolderFanout
 from server.jobs.stitch import fill_over_workers, spread_pairs
 from server.storage.files import SessionFiles
 from server.storage.mosaic_files import StoredImages, write_mosaic
-
-HELPER = (
-    "import json, sys; from server.jobs.parts import help_with; "
-    "print(json.dumps(help_with(sys.argv[1], sys.argv[2], 60.0)))"
-)
+from tests.server.helping import helped_context
 
 
 def test_pairs_and_bands_done_by_another_process_equal_those_of_the_jobs_threads(
@@ -45,26 +36,7 @@ def test_pairs_and_bands_done_by_another_process_equal_those_of_the_jobs_threads
         where.append((rel, None, len(jpeg)))
     guess = np.asarray(sweep.odometry, dtype=np.float64)
     params = StitchParams(band_bytes=2**20)  # many bands
-    done_by_helper: list[int] = []
-
-    def ask(job_id: int, name: str, helpers: int) -> None:
-        # the helper, a process of its own, takes every chunk before the job's worker looks
-        out = subprocess.run(
-            [sys.executable, "-c", HELPER, str(tmp_path), name],
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        done_by_helper.append(json.loads(out.stdout.splitlines()[-1]))
-
-    ctx = JobContext(
-        1,
-        "s",
-        None,  # type: ignore[arg-type]
-        files,
-        attempt=1,
-        fanout=FolderFanout(ask, 1, lease_s=60.0),
-    )
+    ctx, done_by_helper = helped_context(tmp_path)
 
     def source() -> StoredImages:
         return StoredImages(lambda k: files.read(*where[k]), len(where))
