@@ -9,6 +9,7 @@ import numpy as np
 from websockets.asyncio.client import connect
 
 from bench.common import Result
+from processing.poses import se2_of_matrix
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
 
 # six lanes 2.35 m long and back: about 530 organised clouds
@@ -40,12 +41,8 @@ def record_clouds(port: int, token: str, limit: int | None = None) -> str:
             await ws.send(encode_message(Message(MessageType.SESSION_START, sid, 1, 0.0, start)))
             await ws.recv()
             for k, (cloud, T) in enumerate(zip(sweep.clouds, sweep.odometry)):
-                robot = T @ np.linalg.inv(mount)
-                pose = {
-                    "x": float(robot[0, 3]),
-                    "y": float(robot[1, 3]),
-                    "yaw": float(np.arctan2(robot[1, 0], robot[0, 0])),
-                }
+                x, y, yaw = se2_of_matrix(T @ np.linalg.inv(mount))
+                pose = {"x": float(x), "y": float(y), "yaw": float(yaw)}
                 meta = {"encoding": "png16_depth_mm", **sweep.intrinsics, "pose": pose}
                 payload = encode_depth_png(cloud[:, 2].reshape(h, w))
                 msg = Message(MessageType.CLOUD, sid, k + 2, float(k), meta, payload)
