@@ -124,6 +124,7 @@ def band_rows(
 
 def detect_banded(
     results: Path,
+    out: Path,
     masks: Masks,
     mm_per_px: float | None,
     level: float,
@@ -136,7 +137,8 @@ def detect_banded(
     min_bands: int = 1,
 ) -> list[Defect]:
     """Cracks and corrosion of ``results/mosaic.png`` (with its coverage and seams), band by
-    band; writes the two mask PNGs and returns the measured defects (mosaic pixels).
+    band; writes the two mask PNGs into ``out`` (its scratch files too) and returns the
+    measured defects (mosaic pixels).
 
     The mosaic is unpacked once into a raw scratch file; the bands are independent parts
     (``map_bands``: in turn, on threads, or on other workers; ``parallel`` of them at once
@@ -148,7 +150,7 @@ def detect_banded(
         band_rows(width, overlap, BUDGET_BYTES // max(1, parallel)),
         max(MIN_BAND_ROWS, -(-height // max(1, min_bands))),
     )
-    scratch = results / ".detect-scratch"
+    scratch = out / ".detect-scratch"
     shutil.rmtree(scratch, ignore_errors=True)
     scratch.mkdir()
     try:
@@ -168,8 +170,8 @@ def detect_banded(
             for name in CLASSES:
                 _label(parts[name], maps[name].band(band) > 0, band, y0)
         progress(0.9, "bands joined")
-        for name, out in (("crack", "crack_mask.png"), ("corrosion", "corrosion_mask.png")):
-            _save_mask(maps[name].vips(), results / out)
+        for name, file in (("crack", "crack_mask.png"), ("corrosion", "corrosion_mask.png")):
+            _save_mask(maps[name].vips(), out / file)
         found: list[Defect] = []
         for name in CLASSES:
             found += _measure(

@@ -15,10 +15,12 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.jobs import leases
+from server.jobs.outputs import staging_dir
 from server.storage.files import SessionFiles, write_atomic
 from server.storage.models import InspectionSession
 
 Part = Callable[[SessionFiles, Any, Any], Any]  # (files, shared, item) -> result
+Finisher = Callable[[Session], None]  # database work done in the transaction that ends a job
 
 
 class JobLost(Exception):
@@ -37,7 +39,12 @@ class Fanout(Protocol):
 class JobContext:
     """What a job body gets: its row's ids and parameters, the database and the data
     directory; the attempt that holds the job, the threads it may use and, on a job queue,
-    the way to spread its parts over other workers."""
+    the way to spread its parts over other workers.
+
+    A job reads earlier jobs' results from :meth:`results_dir` and writes its own into
+    :meth:`output_dir`; its database writes are :meth:`on_finish` work. Both become the
+    session's only in the transaction that finishes the job while this attempt holds it
+    (:mod:`server.jobs.outputs`), so a cancelled or taken-over attempt changes nothing."""
 
     job_id: int
     session_id: str
@@ -48,6 +55,7 @@ class JobContext:
     threads: int = 2
     fanout: Fanout | None = None
     lost: threading.Event = field(default_factory=threading.Event)
+    finishers: list[Finisher] = field(default_factory=list)
 
     def progress(self, fraction: float, message: str = "") -> None:
         """Record progress (0-1) and a short message; raises :class:`JobLost` when the
@@ -83,10 +91,27 @@ class JobContext:
             return s
 
     def results_dir(self) -> Path:
-        """Folder for this session's result files."""
+        """Folder of this session's results (earlier jobs' files; read only)."""
         d = self.files.results_dir(self.session_id)
         d.mkdir(parents=True, exist_ok=True)
         return d
+
+    def output_dir(self) -> Path:
+        """Folder this attempt writes its result files into (its staging folder: they move
+        into :meth:`results_dir` when the job finishes)."""
+        d = staging_dir(self.results_dir(), self.job_id, self.attempt)
+        d.mkdir(exist_ok=True)
+        return d
+
+    def on_finish(self, fn: Finisher) -> None:
+        """Do ``fn(db)`` in the transaction that records the job done (only if this attempt
+        still holds it then)."""
+        self.finishers.append(fn)
+
+    def store(self, db: Session) -> None:
+        """The job's :meth:`on_finish` work, in order (called by the finishing transaction)."""
+        for fn in self.finishers:
+            fn(db)
 
 
 class Heartbeat:

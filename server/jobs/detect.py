@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from sqlalchemy import delete, select
+from sqlalchemy.orm import Session
 
 from processing.corrosion import CorrosionParams
 from processing.crack_filter import CrackParams, SurfaceStats, measure_surface
@@ -176,22 +177,23 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     t0 = time.perf_counter()
     frame_rows = _detect_frames(ctx)
     t_frames = time.perf_counter() - t0
-    out = ctx.results_dir()
-    if not (out / "mosaic.png").is_file() or not (out / "mosaic.json").is_file():
+    source = ctx.results_dir()  # the stitch job's mosaic
+    if not (source / "mosaic.png").is_file() or not (source / "mosaic.json").is_file():
         raise ValueError("no mosaic to run detection on: run the stitch job first")
-    world = json.loads((out / "mosaic.json").read_text())
+    world = json.loads((source / "mosaic.json").read_text())
     px_per_m, (ox, oy) = world["px_per_m"], world["origin_m"]
     referenced = bool(world.get("world_referenced"))
     mm_per_px = 1000.0 / px_per_m if referenced else None
     ctx.progress(0.6, "mosaic")
     surface = _frame_surface(ctx)
+    out = ctx.output_dir()
     if (
         ctx.fanout is not None
         or int(world["width_px"]) * int(world["height_px"]) > MOSAIC_IN_MEMORY_PX
     ):
-        found = _detect_mosaic_banded(ctx, out, mm_per_px, surface)
+        found = _detect_mosaic_banded(ctx, source, out, mm_per_px, surface)
     else:
-        found = _detect_mosaic(out, mm_per_px, _method(ctx), surface, ctx.threads)
+        found = _detect_mosaic(source, out, mm_per_px, _method(ctx), surface, ctx.threads)
     mosaic_rows: list[Defect] = []
     for d in found:
         x, y, w, h = d.bbox
@@ -201,10 +203,29 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
             else None
         )
         mosaic_rows.append(_defect_row(ctx, d, "mosaic", referenced, placed))
-    with ctx.factory() as db:
+    by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
+    result = {
+        "defects": len(found),
+        "by_class": by_class,
+        "frame_defects": len(frame_rows),
+        "method": _method(ctx),
+        "reviews_carried_over": 0,  # counted when the defects are stored
+        "seconds": {  # per stage: the frames are spread over workers, the mosaic is not
+            "frames": round(t_frames, 3),
+            "mosaic": round(time.perf_counter() - t0 - t_frames, 3),
+        },
+        "crack_mask": str(ctx.results_dir() / "crack_mask.png"),
+        "params": {
+            "crack": _crack_record(_method(ctx)),
+            "corrosion": params_record(CorrosionParams()),
+        },
+    }
+
+    def store(db: Session) -> None:
+        """The session's defects replaced by these, in the transaction that ends the job."""
         ours = (Defect.session_id == ctx.session_id) & Defect.drawn_by.is_(None)
         reviewed = list(db.scalars(select(Defect).where(ours, Defect.reviewed_by.is_not(None))))
-        kept = carry_reviews(reviewed, frame_rows + mosaic_rows)
+        result["reviews_carried_over"] = carry_reviews(reviewed, frame_rows + mosaic_rows)
         db.execute(delete(Defect).where(ours))  # defects drawn by hand stay
         drawn = list(
             db.scalars(
@@ -216,24 +237,9 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
         number_defects(frame_rows)
         number_defects(mosaic_rows + drawn)
         db.add_all(frame_rows + mosaic_rows)
-        db.commit()
-    by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
-    return {
-        "defects": len(found),
-        "by_class": by_class,
-        "frame_defects": len(frame_rows),
-        "method": _method(ctx),
-        "reviews_carried_over": kept,
-        "seconds": {  # per stage: the frames are spread over workers, the mosaic is not
-            "frames": round(t_frames, 3),
-            "mosaic": round(time.perf_counter() - t0 - t_frames, 3),
-        },
-        "crack_mask": str(out / "crack_mask.png"),
-        "params": {
-            "crack": _crack_record(_method(ctx)),
-            "corrosion": params_record(CorrosionParams()),
-        },
-    }
+
+    ctx.on_finish(store)
+    return result
 
 
 def _frame_surface(ctx: JobContext, n: int = 9) -> SurfaceStats | None:
@@ -273,23 +279,24 @@ def _crack_record(method: CrackMethod) -> dict[str, Any]:
 
 
 def _detect_mosaic(
+    source: Path,
     out: Path,
     mm_per_px: float | None,
     method: CrackMethod = "proposed",
     surface: SurfaceStats | None = None,
     threads: int = 2,
 ) -> list[Defect_]:
-    """Defects of a mosaic that fits in memory, found in one pass on ``threads``; writes the
-    mask PNGs."""
-    mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
+    """Defects of a mosaic (in ``source``) that fits in memory, found in one pass on
+    ``threads``; writes the mask PNGs into ``out``."""
+    mosaic = cv2.imread(str(source / "mosaic.png"), cv2.IMREAD_COLOR)
     if mosaic is None:
         raise ValueError("mosaic.png cannot be read")
-    coverage = cv2.imread(str(out / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
+    coverage = cv2.imread(str(source / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     if coverage is None or coverage.shape != mosaic.shape[:2]:
         coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
     seams = (
-        cv2.imread(str(out / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE)
-        if (out / "mosaic_seams.png").is_file()
+        cv2.imread(str(source / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE)
+        if (source / "mosaic_seams.png").is_file()
         else None
     )
     seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
@@ -310,11 +317,16 @@ def _detect_mosaic(
 
 
 def _detect_mosaic_banded(
-    ctx: JobContext, out: Path, mm_per_px: float | None, surface: SurfaceStats | None
+    ctx: JobContext,
+    source: Path,
+    out: Path,
+    mm_per_px: float | None,
+    surface: SurfaceStats | None,
 ) -> list[Defect_]:
-    """Defects of a mosaic too large for memory, band by band (:mod:`server.jobs.banded`);
-    the surface's brightness level comes from the overview."""
-    overview = cv2.imread(str(out / "mosaic_overview.png"), cv2.IMREAD_COLOR)
+    """Defects of a mosaic (in ``source``) too large for memory, band by band
+    (:mod:`server.jobs.banded`), the masks written into ``out``; the surface's brightness
+    level comes from the overview."""
+    overview = cv2.imread(str(source / "mosaic_overview.png"), cv2.IMREAD_COLOR)
     if overview is None:
         raise ValueError("mosaic_overview.png cannot be read")
     level = surface_level(overview, np.any(overview > 0, axis=2))
@@ -326,6 +338,7 @@ def _detect_mosaic_banded(
         learned_params=LearnedParams(threads=ctx.threads),
     )
     return detect_banded(
+        source,
         out,
         masks,
         mm_per_px,

@@ -9,18 +9,13 @@ from server.reports.mcap_export import export_session
 
 
 def run_export(ctx: JobContext) -> dict[str, Any]:
-    """The whole session as an MCAP file (``results/session.mcap``), written under a temporary
-    name and renamed when complete."""
-    out = ctx.results_dir()
-    tmp = out / f".session.mcap.{ctx.job_id}.tmp"
-    try:
-        with ctx.factory() as db, tmp.open("wb") as fh:
-            counts = export_session(db, ctx.files, ctx.session_id, fh, progress=ctx.progress)
-        tmp.replace(out / "session.mcap")
-    finally:
-        tmp.unlink(missing_ok=True)
+    """The whole session as an MCAP file (``results/session.mcap``), written in the
+    attempt's staging folder and published when the job is done."""
+    path = ctx.output_dir() / "session.mcap"
+    with ctx.factory() as db, path.open("wb") as fh:
+        counts = export_session(db, ctx.files, ctx.session_id, fh, progress=ctx.progress)
     return {
-        "mcap_path": str(out / "session.mcap"),
-        "bytes": (out / "session.mcap").stat().st_size,
+        "mcap_path": str(ctx.results_dir() / "session.mcap"),
+        "bytes": path.stat().st_size,
         **counts,
     }

@@ -10,6 +10,7 @@ over finds its UPDATE matching no row, and its result is dropped.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from datetime import datetime, timedelta, timezone
 from typing import Any
 
@@ -103,15 +104,34 @@ def finish(
     *,
     error: str | None = None,
     result: dict[str, Any] | None = None,
+    then: Callable[[Session], None] | None = None,
+    publish: Callable[[], None] | None = None,
 ) -> bool:
-    """End the job as ``state`` with its result or error, if this attempt still holds it."""
-    values: dict[str, Any] = {"state": state, "finished_at": utcnow(), "error": error}
-    if result is not None:
-        values.update(result=result, progress=1.0)
+    """End the job as ``state`` with its result or error, if this attempt still holds it.
+
+    In the same transaction: ``then(db)`` first (the job's database writes; it may still
+    fill in ``result``), then the conditional update, then ``publish()`` (the job's files)
+    only when the job was this attempt's. A concurrent cancel either ends the job first
+    (the writes are rolled back) or waits and finds it ended. When ``then`` or ``publish``
+    raises, nothing is recorded and the error propagates."""
     with factory() as db:
-        ended = db.execute(_held(job_id, attempt).values(**values)).rowcount == 1
+        try:
+            if then is not None:
+                then(db)
+            values: dict[str, Any] = {"state": state, "finished_at": utcnow(), "error": error}
+            if result is not None:
+                values.update(result=result, progress=1.0)
+            ended = db.execute(_held(job_id, attempt).values(**values)).rowcount == 1
+            if not ended:
+                db.rollback()
+                return False
+            if publish is not None:
+                publish()
+        except BaseException:
+            db.rollback()
+            raise
         db.commit()
-    return ended
+    return True
 
 
 def cancel(factory: sessionmaker[Session], job_id: int, by: str) -> bool:

@@ -122,7 +122,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         "pairs": round(t_pairs, 3),
         "graph": round(time.perf_counter() - t0 - t_pairs, 3),
     }
-    out = ctx.results_dir()
+    out = ctx.output_dir()
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
     tmp = out / ".map.tmp.ply"
     if not o3d.io.write_point_cloud(str(tmp), pcd):
@@ -130,8 +130,8 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     tmp.replace(out / "map.ply")
     write_atomic(out / "trajectory.tum", format_tum(np.array(stamps), result.poses).encode())
     return {
-        "map_path": str(out / "map.ply"),
-        "trajectory_path": str(out / "trajectory.tum"),
+        "map_path": str(ctx.results_dir() / "map.ply"),
+        "trajectory_path": str(ctx.results_dir() / "trajectory.tum"),
         "points": len(result.points),
         "guided_by_mosaic": robot is not None,
         "loop_closures": result.loop_closures,

@@ -240,7 +240,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         if ctx.fanout is not None:
             ctx.progress(0.75, "rendering the mosaic's bands on the workers")
         files = write_mosaic(
-            ctx.results_dir(),
+            ctx.output_dir(),
             layout,
             fill_over_workers(ctx, where, layout, loaded, params)
             if ctx.fanout is not None
@@ -257,10 +257,11 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         "pairs": round(t_pairs, 3),  # with the pose graph, solved on the job's worker
         "render": round(time.perf_counter() - t0 - t_pairs, 3),  # the files written here
     }
+    results = ctx.results_dir()  # where the files are once the job is done
     return {
-        "mosaic_path": str(files.mosaic),
-        "overview_path": str(files.overview),
-        "dzi_path": str(files.dzi) if files.dzi else None,
+        "mosaic_path": str(results / files.mosaic.name),
+        "overview_path": str(results / files.overview.name),
+        "dzi_path": str(results / files.dzi.name) if files.dzi else None,
         "width_px": layout.width,
         "height_px": layout.height,
         "px_per_m": layout.px_per_m,

@@ -16,12 +16,13 @@ from typing import Any, Literal
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.jobs import leases
+from server.jobs import leases, outputs
 from server.jobs.context import Fanout, Heartbeat, JobContext, JobLost
 from server.jobs.detect import run_detect
 from server.jobs.export import run_export
 from server.jobs.leases import LEASE_S
 from server.jobs.map import run_map
+from server.jobs.outputs import staging_dir
 from server.jobs.stitch import run_stitch
 from server.storage.db import make_engine, make_sessionmaker
 from server.storage.files import SessionFiles
@@ -84,18 +85,40 @@ def run_job(
         threads=threads,
         fanout=fanout,
     )
-    with Heartbeat(ctx, lease_s / 4):
-        try:
-            result = JOB_KINDS[kind](ctx)
-        except JobLost:
-            log.info("job %d (%s) attempt %d: cancelled or taken over", job_id, kind, attempt)
-            return "lost"
-        except Exception as exc:  # a job's failure is recorded, never raised into the runner
-            log.error("job %d (%s) failed:\n%s", job_id, kind, traceback.format_exc())
+    results = ctx.results_dir()
+    staging = staging_dir(results, job_id, attempt)
+    outputs.discard_earlier(results, job_id, attempt)
+
+    try:
+        with Heartbeat(ctx, lease_s / 4):
+            try:
+                result = JOB_KINDS[kind](ctx)
+            except JobLost:
+                log.info("job %d (%s) attempt %d: cancelled or taken over", job_id, kind, attempt)
+                return "lost"
+            except Exception as exc:  # a job's failure is recorded, never raised into the runner
+                log.error("job %d (%s) failed:\n%s", job_id, kind, traceback.format_exc())
+                return _failed(factory, job_id, attempt, exc)
+        try:  # its database writes and files become the session's with the job's end
             held = leases.finish(
-                factory, job_id, attempt, JobState.failed, error=f"{type(exc).__name__}: {exc}"
+                factory,
+                job_id,
+                attempt,
+                JobState.done,
+                result=result,
+                then=ctx.store,
+                publish=lambda: outputs.publish(staging, results),
             )
-            return "failed" if held else "lost"
-    return (
-        "done" if leases.finish(factory, job_id, attempt, JobState.done, result=result) else "lost"
+        except Exception as exc:  # its results could not be stored (disk, database)
+            log.error("job %d (%s) not stored:\n%s", job_id, kind, traceback.format_exc())
+            return _failed(factory, job_id, attempt, exc)
+        return "done" if held else "lost"
+    finally:
+        outputs.discard(staging)  # what was not published: dropped
+
+
+def _failed(factory: sessionmaker[Session], job_id: int, attempt: int, exc: Exception) -> Outcome:
+    held = leases.finish(
+        factory, job_id, attempt, JobState.failed, error=f"{type(exc).__name__}: {exc}"
     )
+    return "failed" if held else "lost"

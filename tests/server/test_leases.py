@@ -80,3 +80,46 @@ def test_cancelling_ends_the_job_for_the_attempt_running_it(factory) -> None:  #
     assert not leases.finish(factory, job_id, attempt, JobState.done, result={"n": 1})
     job = state(factory, job_id)
     assert (job.state, job.error, job.result) == (JobState.cancelled, "cancelled by inspector", {})
+
+
+def test_a_finish_that_lost_the_job_rolls_back_its_writes_and_publishes_nothing(factory) -> None:  # type: ignore[no-untyped-def]
+    job_id = new_job(factory)
+    attempt = leases.claim(factory, job_id, "a")
+    assert attempt is not None
+    published: list[int] = []
+    result: dict[str, int] = {}
+
+    def write(db: Session) -> None:  # the job's own rows, in the finishing transaction
+        db.add(InspectionSession(id=f"written-{job_id}", structure="by the job"))
+        result["rows"] = 1
+
+    assert leases.cancel(factory, job_id, "inspector")
+    assert not leases.finish(
+        factory,
+        job_id,
+        attempt,
+        JobState.done,
+        result=result,
+        then=write,
+        publish=lambda: published.append(job_id),
+    )
+    assert published == []
+    with factory() as db:
+        assert db.get(InspectionSession, f"written-{job_id}") is None
+    assert state(factory, job_id).state == JobState.cancelled
+
+    job_id = new_job(factory)
+    attempt = leases.claim(factory, job_id, "a")
+    assert leases.finish(
+        factory,
+        job_id,
+        attempt,
+        JobState.done,
+        result=result,
+        then=write,
+        publish=lambda: published.append(job_id),
+    )
+    assert published == [job_id]
+    with factory() as db:
+        assert db.get(InspectionSession, f"written-{job_id}") is not None
+    assert state(factory, job_id).result == {"rows": 1}  # filled in by the writes

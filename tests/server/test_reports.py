@@ -352,12 +352,12 @@ def test_banded_detection_matches_the_one_pass_result(
     sh.copytree(live.settings.data_dir / "sessions" / sid / "results", results)
     mosaic = cv2.imread(str(results / "mosaic.png"), cv2.IMREAD_COLOR)
     surface = sample_surface(mosaic)
-    one = _detect_mosaic(results, 0.25, surface=surface)
+    one = _detect_mosaic(results, results, 0.25, surface=surface)
     coverage = cv2.imread(str(results / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     level = surface_level(mosaic, coverage)
     assert on_surface(mosaic, coverage, level).any()
     masks = partial(defect_masks, surface=surface)
-    banded = detect_banded(results, masks, 0.25, level, rows=200)
+    banded = detect_banded(results, results, masks, 0.25, level, rows=200)
     assert mosaic.shape[0] > 400  # several bands, so defects cross seams
 
     def key(d):
@@ -434,3 +434,45 @@ def test_the_pdf_takes_any_comment_the_api_accepts(inspected: tuple[LiveServer, 
     assert "Commentsinfull" in squeezed and "line89ofthenote" in squeezed
     runs = [len(r) for r in re.findall("W+", squeezed)]  # the full text may cross a page
     assert 30 in runs and sum(runs) == 30 + 1999, runs
+
+
+def test_a_detect_run_cancelled_as_it_ends_changes_no_defect_nor_file(
+    inspected: tuple[LiveServer, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A cancel that arrives after the detect job did all its work, just before it is
+    recorded done: the session's defects and masks stay those of the run before, and the
+    attempt's own files are gone."""
+    from server.jobs import leases
+    from server.jobs.detect import run_detect
+    from server.jobs.worker import JOB_KINDS, factory_for, run_job
+    from server.storage.models import Job, JobState
+
+    live, sid = inspected
+    api = f"{live.url}/api/sessions/{sid}"
+    results = live.settings.data_dir / "sessions" / sid / "results"
+    defects = httpx.get(f"{api}/defects", params={"limit": 1000}).json()["data"]
+    masks = {n: (results / n).read_bytes() for n in ("crack_mask.png", "corrosion_mask.png")}
+    factory = factory_for(live.settings.database_url)
+    with factory() as db:  # a job no worker holds (as if its worker died), for this process
+        job = Job(session_id=sid, kind="detect", state=JobState.running)
+        db.add(job)
+        db.commit()
+        job_id = job.id
+    seen: dict[str, list[str]] = {}
+
+    def detect_then_cancelled(ctx):  # type: ignore[no-untyped-def]
+        result = run_detect(ctx)
+        seen["staged"] = sorted(p.name for p in ctx.output_dir().iterdir())
+        assert leases.cancel(ctx.factory, ctx.job_id, "inspector")
+        return result
+
+    monkeypatch.setitem(JOB_KINDS, "detect", detect_then_cancelled)
+    outcome = run_job(job_id, live.settings.database_url, str(live.settings.data_dir))
+    assert outcome == "lost"
+    assert {"crack_mask.png", "corrosion_mask.png"} <= set(seen["staged"])  # it did write them
+    after = httpx.get(f"{api}/defects", params={"limit": 1000}).json()["data"]
+    assert [d["id"] for d in after] == [d["id"] for d in defects]
+    assert all((results / n).read_bytes() == data for n, data in masks.items())
+    assert not [p.name for p in results.iterdir() if p.name.startswith(".")]
+    with factory() as db:
+        assert db.get(Job, job_id).state == JobState.cancelled  # type: ignore[union-attr]

@@ -72,8 +72,11 @@ function robotsTable(robots, refresh) {
   return [el("h2", {}, "Robots"), el("table", { id: "robots" }, el("tr", {}, ...["name", "token", "sessions", "last session", ""].map((h) => el("th", {}, h))), ...rows), form, status("robots-status")];
 }
 
-export async function loadAdmin() {
+// Opening the page drops what it showed last time (stale lists, forms about to be replaced)
+// until the station answers; a refresh after an action keeps it meanwhile.
+export async function loadAdmin({ opening = false } = {}) {
   const root = document.getElementById("admin");
+  if (opening) root.replaceChildren(el("p", { class: "small" }, "loading accounts and robots…"));
   const keep = { users: document.getElementById("users-status")?.textContent || "", robots: document.getElementById("robots-status")?.cloneNode(true) };
   const [users, robots] = await Promise.all([apiJSON("/api/users"), apiJSON("/api/robots")]);
   root.replaceChildren(el("section", {}, ...usersTable(users, loadAdmin)), el("section", {}, ...robotsTable(robots, loadAdmin)));

@@ -58,7 +58,7 @@ function route() {
   document.querySelectorAll("nav a").forEach((a) => a.classList.toggle("active", a.dataset.view === viewName
     || (viewName === "session" && a.dataset.view === "sessions")));
   if (viewName === "sessions") loadSessions().catch(() => {});
-  if (viewName === "admin") loadAdmin().catch((e) => text(document.getElementById("admin"), `cannot show accounts: ${e.message}`));
+  if (viewName === "admin") loadAdmin({ opening: true }).catch((e) => text(document.getElementById("admin"), `cannot show accounts: ${e.message}`));
   if (viewName === "session") showSession(id, sub === "defect" ? number : null).catch((e) => text(document.getElementById("session-detail"), `cannot show the session: ${e.message}`));
 }
 
