@@ -219,7 +219,7 @@ def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Itera
         finally:
             proc.terminate()
             proc.wait(timeout=30)
-        ceiling = asyncio.run(_echo_ceiling(5.0))
+        ceiling = asyncio.run(_echo_ceiling(min(5.0, field_seconds)))
         acked = sum(a for _, a in flood)
         rate = acked / flood_s
         yield {

@@ -60,7 +60,7 @@ def _sweeps() -> list[tuple[str, Any]]:
 
 def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
     """Per structure type (:mod:`bench.map_structures`; with ``limit``, one held-back seed of
-    ``limit`` clouds each), then
+    ``limit`` clouds each and the whole command on the first type only), then
     trajectory error (ATE, RPE, drift as a share of the path) and time per cloud on long
     simulated ToF sweeps along the deck plate's girder (:func:`_sweeps`, the first ``limit``
     clouds), for this pipeline, odometry alone and Open3D's tutorial pipeline (FPFH +
@@ -68,7 +68,9 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
     against Open3D's (:mod:`bench.map_graph`)."""
     from bench.map_structures import bench_map_structures
 
-    yield from bench_map_structures(1, max(limit, 3)) if limit else bench_map_structures()
+    yield from (
+        bench_map_structures(1, max(limit, 3), commands=1) if limit else bench_map_structures()
+    )
     from processing.mapping import SelectParams, register_clouds, select
     from processing.metrics import absolute_trajectory_error
     from robot_link.sim.tof_sweeps import tof_sweep

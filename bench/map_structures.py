@@ -61,17 +61,19 @@ def registration_floor(
     return np.array(poses)
 
 
-def bench_map_structures(seeds: int | None = None, clouds: int = 40) -> Iterator[Result]:
+def bench_map_structures(
+    seeds: int | None = None, clouds: int = 40, *, commands: int | None = None
+) -> Iterator[Result]:
     """Per structure type: ATE (% of path) of ours, odometry and the tutorial pipeline over
-    ``seeds`` held-back seeds (10 unless given) of ``clouds`` clouds, ms per cloud, the whole
-    command's time."""
+    ``seeds`` held-back seeds (10 unless given) of ``clouds`` clouds, ms per cloud, and the
+    whole command's time (on the first ``commands`` types; every type unless given)."""
     from bench.map import _open3d_tutorial_poses
     from processing.mapping import SelectParams, register_clouds, select
     from processing.metrics import absolute_trajectory_error
     from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_sweep, write_sweep
     from robot_link.sim.scenes import SCENES
 
-    for kind in SCENES:
+    for number, kind in enumerate(SCENES):
         drift: dict[str, list[float]] = {n: [] for n in ("ours", "odometry", "tutorial", "floor")}
         ms: dict[str, list[float]] = {"ours": [], "tutorial": []}
         for seed in list(HELD_BACK_SEEDS)[: seeds or None]:
@@ -132,6 +134,8 @@ def bench_map_structures(seeds: int | None = None, clouds: int = 40) -> Iterator
             "ratio": round(float(np.mean(ms["ours"]) / np.mean(ms["tutorial"])), 3),
             "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP, cloud to cloud",
         }
+        if commands is not None and number >= commands:
+            continue
         with tempfile.TemporaryDirectory() as tmp:
             sweep = scene_sweep(SceneSweepConfig(kind=kind, seed=HELD_BACK_SEEDS[0], clouds=clouds))
             files = write_sweep(sweep, Path(tmp))

@@ -53,9 +53,14 @@ def databases_under_test() -> tuple[str, ...]:
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     """Every test whose station stores anything (it asks for ``database``, ``database_url``
-    or ``settings``) runs once on SQLite and once on PostgreSQL."""
+    or ``settings``) runs once on SQLite and once on PostgreSQL; one marked
+    ``one_database`` (a long browser run whose storage other tests cover on both) on the
+    first of them only."""
     if "database" in metafunc.fixturenames:
-        metafunc.parametrize("database", databases_under_test(), indirect=True)
+        under_test = databases_under_test()
+        if metafunc.definition.get_closest_marker("one_database") is not None:
+            under_test = under_test[:1]
+        metafunc.parametrize("database", under_test, indirect=True)
 
 
 @pytest.fixture(scope="session")

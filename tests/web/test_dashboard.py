@@ -32,6 +32,7 @@ from tests.web.browser import (
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.browser,
+    pytest.mark.one_database,  # the station's storage under these pages: tests on both
     pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed"),
 ]
 
