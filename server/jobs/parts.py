@@ -5,8 +5,10 @@ The job's worker writes a *plan* (the part function, what every part shares, the
 items) into ``DATA/.parts/<name>/``, asks other workers for help (a Celery group of
 ``steelscan.part`` tasks) and works through the chunks itself too. A chunk is taken by
 creating its claim file exclusively, done, and its result written atomically beside it; the
-claim file is touched while the chunk runs. Chunks another worker took but left silent for
-a lease are done again by the job's worker, so a helper lost mid-chunk costs time, never a
+claim file is touched while the chunk runs. A claim is silent when its modification time
+stops changing for a lease, timed on the job's worker's own clock (the helper's or the file
+server's clock may be set differently). Chunks another worker took but left silent for a
+lease are done again by the job's worker, so a helper lost mid-chunk costs time, never a
 result; helpers that come late find every chunk taken and return. Nothing waits on a
 helper, so a job never deadlocks on a busy queue.
 """
@@ -139,6 +141,7 @@ def _collect(
     went silent for a lease."""
     fn, shared, chunks = pickle.loads((folder / "plan.pkl").read_bytes())
     results: list[list[Any] | None] = [None] * n
+    touched: dict[int, tuple[float, float]] = {}  # chunk: (claim's mtime, when first seen so)
     while True:
         ctx.check()
         for i in range(n):
@@ -148,12 +151,7 @@ def _collect(
             if out.is_file():
                 results[i] = pickle.loads(out.read_bytes())
                 continue
-            claim = folder / f"{i}.claim"
-            try:
-                silent = time.time() - claim.stat().st_mtime > lease_s
-            except FileNotFoundError:
-                silent = True
-            if silent:
+            if _silent(folder / f"{i}.claim", i, touched, lease_s):
                 log.warning(
                     "job %d: part %d of %s lost its worker; doing it here",
                     ctx.job_id,
@@ -164,3 +162,18 @@ def _collect(
         if all(r is not None for r in results):
             return results  # type: ignore[return-value]
         time.sleep(POLL_S)
+
+
+def _silent(claim: Path, i: int, touched: dict[int, tuple[float, float]], lease_s: float) -> bool:
+    """Whether chunk ``i``'s claim went unchanged for ``lease_s`` of this process's monotonic
+    clock (or is gone); ``touched`` remembers each claim's last mtime and when it was seen."""
+    try:
+        mtime = claim.stat().st_mtime
+    except FileNotFoundError:
+        return True
+    now = time.monotonic()
+    last = touched.get(i)
+    if last is None or last[0] != mtime:
+        touched[i] = (mtime, now)
+        return False
+    return now - last[1] > lease_s

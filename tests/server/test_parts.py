@@ -67,5 +67,39 @@ def test_a_chunk_a_lost_helper_took_is_done_again(tmp_path: Path) -> None:
     assert time.monotonic() - t0 < 10
 
 
+def test_a_helper_whose_clock_is_behind_is_not_taken_for_lost(tmp_path: Path) -> None:
+    """A live helper on a machine whose clock is two minutes behind touches its claim with
+    old times: they change, so the chunk stays the helper's."""
+    helper: list[int] = []
+
+    def help_late_clock(folder: Path) -> None:
+        _, shared, chunks = pickle.loads((folder / "plan.pkl").read_bytes())
+        i = len(chunks) - 1
+        claim = folder / f"{i}.claim"
+        claim.touch()  # taken before the job's worker gets there (it goes in order)
+        helper.append(threading.get_ident())
+        for k in range(15):
+            t = time.time() - 120 + k * 0.1
+            os.utime(claim, (t, t))
+            time.sleep(0.1)
+        result = [who_did_it(SessionFiles(tmp_path), shared, item) for item in chunks[i]]
+        (folder / f"{i}.pkl").write_bytes(pickle.dumps(result))
+
+    threads: list[threading.Thread] = []
+
+    def ask(job_id: int, name: str, helpers: int) -> None:
+        t = threading.Thread(target=help_late_clock, args=(tmp_path / PARTS_DIR / name,))
+        t.start()
+        threads.append(t)
+        while not helper:
+            time.sleep(0.01)
+
+    items = list(range(8))
+    out = FolderFanout(ask, 1, lease_s=1.0)(context(tmp_path), who_did_it, 0.0, items)
+    threads[0].join()
+    assert [i for i, _ in out] == items
+    assert out[-1][1] == helper[0]  # the helper's result, not one done again
+
+
 def test_a_helper_coming_late_finds_nothing_to_do(tmp_path: Path) -> None:
     assert help_with(tmp_path, "7-1-gone", 5.0) == 0
