@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 import open3d as o3d
@@ -41,6 +42,29 @@ class CloudRun:
     shape: tuple[int, int] | None
 
 
+class StoredClouds(Sequence[NDArray[np.float32]]):
+    """A session's clouds as a sequence read from the data directory as they are used (one
+    decoded cloud in memory at a time, however long the session)."""
+
+    def __init__(
+        self, files: SessionFiles, where: list[tuple[str, int | None, int, dict[str, Any]]]
+    ) -> None:
+        self.files, self.where = files, where
+
+    def __len__(self) -> int:
+        return len(self.where)
+
+    @overload
+    def __getitem__(self, i: int) -> NDArray[np.float32]: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[NDArray[np.float32]]: ...
+    def __getitem__(self, i: int | slice) -> Any:
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        path, offset, size, meta = self.where[i]
+        return decode_cloud(self.files.read(path, offset, size), meta)
+
+
 def measure_run_part(
     files: SessionFiles, run: CloudRun, span: tuple[int, int]
 ) -> list[CloudMeasurement]:
@@ -48,10 +72,7 @@ def measure_run_part(
     (:func:`~processing.mapping.measure_run`), wherever the job queue runs it."""
     first, end = span
     start = max(0, first - run.params.neighbours)
-    clouds = [
-        decode_cloud(files.read(path, offset, size), meta)
-        for path, offset, size, meta in run.where[start:end]
-    ]
+    clouds = StoredClouds(files, run.where)[start:end]
     return measure_run(clouds, run.guesses[start:end], first, first - start, run.params, run.shape)
 
 
@@ -65,7 +86,9 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         )
     if not rows:
         raise ValueError("the session has no ToF clouds")
-    clouds, guesses, stamps, seqs, skipped, where = [], [], [], [], [], []
+    # the clouds are checked here and read again where they are registered: a long session's
+    # clouds are not all held in this worker's memory at once
+    guesses, stamps, seqs, skipped, where = [], [], [], [], []
     shapes = {(c.height, c.width) for c in rows}
     shape = shapes.pop() if len(shapes) == 1 else None  # organised depth images: filtered as images
     if shape is not None and min(shape) < 2:
@@ -80,7 +103,6 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         if not np.isfinite(pts).all(axis=1).any():
             skipped.append(c.seq)
             continue
-        clouds.append(pts)
         where.append((c.path, c.data_offset, c.size_bytes, meta))
         stamps.append(c.timestamp)
         seqs.append(c.seq)
@@ -88,12 +110,13 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
             guesses.append(se2_to_se3(c.pose_x, c.pose_y, c.pose_yaw) @ T_rt)
         if i % 10 == 0:
             ctx.progress(0.3 * i / len(rows), f"decoded {i}/{len(rows)} clouds")
-    if not clouds:
+    if not where:
         raise ValueError("no readable ToF cloud in the session")
+    usable = len(where)
     # the station's own sessions: dense clouds and wheel odometry good to millimetres, which
     # the pairwise graph uses best (tracking is for sparse sequences with poor odometry)
     params = MapParams(tracking=TrackingParams(enabled=False))
-    robot = _visual_robot_poses(ctx, rows, seqs) if len(guesses) == len(clouds) else None
+    robot = _visual_robot_poses(ctx, rows, seqs) if len(guesses) == usable else None
     if robot is not None:
         # the mosaic's sub-pixel camera motion, carried over to the clouds, places them far
         # better than ICP on a mostly flat view can (0.03 mm against 3-5 mm on the simulator)
@@ -101,19 +124,19 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         params = MapParams(refine=False, tracking=TrackingParams(enabled=False))
     ctx.progress(0.3, "registering")
     t0 = time.perf_counter()
-    if params.refine and len(guesses) == len(clouds):
+    if params.refine and len(guesses) == usable:
         # each run of clouds registered to the clouds before it wherever the queue runs it,
         # then joined into one graph, its loops closed and optimised here
         run = CloudRun(where, np.array(guesses), params, shape)
-        spans = [(a, min(a + RUN_CLOUDS, len(clouds))) for a in range(0, len(clouds), RUN_CLOUDS)]
+        spans = [(a, min(a + RUN_CLOUDS, usable)) for a in range(0, usable, RUN_CLOUDS)]
         measured = [m for part in ctx.map(measure_run_part, run, spans) for m in part]
         t_pairs = time.perf_counter() - t0
         ctx.progress(0.6, "joining the graph")
         result = register_measured(measured, run.guesses, params=params)
     else:
         result = register_clouds(
-            clouds,
-            np.array(guesses) if len(guesses) == len(clouds) else None,
+            StoredClouds(ctx.files, where),
+            np.array(guesses) if len(guesses) == usable else None,
             params=params,
             shape=shape,
         )
@@ -135,7 +158,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         "points": len(result.points),
         "guided_by_mosaic": robot is not None,
         "loop_closures": result.loop_closures,
-        "clouds": len(clouds),
+        "clouds": usable,
         "skipped_clouds": skipped,
         "cloud_seqs": seqs,
         "odometry_fallbacks": int(result.used_odometry.sum()),
