@@ -32,7 +32,6 @@ from tests.web.browser import (
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.browser,
-    pytest.mark.one_database,  # the station's storage under these pages: tests on both
     pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed"),
 ]
 
@@ -304,6 +303,7 @@ def teleop_robot(
         robot.wait(timeout=30)
 
 
+@pytest.mark.one_database  # driving stores nothing a test on both databases does not
 def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
     live_server: LiveServer, teleop_robot: tuple
 ) -> None:
@@ -396,6 +396,7 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
     assert foreign == []
 
 
+@pytest.mark.one_database
 def test_a_gamepad_drives_and_its_b_button_stops(
     live_server: LiveServer, teleop_robot: tuple
 ) -> None:
