@@ -11,10 +11,17 @@ server's clock may be set differently). Chunks another worker took but left sile
 lease are done again by the job's worker, so a helper lost mid-chunk costs time, never a
 result; helpers that come late find every chunk taken and return. Nothing waits on a
 helper, so a job never deadlocks on a busy queue.
+
+A plan's folder is named by its job, attempt and the digest of the plan. When the job's
+worker is lost and a new attempt makes the same plan (same function, same shared data, same
+chunks), it adopts the results the earlier attempts' chunks left and does only the rest: a
+long job loses to a lost worker only the chunks that were running. Plans that name
+something of their attempt (its staging folder) are never the same, and start afresh.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import pickle
@@ -52,18 +59,57 @@ class FolderFanout:
 
     def __call__(self, ctx: JobContext, fn: Part, shared: Any, items: Sequence[Any]) -> list[Any]:
         chunks = chunked(items, CHUNKS_PER_WORKER * (self.helpers + 1))
-        name = f"{ctx.job_id}-{ctx.attempt}-{uuid.uuid4().hex[:8]}"
+        plan = pickle.dumps((fn, shared, chunks))
+        digest = hashlib.blake2b(plan, digest_size=8).hexdigest()
+        name = f"{ctx.job_id}-{ctx.attempt}-{digest}-{uuid.uuid4().hex[:8]}"
         folder = ctx.files.data_dir / PARTS_DIR / name
         folder.mkdir(parents=True)
         try:
-            write_atomic(folder / "plan.pkl", pickle.dumps((fn, shared, chunks)))
-            if self.helpers:
-                self.ask(ctx.job_id, name, min(self.helpers, len(chunks) - 1))
+            write_atomic(folder / "plan.pkl", plan)
+            adopted = adopt_earlier(folder, ctx.job_id, ctx.attempt, digest)
+            if adopted:
+                log.info(
+                    "job %d attempt %d: %d of %d chunks done by an earlier attempt",
+                    ctx.job_id,
+                    ctx.attempt,
+                    adopted,
+                    len(chunks),
+                )
+            if self.helpers and len(chunks) - adopted > 1:
+                self.ask(ctx.job_id, name, min(self.helpers, len(chunks) - adopted - 1))
             work_through(folder, ctx.files, self.lease_s / 4, stop=ctx.check)
             results = _collect(folder, ctx.files, len(chunks), self.lease_s, ctx)
         finally:
             shutil.rmtree(folder, ignore_errors=True)
         return [r for chunk in results for r in chunk]
+
+
+def adopt_earlier(folder: Path, job_id: int, attempt: int, digest: str) -> int:
+    """Take into ``folder`` the chunk results that earlier attempts of the job left for the
+    same plan (``digest``), each marked taken, and remove those attempts' folders; the
+    number of chunks adopted. Results are written atomically, so every one found is whole."""
+    adopted = 0
+    for old in folder.parent.glob(f"{job_id}-*-{digest}-*"):
+        fields = old.name.split("-")
+        if len(fields) != 4 or not fields[1].isdigit() or int(fields[1]) >= attempt:
+            continue
+        for result in old.glob("*.pkl"):
+            target = folder / result.name
+            if not result.stem.isdigit() or target.exists():
+                continue
+            try:
+                os.link(result, target)
+            except FileExistsError:
+                continue
+            except OSError:  # a file system without hard links
+                try:
+                    write_atomic(target, result.read_bytes())
+                except OSError:
+                    continue
+            _take(folder / f"{result.stem}.claim")
+            adopted += 1
+        shutil.rmtree(old, ignore_errors=True)
+    return adopted
 
 
 def help_with(data_dir: Path, name: str, lease_s: float) -> int:

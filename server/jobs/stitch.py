@@ -87,8 +87,13 @@ def _stored(
 ) -> StoredFrames:
     """``frames`` as helpers load them; this worker's own parts use ``frames`` themselves."""
     flat = frames.inv_flat
-    digest = "none" if flat is None else hashlib.blake2b(flat.tobytes(), digest_size=8).hexdigest()
-    stored = StoredFrames(f"{ctx.job_id}-{ctx.attempt}-{digest}", where, frames.shape or (), flat)
+    digest = hashlib.blake2b(repr(where).encode(), digest_size=8)
+    if flat is not None:
+        digest.update(flat.tobytes())
+    # named by the job and what is prepared, not the attempt: a later attempt's plan of the
+    # same pairs is the same plan, and adopts the pairs done before (server.jobs.parts)
+    key = f"{ctx.job_id}-{digest.hexdigest()}"
+    stored = StoredFrames(key, where, frames.shape or (), flat)
     with _prepared_lock:
         _own[stored.key] = frames
     return stored
@@ -174,7 +179,7 @@ def fill_over_workers(
 
 def _forget_prepared(ctx: JobContext) -> None:
     """Drop the frames this job prepared (here, and the preparation helped with)."""
-    prefix = f"{ctx.job_id}-{ctx.attempt}-"
+    prefix = f"{ctx.job_id}-"
     with _prepared_lock:
         for key in [k for k in _own if k.startswith(prefix)]:
             del _own[key]

@@ -4,6 +4,7 @@ order, each item once."""
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import pickle
 import threading
@@ -21,8 +22,18 @@ def who_did_it(files: SessionFiles, shared: float, item: int) -> tuple[int, int]
     return item, threading.get_ident()
 
 
-def context(tmp_path: Path) -> JobContext:
-    return JobContext(7, "s", None, SessionFiles(tmp_path), attempt=1)  # type: ignore[arg-type]
+def context(tmp_path: Path, attempt: int = 1) -> JobContext:
+    return JobContext(7, "s", None, SessionFiles(tmp_path), attempt=attempt)  # type: ignore[arg-type]
+
+
+def doubled_or_die(files: SessionFiles, shared: None, item: int) -> tuple[int, int]:
+    """Doubles ``item``, noting which process did it; the process dies at item 7 while the
+    data directory holds a ``die`` file (a worker lost mid-job)."""
+    (files.data_dir / "done").mkdir(exist_ok=True)
+    (files.data_dir / "done" / f"{item}-{os.getpid()}").touch()
+    if item == 7 and (files.data_dir / "die").exists():
+        os._exit(3)
+    return item * 2, os.getpid()
 
 
 def test_chunks_cover_the_items_in_order() -> None:
@@ -99,6 +110,37 @@ def test_a_helper_whose_clock_is_behind_is_not_taken_for_lost(tmp_path: Path) ->
     threads[0].join()
     assert [i for i, _ in out] == items
     assert out[-1][1] == helper[0]  # the helper's result, not one done again
+
+
+def first_attempt(tmp_path: Path, items: list[int]) -> None:
+    """The first attempt's worker (a process of its own), lost mid-job."""
+    FolderFanout(no_helpers, 0, lease_s=1.0)(context(tmp_path, 1), doubled_or_die, None, items)
+
+
+def no_helpers(job_id: int, name: str, helpers: int) -> None:
+    pass
+
+
+def test_a_new_attempt_adopts_the_chunks_a_lost_attempt_finished(tmp_path: Path) -> None:
+    items = list(range(12))  # four chunks of three: the first attempt dies in the third
+    (tmp_path / "die").touch()
+    lost = multiprocessing.get_context("spawn").Process(
+        target=first_attempt, args=(tmp_path, items)
+    )
+    lost.start()
+    lost.join(60)
+    assert lost.exitcode == 3
+    pid = lost.pid
+    (tmp_path / "die").unlink()
+    out = FolderFanout(no_helpers, 0, lease_s=1.0)(
+        context(tmp_path, 2), doubled_or_die, None, items
+    )
+    assert [v for v, _ in out] == [2 * i for i in items]
+    assert {who for _, who in out[:6]} == {pid}  # the first two chunks: the lost attempt's
+    assert {who for _, who in out[6:]} == {os.getpid()}
+    done = sorted(p.name for p in (tmp_path / "done").iterdir())
+    assert [d for d in done if d.startswith("0-")] == [f"0-{pid}"]  # not done again
+    assert not any((tmp_path / PARTS_DIR).iterdir())  # both attempts' folders are gone
 
 
 def test_a_helper_coming_late_finds_nothing_to_do(tmp_path: Path) -> None:
