@@ -130,7 +130,9 @@ class IncrementalMap:
                 pcd, self._pcds[i - 1], odometry, guess is not None, i, self.params.icp, tracked
             )
         edges = []
-        if self.params.pose_graph and step is not None:
+        # a tracked cloud was registered to every cloud before it (the step): edges beyond
+        # the previous cloud add nothing measurable there, and cost a registration each
+        if self.params.pose_graph and step is not None and not self.params.tracking.enabled:
             pose = np.asarray(self.graph.nodes[i - 1].pose) @ step.seed
             for j in range(max(0, i - self.params.neighbours), i - 1):
                 init = np.linalg.inv(np.asarray(self.graph.nodes[j].pose)) @ pose

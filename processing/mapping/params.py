@@ -127,7 +127,7 @@ class MapParams:
     loops: LoopParams = field(default_factory=LoopParams)
     odometry: OdometryParams = field(default_factory=OdometryParams)
     planes: PlaneParams = field(default_factory=PlaneParams)
-    neighbours: int = 2  # edges from each cloud to the next few
+    neighbours: int = 2  # edges from each cloud to the next few (tracked clouds: the next one)
     pose_graph: bool = True
     refine: bool = (
         True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
