@@ -22,7 +22,6 @@ from server.jobs.detect import run_detect
 from server.jobs.export import run_export
 from server.jobs.leases import LEASE_S
 from server.jobs.map import run_map
-from server.jobs.outputs import staging_dir
 from server.jobs.stitch import run_stitch
 from server.storage.db import make_engine, make_sessionmaker
 from server.storage.files import SessionFiles
@@ -86,7 +85,7 @@ def run_job(
         fanout=fanout,
     )
     results = ctx.results_dir()
-    staging = staging_dir(results, job_id, attempt)
+    staging = outputs.staging_dir(results, job_id, attempt)
     outputs.discard_earlier(results, job_id, attempt)
 
     try:
