@@ -83,26 +83,29 @@ def test_cancelling_ends_the_job_for_the_attempt_running_it(factory) -> None:  #
 
 
 def test_a_finish_that_lost_the_job_rolls_back_its_writes_and_publishes_nothing(factory) -> None:  # type: ignore[no-untyped-def]
-    job_id = new_job(factory)
-    attempt = leases.claim(factory, job_id, "a")
-    assert attempt is not None
     published: list[int] = []
     result: dict[str, int] = {}
 
-    def write(db: Session) -> None:  # the job's own rows, in the finishing transaction
-        db.add(InspectionSession(id=f"written-{job_id}", structure="by the job"))
-        result["rows"] = 1
+    def finish_writing(job_id: int, attempt: int) -> bool:
+        def write(db: Session) -> None:  # the job's own rows, in the finishing transaction
+            db.add(InspectionSession(id=f"written-{job_id}", structure="by the job"))
+            result["rows"] = 1
 
+        return leases.finish(
+            factory,
+            job_id,
+            attempt,
+            JobState.done,
+            result=result,
+            then=write,
+            publish=lambda: published.append(job_id),
+        )
+
+    job_id = new_job(factory)
+    attempt = leases.claim(factory, job_id, "a")
+    assert attempt is not None
     assert leases.cancel(factory, job_id, "inspector")
-    assert not leases.finish(
-        factory,
-        job_id,
-        attempt,
-        JobState.done,
-        result=result,
-        then=write,
-        publish=lambda: published.append(job_id),
-    )
+    assert not finish_writing(job_id, attempt)
     assert published == []
     with factory() as db:
         assert db.get(InspectionSession, f"written-{job_id}") is None
@@ -110,15 +113,8 @@ def test_a_finish_that_lost_the_job_rolls_back_its_writes_and_publishes_nothing(
 
     job_id = new_job(factory)
     attempt = leases.claim(factory, job_id, "a")
-    assert leases.finish(
-        factory,
-        job_id,
-        attempt,
-        JobState.done,
-        result=result,
-        then=write,
-        publish=lambda: published.append(job_id),
-    )
+    assert attempt is not None
+    assert finish_writing(job_id, attempt)
     assert published == [job_id]
     with factory() as db:
         assert db.get(InspectionSession, f"written-{job_id}") is not None
