@@ -49,7 +49,9 @@ def build_report(
         raise KeyError(session_id)
     jobs = list(db.scalars(select(Job).where(Job.session_id == session_id).order_by(Job.id)))
     latest = {j.kind: j for j in jobs}  # the newest job of each kind
-    done = {k: j for k, j in latest.items() if j.state == JobState.done}
+    # the newest finished run of each kind: its results are the session's (a later run that
+    # failed or was cancelled left them as they were)
+    done = {j.kind: j for j in jobs if j.state == JobState.done}
     results_dir = files.results_dir(session_id)
     world = read_json(results_dir / "mosaic.json") if "stitch" in done else None
     listed_source = "mosaic" if world is not None else "frame"

@@ -111,7 +111,10 @@ def _mcap_fresh(db: SessionDep, s: InspectionSession) -> Job | None:
     later = [
         j
         for j in jobs
-        if j.kind != "export" and j.finished_at is not None and j.finished_at > last.finished_at
+        if j.kind != "export"
+        and j.state == JobState.done  # a failed or cancelled run changed no result
+        and j.finished_at is not None
+        and j.finished_at > last.finished_at
     ]
     return None if later else last
 
