@@ -1,13 +1,37 @@
-"""What every benchmark shares: the result type and small geometric helpers."""
+"""What every benchmark shares: the result type, a robot's session on a station, and small
+geometric helpers."""
 
 from __future__ import annotations
 
+import uuid
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from websockets.asyncio.client import ClientConnection, connect
+
+from robot_link.protocol import Message, MessageType, encode_message
 
 Result = dict[str, Any]
+
+
+@asynccontextmanager
+async def robot_session(
+    port: int, token: str, sid: uuid.UUID, structure: str, calibration: dict[str, Any]
+) -> AsyncIterator[ClientConnection]:
+    """A robot's link to the station on loopback ``port``, its session ``sid`` started (as
+    message 1, acknowledged): the messages from 2 on are the caller's."""
+    async with connect(
+        f"ws://127.0.0.1:{port}/ws/robot",
+        additional_headers={"Authorization": f"Bearer {token}"},
+        max_size=2**22,
+    ) as ws:
+        start = {"structure": structure, "operator": "bench", "calibration": calibration}
+        await ws.send(encode_message(Message(MessageType.SESSION_START, sid, 1, 0.0, start)))
+        await ws.recv()
+        yield ws
 
 
 def rigid_align_2d(src: NDArray[np.float64], dst: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -29,9 +29,8 @@ from pathlib import Path
 import cv2
 import httpx
 import numpy as np
-from websockets.asyncio.client import connect
 
-from bench.common import Result
+from bench.common import Result, robot_session
 from bench.ingest import ROBOTS, drive_robots
 from bench.scale_map import map_results, record_clouds
 from bench.services import Postgres, Redis, start_worker, stop_workers
@@ -56,14 +55,7 @@ def _record(port: int, token: str, frames: int) -> str:
     calib = {"camera": {"px_per_m": PX_PER_M, "T_robot_camera": [0.0, 0.0, 0.0]}}
 
     async def run() -> None:
-        async with connect(
-            f"ws://127.0.0.1:{port}/ws/robot",
-            additional_headers={"Authorization": f"Bearer {token}"},
-            max_size=2**22,
-        ) as ws:
-            start = {"structure": "long span", "operator": "bench", "calibration": calib}
-            await ws.send(encode_message(Message(MessageType.SESSION_START, sid, 1, 0.0, start)))
-            await ws.recv()
+        async with robot_session(port, token, sid, "long span", calib) as ws:
             window = 64
             for k in range(frames):
                 ok, buf = cv2.imencode(".jpg", sweep[k], [cv2.IMWRITE_JPEG_QUALITY, 90])

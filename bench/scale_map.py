@@ -6,9 +6,8 @@ import asyncio
 import uuid
 
 import numpy as np
-from websockets.asyncio.client import connect
 
-from bench.common import Result
+from bench.common import Result, robot_session
 from processing.poses import se2_of_matrix
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
 
@@ -32,14 +31,7 @@ def record_clouds(port: int, token: str, limit: int | None = None) -> str:
     calib = {"tof": {**sweep.intrinsics, "T_robot_tof": mount.tolist()}}
 
     async def run() -> None:
-        async with connect(
-            f"ws://127.0.0.1:{port}/ws/robot",
-            additional_headers={"Authorization": f"Bearer {token}"},
-            max_size=2**22,
-        ) as ws:
-            start = {"structure": "long girder", "operator": "bench", "calibration": calib}
-            await ws.send(encode_message(Message(MessageType.SESSION_START, sid, 1, 0.0, start)))
-            await ws.recv()
+        async with robot_session(port, token, sid, "long girder", calib) as ws:
             for k, (cloud, T) in enumerate(zip(sweep.clouds, sweep.odometry)):
                 x, y, yaw = se2_of_matrix(T @ np.linalg.inv(mount))
                 pose = {"x": float(x), "y": float(y), "yaw": float(yaw)}
