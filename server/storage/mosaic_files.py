@@ -1,9 +1,12 @@
 """Mosaic files on disk: the full-resolution PNG, a Deep Zoom tile pyramid, an overview,
 the coverage mask and the world mapping, written from a stream of bands.
 
-Bands go to a raw scratch file as they are finished (bounded memory for any mosaic size);
-libvips then streams that file into the PNG, the Deep Zoom pyramid (``mosaic.dzi`` plus
-``mosaic_files/<level>/<col>_<row>.jpg``, the layout OpenSeadragon reads) and the overview.
+Bands go to a raw scratch file as they are finished (bounded memory for any mosaic size),
+and each band's rows are deflated into a segment of the PNG as it comes (on any worker, or
+on threads beside the renderer: :mod:`server.storage.png_segments`), so the full-resolution
+PNG is joined from them without compressing anything more. libvips streams the raw file
+into the Deep Zoom pyramid (``mosaic.dzi`` plus ``mosaic_files/<level>/<col>_<row>.jpg``,
+the layout OpenSeadragon reads), the overview and the coverage PNG.
 Every output appears atomically (written under a temporary name, then renamed); the scratch
 and the full-resolution PNGs are written behind (:mod:`server.storage.write_behind`).
 """
@@ -13,7 +16,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from collections import deque
 from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,9 +26,11 @@ from typing import Any
 import cv2
 import numpy as np
 import pyvips
+from numpy.typing import NDArray
 
 from processing.stitching import Band, MosaicLayout
 from server.storage.files import SessionFiles
+from server.storage.png_segments import join_segments, write_segment
 from server.storage.write_behind import WriteBehind, save_behind
 
 OVERVIEW_MAX_PX = 2048
@@ -86,29 +93,48 @@ def write_mosaic(
         shutil.rmtree(scratch, ignore_errors=True)
 
 
-def _band_bytes(band: Band) -> tuple[bytes, bytes]:
+def _rgb(band: Band) -> NDArray[np.uint8]:
     img = band.image
-    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 else img
-    return np.ascontiguousarray(img).tobytes(), (band.coverage.astype(np.uint8) * 255).tobytes()
+    return np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if img.ndim == 3 else img)
+
+
+def _segments(raw: Path) -> Path:
+    """The folder of the PNG's segments beside the raw image file."""
+    return raw.parent / "png"
 
 
 def _stream_bands(raw: Path, cov: Path, layout: MosaicLayout, bands: Iterable[Band]) -> None:
     rows = 0
-    with WriteBehind(raw) as f_img, WriteBehind(cov) as f_cov:
+    threads = max(1, min(4, os.cpu_count() or 1))
+    pending: deque[Future[Path]] = deque()
+    with (
+        WriteBehind(raw) as f_img,
+        WriteBehind(cov) as f_cov,
+        ThreadPoolExecutor(threads, thread_name_prefix="png") as pool,
+    ):
         for band in bands:
             if band.y0 != rows:
                 raise ValueError(f"band at row {band.y0} arrived out of order (expected {rows})")
-            img, covered = _band_bytes(band)
-            f_img.write(img)
-            f_cov.write(covered)
+            img = _rgb(band)
+            # deflate (which releases the GIL) beside the renderer; a few bands in flight
+            pending.append(pool.submit(write_segment, _segments(raw), band.y0, img))
+            f_img.write(img.data)
+            f_cov.write((band.coverage.astype(np.uint8) * 255).data)
             rows += band.image.shape[0]
+            while len(pending) > 2 * threads or (pending and pending[0].done()):
+                pending.popleft().result()
+        for future in pending:
+            future.result()
     if rows != layout.height:
         raise ValueError(f"mosaic has {rows} rows, layout says {layout.height}")
 
 
 def write_band(raw: Path, cov: Path, band: Band) -> None:
-    """One band written in place into the preallocated raw files of a :data:`BandFill`."""
-    img, covered = _band_bytes(band)
+    """One band written in place into the preallocated raw files of a :data:`BandFill`, and
+    its rows as a segment of the PNG."""
+    rgb = _rgb(band)
+    write_segment(_segments(raw), band.y0, rgb)
+    img, covered = rgb.tobytes(), (band.coverage.astype(np.uint8) * 255).tobytes()
     width = band.coverage.shape[1]
     for path, data, channels in ((raw, img, len(img) // len(covered)), (cov, covered, 1)):
         fd, view, at = os.open(path, os.O_WRONLY), memoryview(data), band.y0 * width * channels
@@ -143,10 +169,11 @@ def save_output(scratch: Path, raw: RawMosaic, what: str) -> None:
         coverage = _raw_image(scratch / "coverage.raw", raw.width, raw.height, 1)
         save_behind(coverage, scratch / "mosaic_coverage.png", ".png", compression=3)
         return
-    image = _raw_image(scratch / "mosaic.raw", raw.width, raw.height, raw.channels)
     if what == "mosaic":
-        save_behind(image, scratch / "mosaic.png", ".png", compression=3)
-    elif what == "overview":
+        join_segments(scratch / "png", scratch / "mosaic.png", raw.width, raw.height, raw.channels)
+        return
+    image = _raw_image(scratch / "mosaic.raw", raw.width, raw.height, raw.channels)
+    if what == "overview":
         scale = raw.overview_scale
         small = image.resize(scale, kernel="linear") if scale < 1.0 else image
         small.pngsave(str(scratch / "mosaic_overview.png"))
@@ -176,7 +203,7 @@ def _save_all(
     data_dir: Path | None,
 ) -> MosaicFiles:
     scale = min(1.0, OVERVIEW_MAX_PX / max(layout.width, layout.height, 1))
-    outputs = ["pyramid"] * pyramid + ["mosaic", "coverage", "overview"]  # longest first
+    outputs = ["pyramid"] * pyramid + ["mosaic", "overview", "coverage"]  # longest first
     if save_map is not None and data_dir is not None:
         rel = str(scratch.relative_to(data_dir))
         raw = RawMosaic(rel, layout.width, layout.height, layout.channels, scale)
