@@ -177,6 +177,17 @@ def fill_over_workers(
     return fill
 
 
+def _timed(fill: BandFill, seconds: list[float]) -> BandFill:
+    """``fill`` that appends the seconds it took to ``seconds``."""
+
+    def timed(raw: Path, coverage: Path, height: int) -> None:
+        t0 = time.perf_counter()
+        fill(raw, coverage, height)
+        seconds.append(time.perf_counter() - t0)
+
+    return timed
+
+
 def _forget_prepared(ctx: JobContext) -> None:
     """Drop the frames this job prepared (here, and the preparation helped with)."""
     prefix = f"{ctx.job_id}-"
@@ -226,6 +237,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     params = StitchParams()
     params = replace(params, registration=replace(params.registration, workers=ctx.threads))
     where = [(f.path, f.data_offset, f.size_bytes) for f in use]
+    banded: list[float] = []
     t0 = time.perf_counter()
     try:
         layout, loaded = plan_mosaic(
@@ -247,7 +259,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         files = write_mosaic(
             ctx.output_dir(),
             layout,
-            fill_over_workers(ctx, where, layout, loaded, params)
+            _timed(fill_over_workers(ctx, where, layout, loaded, params), banded)
             if ctx.fanout is not None
             else render_bands(
                 layout, loaded, params, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)
@@ -262,6 +274,8 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         "pairs": round(t_pairs, 3),  # with the pose graph, solved on the job's worker
         "render": round(time.perf_counter() - t0 - t_pairs, 3),  # the files written here
     }
+    if banded:  # of which the bands (and the PNG's segments), on a job queue
+        seconds["bands"] = round(banded[0], 3)
     results = ctx.results_dir()  # where the files are once the job is done
     return {
         "mosaic_path": str(results / files.mosaic.name),

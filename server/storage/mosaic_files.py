@@ -105,7 +105,7 @@ def _segments(raw: Path) -> Path:
 
 def _stream_bands(raw: Path, cov: Path, layout: MosaicLayout, bands: Iterable[Band]) -> None:
     rows = 0
-    threads = max(1, min(4, os.cpu_count() or 1))
+    threads = max(1, min(2, os.cpu_count() or 1))
     pending: deque[Future[Path]] = deque()
     with (
         WriteBehind(raw) as f_img,
@@ -116,12 +116,12 @@ def _stream_bands(raw: Path, cov: Path, layout: MosaicLayout, bands: Iterable[Ba
             if band.y0 != rows:
                 raise ValueError(f"band at row {band.y0} arrived out of order (expected {rows})")
             img = _rgb(band)
-            # deflate (which releases the GIL) beside the renderer; a few bands in flight
+            # deflate (which releases the GIL) beside the renderer, a band or two in flight
             pending.append(pool.submit(write_segment, _segments(raw), band.y0, img))
             f_img.write(img.data)
             f_cov.write((band.coverage.astype(np.uint8) * 255).data)
             rows += band.image.shape[0]
-            while len(pending) > 2 * threads or (pending and pending[0].done()):
+            while len(pending) > threads or (pending and pending[0].done()):
                 pending.popleft().result()
         for future in pending:
             future.result()
