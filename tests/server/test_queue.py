@@ -127,6 +127,7 @@ def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster) -> None:
     assert stitch["attempt"] == 1 and stitch["worker"].startswith("steelscan-")
     assert stitch["result"]["pairs"] > 59 and set(stitch["result"]["seconds"]) == {
         "pairs",
+        "bands",  # spread over the workers on a job queue
         "render",
     }
     detect_id = start_job(cluster, sid, "detect")
