@@ -151,6 +151,22 @@ def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster) -> None:
         ]  # fmt: skip
         holder = cluster.holder(job["worker"])
         assert helped[1 - holder] > 0, (helped, [p.read_text()[-2000:] for p in cluster.logs])
+    # every process of a worker yields the CPU to a station on the same machine: the job
+    # processes and the worker's own (broker, pool, results)
+    for w in cluster.workers:
+        group = [int(p) for p in os.listdir("/proc") if p.isdigit() and _group_of(int(p)) == w.pid]
+        assert w.pid in group and len(group) >= 2, group
+        assert {os.sched_getscheduler(p) for p in group} == {os.SCHED_IDLE}, group
+        autogroup = Path(f"/proc/{w.pid}/autogroup")  # a session of its own: its group yields
+        if autogroup.exists():
+            assert autogroup.read_text().split()[-1] == "19", autogroup.read_text()
+
+
+def _group_of(pid: int) -> int | None:
+    try:
+        return os.getpgid(pid)
+    except ProcessLookupError:
+        return None
 
 
 @pytest.mark.parametrize("what", ["process", "worker"])
