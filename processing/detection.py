@@ -9,9 +9,10 @@ crack network, :mod:`processing.learned`), and the paper's baselines ``otsu`` an
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -123,9 +124,18 @@ def detect_cracks_tiled(
         )
         out[tile_core(*tile)] = mask[cr, cc]
 
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        list(pool.map(run, tiles))
+    _each(run, tiles, workers)
     return out
+
+
+def _each(fn: Callable[[Any], None], items: Sequence[Any], workers: int) -> None:
+    """``fn`` on every item, on up to ``workers`` threads (here, without a pool, for one)."""
+    if workers <= 1 or len(items) <= 1:
+        for item in items:
+            fn(item)
+        return
+    with ThreadPoolExecutor(max_workers=min(workers, len(items))) as pool:
+        list(pool.map(fn, items))
 
 
 @dataclass(frozen=True)
@@ -198,8 +208,7 @@ def defect_masks(
         if surface is not None and surface.rust_saturation is not None
         else rust_saturation(image, corrosion_params)
     )
-    with ThreadPoolExecutor(max_workers=max(1, min(workers, len(tiles)))) as pool:
-        list(pool.map(run, tiles))
+    _each(run, tiles, workers)
     if valid is not None:
         rust &= valid
     rc = Components.of(rust)

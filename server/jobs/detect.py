@@ -89,22 +89,28 @@ def detect_in(
         workers=workers,
         learned_params=LearnedParams(threads=network_threads),
     )
-    with ThreadPoolExecutor(max_workers=workers) as pool:  # labelling and distances release the GIL
-        rust = pool.submit(
-            measure_defects,
-            masks.rust,
-            "corrosion",
-            mm_per_px=mm_per_px,
-            components=masks.rust_components,
-        )
-        found = measure_defects(
-            masks.cracks,
-            "crack",
-            mm_per_px=mm_per_px,
-            contrast=masks.contrast,
-            components=masks.crack_components,
-        )
-        found += [replace(d, id=len(found) + d.id) for d in rust.result()]
+    cracks = partial(
+        measure_defects,
+        masks.cracks,
+        "crack",
+        mm_per_px=mm_per_px,
+        contrast=masks.contrast,
+        components=masks.crack_components,
+    )
+    rust = partial(
+        measure_defects,
+        masks.rust,
+        "corrosion",
+        mm_per_px=mm_per_px,
+        components=masks.rust_components,
+    )
+    if workers <= 1:
+        found, rusty = cracks(), rust()
+    else:
+        with ThreadPoolExecutor(max_workers=2) as pool:  # labelling and distances release the GIL
+            other = pool.submit(rust)
+            found, rusty = cracks(), other.result()
+    found += [replace(d, id=len(found) + d.id) for d in rusty]
     return masks.cracks, masks.rust, found
 
 
