@@ -17,7 +17,6 @@ import logging
 import os
 import socket
 from functools import lru_cache
-from pathlib import Path
 from typing import Any
 
 from celery import Celery, group
@@ -26,15 +25,13 @@ from celery.signals import worker_process_init
 from server.config import Settings
 from server.jobs import leases
 from server.jobs.parts import FolderFanout, help_with
+from server.jobs.priority import yield_to_the_station
 from server.jobs.worker import factory_for, run_job
 
 log = logging.getLogger(__name__)
 
 JOB_TASK = "steelscan.job"
 PART_TASK = "steelscan.part"
-WORKER_NICE = 10  # well below the station's live link when both share a machine
-AUTOGROUP = Path("/proc/self/autogroup")  # this session's scheduling group (Linux)
-AUTOGROUP_NICE = 19  # the group's least share of the CPU: the worker's session yields
 
 
 def make_app(broker_url: str, lease_s: float = leases.LEASE_S) -> Celery:
@@ -112,33 +109,6 @@ class CeleryQueue:
     def send(self, job_id: int) -> None:
         """Queue one job for the workers."""
         self.app.send_task(JOB_TASK, args=[job_id])
-
-
-def yield_to_the_station() -> None:
-    """Idle CPU priority for this process (and what it forks): it runs only when nothing
-    else wants the CPU, so a station on the same machine keeps its live link; ``nice``
-    where idle priority is refused.
-
-    Priorities compare only within a scheduling group. Linux puts each session in a group
-    of its own (autogroup), and the groups share the CPU equally whatever their tasks'
-    priorities: a worker started in a session of its own (a service, a container, ``setsid``)
-    took the cores from the station as if at normal priority. Such a worker lowers its own
-    session's group to the least share (nice 19). One in a shared session (a terminal's)
-    leaves that group alone, which would lower the session's other programs too: it ranks
-    below those only, so a station on the same machine belongs in the same session, or the
-    worker in a session of its own."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (OSError, AttributeError):
-        try:
-            os.nice(WORKER_NICE)
-        except OSError:
-            pass
-    if os.getsid(0) == os.getpid():  # the session, and so its group, is this worker's alone
-        try:
-            AUTOGROUP.write_text(f"{AUTOGROUP_NICE}\n")
-        except OSError:  # no autogroups (disabled, not Linux): the priority above suffices
-            pass
 
 
 @worker_process_init.connect
