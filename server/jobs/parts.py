@@ -40,20 +40,14 @@ log = logging.getLogger(__name__)
 
 PARTS_DIR = ".parts"
 POLL_S = 0.05
+CHUNKS_PER_WORKER = 4  # chunks per worker taking part: evens out chunks of unequal cost
 
 
-def chunked(items: Sequence[Any], workers: int) -> list[list[Any]]:
-    """``items`` in consecutive runs for ``workers`` taking them in turn, largest first
-    (guided self-scheduling): each run holds a ``2 * workers``-th of the items not yet
-    given out, so the first runs are long (few hand-overs) and the last ones a single item
-    (the workers finish together however unequal the items' costs or late a helper)."""
-    out: list[list[Any]] = []
-    start, share = 0, 2 * max(1, workers)
-    while start < len(items):
-        size = -(-(len(items) - start) // share)  # ceil
-        out.append(list(items[start : start + size]))
-        start += size
-    return out
+def chunked(items: Sequence[Any], pieces: int) -> list[list[Any]]:
+    """``items`` in ``pieces`` consecutive runs of near-equal length (none empty)."""
+    pieces = max(1, min(pieces, len(items)))
+    edges = [round(len(items) * k / pieces) for k in range(pieces + 1)]
+    return [list(items[a:b]) for a, b in zip(edges, edges[1:]) if b > a]
 
 
 class FolderFanout:
@@ -64,7 +58,7 @@ class FolderFanout:
         self.ask, self.helpers, self.lease_s = ask, helpers, lease_s
 
     def __call__(self, ctx: JobContext, fn: Part, shared: Any, items: Sequence[Any]) -> list[Any]:
-        chunks = chunked(items, self.helpers + 1)
+        chunks = chunked(items, CHUNKS_PER_WORKER * (self.helpers + 1))
         plan = pickle.dumps((fn, shared, chunks))
         digest = hashlib.blake2b(plan, digest_size=8).hexdigest()
         name = f"{ctx.job_id}-{ctx.attempt}-{digest}-{uuid.uuid4().hex[:8]}"
