@@ -37,8 +37,9 @@ _SCHED_ATTR = struct.Struct("IIQiIQQQ")  # size, policy, flags, nice, priority, 
 
 
 def ask_long_slice() -> bool:
-    """Batch priority at this process's nice, asking for the longest time slice; whether
-    the kernel took the call (a kernel before 6.12 takes it and ignores the slice)."""
+    """Batch priority for the calling thread at the process's nice, asking for the longest
+    time slice; whether the kernel took the call (a kernel before 6.12 takes it and
+    ignores the slice)."""
     number = _SCHED_SETATTR.get(platform.machine())
     if number is None or not hasattr(os, "SCHED_BATCH"):
         return False
@@ -51,8 +52,8 @@ def ask_long_slice() -> bool:
 
 
 def yield_to_the_station() -> None:
-    """This process (and what it forks and starts later) below a station on the same
-    machine: the longest time slice, idle priority, and its session's scheduling group
+    """The calling thread, and the threads and processes it starts afterwards (call it
+    before starting any), below a station on the same machine: the longest time slice, idle priority, and its session's scheduling group
     at the least weight when the session is its own. Calling it again is harmless."""
     try:
         if os.sched_getscheduler(0) != os.SCHED_IDLE:  # from idle there is no way back
