@@ -36,7 +36,10 @@ one is tied to it in the three directions a plane fixes, so heading, tilt and he
 not drift along a lane the way a chain of pairwise registrations does. The odometry
 edges' errors are raised to what the data show (:meth:`IncrementalMap.odometry_error_scale`:
 its heading steps against ICP's where the structure fixes them), so odometry worse than
-configured does not pull the map off.
+configured does not pull the map off. Last, the robot's wheels
+(:mod:`processing.mapping.wheels`): a rolling robot does not slide sideways, so once the
+trajectory is known well enough to fit where the camera sits on the robot, every step is
+held to its arc, which fixes the distance along a member in turns that see nothing across it.
 :class:`IncrementalMap` builds that graph one cloud at a time: the batch job and the live
 map are the same code.
 

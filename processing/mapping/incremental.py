@@ -16,6 +16,7 @@ from processing.mapping.pairwise import CloudMeasurement, PairEdge, Step, edge_o
 from processing.mapping.params import MapParams
 from processing.mapping.selection import fuse_map, select
 from processing.mapping.tracking import Tracker
+from processing.mapping.wheels import WheelModel, fit_wheel_model, wheel_edge
 from processing.planes import Plane, extract_planes
 
 reg = o3d.pipelines.registration
@@ -84,6 +85,10 @@ class IncrementalMap:
         self._fused = o3d.geometry.PointCloud()
         self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
         self.tracker = Tracker(params.tracking, params.select.voxel_m)
+        self.wheel_model: WheelModel | None = None  # fitted in :meth:`result`
+        # cloud -> information of its tracked pose (the geometry's where it observes, the
+        # prediction's prior elsewhere): its odometry edge's
+        self._tracked_information: dict[int, NDArray[np.float64]] = {}
 
     @property
     def usable_clouds(self) -> int:
@@ -115,9 +120,10 @@ class IncrementalMap:
         """Place one cloud (sensor frame) given its odometry pose ``guess``; its pose."""
         guess = None if guess is None else np.asarray(guess, dtype=np.float64)
         pcd = select(points, self.params.select, shape)
+        i = len(self._pcds)
         if self.params.tracking.enabled:  # the tracked pose is the graph's odometry
             guess = self.tracker.track(pcd, guess)
-        i = len(self._pcds)
+            self._tracked_information[i] = self.tracker.information()
         step = None
         if i > 0:
             previous = self._guesses[i - 1]
@@ -217,7 +223,7 @@ class IncrementalMap:
         """Odometry edge into cloud i: holds what the geometry cannot; its error grows with the step."""
         step = self._steps[i - 1]
         sigma_r, sigma_t = self._odometry_sigmas[i] = self._odometry_sigma(step)
-        info = np.diag([1 / sigma_r**2] * 3 + [1 / sigma_t**2] * 3)
+        info = self._odometry_information(i, 1.0)
         self.graph.edges.append(reg.PoseGraphEdge(i, i - 1, step, info, uncertain=False))
 
     def _odometry_sigma(self, step: NDArray[np.float64]) -> tuple[float, float]:
@@ -247,10 +253,16 @@ class IncrementalMap:
             if edge.uncertain or t != s - 1 or s in seen or s not in self._odometry_sigmas:
                 continue
             seen.add(s)
-            sigma_r, sigma_t = self._odometry_sigmas[s]
-            edge.information = np.diag(
-                [1 / (scale * sigma_r) ** 2] * 3 + [1 / (scale * sigma_t) ** 2] * 3
-            )
+            edge.information = self._odometry_information(s, scale)
+
+    def _odometry_information(self, i: int, scale: float) -> NDArray[np.float64]:
+        """Information of cloud i's odometry edge: once the wheel model holds the steps, its
+        tracked pose's (the geometry's where it observes, the prediction's elsewhere:
+        :meth:`Tracker.information`), else the configured odometry errors times ``scale``."""
+        if self.wheel_model is not None and i in self._tracked_information:
+            return self._tracked_information[i]
+        sigma_r, sigma_t = self._odometry_sigmas[i]
+        return np.diag([1 / (scale * sigma_r) ** 2] * 3 + [1 / (scale * sigma_t) ** 2] * 3)
 
     def _add_edge(
         self, s: int, t: int, result: reg.RegistrationResult | None, *, uncertain: bool
@@ -332,6 +344,21 @@ class IncrementalMap:
             self.landmarks.poses[m] = np.asarray(graph.nodes[node].pose).copy()
         self._fused_upto = 0  # every pose may have moved: fuse again
 
+    def _hold_to_wheels(self) -> None:
+        """Fit the robot's wheel model to the optimised poses (:mod:`processing.mapping.
+        wheels`) and, where it fits, tie every step to it and optimise again, each tracked
+        step then held by the odometry only where its view did not fix it."""
+        poses = self.poses
+        self.wheel_model = model = fit_wheel_model(poses, self.tracker.sigmas()[1])
+        if model is None:
+            return
+        for i in range(1, len(poses)):
+            measured, information = wheel_edge(model, np.linalg.inv(poses[i - 1]) @ poses[i])
+            self.graph.edges.append(
+                reg.PoseGraphEdge(i, i - 1, measured, information, uncertain=False)
+            )
+        self.optimise()
+
     @property
     def points(self) -> NDArray[np.float32]:
         """The fused map so far, (M, 3) world frame."""
@@ -359,6 +386,8 @@ class IncrementalMap:
                 or len(self.landmarks) < landmarks
             ):
                 self.optimise()
+        if self.params.pose_graph and self.params.tracking.enabled and self.params.wheels:
+            self._hold_to_wheels()
         fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
         poses = self.poses
         return MapResult(

@@ -40,6 +40,9 @@ class TrackingParams:
     # directions the geometry fixes less than this share of the strongest half do: prior only
     degenerate_ratio: float = 0.001
     min_points: int = 50  # fewer points (cloud or map in view): the prediction is used
+    # effective error of one point-to-plane residual in the graph's tracked edge (neighbouring
+    # residuals are correlated: far above the noise)
+    icp_sigma_m: float = 0.06
 
 
 @dataclass(frozen=True)
@@ -129,6 +132,8 @@ class MapParams:
     planes: PlaneParams = field(default_factory=PlaneParams)
     neighbours: int = 2  # edges from each cloud to the next few (tracked clouds: the next one)
     pose_graph: bool = True
+    # tracked steps tied to the robot's wheel model fitted to them (processing.mapping.wheels)
+    wheels: bool = True
     refine: bool = (
         True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
     )

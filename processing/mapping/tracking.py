@@ -34,12 +34,15 @@ from processing.poses import se3_exp, se3_log
 
 
 class Registration(NamedTuple):
-    """A cloud's registered pose T_world_sensor (4, 4), the matches it rests on and the
-    directions (0-6) the geometry left to the prediction at the last search distance."""
+    """A cloud's registered pose T_world_sensor (4, 4), the matches it rests on, the
+    directions (0-6) the geometry left to the prediction at the last search distance, and
+    the pose's information (6, 6; rotation first, in the sensor frame): the geometry's
+    along the directions it observes, the prediction's prior along the rest."""
 
     pose: NDArray[np.float64]
     matched: int
     degenerate: int
+    information: NDArray[np.float64]
 
 
 def search_distances(
@@ -85,6 +88,7 @@ def register_to_map(
     T = prediction.copy()
     P_inv = np.linalg.inv(prediction)
     matched = degenerate = 0
+    information = prior_information
     for level, distance in enumerate(distances):
         scale = distance / 3
         last = level == len(distances) - 1
@@ -106,7 +110,7 @@ def register_to_map(
             ok, n = ok[agree], n[agree]
             matched = len(ok)
             if matched < params.min_points:
-                return Registration(prediction.copy(), matched, 6)
+                return Registration(prediction.copy(), matched, 6, prior_information)
             r = np.einsum("ij,ij->i", world[ok] - map_points[nearest[ok]], n)
             w = stride * (scale**2 / (scale**2 + r**2)) ** 2 / scale**2  # as if every point
             n_sensor = n @ R
@@ -125,9 +129,11 @@ def register_to_map(
             g = g_data + prior_information @ e
             step = -np.linalg.solve(H, g)
             T = T @ se3_exp(step)
+            # neighbouring residuals are correlated: each counts as one of ``icp_sigma_m``
+            information = H_data * (scale / params.icp_sigma_m) ** 2 + prior_information
             if np.abs(step).max() < tolerance:
                 break
-    return Registration(T, matched, degenerate)
+    return Registration(T, matched, degenerate, information)
 
 
 def observable_part(
@@ -199,6 +205,14 @@ class Tracker:
             return float(np.radians(p.initial_sigma_deg)), p.initial_sigma_m
         rot, trans = np.sqrt(np.mean(self._corrections, axis=0))
         return max(float(rot), float(np.radians(p.min_sigma_deg))), max(float(trans), p.min_sigma_m)
+
+    def information(self) -> NDArray[np.float64]:
+        """Information (6, 6) of the last cloud's pose: its registration's, or the prior's
+        where it was placed by the prediction."""
+        if self.last is not None:
+            return self.last.information
+        sigma_rad, sigma_m = self.sigmas()
+        return np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
 
     def _prediction(self, guess: NDArray[np.float64] | None) -> NDArray[np.float64]:
         previous = self._guesses[-1] if self._guesses else None

@@ -40,7 +40,7 @@ def test_a_cloud_is_pulled_onto_the_map_from_centimetres_off() -> None:
     map_points = points @ truth[:3, :3].T + truth[:3, 3] + rng.normal(0, 0.003, points.shape)
     map_normals = normals @ truth[:3, :3].T
     weak = np.diag([1 / np.radians(10) ** 2] * 3 + [1 / 0.1**2] * 3)
-    T, matched, _ = register_to_map(
+    T, matched, _, _ = register_to_map(
         points,
         normals,
         map_points,
@@ -64,7 +64,7 @@ def test_where_the_geometry_says_nothing_the_prediction_holds() -> None:
     seen = [select(plate + rng.normal(0, 0.002, plate.shape)) for _ in range(2)]
     prediction = se3_exp(np.array([0, 0, 0.02, 0.03, -0.01, 0.0]))
     prior = np.diag([1 / np.radians(5) ** 2] * 3 + [1 / 0.05**2] * 3)
-    T, _, _ = register_to_map(
+    T, _, _, information = register_to_map(
         np.asarray(seen[0].points),
         np.asarray(seen[0].normals),
         np.asarray(seen[1].points),
@@ -76,6 +76,10 @@ def test_where_the_geometry_says_nothing_the_prediction_holds() -> None:
     )
     assert np.allclose(T[:2, 3], prediction[:2, 3], atol=2e-3)
     assert abs(se3_log(np.linalg.inv(prediction) @ T)[2]) < np.radians(0.2)
+    # the pose's information: the prior's alone along the plate and about its normal, the
+    # geometry's many times over across it
+    assert np.allclose(information[[2, 3, 4], [2, 3, 4]], prior[[2, 3, 4], [2, 3, 4]], rtol=0.05)
+    assert information[5, 5] > 100 * prior[5, 5]
 
 
 def test_search_distances_run_from_the_motion_error_down_to_the_voxel() -> None:
