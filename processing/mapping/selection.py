@@ -61,7 +61,8 @@ def select(
     params: SelectParams = SelectParams(),
     shape: tuple[int, int] | None = None,
 ) -> o3d.geometry.PointCloud:
-    """Selection step: (organised) depth filtering, cleaning, voxel downsampling, normals."""
+    """Selection step: (organised) depth filtering, cleaning, voxel downsampling, the points
+    whose normals the neighbourhood fixes, with them (:func:`with_normals`)."""
     if (
         shape is not None
         and params.depth_median_px
@@ -73,11 +74,29 @@ def select(
     )
     pcd = pcd.voxel_down_sample(params.voxel_m)
     if len(pcd.points) >= 3:
-        pcd.estimate_normals(
-            o3d.geometry.KDTreeSearchParamHybrid(radius=params.voxel_m * 3, max_nn=30)
-        )
-        pcd.orient_normals_towards_camera_location(np.zeros(3))
+        pcd = with_normals(pcd, params.voxel_m)
     return pcd
+
+
+def with_normals(pcd: o3d.geometry.PointCloud, voxel_m: float) -> o3d.geometry.PointCloud:
+    """The points of a voxel-downsampled cloud (sensor frame) whose neighbourhood (3 voxels
+    across) fixes a normal, with it, facing the sensor.
+
+    A normal is the direction the neighbours spread least in; it is fixed only where they
+    spread in two directions, across by at least a quarter voxel (the voxel's own sampling).
+    A row of returns alone, as a plate seen at a grazing angle far off gives, leaves the
+    normal free to turn about the row, and how it turns follows the sensor's pixel rows, not
+    the structure: such normals would pull every registration towards the pose the sensor
+    had before, along directions the structure does not fix."""
+    pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=voxel_m * 3, max_nn=30))
+    values, vectors = np.linalg.eigh(np.asarray(pcd.covariances))  # ascending
+    keep = np.flatnonzero(values[:, 1] > (voxel_m / 4) ** 2)
+    points = np.asarray(pcd.points)[keep]
+    normals = vectors[keep, :, 0]
+    normals *= np.where(np.einsum("ij,ij->i", normals, points) > 0, -1.0, 1.0)[:, None]
+    out = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    out.normals = o3d.utility.Vector3dVector(normals)
+    return out
 
 
 def fuse_map(

@@ -123,3 +123,52 @@ def test_tracking_keeps_the_map_on_a_structure_it_was_not_tuned_on() -> None:
     error = absolute_trajectory_error(tracked.poses, sweep.truth)
     assert error < 0.5 * absolute_trajectory_error(pairwise.poses, sweep.truth)
     assert error < 0.15 * absolute_trajectory_error(sweep.odometry, sweep.truth)
+
+
+def test_a_plate_seen_far_off_does_not_pull_a_cloud_back_to_where_the_sensor_was() -> None:
+    """On a gusset plate the view holds the plate and the chord's wall beside it, both along
+    the route: little fixes the distance along it. Far off, the plate comes back as rows of
+    returns whose normals only the pixel rows set; registered from a prediction off along
+    the route, a cloud keeps about the prediction's distance instead of sliding towards
+    the previous cloud's pose (18 mm typical with normals of every point)."""
+    from processing.mapping.tracking import register_near
+    from processing.mapping.voxel_map import VoxelMap
+
+    sweep = scene_sweep(SceneSweepConfig(kind="gusset_joint", seed=2))
+    shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
+    params = MapParams()
+    slides = []
+    for k in (2, 3, 4, 5):
+        seen = VoxelMap(params.select.voxel_m)
+        previous = select(sweep.clouds[k - 1], params.select, shape)
+        R, t = sweep.truth[k - 1][:3, :3], sweep.truth[k - 1][:3, 3]
+        seen.add(np.asarray(previous.points) @ R.T + t, np.asarray(previous.normals) @ R.T)
+        cloud = select(sweep.clouds[k], params.select, shape)
+        for off in (-0.025, 0.0, 0.025):
+            prediction = sweep.truth[k].copy()
+            prediction[0, 3] += off
+            found = register_near(
+                np.asarray(cloud.points),
+                np.asarray(cloud.normals),
+                seen,
+                prediction,
+                (np.radians(2), 0.02),
+                params.tracking,
+            )
+            assert found is not None
+            slides.append(found.pose[0, 3] - prediction[0, 3])
+    assert np.median(np.abs(slides)) < 0.006
+
+
+def test_only_points_whose_neighbours_span_a_surface_keep_a_normal() -> None:
+    """A plate patch keeps its points with the plate's normal facing the sensor; a lone row
+    of returns (a plate seen edge-on far off) has no normal and is left out."""
+    rng = np.random.default_rng(3)
+    xs, ys = np.meshgrid(np.arange(-0.2, 0.2, 0.01), np.arange(-0.2, 0.2, 0.01))
+    patch = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.6)])
+    row = np.column_stack([np.arange(-0.5, 0.5, 0.01), np.full(100, 0.5), np.full(100, 1.5)])
+    pcd = select(np.concatenate([patch, row]) + rng.normal(0, 0.0005, (xs.size + 100, 3)))
+    points, normals = np.asarray(pcd.points), np.asarray(pcd.normals)
+    assert len(points) > 0.9 * len(select(patch).points)
+    assert np.all(points[:, 2] < 1.0)  # the row is gone
+    assert np.all(normals[:, 2] < -0.99)  # the patch's normal, towards the sensor
