@@ -88,14 +88,27 @@ def with_normals(pcd: o3d.geometry.PointCloud, voxel_m: float) -> o3d.geometry.P
     normal free to turn about the row, and how it turns follows the sensor's pixel rows, not
     the structure: such normals would pull every registration towards the pose the sensor
     had before, along directions the structure does not fix."""
-    pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=voxel_m * 3, max_nn=30))
-    values, vectors = np.linalg.eigh(np.asarray(pcd.covariances))  # ascending
-    keep = np.flatnonzero(values[:, 1] > (voxel_m / 4) ** 2)
-    points = np.asarray(pcd.points)[keep]
-    normals = vectors[keep, :, 0]
-    normals *= np.where(np.einsum("ij,ij->i", normals, points) > 0, -1.0, 1.0)[:, None]
-    out = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    out.normals = o3d.utility.Vector3dVector(normals)
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=voxel_m * 3, max_nn=30)
+    pcd.estimate_covariances(search)
+    pcd.estimate_normals(search)  # the covariances' least eigenvector
+    C, n = np.asarray(pcd.covariances), np.asarray(pcd.normals)
+    # the middle eigenvalue from the characteristic polynomial's coefficients and the least
+    # (nᵀCn): λ1 + λ2 = tr C − λ3, λ1·λ2 = (sum of principal 2x2 minors) − λ3·(λ1 + λ2)
+    least = np.einsum("ni,nij,nj->n", n, C, n)
+    total = C[:, 0, 0] + C[:, 1, 1] + C[:, 2, 2] - least
+    minors = (
+        C[:, 0, 0] * C[:, 1, 1]
+        - C[:, 0, 1] ** 2
+        + C[:, 0, 0] * C[:, 2, 2]
+        - C[:, 0, 2] ** 2
+        + C[:, 1, 1] * C[:, 2, 2]
+        - C[:, 1, 2] ** 2
+    )
+    product = minors - least * total
+    middle = (total - np.sqrt(np.maximum(total**2 - 4 * product, 0))) / 2
+    out = pcd.select_by_index(np.flatnonzero(middle > (voxel_m / 4) ** 2))
+    out.orient_normals_towards_camera_location(np.zeros(3))
+    out.covariances = o3d.utility.Matrix3dVector()  # not carried into the map
     return out
 
 
