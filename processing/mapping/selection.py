@@ -107,7 +107,8 @@ def with_normals(pcd: o3d.geometry.PointCloud, voxel_m: float) -> o3d.geometry.P
     product = minors - least * total
     middle = (total - np.sqrt(np.maximum(total**2 - 4 * product, 0))) / 2
     out = pcd.select_by_index(np.flatnonzero(middle > (voxel_m / 4) ** 2))
-    out.orient_normals_towards_camera_location(np.zeros(3))
+    if len(out.points):  # a cloud of lone rows keeps nothing
+        out.orient_normals_towards_camera_location(np.zeros(3))
     out.covariances = o3d.utility.Matrix3dVector()  # not carried into the map
     return out
 

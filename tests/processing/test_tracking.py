@@ -172,3 +172,14 @@ def test_only_points_whose_neighbours_span_a_surface_keep_a_normal() -> None:
     assert len(points) > 0.9 * len(select(patch).points)
     assert np.all(points[:, 2] < 1.0)  # the row is gone
     assert np.all(normals[:, 2] < -0.99)  # the patch's normal, towards the sensor
+
+
+def test_a_cloud_of_lone_rows_keeps_no_point_and_is_placed_by_the_odometry() -> None:
+    row = np.column_stack([np.arange(-0.5, 0.5, 0.01), np.full(100, 0.3), np.full(100, 1.5)])
+    assert len(select(row).points) == 0
+    sweep = tof_sweep(TofSweepConfig(lanes_y_m=(0.6,), x_range_m=(0.4, 0.6), revisit=False, seed=3))
+    clouds = list(sweep.clouds)
+    clouds[2] = row.astype(np.float32)
+    result = register_clouds(clouds, sweep.odometry)
+    assert result.used_odometry[2] and not result.used_odometry[3]
+    assert np.isfinite(result.poses).all()
