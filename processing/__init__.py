@@ -8,3 +8,7 @@ database or the network. Section, equation and algorithm numbers ("§3.1", "eq. 
     Monitoring and Inspection of Steel Structures and Bridges", Robotica, Cambridge
     University Press, 2016.
 """
+
+from processing.open3d_viewer import defer_plotly_viewer
+
+defer_plotly_viewer()

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import logging
 import os
@@ -12,11 +11,24 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from server.admin_commands import cmd_create_robot, cmd_create_user
 from server.errors import CommandError
 from server.jobs.allocator import keep_arrays_on_heap
 from server.logs import RedactSecrets, uvicorn_log_config
-from server.session_commands import cmd_export, cmd_import, cmd_report, settings_from_args
+
+Command = Callable[[argparse.Namespace], int]
+
+
+def _imported_when_run(module: str, name: str) -> Command:
+    """The command ``module.name``, imported only when it runs (the settings and database
+    imports behind the session and admin commands stay out of the other commands' start-up)."""
+
+    def run(args: argparse.Namespace) -> int:
+        import importlib
+
+        return getattr(importlib.import_module(module), name)(args)
+
+    run.__name__ = name
+    return run
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -24,6 +36,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from server.main import create_app
+    from server.session_commands import settings_from_args
 
     settings = settings_from_args(args)
     host = args.host or settings.host
@@ -55,6 +68,8 @@ def cmd_worker(args: argparse.Namespace) -> int:
 
 def cmd_sim(args: argparse.Namespace) -> int:
     """Run the simulated robot against a ground station."""
+    import asyncio
+
     from robot_link.client import LinkError, RobotLink
     from robot_link.sim.inspection import InspectionSim, SimConfig
 
@@ -114,6 +129,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run the ground station, the simulated robot and the jobs; print the summary."""
     from server.demo import run_demo
+    from server.session_commands import settings_from_args
 
     settings = settings_from_args(args)
     return run_demo(
@@ -346,13 +362,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("file")
     s.add_argument("--data-dir")
-    s.set_defaults(func=cmd_import)
+    s.set_defaults(func=_imported_when_run("server.session_commands", "cmd_import"))
 
     s = sub.add_parser("export", help="write a session as an MCAP log that opens in Foxglove")
     s.add_argument("session_id")
     s.add_argument("--out", required=True)
     s.add_argument("--data-dir")
-    s.set_defaults(func=cmd_export)
+    s.set_defaults(func=_imported_when_run("server.session_commands", "cmd_export"))
 
     s = sub.add_parser(
         "report", help="write a session's inspection report (PDF, JSON, CSV) into a folder"
@@ -360,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("session_id")
     s.add_argument("--out", required=True)
     s.add_argument("--data-dir")
-    s.set_defaults(func=cmd_report)
+    s.set_defaults(func=_imported_when_run("server.session_commands", "cmd_report"))
 
     admin = sub.add_parser("admin", help="accounts and robots")
     asub = admin.add_subparsers(dest="admin_command", required=True)
@@ -368,11 +384,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("name")
     s.add_argument("--role", required=True, choices=["admin", "operator", "viewer"])
     s.add_argument("--data-dir")
-    s.set_defaults(func=cmd_create_user)
+    s.set_defaults(func=_imported_when_run("server.admin_commands", "cmd_create_user"))
     s = asub.add_parser("create-robot", help="register a robot and print its token")
     s.add_argument("name")
     s.add_argument("--data-dir")
-    s.set_defaults(func=cmd_create_robot)
+    s.set_defaults(func=_imported_when_run("server.admin_commands", "cmd_create_robot"))
     return p
 
 
@@ -388,7 +404,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     for noisy in ("alembic", "httpx", "pyvips"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    func: Callable[[argparse.Namespace], int] = args.func
+    func: Command = args.func
     if getattr(args, "image_work", False):
         keep_arrays_on_heap()
     try:

@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 CLOUD_EXTS = {".ply", ".pcd"}
 # a ToF camera's range is a few metres; a median range beyond this is millimetres
 MAX_PLAUSIBLE_RANGE_M = 50.0
+UNITS_SAMPLE = 1000  # points of each cloud whose ranges decide the units
 Units = Literal["auto", "m", "mm"]
 
 
@@ -66,11 +67,14 @@ def _check_units(clouds: list[np.ndarray], units: Units, folder: Path) -> list[n
     if units == "mm":
         return [c / 1000.0 for c in clouds]
     if units == "auto":
-        ranges = [np.linalg.norm(c[np.isfinite(c).all(axis=1)], axis=1) for c in clouds]
+        # a sample of every cloud's points decides it: metres and millimetres are 1000x apart
+        sample = [c[:: max(1, len(c) // UNITS_SAMPLE)] for c in clouds]
+        ranges = [np.linalg.norm(c[np.isfinite(c).all(axis=1)], axis=1) for c in sample]
         finite = np.concatenate(ranges) if ranges else np.zeros(0)
-        if len(finite) and float(np.median(finite)) > MAX_PLAUSIBLE_RANGE_M:
+        median = float(np.median(finite)) if len(finite) else 0.0
+        if median > MAX_PLAUSIBLE_RANGE_M:
             raise CommandError(
-                f"{folder}: the clouds' median range is {float(np.median(finite)):.0f}; clouds must be "
+                f"{folder}: the clouds' median range is {median:.0f}; clouds must be "
                 "in metres (these look like millimetres: pass --units mm to convert them)"
             )
     return clouds

@@ -44,13 +44,17 @@ class WheelModel:
 def _terms(
     steps: NDArray[np.float64], forward: NDArray[np.float64], left: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """For relative poses ``steps`` (K, 4, 4): each step's heading change θ (K,), the law's
-    direction w(θ/2) (K, 2) and the sensor's planar motion D (K, 2)."""
-    turned = steps[:, :3, :3] @ forward
-    theta = np.arctan2(turned @ left, turned @ forward)
-    w = np.column_stack([-np.sin(theta / 2), np.cos(theta / 2)])
+    """For relative poses ``steps`` (K, 4, 4) and robot axes ``forward``, ``left`` ((3,), or
+    (P, 3) for P candidate axes): each step's heading change θ (K,) or (P, K), the law's
+    direction w(θ/2) (..., K, 2) and the sensor's planar motion D (..., K, 2)."""
+    turned = np.einsum("kij,...j->...ki", steps[:, :3, :3], forward)
+    theta = np.arctan2(
+        np.einsum("...ki,...i->...k", turned, left), np.einsum("...ki,...i->...k", turned, forward)
+    )
+    w = np.stack([-np.sin(theta / 2), np.cos(theta / 2)], axis=-1)
     t = steps[:, :3, 3]
-    return theta, w, np.column_stack([t @ forward, t @ left])
+    D = np.stack([np.einsum("ki,...i->...k", t, forward), np.einsum("ki,...i->...k", t, left)], -1)
+    return theta, w, D
 
 
 def residuals(model: WheelModel, steps: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -61,18 +65,19 @@ def residuals(model: WheelModel, steps: NDArray[np.float64]) -> NDArray[np.float
 
 def _fit_ahead(
     theta: NDArray[np.float64], w: NDArray[np.float64], D: NDArray[np.float64]
-) -> tuple[float, NDArray[np.float64]]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``a`` by iteratively reweighted least squares (Cauchy weights at the residuals'
-    robust spread), and the residuals (K,)."""
-    lever, b = 2 * np.sin(theta / 2), np.einsum("ij,ij->i", w, D)
-    weights = np.ones(len(b))
-    ahead = 0.0
+    robust spread), and the residuals (..., K); for P candidate axes at once with a leading
+    axis P (``a``: (P,))."""
+    lever, b = 2 * np.sin(theta / 2), np.einsum("...j,...j->...", w, D)
+    weights = np.ones_like(b)
+    ahead = np.zeros(b.shape[:-1])
     for _ in range(5):
-        ahead = float((weights * lever) @ b / max(float((weights * lever) @ lever), 1e-12))
-        r = b - lever * ahead
-        scale = max(1.4826 * float(np.median(np.abs(r))), 1e-6)
-        weights = 1 / (1 + (r / scale) ** 2)
-    return ahead, b - lever * ahead
+        ahead = np.sum(weights * lever * b, -1) / np.maximum(np.sum(weights * lever**2, -1), 1e-12)
+        r = b - lever * ahead[..., None]
+        scale = np.maximum(1.4826 * np.median(np.abs(r), axis=-1), 1e-6)
+        weights = 1 / (1 + (r / scale[..., None]) ** 2)
+    return ahead, b - lever * ahead[..., None]
 
 
 def fit_wheel_model(poses: NDArray[np.float64], odometry_sigma_m: float) -> WheelModel | None:
@@ -93,16 +98,17 @@ def fit_wheel_model(poses: NDArray[np.float64], odometry_sigma_m: float) -> Whee
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(up, e1)
 
-    def spread(phi: float) -> tuple[float, float, NDArray[np.float64]]:
-        forward = np.cos(phi) * e1 + np.sin(phi) * e2
+    def spreads(phis: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+        forward = np.cos(phis)[:, None] * e1 + np.sin(phis)[:, None] * e2  # (P, 3)
         ahead, r = _fit_ahead(*_terms(steps, forward, np.cross(up, forward)))
-        return float(np.median(np.abs(r))), ahead, forward
+        return np.median(np.abs(r), axis=-1), ahead, forward
 
     # forward and backward are one model: half a turn of candidates, then finer about the best
-    best = min(np.linspace(0, np.pi, 180, endpoint=False), key=lambda phi: spread(phi)[0])
-    fine = best + np.linspace(-np.pi / 180, np.pi / 180, 21)
-    best = min(fine, key=lambda phi: spread(phi)[0])
-    mad, ahead, forward = spread(best)
+    coarse = np.linspace(0, np.pi, 180, endpoint=False)
+    best = coarse[np.argmin(spreads(coarse)[0])]
+    mads, aheads, forwards = spreads(best + np.linspace(-np.pi / 180, np.pi / 180, 21))
+    k = int(np.argmin(mads))
+    mad, ahead, forward = float(mads[k]), float(aheads[k]), forwards[k]
     sigma = 1.4826 * mad
     if sigma >= odometry_sigma_m / 2:
         return None
