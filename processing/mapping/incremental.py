@@ -15,7 +15,7 @@ from processing.mapping.loops import close_loop, loop_candidates
 from processing.mapping.pairwise import CloudMeasurement, PairEdge, Step, edge_of, measure_step
 from processing.mapping.params import MapParams
 from processing.mapping.selection import fuse_map, select
-from processing.mapping.tracking import Tracker
+from processing.mapping.tracking import Tracker, axis_information
 from processing.mapping.wheels import WheelModel, fit_wheel_model, wheel_edge
 from processing.planes import Plane, extract_planes
 
@@ -262,7 +262,7 @@ class IncrementalMap:
         if self.wheel_model is not None and i in self._tracked_information:
             return self._tracked_information[i]
         sigma_r, sigma_t = self._odometry_sigmas[i]
-        return np.diag([1 / (scale * sigma_r) ** 2] * 3 + [1 / (scale * sigma_t) ** 2] * 3)
+        return axis_information(scale * sigma_r, scale * sigma_t)
 
     def _add_edge(
         self, s: int, t: int, result: reg.RegistrationResult | None, *, uncertain: bool

@@ -45,6 +45,12 @@ class Registration(NamedTuple):
     information: NDArray[np.float64]
 
 
+def axis_information(sigma_rad: float, sigma_m: float) -> NDArray[np.float64]:
+    """Information (6, 6; rotation first) of a pose whose error per axis is ``sigma_rad``
+    in rotation and ``sigma_m`` in translation, independent across axes."""
+    return np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
+
+
 def search_distances(
     sigma_rad: float, sigma_m: float, reach_m: float, params: TrackingParams, voxel_m: float
 ) -> list[float]:
@@ -177,9 +183,15 @@ def register_near(
     )
     if len(map_points) < params.min_points:
         return None
-    prior = np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
     return register_to_map(
-        points, normals, map_points, map_normals, prediction, prior, distances, params
+        points,
+        normals,
+        map_points,
+        map_normals,
+        prediction,
+        axis_information(sigma_rad, sigma_m),
+        distances,
+        params,
     )
 
 
@@ -211,8 +223,7 @@ class Tracker:
         where it was placed by the prediction."""
         if self.last is not None:
             return self.last.information
-        sigma_rad, sigma_m = self.sigmas()
-        return np.diag([1 / sigma_rad**2] * 3 + [1 / sigma_m**2] * 3)
+        return axis_information(*self.sigmas())
 
     def _prediction(self, guess: NDArray[np.float64] | None) -> NDArray[np.float64]:
         previous = self._guesses[-1] if self._guesses else None
