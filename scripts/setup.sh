@@ -34,9 +34,11 @@ stamp=.venv/.steelscan-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "setup: installing steelscan and its dependencies into .venv (first run takes a few minutes)" >&2
   .venv/bin/python -m pip install -q --upgrade pip
-  # PyTorch for training the crack network: the CPU build (the default one pulls GBs of CUDA)
+  # PyTorch for training the crack network: the CPU build (the default one pulls GBs of CUDA);
+  # one retry: where only a package mirror answers, each of torch's dependencies would
+  # otherwise wait out five retries of the unreachable index
   .venv/bin/python -c 'import torch' 2>/dev/null \
-    || .venv/bin/python -m pip install -q 'torch==2.13.0' \
+    || .venv/bin/python -m pip install -q --retries 1 'torch==2.13.0' \
       --extra-index-url https://download.pytorch.org/whl/cpu
   .venv/bin/python -m pip install -q -e '.[dev,train]'
   touch "$stamp"

@@ -17,6 +17,13 @@ Three Linux mechanisms decide that, each at its own level:
   Idle priority takes no slice request; the request made just before, at batch priority,
   stays when the task moves to idle priority, and processes and threads inherit both.
   Older kernels ignore the request.
+- **An idle CPU group** (cgroup ``cpu.idle``, Linux 5.15 and later) is the whole group at
+  idle priority among the groups beside it: a woken task of any other group takes the
+  core at once, whatever the slices. The worker moves itself into the group
+  ``steelscan-workers`` beside its own cgroup where it may (root, or a delegated
+  hierarchy), and stays where it is when its own group is idle already (a systemd unit
+  with ``CPUWeight=idle``). A task in a cgroup of its own leaves its session's autogroup,
+  so the two mechanisms above then only order the worker's own tasks.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ import platform
 import struct
 from pathlib import Path
 
+IDLE_GROUP = "steelscan-workers"  # the idle CPU group a worker moves into, beside its own
 WORKER_NICE = 10  # where idle priority is refused: well below the station's live link
 AUTOGROUP = Path("/proc/self/autogroup")  # this session's scheduling group (Linux)
 AUTOGROUP_NICE = 19  # the group's least share of the CPU: the worker's session yields
@@ -51,10 +59,68 @@ def ask_long_slice() -> bool:
     return libc.syscall(number, 0, ctypes.create_string_buffer(attr), 0) == 0
 
 
+def cpu_cgroup(cgroups: str | None = None, mountinfo: str | None = None) -> Path | None:
+    """The folder of this process's CPU cgroup (cgroup v1's ``cpu`` controller, else the
+    unified v2 hierarchy), from ``/proc/self/cgroup`` and ``/proc/self/mountinfo`` (their
+    text may be given); None where no mount of it is visible."""
+    try:
+        cgroups = cgroups if cgroups is not None else Path("/proc/self/cgroup").read_text()
+        mountinfo = mountinfo if mountinfo is not None else Path("/proc/self/mountinfo").read_text()
+    except OSError:  # not Linux
+        return None
+    paths = {}  # "cpu" (v1) or "" (v2): the path inside its hierarchy
+    for line in cgroups.splitlines():
+        _, controllers, path = line.split(":", 2)
+        if "cpu" in controllers.split(","):
+            paths["cpu"] = path
+        elif controllers == "" and line.startswith("0:"):
+            paths[""] = path
+    for key in ("cpu", ""):
+        if key not in paths:
+            continue
+        for line in mountinfo.splitlines():
+            fields, _, fs = line.partition(" - ")
+            fstype, _, options = (fs.split() + ["", "", ""])[:3]
+            root, mount = fields.split()[3:5]
+            if (key == "cpu" and fstype == "cgroup" and "cpu" in options.split(",")) or (
+                key == "" and fstype == "cgroup2"
+            ):
+                inside = paths[key]
+                if root != "/" and not inside.startswith(root):
+                    continue  # the process's group is not under this mount's root
+                rel = inside[len(root) :] if root != "/" else inside
+                return Path(mount) / rel.lstrip("/")
+    return None
+
+
+def join_idle_group(here: Path | None = None) -> bool:
+    """Move this process (its threads, and the processes it starts afterwards) into an idle
+    CPU group: ``here`` (this process's CPU cgroup, :func:`cpu_cgroup`) when it is idle
+    already, else :data:`IDLE_GROUP` beside it, made idle; whether it now runs in one."""
+    here = here if here is not None else cpu_cgroup()
+    if here is None:
+        return False
+    try:
+        if (here / "cpu.idle").read_text().strip() == "1":
+            return True
+    except OSError:  # no cpu.idle here (an older kernel, no cpu controller in v2)
+        pass
+    group = here / IDLE_GROUP
+    try:
+        group.mkdir(exist_ok=True)
+        (group / "cpu.idle").write_text("1\n")
+        (group / "cgroup.procs").write_text(f"{os.getpid()}\n")
+    except OSError:  # not permitted (no root, no delegation) or no cpu.idle: as before
+        return False
+    return True
+
+
 def yield_to_the_station() -> None:
     """The calling thread, and the threads and processes it starts afterwards (call it
-    before starting any), below a station on the same machine: the longest time slice, idle priority, and its session's scheduling group
-    at the least weight when the session is its own. Calling it again is harmless."""
+    before starting any), below a station on the same machine: the longest time slice,
+    idle priority, an idle CPU group where it may join one (:func:`join_idle_group`), else
+    its session's scheduling group at the least weight when the session is its own.
+    Calling it again is harmless."""
     try:
         if os.sched_getscheduler(0) != os.SCHED_IDLE:  # from idle there is no way back
             ask_long_slice()
@@ -64,6 +130,8 @@ def yield_to_the_station() -> None:
             os.nice(WORKER_NICE)
         except OSError:
             pass
+    if join_idle_group():
+        return
     if os.getsid(0) == os.getpid():  # the session, and so its group, is this worker's alone
         try:
             AUTOGROUP.write_text(f"{AUTOGROUP_NICE}\n")

@@ -1,15 +1,18 @@
-"""A worker's processes below the station: idle priority with the longest time slice,
-inherited by the processes and threads they start."""
+"""A worker's processes below the station: idle priority with the longest time slice, and
+an idle CPU group where the worker may join one, inherited by the processes and threads
+they start."""
 
 from __future__ import annotations
 
+import os
 import platform
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from server.jobs.priority import LONGEST_SLICE_NS
+from server.jobs.priority import IDLE_GROUP, LONGEST_SLICE_NS, cpu_cgroup, join_idle_group
 
 CHILD = """
 import os, threading
@@ -54,3 +57,73 @@ def test_the_long_slice_keeps_this_process_nice() -> None:
     code += "assert ask_long_slice()\nprint(os.getpriority(os.PRIO_PROCESS, 0))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "5"
+
+
+# /proc/self/cgroup and /proc/self/mountinfo as a hybrid host (cgroup v1 controllers and the
+# unified hierarchy) and a container (its groups' roots mounted at the top) show them
+HYBRID_CGROUP = "4:memory:/user.slice\n1:cpu,cpuacct:/user.slice/term\n0::/user.slice/term\n"
+HYBRID_MOUNTS = (
+    "30 25 0:26 / /sys/fs/cgroup/unified rw - cgroup2 cgroup2 rw\n"
+    "33 25 0:29 / /sys/fs/cgroup/cpu,cpuacct rw - cgroup cgroup rw,cpu,cpuacct\n"
+)
+V2_CGROUP = "0::/system.slice/steelscan.service\n"
+V2_MOUNTS = "25 20 0:22 / /sys/fs/cgroup rw,nosuid - cgroup2 cgroup2 rw,nsdelegate\n"
+CONTAINER_CGROUP = "0::/docker/abc\n"
+CONTAINER_MOUNTS = "25 20 0:22 /docker/abc /sys/fs/cgroup ro - cgroup2 cgroup2 rw\n"
+
+
+@pytest.mark.parametrize(
+    ("cgroups", "mounts", "expected"),
+    [
+        (HYBRID_CGROUP, HYBRID_MOUNTS, "/sys/fs/cgroup/cpu,cpuacct/user.slice/term"),
+        (V2_CGROUP, V2_MOUNTS, "/sys/fs/cgroup/system.slice/steelscan.service"),
+        (CONTAINER_CGROUP, CONTAINER_MOUNTS, "/sys/fs/cgroup"),
+        (V2_CGROUP, HYBRID_MOUNTS.splitlines()[1], None),  # no mount of its hierarchy
+    ],
+)
+def test_the_cpu_cgroup_is_found_on_v1_v2_and_in_a_container(
+    cgroups: str, mounts: str, expected: str | None
+) -> None:
+    found = cpu_cgroup(cgroups, mounts)
+    assert (str(found) if found else None) == expected
+
+
+def test_a_group_that_is_idle_already_is_kept(tmp_path: Path) -> None:
+    (tmp_path / "cpu.idle").write_text("1\n")
+    assert join_idle_group(tmp_path)
+    assert not (tmp_path / IDLE_GROUP).exists()  # a systemd unit's CPUWeight=idle: stays
+
+
+def test_a_group_the_worker_may_not_change_leaves_it_where_it_is(tmp_path: Path) -> None:
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    (locked / IDLE_GROUP).write_text("a file, not a folder: mkdir is refused\n")
+    assert not join_idle_group(locked)
+
+
+IDLE_CHILD = """
+import os, subprocess
+from server.jobs.priority import IDLE_GROUP, cpu_cgroup, yield_to_the_station
+yield_to_the_station()
+group = cpu_cgroup()
+child = subprocess.run(["cat", "/proc/self/cgroup"], capture_output=True, text=True).stdout
+print(group.name == IDLE_GROUP, (group / "cpu.idle").read_text().strip(), IDLE_GROUP in child)
+"""
+
+
+def _may_make_idle_groups() -> bool:
+    here = cpu_cgroup()
+    return (
+        here is not None
+        and (here / "cpu.idle").exists()
+        and os.access(here, os.W_OK)
+        and here.name != IDLE_GROUP
+    )
+
+
+@pytest.mark.skipif(not _may_make_idle_groups(), reason="no writable cgroup with cpu.idle")
+def test_a_worker_joins_an_idle_cpu_group_its_children_inherit() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", IDLE_CHILD], capture_output=True, text=True, check=True
+    )
+    assert out.stdout.split() == ["True", "1", "True"], out

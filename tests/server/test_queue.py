@@ -20,6 +20,7 @@ from websockets.sync.client import connect
 from bench.services import start_worker, stop_workers
 from robot_link.protocol import MessageType, decode_message
 from server.config import Settings
+from server.jobs.priority import cpu_cgroup
 from server.loopback import BackgroundServer, free_port
 from tests.conftest import make_token
 from tests.server.test_ingest import msg, ws_url
@@ -157,9 +158,24 @@ def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster) -> None:
         group = [int(p) for p in os.listdir("/proc") if p.isdigit() and _group_of(int(p)) == w.pid]
         assert w.pid in group and len(group) >= 2, group
         assert {os.sched_getscheduler(p) for p in group} == {os.SCHED_IDLE}, group
-        autogroup = Path(f"/proc/{w.pid}/autogroup")  # a session of its own: its group yields
-        if autogroup.exists():
-            assert autogroup.read_text().split()[-1] == "19", autogroup.read_text()
+        # its CPU group yields: an idle cgroup where it may join one, else its session's group
+        cpu_groups = {_cpu_cgroup_of(p) for p in group}
+        if cpu_groups != {None}:
+            assert len(cpu_groups) == 1, cpu_groups
+            assert (cpu_groups.pop() / "cpu.idle").read_text().strip() == "1"
+        else:
+            autogroup = Path(f"/proc/{w.pid}/autogroup")  # a session of its own
+            if autogroup.exists():
+                assert autogroup.read_text().split()[-1] == "19", autogroup.read_text()
+
+
+def _cpu_cgroup_of(pid: int) -> Path | None:
+    """The CPU cgroup folder of process ``pid`` where it is an idle group, else None."""
+    try:
+        here = cpu_cgroup(Path(f"/proc/{pid}/cgroup").read_text())
+        return here if here and (here / "cpu.idle").read_text().strip() == "1" else None
+    except OSError:
+        return None
 
 
 def _group_of(pid: int) -> int | None:
