@@ -347,7 +347,9 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
         assert latest_telemetry(url, sid)["pose"]["x"] > x0 + 0.05
         # the robot's own clock says when it stood still, whatever storing and polling add
         stopped = next(
-            s["timestamp"] for s in samples_since(released) if s["data"]["drive"]["linear_mps"] == 0.0
+            s["timestamp"]
+            for s in samples_since(released)
+            if s["data"]["drive"]["linear_mps"] == 0.0
         )
         assert stopped - released < 1.0
         # e-stop: the robot stops and refuses to drive until the e-stop is reset

@@ -182,6 +182,8 @@ function drawFrame(header, jpeg) {
   if (drawing) return; // never queue frames: draw the newest, drop what arrives meanwhile
   drawing = true;
   createImageBitmap(new Blob([jpeg], { type: "image/jpeg" })).then((bmp) => {
+    // decoding takes a while: the robot may have left, or another been chosen, meanwhile
+    if (header.session_id !== selected) { bmp.close(); return; }
     ctx2d.drawImage(bmp, 0, 0, canvas.width, canvas.height);
     bmp.close();
     const now = Date.now();
