@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
 import logging
 from collections.abc import AsyncIterator
@@ -23,6 +24,7 @@ from server.api.headers import SecurityHeaders
 from server.api.routes import ROUTERS
 from server.config import Settings
 from server.errors import Conflict, NotFound
+from server.heap import freeze_startup_objects
 from server.jobs.runner import JobRunner
 from server.link.connection import router as robot_router
 from server.link.group_commit import GroupCommit
@@ -110,9 +112,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             )
         state.jobs.start()
         reaper = asyncio.create_task(_end_quiet_sessions(state))
+        freeze_startup_objects()  # a full collection would pause every robot's link
         try:
             yield
         finally:
+            gc.unfreeze()  # an app run inside another program leaves its heap as it was
             reaper.cancel()
             state.passwords.executor.shutdown(wait=False)
             state.jobs.stop()
