@@ -27,7 +27,7 @@ def test_a_full_collection_walks_what_the_station_made_since_start_up(settings: 
         assert httpx.get(f"{station.url}/api/health").status_code == 200
         frozen = gc.get_freeze_count()
         # the modules, routes and objects of start-up: the bulk of the heap, never walked
-        assert frozen >= walked_before
+        assert frozen > walked_before / 2
         assert len(gc.get_objects()) < frozen / 4
         garbage = _Node()
         gone = weakref.ref(garbage)
