@@ -106,11 +106,21 @@ def join_idle_group(here: Path | None = None) -> bool:
     except OSError:  # no cpu.idle here (an older kernel, no cpu controller in v2)
         pass
     group = here / IDLE_GROUP
+    made = False
     try:
-        group.mkdir(exist_ok=True)
+        try:
+            group.mkdir()
+            made = True
+        except FileExistsError:  # another worker beside this one made it
+            pass
         (group / "cpu.idle").write_text("1\n")
         (group / "cgroup.procs").write_text(f"{os.getpid()}\n")
     except OSError:  # not permitted (no root, no delegation) or no cpu.idle: as before
+        if made:  # the group this call made is not left behind, empty
+            try:
+                group.rmdir()
+            except OSError:
+                pass
         return False
     return True
 

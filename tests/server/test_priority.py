@@ -101,6 +101,21 @@ def test_a_group_the_worker_may_not_change_leaves_it_where_it_is(tmp_path: Path)
     assert not join_idle_group(locked)
 
 
+def test_a_group_made_but_refused_idleness_is_not_left_behind(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real_write = Path.write_text
+
+    def refuse_idle(path: Path, text: str, *args, **kwargs) -> int:  # type: ignore[no-untyped-def]
+        if path.name == "cpu.idle":
+            raise PermissionError(f"{path}: not permitted")
+        return real_write(path, text, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", refuse_idle)
+    assert not join_idle_group(tmp_path)
+    assert not (tmp_path / IDLE_GROUP).exists()
+
+
 IDLE_CHILD = """
 import os, subprocess
 from server.jobs.priority import IDLE_GROUP, cpu_cgroup, yield_to_the_station
