@@ -101,6 +101,15 @@ def latest_telemetry(url: str, sid: str) -> dict:
     ).json()["data"][0]["data"]
 
 
+def stood_still(url: str, sid: str, t: float) -> float | None:
+    """When (the robot's clock) the robot first reported standing still at or after ``t``;
+    None before it has."""
+    samples = httpx.get(
+        f"{url}/api/sessions/{sid}/telemetry", params={"since": t, "limit": 5000}
+    ).json()["data"]
+    return next((s["timestamp"] for s in samples if s["data"]["drive"]["linear_mps"] == 0.0), None)
+
+
 def wait_until(predicate, timeout_s: float, what: str) -> float:  # type: ignore[no-untyped-def]
     t0 = time.monotonic()
     while not predicate():

@@ -24,6 +24,7 @@ from tests.web.browser import (
     open_dashboard,
     shot,
     sim,
+    stood_still,
     wait_js,
     wait_until,
     watch_errors,
@@ -314,11 +315,6 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
     errors: list[str] = []
     foreign: list[str] = []
 
-    def samples_since(t: float) -> list[dict]:
-        return httpx.get(
-            f"{url}/api/sessions/{sid}/telemetry", params={"since": t, "limit": 5000}
-        ).json()["data"]
-
     with sync_playwright() as pw:
         browser, page = open_dashboard(pw, url, errors, foreign)
         wait_js(
@@ -339,19 +335,10 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
         shot(page, "drive-teleop")
         released = time.time()  # the simulated robot stamps its telemetry with this clock
         page.keyboard.up("ArrowUp")
-        wait_until(
-            lambda: any(s["data"]["drive"]["linear_mps"] == 0.0 for s in samples_since(released)),
-            5,
-            "the robot to stop on key release",
-        )
+        wait_until(lambda: stood_still(url, sid, released), 5, "the robot to stop on key release")
         assert latest_telemetry(url, sid)["pose"]["x"] > x0 + 0.05
         # the robot's own clock says when it stood still, whatever storing and polling add
-        stopped = next(
-            s["timestamp"]
-            for s in samples_since(released)
-            if s["data"]["drive"]["linear_mps"] == 0.0
-        )
-        assert stopped - released < 1.0
+        assert stood_still(url, sid, released) - released < 1.0
         # e-stop: the robot stops and refuses to drive until the e-stop is reset
         page.keyboard.down("ArrowUp")
         time.sleep(0.5)
