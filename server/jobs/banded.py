@@ -1,22 +1,26 @@
 """Defect detection on mosaics of any size with bounded memory.
 
-The mosaic PNG is unpacked by libvips into a raw scratch file; each band (with ``overlap``
-rows of context above and below) is an independent part whose masks are computed in memory
-and whose core rows are written to raw band files (crack mask, rust mask, crack contrast).
-The band files are then read in order: components are labelled per band and joined across
-band seams, ``crack_mask.png`` and ``corrosion_mask.png`` are streamed from them, and each
-joined defect is measured on a crop of them, so a defect that crosses a seam is measured
-whole, exactly as in one pass. Every scratch file is written behind
-(:mod:`server.storage.write_behind`): a job's hundreds of megabytes do not stall the live
-link's writes on the same disk.
+The mosaic PNG, its coverage and seams are first unpacked into raw scratch files, in
+pieces that any worker may decode: a PNG joined from segments by the stitcher carries
+their index, so each piece is a run of its rows (:func:`server.storage.png_segments.read_rows`);
+another tool's PNG is one piece, streamed by libvips. Each band (with ``overlap`` rows of
+context above and below) is then an independent part: it reads its rows of the pieces,
+computes its masks in memory, labels their components, and writes its core rows to raw
+band files (crack mask, rust mask, crack contrast), as segments of the two mask PNGs, and
+the components' boxes and edge rows. The bands' components are joined across band seams in
+order, the mask PNGs joined from their segments, and each joined defect measured on a crop
+of the band files, so a defect that crosses a seam is measured whole, exactly as in one
+pass. Every scratch file is written behind (:mod:`server.storage.write_behind`): a job's
+hundreds of megabytes do not stall the live link's writes on the same disk.
 """
 
 from __future__ import annotations
 
-import functools
+import io
+import json
 import shutil
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,13 +30,20 @@ import pyvips
 from numpy.typing import NDArray
 from scipy.cluster.hierarchy import DisjointSet
 
-from processing.defects import Defect, measure_defects, moved, seam_links
+from processing.defects import Components, Defect, measure_defects, moved, seam_links
 from processing.detection import DefectMasks
 from processing.surface import on_surface
 from server.storage.files import write_atomic
-from server.storage.write_behind import save_behind
+from server.storage.png_segments import join_segments, read_rows, segment_rows, write_segment
+from server.storage.write_behind import save_behind, write_file_behind
 
 CLASSES = ("crack", "corrosion")
+INPUTS = {
+    "image": ("mosaic.png", 3),
+    "coverage": ("mosaic_coverage.png", 1),
+    "seams": ("mosaic_seams.png", 1),
+}  # scratch name: (PNG, channels)
+MAX_PIECES = 64  # pieces per input: enough for any number of workers to share
 Masks = Callable[[NDArray[np.uint8], NDArray[np.bool_], NDArray[np.bool_] | None], DefectMasks]
 
 
@@ -49,9 +60,11 @@ class _Part:
 
 @dataclass
 class _Parts:
-    """Every band's components of one class, and which touch across seams."""
+    """Every band's components of one class on its edges, which of them touch across
+    seams, and the defects measured inside the bands."""
 
     parts: dict[tuple[int, int], _Part] = field(default_factory=dict)  # (band, label) -> part
+    inner: list[Defect] = field(default_factory=list)  # measured inside their bands
     links: list[tuple[tuple[int, int], tuple[int, int]]] = field(default_factory=list)
     last_row: NDArray[np.int32] | None = None
 
@@ -65,42 +78,69 @@ def _unpack(png: Path, raw: Path, bands: int) -> None:
     save_behind(img.cast("uchar"), raw, ".raw")
 
 
+def pieces_of(png: Path, height: int) -> list[tuple[int, int]]:
+    """Row ranges (y0, y1) a PNG is unpacked in: runs of its segments, at most
+    :data:`MAX_PIECES` of them; the whole image for a PNG without a segment index."""
+    segments = segment_rows(png)
+    if not segments:
+        return [(0, height)]
+    runs = np.array_split(np.arange(len(segments)), min(len(segments), MAX_PIECES))
+    return [(segments[r[0]][0], segments[r[-1]][1]) for r in runs]
+
+
 @dataclass(frozen=True)
 class BandPlan:
-    """What every band's part shares: the unpacked mosaic in ``scratch`` and how to search it."""
+    """What every part shares: where the PNGs are (``source``) and are unpacked to
+    (``scratch``), in which pieces (input name: row ranges), and how to search them."""
 
+    source: str
     scratch: str
+    pieces: dict[str, list[tuple[int, int]]]
     width: int
     height: int
     overlap: int
     level: float
     masks: Masks
-    have_seams: bool
+    mm_per_px: float | None
 
 
-MapBands = Callable[[Callable[..., None], BandPlan, list[tuple[int, tuple[int, int]]]], list[None]]
+MapBands = Callable[[Callable[..., None], BandPlan, list[Any]], list[None]]
 
 
 def _serial(fn: Callable[..., None], plan: BandPlan, items: list[Any]) -> list[None]:
     return [fn(None, plan, item) for item in items]
 
 
+def unpack_piece(_files: object, plan: BandPlan, piece: tuple[str, int]) -> None:
+    """Piece ``k`` of an input (``piece``: its name and ``k``) as a raw (rows, W[, C]) file in
+    the scratch folder (a part: any worker may run it)."""
+    name, k = piece
+    png, channels = INPUTS[name]
+    y0, y1 = plan.pieces[name][k]
+    raw = Path(plan.scratch) / f"{name}{k}.raw"
+    rows = read_rows(Path(plan.source) / png, y0, y1)
+    if rows is None:
+        _unpack(Path(plan.source) / png, raw, channels)
+    else:
+        write_file_behind(raw, rows.data)
+
+
+def _input(plan: BandPlan, name: str) -> RowFiles:
+    files = [Path(plan.scratch) / f"{name}{k}.raw" for k in range(len(plan.pieces[name]))]
+    return RowFiles(files, plan.pieces[name], plan.width, INPUTS[name][1])
+
+
 def band_masks(_files: object, plan: BandPlan, band: tuple[int, tuple[int, int]]) -> None:
     """One band's crack, corrosion and contrast core rows, computed with ``overlap`` rows of
-    context above and below, written beside the plan (a part: any worker may run it)."""
+    context above and below, written beside the plan with its components and its rows of
+    the mask PNGs (a part: any worker may run it)."""
     index, (y0, y1) = band
-    scratch, w, h = Path(plan.scratch), plan.width, plan.height
-    a0, a1 = max(0, y0 - plan.overlap), min(h, y1 + plan.overlap)
-
-    def rows(name: str, bands: int) -> NDArray[np.uint8]:
-        shape = (h, w, bands) if bands > 1 else (h, w)
-        return np.array(np.memmap(scratch / name, dtype=np.uint8, mode="r", shape=shape)[a0:a1])
-
-    image = cv2.cvtColor(rows("image.raw", 3), cv2.COLOR_RGB2BGR)  # OpenCV's channel order
-    coverage = rows("coverage.raw", 1)
-    seams = rows("seams.raw", 1) > 0 if plan.have_seams else None
+    scratch, rows = Path(plan.scratch), slice(max(0, y0 - plan.overlap), y1 + plan.overlap)
+    image = cv2.cvtColor(_input(plan, "image")[rows, :], cv2.COLOR_RGB2BGR)  # OpenCV's order
+    coverage = _input(plan, "coverage")[rows, :]
+    seams = _input(plan, "seams")[rows, :] > 0 if "seams" in plan.pieces else None
     found = plan.masks(image, on_surface(image, coverage, plan.level), seams)
-    a, b = y0 - a0, y1 - a0
+    a, b = y0 - rows.start, y1 - rows.start
     contrast = np.clip(np.round(np.where(found.cracks[a:b], found.contrast[a:b], 0)), 0, 255)
     for name, part in (
         ("crack", found.cracks[a:b]),
@@ -108,6 +148,50 @@ def band_masks(_files: object, plan: BandPlan, band: tuple[int, tuple[int, int]]
         ("contrast", contrast),
     ):
         write_atomic(scratch / f"band{index}.{name}", part.astype(np.uint8).tobytes())
+        if name in CLASSES:
+            c = contrast.astype(np.float32) if name == "crack" else None  # as stored: whole levels
+            data = _band_defects(part, name, c, plan.mm_per_px, y0)
+            write_atomic(scratch / f"band{index}.{name}.parts", data)
+            write_segment(scratch / f"{name}.png.d", y0, part.astype(np.uint8) * 255)
+
+
+def _band_defects(
+    mask: NDArray[np.bool_],
+    name: str,
+    contrast: NDArray[np.float32] | None,
+    mm_per_px: float | None,
+    y0: int,
+) -> bytes:
+    """A band's components (8-connected; the band's first row is mosaic row ``y0``) as an
+    ``.npz``: those inside the band measured (``defects``, JSON, mosaic pixels); of those
+    touching its first or last row, which go on in the bands beside it, the ``boxes``
+    (n, 4: x, y, w, h in band rows), ``labels`` (n) and ``seeds`` (n, 2: x, y of each one's
+    first pixel in raster order); and the labels of the ``first`` and ``last`` rows."""
+    comps = Components.of(mask)
+    edge = np.unique(np.concatenate([comps.labels[0], comps.labels[-1]]))
+    edge = edge[edge > 0]
+    inner = replace(comps, keep=comps.keep.copy())
+    inner.keep[edge] = False
+    found = measure_defects(mask, name, mm_per_px=mm_per_px, contrast=contrast, components=inner)
+    boxes = comps.stats[edge, :4].astype(np.int64)
+    seeds = np.array(
+        [
+            (x + int(np.argmax(comps.labels[y, x : x + w] == k)), y)
+            for k, (x, y, w, _) in zip(edge.tolist(), boxes.tolist())
+        ],
+        np.int64,
+    ).reshape(-1, 2)
+    buf = io.BytesIO()
+    np.savez(
+        buf,
+        defects=np.array(json.dumps([asdict(moved(d, 0, y0, d.id)) for d in found])),
+        boxes=boxes,
+        labels=edge,
+        seeds=seeds,
+        first=comps.labels[0],
+        last=comps.labels[-1],
+    )
+    return buf.getvalue()
 
 
 BUDGET_BYTES = 768 * 2**20  # a band's working set, context rows included
@@ -140,10 +224,10 @@ def detect_banded(
     band; writes the two mask PNGs into ``out`` (its scratch files too) and returns the
     measured defects (mosaic pixels).
 
-    The mosaic is unpacked once into a raw scratch file; the bands are independent parts
-    (``map_bands``: in turn, on threads, or on other workers; ``parallel`` of them at once
-    share the memory budget; at least ``min_bands`` of them, for workers to share); their
-    masks are then labelled in order, joined across seams, and measured."""
+    The PNGs' pieces, then the bands, are independent parts (``map_bands``: in turn, on
+    threads, or on other workers; ``parallel`` bands at once share the memory budget; at
+    least ``min_bands`` of them, for workers to share); the bands' components are then
+    joined across seams in order, and measured."""
     header = pyvips.Image.new_from_file(str(results / "mosaic.png"))
     width, height = header.width, header.height
     rows = rows or min(
@@ -154,24 +238,30 @@ def detect_banded(
     shutil.rmtree(scratch, ignore_errors=True)
     scratch.mkdir()
     try:
-        have_seams = (results / "mosaic_seams.png").is_file()
-        _unpack(results / "mosaic.png", scratch / "image.raw", 3)
-        _unpack(results / "mosaic_coverage.png", scratch / "coverage.raw", 1)
-        if have_seams:
-            _unpack(results / "mosaic_seams.png", scratch / "seams.raw", 1)
+        pieces = {
+            name: pieces_of(results / png, height)
+            for name, (png, _) in INPUTS.items()
+            if (results / png).is_file() or name != "seams"
+        }
+        plan = BandPlan(
+            str(results), str(scratch), pieces, width, height, overlap, level, masks, mm_per_px
+        )
+        map_bands(unpack_piece, plan, [(n, k) for n, rs in pieces.items() for k in range(len(rs))])
         progress(0.1, "mosaic unpacked")
         cores = [(y, min(y + rows, height)) for y in range(0, height, rows)]
-        plan = BandPlan(str(scratch), width, height, overlap, level, masks, have_seams)
         map_bands(band_masks, plan, list(enumerate(cores)))
         progress(0.8, f"{len(cores)} bands searched")
-        maps = {n: _Joined(scratch, n, cores, width) for n in ("crack", "corrosion", "contrast")}
+        maps = {
+            n: RowFiles([scratch / f"band{k}.{n}" for k in range(len(cores))], cores, width)
+            for n in ("crack", "corrosion", "contrast")
+        }
         parts = {c: _Parts() for c in CLASSES}
         for band, (y0, _) in enumerate(cores):
             for name in CLASSES:
-                _label(parts[name], maps[name].band(band) > 0, band, y0)
+                _join(parts[name], scratch / f"band{band}.{name}.parts", band, y0)
         progress(0.9, "bands joined")
-        for name, file in (("crack", "crack_mask.png"), ("corrosion", "corrosion_mask.png")):
-            _save_mask(maps[name].vips(), out / file)
+        for name in CLASSES:
+            join_segments(scratch / f"{name}.png.d", out / f"{name}_mask.png", width, height, 1)
         found: list[Defect] = []
         for name in CLASSES:
             found += _measure(
@@ -187,19 +277,16 @@ def detect_banded(
         shutil.rmtree(scratch, ignore_errors=True)
 
 
-class _Joined:
-    """One of the bands' outputs (crack, corrosion or contrast) joined into the mosaic's
-    rows without a copy: read by slices, by band, or streamed by libvips from the band files."""
+class RowFiles:
+    """Raw files of consecutive row ranges (``cores``: (y0, y1) each, ``width`` pixels of
+    ``channels`` bytes) read as one image of the mosaic's rows, by slices, without a copy
+    of the rest."""
 
-    def __init__(self, scratch: Path, name: str, cores: list[tuple[int, int]], width: int):
-        self.files = [scratch / f"band{k}.{name}" for k in range(len(cores))]
-        self.cores, self.width = cores, width
+    def __init__(
+        self, files: list[Path], cores: list[tuple[int, int]], width: int, channels: int = 1
+    ) -> None:
+        self.files, self.cores, self.width, self.channels = files, cores, width, channels
         self.shape = (cores[-1][1] if cores else 0, width)
-
-    def band(self, k: int) -> NDArray[np.uint8]:
-        """Band ``k``'s core rows, shape (rows, W)."""
-        y0, y1 = self.cores[k]
-        return np.fromfile(self.files[k], dtype=np.uint8).reshape(y1 - y0, self.width)
 
     def __getitem__(self, key: tuple[slice, slice]) -> NDArray[np.uint8]:
         """Rows ``ys`` and columns ``xs`` of the joined mosaic (plain slices)."""
@@ -209,49 +296,45 @@ class _Joined:
         for path, (y0, y1) in zip(self.files, self.cores):
             a, b = max(y_lo, y0), min(y_hi, y1)
             if a < b:
-                rows = np.memmap(path, dtype=np.uint8, mode="r", shape=(y1 - y0, self.width))
+                shape = (y1 - y0, self.width) + ((self.channels,) if self.channels > 1 else ())
+                rows = np.memmap(path, dtype=np.uint8, mode="r", shape=shape)
                 pieces.append(np.array(rows[a - y0 : b - y0, xs]))
         return np.concatenate(pieces) if pieces else np.zeros((0, 0), np.uint8)
 
-    def vips(self) -> pyvips.Image:
-        """The whole mask as one libvips image, (H, W), read band file by band file."""
-        rows = [
-            pyvips.Image.rawload(str(path), self.width, y1 - y0, 1)
-            for path, (y0, y1) in zip(self.files, self.cores)
-        ]
-        return functools.reduce(lambda top, below: top.join(below, "vertical"), rows)
 
-
-def _label(acc: _Parts, mask: NDArray[np.bool_], band: int, y0: int) -> None:
-    """Record a band's components and link them to those of the band above."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if n > 1:
-        ys, xs = np.nonzero(labels)
-        first = np.unique(labels[ys, xs], return_index=True)
-        for lab, idx in zip(first[0].tolist(), first[1].tolist()):
-            x, y, w, h = (int(v) for v in stats[lab][:4])
-            acc.parts[(band, lab)] = _Part(
-                x, y0 + y, x + w, y0 + y + h, (int(xs[idx]), int(ys[idx]) + y0)
+def _join(acc: _Parts, components: Path, band: int, y0: int) -> None:
+    """Record a band's components (:func:`_band_defects`, the band's first row at mosaic
+    row ``y0``): its measured defects, and those on its edges linked to the band above's."""
+    with np.load(components) as found:
+        boxes, labels, seeds, first, last = (
+            found[k] for k in ("boxes", "labels", "seeds", "first", "last")
+        )
+        for d in json.loads(str(found["defects"])):
+            acc.inner.append(
+                Defect(**{**d, "bbox": tuple(d["bbox"]), "centroid_px": tuple(d["centroid_px"])})
             )
-    if acc.last_row is not None and len(labels):
-        acc.links += [((band - 1, a), (band, b)) for a, b in seam_links(acc.last_row, labels[0])]
-    acc.last_row = labels[-1].copy() if len(labels) else None
+    for lab, (x, y, w, h), (sx, sy) in zip(labels.tolist(), boxes.tolist(), seeds.tolist()):
+        acc.parts[(band, lab)] = _Part(x, y0 + y, x + w, y0 + y + h, (sx, y0 + sy))
+    if acc.last_row is not None:
+        acc.links += [((band - 1, a), (band, b)) for a, b in seam_links(acc.last_row, first)]
+    acc.last_row = last
 
 
 def _measure(
     acc: _Parts,
-    mask: _Joined,
-    contrast: _Joined | None,
+    mask: RowFiles,
+    contrast: RowFiles | None,
     name: str,
     mm_per_px: float | None,
     first_id: int,
 ) -> list[Defect]:
-    """Each joined component measured on a crop around it."""
+    """Each component on a band's edges, joined with those it touches across seams,
+    measured on a crop around it; with those measured inside their bands, in reading order."""
     groups = DisjointSet(list(acc.parts))
     for a, b in acc.links:
         if a in acc.parts and b in acc.parts:
             groups.merge(a, b)
-    found: list[Defect] = []
+    found: list[Defect] = list(acc.inner)
     for members in groups.subsets():
         ps = [acc.parts[m] for m in members]
         x0, y0 = max(0, min(p.x0 for p in ps) - 2), max(0, min(p.y0 for p in ps) - 2)
@@ -268,10 +351,3 @@ def _measure(
             found.append(moved(d, x0, y0, first_id + len(found)))
     found.sort(key=lambda d: (d.bbox[1], d.bbox[0]))
     return [moved(d, 0, 0, first_id + i) for i, d in enumerate(found)]
-
-
-def _save_mask(mask: pyvips.Image, out: Path) -> None:
-    """A 0/1 mask as a 0/255 PNG, streamed by libvips, written atomically."""
-    tmp = out.with_name(f".{out.name}.tmp.png")
-    save_behind((mask.copy(interpretation="b-w") * 255).cast("uchar"), tmp, ".png", compression=3)
-    tmp.replace(out)

@@ -1,5 +1,6 @@
 """A PNG encoded in segments of rows on their own and joined: the same pixels as the image,
-read by OpenCV and libvips, whatever order the segments were written in."""
+read by OpenCV and libvips, whatever order the segments were written in; any run of its
+rows decoded from the PNG alone."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from robot_link.sim.sweeps import LazySweep, SweepConfig
 from server.storage.png_segments import (
     adler32_combine,
     join_segments,
+    read_rows,
     sub_filtered,
     write_segment,
 )
@@ -86,3 +88,32 @@ def test_adler32_of_a_whole_from_its_parts() -> None:
 def test_sub_filter_is_the_difference_to_the_pixel_on_the_left() -> None:
     rows = np.array([[[10, 20, 30], [5, 25, 255], [0, 0, 0]]], np.uint8)
     assert sub_filtered(rows).tolist() == [[1, 10, 20, 30, 251, 5, 225, 251, 231, 1]]
+
+
+def test_any_rows_are_decoded_from_their_segments_alone(tmp_path: Path) -> None:
+    image = _painted_steel()
+    _write_shuffled(tmp_path / "png", image, [0, 1, 37, 38, 120, 200, 240], seed=3)
+    join_segments(tmp_path / "png", tmp_path / "m.png", 1280, 240, 3)
+    for y0, y1 in ((0, 240), (0, 1), (37, 38), (30, 130), (199, 201), (239, 999), (5, 5)):
+        assert np.array_equal(read_rows(tmp_path / "m.png", y0, y1), image[y0:y1])
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    _write_shuffled(tmp_path / "grey", grey, [0, 100, 240], seed=4)
+    join_segments(tmp_path / "grey", tmp_path / "g.png", 1280, 240, 1)
+    assert np.array_equal(read_rows(tmp_path / "g.png", 90, 110), grey[90:110])
+    # another tool's PNG has no segment index: the caller decodes it whole
+    cv2.imwrite(str(tmp_path / "other.png"), grey)
+    assert read_rows(tmp_path / "other.png", 0, 10) is None
+    (tmp_path / "short.png").write_bytes(b"\x89PNG")
+    assert read_rows(tmp_path / "short.png", 0, 10) is None
+
+
+def test_a_damaged_segment_is_named_not_decoded(tmp_path: Path) -> None:
+    image = _painted_steel()
+    _write_shuffled(tmp_path / "png", image, [0, 100, 240], seed=5)
+    join_segments(tmp_path / "png", tmp_path / "m.png", 1280, 240, 3)
+    data = bytearray((tmp_path / "m.png").read_bytes())
+    data[-200] ^= 0x40  # a byte of the last segment's image data
+    (tmp_path / "m.png").write_bytes(bytes(data))
+    assert np.array_equal(read_rows(tmp_path / "m.png", 0, 100), image[:100])
+    with pytest.raises(ValueError, match="rows 100-239 is damaged"):
+        read_rows(tmp_path / "m.png", 90, 110)

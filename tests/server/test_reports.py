@@ -346,6 +346,7 @@ def test_banded_detection_matches_the_one_pass_result(
     from processing.surface import on_surface, surface_level
     from server.jobs.banded import detect_banded
     from server.jobs.detect import _detect_mosaic
+    from server.storage.png_segments import read_rows
 
     live, sid = inspected
     results = tmp_path / "results"
@@ -356,8 +357,8 @@ def test_banded_detection_matches_the_one_pass_result(
     coverage = cv2.imread(str(results / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     level = surface_level(mosaic, coverage)
     assert on_surface(mosaic, coverage, level).any()
-    masks = partial(defect_masks, surface=surface)
-    banded = detect_banded(results, results, masks, 0.25, level, rows=200)
+    masks_of = partial(defect_masks, surface=surface)
+    banded = detect_banded(results, results, masks_of, 0.25, level, rows=200)
     assert mosaic.shape[0] > 400  # several bands, so defects cross seams
 
     def key(d):
@@ -371,6 +372,13 @@ def test_banded_detection_matches_the_one_pass_result(
         assert abs(d.max_width_px - ref.max_width_px) <= 1.0  # contrast kept as whole grey levels
     masks = cv2.imread(str(results / "crack_mask.png"), cv2.IMREAD_GRAYSCALE)
     assert masks.shape == mosaic.shape[:2] and set(np.unique(masks)) <= {0, 255}
+    # each band decoded its rows of the station's PNG itself; a PNG from another tool
+    # (no segment index) is unpacked first, with the same result
+    assert read_rows(results / "mosaic.png", 0, 1) is not None
+    cv2.imwrite(str(results / "mosaic.png"), mosaic)
+    assert read_rows(results / "mosaic.png", 0, 1) is None
+    other = detect_banded(results, results, masks_of, 0.25, level, rows=200)
+    assert sorted(map(key, other)) == sorted(map(key, one))
 
 
 def test_detect_job_method_is_chosen_per_job_and_reviews_carry_over(
