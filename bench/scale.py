@@ -2,9 +2,10 @@
 
 - A long simulated session (2,000 camera frames by default, ``--limit`` for another count)
   is recorded through the robot protocol; its stitch and detect jobs run on one worker
-  process, and again on two: the wall time of the stages spread over workers (the
-  stitch's pair registrations, detection's frames and mosaic bands) and of the whole jobs,
-  one against two.
+  process, and again on two, twice each: the wall time of the stages spread over workers
+  (the stitch's pair registrations, detection's frames and mosaic bands) and of the whole
+  jobs, one against two, each the shorter of its two runs (a passing disturbance of a
+  shared machine lengthens a run, never shortens one).
 - The live link while a big job runs: four robots at a camera's 30 frames/s, with the
   workers idle and then while they process the session; ingest rate and ACK p99 of each.
 - Ingest flood (4 robots, 16 frames in flight) on PostgreSQL against SQLite.
@@ -16,6 +17,7 @@ PostgreSQL and Redis are Debian's packages started in temporary folders
 from __future__ import annotations
 
 import asyncio
+import copy
 import os
 import shutil
 import subprocess
@@ -44,6 +46,7 @@ LIVE_FPS = 30.0
 LIVE_S = 15.0
 FLOOD_S = 10.0
 PX_PER_M = 1000.0
+RUNS = 2  # of each job on one worker and on two: the shorter counts
 
 
 def _record(port: int, token: str, frames: int) -> str:
@@ -110,6 +113,17 @@ def _job(url: str, sid: str, kind: str) -> tuple[dict, float]:
             time.sleep(0.25)  # a dashboard's pace
 
 
+def _best_of(url: str, sid: str, kind: str, runs: int = RUNS) -> tuple[dict, float]:
+    """The job run ``runs`` times: the last run's record with each stage's shortest time,
+    and the shortest time of the whole job."""
+    done = [_job(url, sid, kind) for _ in range(runs)]
+    job = copy.deepcopy(done[-1][0])
+    seconds = job["result"]["seconds"]
+    for stage in seconds:
+        seconds[stage] = min(j["result"]["seconds"][stage] for j, _ in done)
+    return job, min(s for _, s in done)
+
+
 def _p99_ms(latencies: list[float]) -> float:
     return round(float(np.percentile(np.array(latencies) * 1000, 99)), 2)
 
@@ -166,13 +180,13 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
             sid = _record(port, token, frames)
             tof_sid = record_clouds(port, token, limit)
             workers.add()
-            stitch, stitch_s = _job(url, sid, "stitch")
-            one, one_s = _job(url, sid, "detect")
-            map1, map1_s = _job(url, tof_sid, "map")
+            stitch, stitch_s = _best_of(url, sid, "stitch")
+            one, one_s = _best_of(url, sid, "detect")
+            map1, map1_s = _best_of(url, tof_sid, "map")
             workers.add()
-            stitch2, stitch2_s = _job(url, sid, "stitch")
-            two, two_s = _job(url, sid, "detect")
-            map2, map2_s = _job(url, tof_sid, "map")
+            stitch2, stitch2_s = _best_of(url, sid, "stitch")
+            two, two_s = _best_of(url, sid, "detect")
+            map2, map2_s = _best_of(url, tof_sid, "map")
             yield from map_results(map1, map1_s, map2, map2_s)
             par1, par2 = one["result"]["seconds"]["frames"], two["result"]["seconds"]["frames"]
             yield {
@@ -192,8 +206,9 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
                 "value": round(mos1 / mos2, 2),
                 "unit": "x",
                 "target": 1.6,
-                "stage": "detect job, mosaic bands (spread over workers; unpacking and "
-                "joining the bands on the job's worker)",
+                "stage": "detect job, the mosaic: its PNG's pieces unpacked and its bands "
+                "searched (spread over workers); components across band seams joined and "
+                "measured, the mask PNGs joined on the job's worker",
                 "one_worker_s": mos1,
                 "two_workers_s": mos2,
             }

@@ -17,6 +17,7 @@ from server.storage.png_segments import (
     adler32_combine,
     join_segments,
     read_rows,
+    segment_rows,
     sub_filtered,
     write_segment,
 )
@@ -94,6 +95,8 @@ def test_any_rows_are_decoded_from_their_segments_alone(tmp_path: Path) -> None:
     image = _painted_steel()
     _write_shuffled(tmp_path / "png", image, [0, 1, 37, 38, 120, 200, 240], seed=3)
     join_segments(tmp_path / "png", tmp_path / "m.png", 1280, 240, 3)
+    cuts = [0, 1, 37, 38, 120, 200, 240]
+    assert segment_rows(tmp_path / "m.png") == list(zip(cuts[:-1], cuts[1:]))
     for y0, y1 in ((0, 240), (0, 1), (37, 38), (30, 130), (199, 201), (239, 999), (5, 5)):
         assert np.array_equal(read_rows(tmp_path / "m.png", y0, y1), image[y0:y1])
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
@@ -103,6 +106,7 @@ def test_any_rows_are_decoded_from_their_segments_alone(tmp_path: Path) -> None:
     # another tool's PNG has no segment index: the caller decodes it whole
     cv2.imwrite(str(tmp_path / "other.png"), grey)
     assert read_rows(tmp_path / "other.png", 0, 10) is None
+    assert segment_rows(tmp_path / "other.png") is None
     (tmp_path / "short.png").write_bytes(b"\x89PNG")
     assert read_rows(tmp_path / "short.png", 0, 10) is None
 
