@@ -379,6 +379,13 @@ def test_banded_detection_matches_the_one_pass_result(
     assert read_rows(results / "mosaic.png", 0, 1) is None
     other = detect_banded(results, results, masks_of, 0.25, level, rows=200)
     assert sorted(map(key, other)) == sorted(map(key, one))
+    # the frames' seams, where a crack filter must not answer to an edge between frames
+    seams = np.zeros(mosaic.shape[:2], np.uint8)
+    seams[:, ::97] = 255
+    cv2.imwrite(str(results / "mosaic_seams.png"), seams)
+    one = _detect_mosaic(results, results, 0.25, surface=surface)
+    across = detect_banded(results, results, masks_of, 0.25, level, rows=200)
+    assert sorted(map(key, across)) == sorted(map(key, one))
 
 
 def test_detect_job_method_is_chosen_per_job_and_reviews_carry_over(
