@@ -4,8 +4,8 @@
   is recorded through the robot protocol; its stitch and detect jobs run on one worker
   process, and again on two, twice each: the wall time of the stages spread over workers
   (the stitch's pair registrations, detection's frames and mosaic bands) and of the whole
-  jobs, one against two, each the shorter of its two runs (a passing disturbance of a
-  shared machine lengthens a run, never shortens one).
+  jobs, one against two, each the shorter of its two runs (a passing disturbance on the
+  machine lengthens a run, never shortens one).
 - The live link while a big job runs: four robots at a camera's 30 frames/s, with the
   workers idle and then while they process the session; ingest rate and ACK p99 of each.
 - Ingest flood (4 robots, 16 frames in flight) on PostgreSQL against SQLite.

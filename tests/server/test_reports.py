@@ -13,7 +13,6 @@ import subprocess
 import sys
 import time
 import uuid
-from functools import partial
 from pathlib import Path
 
 import cv2
@@ -332,60 +331,6 @@ def test_session_cover_fields_can_be_corrected(live_server: LiveServer) -> None:
     headers = {"content-type": "application/json"}
     assert httpx.patch(api, content=lone_surrogate, headers=headers).status_code == 422
     assert httpx.get(f"{api}/report.json").json()["cover"]["notes"] == "wind 8 m/s"
-
-
-def test_banded_detection_matches_the_one_pass_result(
-    inspected: tuple[LiveServer, str], tmp_path: Path
-) -> None:
-    """Bounded-memory detection (bands of 200 rows, defects crossing seams joined) finds the
-    same defects as the in-memory pass on the session's mosaic."""
-    import shutil as sh
-
-    from processing.crack_filter import sample_surface
-    from processing.detection import defect_masks
-    from processing.surface import on_surface, surface_level
-    from server.jobs.banded import detect_banded
-    from server.jobs.detect import _detect_mosaic
-    from server.storage.png_segments import read_rows
-
-    live, sid = inspected
-    results = tmp_path / "results"
-    sh.copytree(live.settings.data_dir / "sessions" / sid / "results", results)
-    mosaic = cv2.imread(str(results / "mosaic.png"), cv2.IMREAD_COLOR)
-    surface = sample_surface(mosaic)
-    one = _detect_mosaic(results, results, 0.25, surface=surface)
-    coverage = cv2.imread(str(results / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
-    level = surface_level(mosaic, coverage)
-    assert on_surface(mosaic, coverage, level).any()
-    masks_of = partial(defect_masks, surface=surface)
-    banded = detect_banded(results, results, masks_of, 0.25, level, rows=200)
-    assert mosaic.shape[0] > 400  # several bands, so defects cross seams
-
-    def key(d):
-        return (d.defect_class, d.bbox)
-
-    assert sorted(map(key, banded)) == sorted(map(key, one))
-    by_box = {key(d): d for d in one}
-    for d in banded:
-        ref = by_box[key(d)]
-        assert d.area_px == ref.area_px and abs(d.length_px - ref.length_px) < 1e-6
-        assert abs(d.max_width_px - ref.max_width_px) <= 1.0  # contrast kept as whole grey levels
-    masks = cv2.imread(str(results / "crack_mask.png"), cv2.IMREAD_GRAYSCALE)
-    assert masks.shape == mosaic.shape[:2] and set(np.unique(masks)) <= {0, 255}
-    # each band decoded its rows of the station's PNG itself; a PNG from another tool
-    # (no segment index) is unpacked first, with the same result
-    assert read_rows(results / "mosaic.png", 0, 1) is not None
-    cv2.imwrite(str(results / "mosaic.png"), mosaic)
-    assert read_rows(results / "mosaic.png", 0, 1) is None
-    other = detect_banded(results, results, masks_of, 0.25, level, rows=200)
-    assert sorted(map(key, other)) == sorted(map(key, one))
-    # the frames' seams, where a crack filter must not answer to an edge between frames
-    seams = np.zeros(mosaic.shape[:2], np.uint8)
-    seams[:, ::97] = 255
-    cv2.imwrite(str(results / "mosaic_seams.png"), seams)
-    one = _detect_mosaic(results, results, 0.25, surface=surface)
-    across = detect_banded(results, results, masks_of, 0.25, level, rows=200)
-    assert sorted(map(key, across)) == sorted(map(key, one))
 
 
 def test_detect_job_method_is_chosen_per_job_and_reviews_carry_over(
