@@ -43,7 +43,7 @@ INPUTS = {
     "coverage": ("mosaic_coverage.png", 1),
     "seams": ("mosaic_seams.png", 1),
 }  # scratch name: (PNG, channels)
-MAX_PIECES = 64  # pieces per input: enough for any number of workers to share
+MAX_PIECES = 64  # pieces per input: four chunks each for up to sixteen workers
 Masks = Callable[[NDArray[np.uint8], NDArray[np.bool_], NDArray[np.bool_] | None], DefectMasks]
 
 
