@@ -76,8 +76,8 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
     from robot_link.sim.tof_sweeps import tof_sweep
 
     for label, config in _sweeps():
-        sweep = tof_sweep(config)
-        n = min(len(sweep.clouds), limit) if limit else len(sweep.clouds)
+        sweep = tof_sweep(config, clouds=limit)
+        n = len(sweep.clouds)
         clouds, truth, odo = sweep.clouds[:n], sweep.truth[:n], sweep.odometry[:n]
         length = float(np.sum(np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)))
         shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))

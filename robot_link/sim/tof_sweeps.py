@@ -111,16 +111,21 @@ def drifting_odometry(
 
 
 def tof_sweep(
-    cfg: TofSweepConfig = TofSweepConfig(), structure: SteelStructure | None = None
+    cfg: TofSweepConfig = TofSweepConfig(),
+    structure: SteelStructure | None = None,
+    *,
+    clouds: int | None = None,
 ) -> TofSweep:
-    """Drive the route and record what the ToF camera sees."""
+    """Drive the route and record what the ToF camera sees; with ``clouds``, only the
+    route's first ``clouds`` poses (the same clouds as the whole sweep's first ones)."""
     rng = np.random.default_rng(cfg.seed)
     structure = structure or make_structure(
         cfg.seed, n_cracks=1, n_corrosion=1, girder_overhang_m=cfg.girder_overhang_m
     )
     tof = TofCamera(structure, noise_sigma_m=cfg.noise_sigma_m)
     robot = route(cfg)
-    odo = drifting_odometry(robot, cfg, rng)
+    odo = drifting_odometry(robot, cfg, rng)  # drawn for the whole route: the same noise after
+    robot, odo = robot[:clouds], odo[:clouds]
     truth = np.array([tof.T_world_tof(p) for p in robot])
     clouds = [
         depth_to_points(tof.render(T, rng), tof.fx, tof.fy, tof.cx, tof.cy).astype(np.float32)
