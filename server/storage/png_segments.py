@@ -118,10 +118,11 @@ def join_segments(folder: Path, out: Path, width: int, height: int, channels: in
     colour = 0 if channels == 1 else 2
     at = len(SIGNATURE) + 12 + _IHDR.size + 12 + _ENTRY.size * len(segments)
     at += 12 + len(_ZLIB_HEADER)
-    index = b""
+    entries = []
     for y0, rows, checksum, _, path in segments:
-        index += _ENTRY.pack(y0, rows, at, checksum)
+        entries.append(_ENTRY.pack(y0, rows, at, checksum))
         at += path.stat().st_size - _HEADER.size
+    index = b"".join(entries)
     with WriteBehind(tmp) as fh:
         fh.write(SIGNATURE)
         fh.write(_chunk(b"IHDR", _IHDR.pack(width, height, 8, colour, 0, 0, 0)))
@@ -147,8 +148,9 @@ class _Index:
 
 def _index(fh: BinaryIO) -> _Index | None:
     """The segment index of the PNG open in ``fh``; None for a PNG without one."""
-    head = fh.read(len(SIGNATURE) + 12 + _IHDR.size + 8)
-    if len(head) < len(SIGNATURE) + 12 + _IHDR.size + 8 or head[:8] != SIGNATURE:
+    size = len(SIGNATURE) + 12 + _IHDR.size + 8  # signature, IHDR, the next chunk's head
+    head = fh.read(size)
+    if len(head) < size or head[:8] != SIGNATURE:
         return None
     width, height, depth, colour, *_ = _IHDR.unpack_from(head, 16)
     length, kind = struct.unpack_from(">I4s", head, 16 + _IHDR.size + 4)
@@ -183,12 +185,12 @@ def read_rows(png: Path, y0: int, y1: int) -> NDArray[np.uint8] | None:
                 continue
             fh.seek(offset)
             size, kind = struct.unpack(">I4s", fh.read(8))
-            data, last = b"", first + rows - 1
+            last = first + rows - 1
             try:  # a segment has no final block: the empty one ends it
-                if kind == b"IDAT":
-                    data = zlib.decompress(fh.read(size) + _EMPTY_FINAL_BLOCK, -15, rows * stride)
+                raw = fh.read(size) + _EMPTY_FINAL_BLOCK if kind == b"IDAT" else b""
+                data = zlib.decompress(raw, -15, rows * stride) if raw else b""
             except zlib.error:
-                pass  # named below
+                data = b""  # damaged: named below
             if len(data) != rows * stride or zlib.adler32(data) != checksum:
                 raise ValueError(f"{png.name}: the segment of rows {first}-{last} is damaged")
             lines = np.frombuffer(data, np.uint8).reshape(rows, stride)
