@@ -1,8 +1,9 @@
 """The 3D map growing live while the robot inspects: every ToF cloud the station stores is
 also added to :class:`processing.mapping.IncrementalMap` (the same pose graph as the
-``map`` job's, optimised every ``OPTIMISE_EVERY`` clouds and at each loop closure) in a
-worker process (ICP would starve the viser server and the event loop in this one), and the
-map so far is shown in the 3D view. The ``map`` job still builds the final map from every
+``map`` job's, optimised after every cloud while the graph is small, after every tenth of
+the clouds so far once it grows, and at each loop closure) in a worker process (ICP would
+starve the viser server and the event loop in this one), and the map so far is shown in
+the 3D view. The ``map`` job still builds the final map from every
 cloud after the session (the live view skips clouds when its worker falls behind).
 """
 
@@ -19,7 +20,11 @@ from server.live.worker import LiveWorker
 log = logging.getLogger(__name__)
 MAX_PENDING = 3  # clouds waiting for the worker; beyond, the live view skips (the job uses all)
 DISPLAY_POINTS = 150_000
-OPTIMISE_EVERY = 10
+# between optimisations each cloud is chained to the one before it, and a turn's step can
+# leave the chain centimetres worse than the odometry until the next one (the pose graph's
+# odometry edges and plane landmarks pull it back): the live map optimises as often as its
+# cost allows: the graph's own pace (processing.mapping.incremental)
+OPTIMISE_EVERY = 1
 
 _maps: dict[str, Any] = {}  # in the worker process: session id -> IncrementalMap
 _odometry: dict[str, list[tuple[float, NDArray[np.float64]]]] = {}  # (time, odometry pose)

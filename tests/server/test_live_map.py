@@ -62,6 +62,7 @@ def test_the_live_map_refines_frame_placement(live_server: LiveServer) -> None:
     err_odometry = np.linalg.norm(odometry - truth, axis=1)
     print(
         f"live map placement: mean {err_live.mean() * 1000:.1f} mm, worst {err_live.max() * 1000:.1f} mm; "
-        f"odometry mean {err_odometry.mean() * 1000:.1f} mm, worst {err_odometry.max() * 1000:.1f} mm"
+        f"odometry mean {err_odometry.mean() * 1000:.1f} mm, worst {err_odometry.max() * 1000:.1f} mm; "
+        f"{live_map.skipped} of {clouds['count']} clouds skipped"
     )
     assert err_live.mean() < err_odometry.mean()
