@@ -242,6 +242,7 @@ def test_stitch_refuses_corrupt_or_mismatched_frames_and_writes_nothing(tmp_path
 
 
 @pytest.mark.skipif(not DATASET.is_dir(), reason="shared dataset not present")
+@pytest.mark.slow  # a whole benchmark
 def test_bench_detect_prints_json_lines_with_baselines() -> None:
     proc = steelscan("bench", "detect", "--dataset", str(DATASET), "--limit", "6")
     assert proc.returncode == 0, proc.stderr
@@ -291,8 +292,9 @@ def test_detect_handles_sixteen_bit_tiny_and_constant_images(tmp_path: Path) -> 
     )
 
 
-def test_bench_stitch_and_map_measure_against_baselines() -> None:
-    proc = steelscan("bench", "stitch", "map", "--limit", "8")
+@pytest.mark.slow  # a whole benchmark
+def test_bench_stitch_measures_against_baselines() -> None:
+    proc = steelscan("bench", "stitch", "--limit", "8")
     assert proc.returncode == 0, proc.stderr
     results = {r["name"]: r for r in map(json.loads, proc.stdout.splitlines())}
     for surface in ("textured", "painted_steel"):
@@ -311,6 +313,13 @@ def test_bench_stitch_and_map_measure_against_baselines() -> None:
         assert ecc["mean_overlap_error"] < 0.5 and ecc["ms_per_pair"] > 0
     spread = results["stitch.straight_runs.end_drift_rms"]
     assert spread["runs"] == len(spread["drifts"]) == len(spread["baseline_drifts"]) >= 8
+
+
+@pytest.mark.slow  # a whole benchmark
+def test_bench_map_measures_against_baselines() -> None:
+    proc = steelscan("bench", "map", "--limit", "8")
+    assert proc.returncode == 0, proc.stderr
+    results = {r["name"]: r for r in map(json.loads, proc.stdout.splitlines())}
     assert {
         "map.sweep31.ate",
         "map.sweep31.drift",
@@ -325,6 +334,7 @@ def test_bench_stitch_and_map_measure_against_baselines() -> None:
     assert results["map.structure.i_girder.whole_command"]["clouds"] == 8  # the first type's
 
 
+@pytest.mark.slow  # a whole benchmark
 def test_bench_ingest_counts_every_frame_it_sends() -> None:
     proc = steelscan("bench", "ingest", "--limit", "2")
     assert proc.returncode == 0, proc.stderr
