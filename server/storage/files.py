@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from server.storage.write_behind import WriteBehind
+from server.storage.write_behind import WriteBehind, read_exactly
 
 SEGMENT_BYTES = 512 * 2**20  # payload segment files are closed and a new one started beyond this
 
@@ -83,11 +83,11 @@ class SessionFiles:
         """A stored payload: ``size`` bytes at ``offset`` of a segment file, or a whole file
         when ``offset`` is None. OSError when it is gone or short."""
         path = self.resolve(relpath)
-        if offset is None:
-            return path.read_bytes()
-        with path.open("rb") as fh:
+        with path.open("rb", buffering=0) as fh:
+            if offset is None:
+                return read_exactly(fh, os.fstat(fh.fileno()).st_size)
             fh.seek(offset)
-            data = fh.read(size)
+            data = read_exactly(fh, size)
         if len(data) != size:
             raise OSError(f"{path.name} holds {len(data)} of the {size} bytes at {offset}")
         return data

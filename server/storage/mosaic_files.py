@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from processing.stitching import Band, MosaicLayout
 from server.storage.files import SessionFiles
 from server.storage.png_segments import join_segments, write_segment
-from server.storage.write_behind import WriteBehind, save_behind
+from server.storage.write_behind import CALL_BYTES, WriteBehind, save_behind
 
 OVERVIEW_MAX_PX = 2048
 TILE_SIZE = 254  # + 1 px overlap on each side = 256 px tiles
@@ -140,7 +140,7 @@ def write_band(raw: Path, cov: Path, band: Band) -> None:
         fd, view, at = os.open(path, os.O_WRONLY), memoryview(data), band.y0 * width * channels
         try:
             while view:
-                done = os.pwrite(fd, view, at)
+                done = os.pwrite(fd, view[:CALL_BYTES], at)  # short calls: write_behind
                 view, at = view[done:], at + done
         finally:
             os.close(fd)

@@ -34,7 +34,7 @@ import numpy as np
 from isal import isal_zlib as zlib  # zlib's formats, ISA-L's speed
 from numpy.typing import NDArray
 
-from server.storage.write_behind import WriteBehind
+from server.storage.write_behind import CALL_BYTES, WriteBehind, read_exactly, write_file_behind
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 LEVEL = 1  # ISA-L's levels (0-3): 5x faster than zlib's level 1 with smaller files on mosaics
@@ -80,7 +80,7 @@ def write_segment(folder: Path, y0: int, rows: NDArray[np.uint8], level: int = L
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{y0:010d}.seg"
     tmp = folder / f".{y0:010d}.{uuid.uuid4().hex}.tmp"
-    tmp.write_bytes(encode_segment(y0, rows, level))
+    write_file_behind(tmp, encode_segment(y0, rows, level))
     os.replace(tmp, path)
     return path
 
@@ -131,7 +131,7 @@ def join_segments(folder: Path, out: Path, width: int, height: int, channels: in
         for *_, path in segments:
             with path.open("rb") as seg:
                 seg.seek(_HEADER.size)
-                while block := seg.read(1 << 22):
+                while block := seg.read(CALL_BYTES):
                     fh.write(block)
         fh.write(_chunk(b"IDAT", _EMPTY_FINAL_BLOCK + struct.pack(">I", adler)))
         fh.write(_chunk(b"IEND", b""))
@@ -187,7 +187,7 @@ def read_rows(png: Path, y0: int, y1: int) -> NDArray[np.uint8] | None:
             size, kind = struct.unpack(">I4s", fh.read(8))
             last = first + rows - 1
             try:  # a segment has no final block: the empty one ends it
-                raw = fh.read(size) + _EMPTY_FINAL_BLOCK if kind == b"IDAT" else b""
+                raw = read_exactly(fh, size) + _EMPTY_FINAL_BLOCK if kind == b"IDAT" else b""
                 data = zlib.decompress(raw, -15, rows * stride) if raw else b""
             except zlib.error:
                 data = b""  # damaged: named below

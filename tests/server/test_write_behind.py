@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyvips
 
 from server.storage.files import write_atomic
-from server.storage.write_behind import STEP_BYTES, WriteBehind, save_behind
+from server.storage.write_behind import (
+    CALL_BYTES,
+    STEP_BYTES,
+    WriteBehind,
+    read_exactly,
+    save_behind,
+)
 
 
 def _bytes_sent_to_storage() -> int:
@@ -63,3 +70,38 @@ def test_large_atomic_writes_and_libvips_saves_are_written_behind(tmp_path: Path
     assert np.array_equal(back, image)
     raw = np.fromfile(tmp_path / "m.raw", dtype=np.uint8).reshape(image.shape)
     assert np.array_equal(raw, image)
+
+
+class _Recording:
+    """A raw file that records the size of every system call made through it."""
+
+    def __init__(self, raw: Any) -> None:
+        self.raw, self.calls = raw, []  # type: ignore[var-annotated]
+
+    def write(self, data: memoryview) -> int:
+        self.calls.append(len(data))
+        return self.raw.write(data)
+
+    def readinto(self, buffer: memoryview) -> int:
+        self.calls.append(len(buffer))
+        return self.raw.readinto(buffer)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.raw, name)
+
+
+def test_no_system_call_copies_more_than_a_short_call(tmp_path: Path) -> None:
+    """A worker inside one long copy holds its core on a kernel without preemption: large
+    writes and reads go in calls of at most CALL_BYTES, every byte in order."""
+    data = np.random.default_rng(6).integers(0, 256, size=5 * CALL_BYTES + 99, dtype=np.uint8)
+    out = WriteBehind(tmp_path / "big.raw")
+    out._fh = recorded = _Recording(out._fh)  # type: ignore[assignment]
+    with out:
+        out.write(data.tobytes())
+    assert max(recorded.calls) <= CALL_BYTES and sum(recorded.calls) == data.size
+    with (tmp_path / "big.raw").open("rb", buffering=0) as fh:
+        reader = _Recording(fh)
+        reader.seek(7)
+        back = read_exactly(reader, data.size)  # type: ignore[arg-type]
+    assert back == data.tobytes()[7:]  # fewer bytes at the file's end
+    assert max(reader.calls) <= CALL_BYTES
