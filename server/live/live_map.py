@@ -22,8 +22,9 @@ MAX_PENDING = 3  # clouds waiting for the worker; beyond, the live view skips (t
 DISPLAY_POINTS = 150_000
 # between optimisations each cloud is chained to the one before it, and a turn's step can
 # leave the chain centimetres worse than the odometry until the next one (the pose graph's
-# odometry edges and plane landmarks pull it back): the live map optimises as often as its
-# cost allows: the graph's own pace (processing.mapping.incremental)
+# odometry edges and plane landmarks pull it back): the live map asks for an optimisation
+# after every cloud, which the graph spaces out to a tenth of its clouds as it grows
+# (processing.mapping.incremental)
 OPTIMISE_EVERY = 1
 
 _maps: dict[str, Any] = {}  # in the worker process: session id -> IncrementalMap

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from server.storage.write_behind import WriteBehind, read_exactly
+from server.storage.write_behind import WriteBehind, read_up_to
 
 SEGMENT_BYTES = 512 * 2**20  # payload segment files are closed and a new one started beyond this
 
@@ -85,9 +85,9 @@ class SessionFiles:
         path = self.resolve(relpath)
         with path.open("rb", buffering=0) as fh:
             if offset is None:
-                return read_exactly(fh, os.fstat(fh.fileno()).st_size)
+                return read_up_to(fh, os.fstat(fh.fileno()).st_size)
             fh.seek(offset)
-            data = read_exactly(fh, size)
+            data = read_up_to(fh, size)
         if len(data) != size:
             raise OSError(f"{path.name} holds {len(data)} of the {size} bytes at {offset}")
         return data

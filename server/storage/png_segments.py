@@ -34,7 +34,7 @@ import numpy as np
 from isal import isal_zlib as zlib  # zlib's formats, ISA-L's speed
 from numpy.typing import NDArray
 
-from server.storage.write_behind import CALL_BYTES, WriteBehind, read_exactly, write_file_behind
+from server.storage.write_behind import CALL_BYTES, WriteBehind, read_up_to, write_file_behind
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 LEVEL = 1  # ISA-L's levels (0-3): 5x faster than zlib's level 1 with smaller files on mosaics
@@ -187,7 +187,7 @@ def read_rows(png: Path, y0: int, y1: int) -> NDArray[np.uint8] | None:
             size, kind = struct.unpack(">I4s", fh.read(8))
             last = first + rows - 1
             try:  # a segment has no final block: the empty one ends it
-                raw = read_exactly(fh, size) + _EMPTY_FINAL_BLOCK if kind == b"IDAT" else b""
+                raw = read_up_to(fh, size) + _EMPTY_FINAL_BLOCK if kind == b"IDAT" else b""
                 data = zlib.decompress(raw, -15, rows * stride) if raw else b""
             except zlib.error:
                 data = b""  # damaged: named below

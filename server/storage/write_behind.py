@@ -16,9 +16,9 @@ Each system call moves at most :data:`CALL_BYTES`. A kernel built without preemp
 (``PREEMPT_NONE``, the server default of many distributions) does not take the CPU from a
 task inside a system call: a worker at idle priority copying 8 MB into the page cache in
 one ``write`` holds its core for milliseconds while the station's live link waits to run.
-Beside two processes writing 50 MB/s between them, the live link's ACK p99 was 12-17 ms in
-8 MB calls and 3.6-5.3 ms in 64 kB calls, against 5.8-6.1 ms with nothing beside it
-(``docs/limits.md``). Large reads go the same way (:func:`read_exactly`).
+Beside two processes writing 50 MB/s between them, the live link's ACK p99 was 9.6-17.1 ms
+in 8 MB calls and 3.6-5.3 ms in 64 kB calls, against 3.2-6.1 ms with nothing beside it
+(``docs/benchmarks.md``, scale-out). Large reads go the same way (:func:`read_up_to`).
 """
 
 from __future__ import annotations
@@ -104,7 +104,7 @@ class WriteBehind:
         self.close()
 
 
-def read_exactly(fh: BinaryIO, size: int) -> bytes:
+def read_up_to(fh: BinaryIO, size: int) -> bytes:
     """Up to ``size`` bytes from ``fh``'s position (fewer at the file's end), read in system
     calls of at most :data:`CALL_BYTES`."""
     out = bytearray(size)
