@@ -1,7 +1,10 @@
 """One worker process for a live view's heavy work (ICP, a detector), which would starve the
 event loop and the viser server in the station's own process: at most ``max_pending``
 items wait, beyond that items are skipped (the jobs after the session use every item),
-and each result goes to a callback in the pool's thread."""
+and each result goes to a callback in the pool's thread. While the worker warms up (its
+imports, a model: seconds on a busy machine) items wait however many arrive, up to
+``WARMING_CAP``: skipping them would drop the session's first stretch in one run (the live
+map could not tie the clouds on either side of it)."""
 
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ from typing import Any
 from server.jobs.orphans import init_worker
 
 log = logging.getLogger(__name__)
+WARMING_CAP = 64  # items that may wait for a worker still warming up
 
 
 class LiveWorker:
@@ -26,6 +30,7 @@ class LiveWorker:
         self.skipped = 0
         self._pool: ProcessPoolExecutor | None = None
         self._pending = 0
+        self._warming: Future[Any] | None = None
         self._lock = threading.Lock()
 
     def _started(self) -> ProcessPoolExecutor:
@@ -39,13 +44,14 @@ class LiveWorker:
         """Start the worker and run ``fn`` there (imports, a model) ahead of the first item,
         which would otherwise wait for them while the items after it are skipped."""
         with self._lock:
-            self._started().submit(fn)
+            self._warming = self._started().submit(fn)
 
     def submit(self, fn: Callable[..., Any], *args: Any, done: Callable[[Any], None]) -> bool:
         """Run ``fn(*args)`` in the worker and hand its result to ``done``; False (skipped)
         when the worker is behind. A failure is logged: live views are a courtesy."""
         with self._lock:
-            if self._pending >= self.max_pending:
+            warming = self._warming is not None and not self._warming.done()
+            if self._pending >= (WARMING_CAP if warming else self.max_pending):
                 self.skipped += 1
                 return False
             self._pending += 1
