@@ -13,9 +13,7 @@ def _collect(worker: LiveWorker, items: list[float]) -> tuple[list[bool], list[f
     """Submit ``items`` (seconds to sleep) at once; whether each was taken, and the items
     done, in the order they came back."""
     results: list[float] = []
-    taken = [
-        worker.submit(time.sleep, s, done=lambda _, s=s: results.append(s)) for s in items
-    ]
+    taken = [worker.submit(time.sleep, s, done=lambda _, s=s: results.append(s)) for s in items]
     deadline = time.monotonic() + 60
     while len(results) < sum(taken):
         assert time.monotonic() < deadline, "the worker did not finish"
