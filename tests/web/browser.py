@@ -4,6 +4,7 @@ strings), recording the page's errors, and the simulated robot as a subprocess."
 
 from __future__ import annotations
 
+import math
 import shutil
 import subprocess
 import sys
@@ -101,13 +102,33 @@ def latest_telemetry(url: str, sid: str) -> dict:
     ).json()["data"][0]["data"]
 
 
+def _samples_around(url: str, sid: str, t: float) -> list[dict]:
+    return httpx.get(
+        f"{url}/api/sessions/{sid}/telemetry", params={"since": t - 1.0, "limit": 5000}
+    ).json()["data"]
+
+
 def stood_still(url: str, sid: str, t: float) -> float | None:
     """When (the robot's clock) the robot first reported standing still at or after ``t``;
     None before it has."""
-    samples = httpx.get(
-        f"{url}/api/sessions/{sid}/telemetry", params={"since": t, "limit": 5000}
-    ).json()["data"]
+    samples = [s for s in _samples_around(url, sid, t) if s["timestamp"] >= t]
     return next((s["timestamp"] for s in samples if s["data"]["drive"]["linear_mps"] == 0.0), None)
+
+
+def drove_on(url: str, sid: str, t: float) -> tuple[float, float]:
+    """How far (m) the robot drove from its last report before ``t`` (robot clock) to its
+    first report standing still after it, and the speed (m/s) it drove at before ``t``."""
+    samples = _samples_around(url, sid, t)
+    before = [s for s in samples if s["timestamp"] < t][-1]["data"]
+    still = next(
+        s["data"]
+        for s in samples
+        if s["timestamp"] >= t and s["data"]["drive"]["linear_mps"] == 0.0
+    )
+    moved = math.hypot(
+        still["pose"]["x"] - before["pose"]["x"], still["pose"]["y"] - before["pose"]["y"]
+    )
+    return float(moved), float(before["drive"]["linear_mps"])
 
 
 def wait_until(predicate, timeout_s: float, what: str) -> float:  # type: ignore[no-untyped-def]

@@ -19,6 +19,7 @@ from tests.conftest import LiveServer
 from tests.server.test_ingest import msg, robot_ws, start
 from tests.web.browser import (
     CHROMIUM,
+    drove_on,
     latest_telemetry,
     launch,
     open_dashboard,
@@ -337,8 +338,10 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
         page.keyboard.up("ArrowUp")
         wait_until(lambda: stood_still(url, sid, released), 5, "the robot to stop on key release")
         assert latest_telemetry(url, sid)["pose"]["x"] > x0 + 0.05
-        # the robot's own clock says when it stood still, whatever storing and polling add
-        assert stood_still(url, sid, released) - released < 1.0
+        # the robot drives on for less than a second's worth after the key goes up: counted
+        # in its own motion, which stands still while a busy machine stalls the simulator
+        moved, speed = drove_on(url, sid, released)
+        assert speed > 0 and moved < speed * 1.0
         # e-stop: the robot stops and refuses to drive until the e-stop is reset
         page.keyboard.down("ArrowUp")
         time.sleep(0.5)
