@@ -8,7 +8,9 @@ Beside them, the structure's own floor (:func:`registration_floor`): every cloud
 to the earlier clouds at their *true* poses. Nothing has drifted there, so its error is
 what one cloud's view leaves unfixed on that structure (a plate with nothing across the
 route fixes no distance along it); where the floor is above the target, registration
-alone cannot meet it."""
+alone cannot meet it. Below both, the least error any map could reach
+(:func:`bench.map_bound.trajectory_bound`, the Cramér–Rao bound given the true structure):
+where it is above the target, no mapper can meet it on that sequence."""
 
 from __future__ import annotations
 
@@ -68,16 +70,25 @@ def bench_map_structures(
     ``seeds`` held-back seeds (10 unless given) of ``clouds`` clouds, ms per cloud, and the
     whole command's time (on the first ``commands`` types; every type unless given)."""
     from bench.map import _open3d_tutorial_poses
+    from bench.map_bound import trajectory_bound
     from processing.mapping import SelectParams, register_clouds, select
     from processing.metrics import absolute_trajectory_error
-    from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_sweep, write_sweep
+    from robot_link.sim.scene_sweeps import (
+        SceneSweepConfig,
+        scene_camera,
+        scene_sweep,
+        write_sweep,
+    )
     from robot_link.sim.scenes import SCENES
 
     for number, kind in enumerate(SCENES):
-        drift: dict[str, list[float]] = {n: [] for n in ("ours", "odometry", "tutorial", "floor")}
+        drift: dict[str, list[float]] = {
+            n: [] for n in ("ours", "odometry", "tutorial", "floor", "bound")
+        }
         ms: dict[str, list[float]] = {"ours": [], "tutorial": []}
         for seed in list(HELD_BACK_SEEDS)[: seeds or None]:
-            sweep = scene_sweep(SceneSweepConfig(kind=kind, seed=seed, clouds=clouds))
+            config = SceneSweepConfig(kind=kind, seed=seed, clouds=clouds)
+            sweep = scene_sweep(config)
             shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
             n = len(sweep.clouds)
             t0 = time.perf_counter()
@@ -87,14 +98,10 @@ def bench_map_structures(
             pcds = [select(c, SelectParams()) for c in sweep.clouds]
             tutorial = _open3d_tutorial_poses(pcds, sweep.odometry)
             ms["tutorial"].append(1000 * (time.perf_counter() - t0) / n)
-            config = SceneSweepConfig()
-            floor = registration_floor(
-                sweep.clouds,
-                sweep.truth,
-                sweep.odometry,
-                shape,
-                (np.radians(config.odometry_deg), config.odometry_m),
-            )
+            sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+            floor = registration_floor(sweep.clouds, sweep.truth, sweep.odometry, shape, sigmas)
+            bound = trajectory_bound(scene_camera(config), sweep.truth, sigmas)
+            drift["bound"].append(100 * bound / sweep.path_length_m)
             for name, poses in (
                 ("ours", ours),
                 ("odometry", sweep.odometry),
@@ -122,6 +129,10 @@ def bench_map_structures(
             # each cloud registered to the earlier ones at their true poses (nothing drifted)
             "floor_mean": round(float(np.mean(drift["floor"])), 3),
             "floor_worst": round(float(np.max(drift["floor"])), 3),
+            # the least any map could reach, knowing the structure (Cramér–Rao)
+            "bound_mean": round(float(np.mean(drift["bound"])), 3),
+            "bound_worst": round(float(np.max(drift["bound"])), 3),
+            "per_seed_bound": [round(v, 3) for v in drift["bound"]],
             "seeds": len(drift["ours"]),
             "per_seed": [round(v, 3) for v in drift["ours"]],
         }

@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from processing.poses import se2_to_se3
 from robot_link.clouds import depth_to_points
-from robot_link.sim.scenes import make_scene
+from robot_link.sim.scenes import Scene, make_scene
 from robot_link.sim.sensors import TofCamera, tof_mount
 from robot_link.sim.tof_sweeps import TofSweep, TofSweepConfig, route
 
@@ -67,10 +67,8 @@ def _odometry(
     return np.array(out)
 
 
-def scene_sweep(cfg: SceneSweepConfig = SceneSweepConfig()) -> TofSweep:
-    """Drive the two-lane loop over the structure and record what the ToF camera sees."""
-    rng = np.random.default_rng(cfg.seed)
-    scene = make_scene(cfg.kind, cfg.seed)
+def _camera(cfg: SceneSweepConfig, scene: Scene, rng: np.random.Generator) -> TofCamera:
+    """The sequence's ToF camera and mounting, drawn from ``rng`` (the sequence's first draws)."""
     w, h, hfov, vfov, noise = SENSORS[
         cfg.sensor if cfg.sensor is not None else rng.integers(len(SENSORS))
     ]
@@ -81,7 +79,7 @@ def scene_sweep(cfg: SceneSweepConfig = SceneSweepConfig()) -> TofSweep:
         rng.uniform(8, vfov / 2),
         rng.choice([-1, 1]) * rng.uniform(0, 40),
     )
-    tof = TofCamera(
+    return TofCamera(
         scene,
         width=w,
         height=h,
@@ -91,6 +89,19 @@ def scene_sweep(cfg: SceneSweepConfig = SceneSweepConfig()) -> TofSweep:
         T_robot_tof=mount,
         noise_along_ray=True,
     )
+
+
+def scene_camera(cfg: SceneSweepConfig = SceneSweepConfig()) -> TofCamera:
+    """The ToF camera (over its structure) that :func:`scene_sweep` records ``cfg`` with."""
+    return _camera(cfg, make_scene(cfg.kind, cfg.seed), np.random.default_rng(cfg.seed))
+
+
+def scene_sweep(cfg: SceneSweepConfig = SceneSweepConfig()) -> TofSweep:
+    """Drive the two-lane loop over the structure and record what the ToF camera sees."""
+    rng = np.random.default_rng(cfg.seed)
+    scene = make_scene(cfg.kind, cfg.seed)
+    tof = _camera(cfg, scene, rng)
+    noise = tof.noise_sigma_m
     lanes, (x0, x1) = scene.lanes_y_m, scene.x_range_m
     gap = abs(lanes[1] - lanes[0])
     step = (2 * (x1 - x0) + np.pi * gap) / cfg.clouds

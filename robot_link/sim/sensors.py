@@ -163,6 +163,22 @@ class TofCamera:
         T[:2, 3] = (x, y)
         return T @ self.T_robot_tof
 
+    def surface(
+        self, T_world_tof: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """What each pixel's ray truly hits from ``T_world_tof``, without noise, in the world:
+        points, unit surface normals and unit ray directions, (K, 3) each, for the K pixels
+        with a return."""
+        R, t = T_world_tof[:3, :3], T_world_tof[:3, 3]
+        dirs = self._dirs @ R.T
+        rays = np.hstack([np.broadcast_to(t, dirs.shape), dirs]).astype(np.float32)
+        cast = self._scene.cast_rays(o3d.core.Tensor(rays))
+        hit = cast["t_hit"].numpy().astype(np.float64)
+        ok = np.isfinite(hit) & (hit <= self.max_range_m)
+        normals = cast["primitive_normals"].numpy()[ok].astype(np.float64)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        return t + dirs[ok] * hit[ok, None], normals, dirs[ok]
+
     def render(
         self, T_world_tof: NDArray[np.float64], rng: np.random.Generator
     ) -> NDArray[np.float32]:

@@ -330,7 +330,7 @@ def test_bench_map_measures_against_baselines() -> None:
     for kind in ("i_girder", "box_girder", "cross_frames", "truss", "gusset_joint"):
         drift = results[f"map.structure.{kind}.drift_mean"]
         assert drift["seeds"] == 1 and drift["value"] > 0 and "odometry_mean" in drift
-        assert 0 < drift["floor_mean"] < drift["odometry_mean"]
+        assert 0 < drift["bound_mean"] < drift["floor_mean"] < drift["odometry_mean"]
     assert results["map.structure.i_girder.whole_command"]["clouds"] == 8  # the first type's
 
 

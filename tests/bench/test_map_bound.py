@@ -1,0 +1,89 @@
+"""The least trajectory error any map could reach (the Cramér–Rao bound) on simulated
+sequences: it agrees with the error of odometry drawn many times where odometry is all
+there is, and a view fixes only the directions its surfaces face."""
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bench.map_bound import (
+    aligned_error_bound,
+    no_slip_information,
+    pose_information,
+    trajectory_bound,
+)
+from processing.metrics import absolute_trajectory_error
+from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_camera, scene_sweep
+
+
+def _odometry(truth: np.ndarray, sigmas: tuple[float, float], rng: np.random.Generator):
+    """The true steps with 6-DoF errors in each later pose's frame, integrated."""
+    out = [truth[0]]
+    for k in range(1, len(truth)):
+        noise = np.eye(4)
+        noise[:3, :3] = Rotation.from_rotvec(rng.normal(0, sigmas[0], 3)).as_matrix()
+        noise[:3, 3] = rng.normal(0, sigmas[1], 3)
+        out.append(out[-1] @ np.linalg.inv(truth[k - 1]) @ truth[k] @ noise)
+    return np.array(out)
+
+
+def test_with_odometry_alone_the_bound_is_the_odometrys_own_error() -> None:
+    """Odometry alone is the only estimate there is: the root mean square of its aligned
+    error over many draws is the bound (small errors, where the bound's linearisation holds)."""
+    truth = scene_sweep(SceneSweepConfig(kind="truss", seed=5, clouds=30)).truth
+    sigmas = (np.radians(0.2), 0.002)
+    nothing = [np.zeros((6, 6))] * len(truth)
+    bound = aligned_error_bound(pose_information(nothing, truth, sigmas), truth)
+    rng = np.random.default_rng(0)
+    drawn = [absolute_trajectory_error(_odometry(truth, sigmas, rng), truth) for _ in range(1000)]
+    assert abs(np.sqrt(np.mean(np.square(drawn))) / bound - 1) < 0.04
+
+
+def test_a_view_fixes_what_its_surfaces_face() -> None:
+    """A box girder's views (webs, flanges, stiffeners, cross-frames) leave a small share of
+    the odometry's error; zero range noise leaves none."""
+    config = SceneSweepConfig(kind="box_girder", seed=3, clouds=16)
+    sweep, camera = scene_sweep(config), scene_camera(config)
+    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+    nothing = [np.zeros((6, 6))] * len(sweep.truth)
+    alone = aligned_error_bound(pose_information(nothing, sweep.truth, sigmas), sweep.truth)
+    bound = trajectory_bound(camera, sweep.truth, sigmas)
+    assert bound < 0.1 * alone
+    camera.noise_sigma_m = 1e-6
+    assert trajectory_bound(camera, sweep.truth, sigmas) < 1e-3 * bound
+
+
+def _sideways(truth: np.ndarray, T_robot_sensor: np.ndarray) -> np.ndarray:
+    """Each step's sideways part (m): across the mean of the robot's two headings."""
+    robot = truth @ np.linalg.inv(T_robot_sensor)
+    r, heading = robot[:, :2, 3], np.arctan2(robot[:, 1, 0], robot[:, 0, 0])
+    mean = heading[:-1] + np.angle(np.exp(1j * np.diff(heading))) / 2
+    return np.sum(np.stack([-np.sin(mean), np.cos(mean)], 1) * np.diff(r, axis=0), axis=1)
+
+
+def test_the_wheels_fix_each_steps_sideways_part() -> None:
+    """The simulated robot's steps have no sideways part; moving the poses a little changes
+    it as the wheels' information says (its square, summed over the steps), and the wheels
+    lower the bound of odometry alone."""
+    config = SceneSweepConfig(kind="truss", seed=5, clouds=30)
+    truth, camera = scene_sweep(config).truth, scene_camera(config)
+    mount = camera.T_robot_tof
+    assert np.abs(_sideways(truth, mount)).max() < 1e-9
+    H = no_slip_information(truth, mount, sigma_m=1.0)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        xi = rng.normal(0, 1e-5, (len(truth), 6))
+        moved = np.array([_exp(x) @ T for x, T in zip(xi, truth)])
+        change = _sideways(moved, mount)
+        assert np.isclose(np.sum(change**2), xi.ravel() @ H @ xi.ravel(), rtol=1e-3, atol=0)
+    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+    odometry = pose_information([np.zeros((6, 6))] * len(truth), truth, sigmas)
+    wheels = odometry + no_slip_information(truth, mount)
+    assert aligned_error_bound(wheels, truth) < aligned_error_bound(odometry, truth)
+
+
+def _exp(xi: np.ndarray) -> np.ndarray:
+    """A world-frame perturbation (ω, v) as a transform (first order is all the test needs)."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
+    T[:3, 3] = xi[3:]
+    return T
