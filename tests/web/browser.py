@@ -104,7 +104,7 @@ def latest_telemetry(url: str, sid: str) -> dict:
 
 def _samples_around(url: str, sid: str, t: float) -> list[dict]:
     return httpx.get(
-        f"{url}/api/sessions/{sid}/telemetry", params={"since": t - 1.0, "limit": 5000}
+        f"{url}/api/sessions/{sid}/telemetry", params={"since": t - 5.0, "limit": 5000}
     ).json()["data"]
 
 
