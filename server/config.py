@@ -79,6 +79,14 @@ class Settings(BaseSettings):
         description="a running job whose worker has not been heard of for this long is "
         "handed to another worker",
     )
+    realtime_priority: int = Field(
+        default=0,
+        ge=0,
+        le=99,
+        description="real-time (SCHED_RR) priority of the station's threads, so that job "
+        "workers on the same machine never keep its live link waiting (needs CAP_SYS_NICE, "
+        "e.g. docker's cap_add: [SYS_NICE]); 0: off",
+    )
     job_fanout: int = Field(
         default=4,
         ge=0,

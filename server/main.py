@@ -25,6 +25,7 @@ from server.api.routes import ROUTERS
 from server.config import Settings
 from server.errors import Conflict, NotFound
 from server.heap import freeze_startup_objects
+from server.jobs.priority import RAISE_EVERY_S, put_the_station_first
 from server.jobs.runner import JobRunner
 from server.link.connection import router as robot_router
 from server.link.group_commit import GroupCommit
@@ -94,6 +95,23 @@ async def _end_quiet_sessions(state: AppState) -> None:
                 await anyio.to_thread.run_sync(state.jobs.enqueue_pipeline, sid)
 
 
+async def _keep_the_station_first(priority: int) -> None:
+    """The station's threads at real-time ``priority``, those it starts later included
+    (:func:`~server.jobs.priority.put_the_station_first`); a warning where it is refused."""
+    raised = put_the_station_first(priority)
+    if not raised:
+        log.warning(
+            "real-time priority %d refused (the station needs CAP_SYS_NICE): its live link "
+            "runs at normal priority",
+            priority,
+        )
+        return
+    log.info("real-time priority %d for the station's %d threads", priority, raised)
+    while True:
+        await asyncio.sleep(RAISE_EVERY_S)
+        put_the_station_first(priority)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The ground-station ASGI app."""
     settings = settings or Settings()
@@ -112,12 +130,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             )
         state.jobs.start()
         reaper = asyncio.create_task(_end_quiet_sessions(state))
+        first = (
+            asyncio.create_task(_keep_the_station_first(settings.realtime_priority))
+            if settings.realtime_priority
+            else None
+        )
         freeze_startup_objects()  # a full collection would pause every robot's link
         try:
             yield
         finally:
             gc.unfreeze()  # an app run inside another program leaves its heap as it was
             reaper.cancel()
+            if first is not None:
+                first.cancel()
             state.passwords.executor.shutdown(wait=False)
             state.jobs.stop()
             state.writer.close()

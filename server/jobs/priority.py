@@ -24,6 +24,11 @@ Three Linux mechanisms decide that, each at its own level:
   hierarchy), and stays where it is when its own group is idle already (a systemd unit
   with ``CPUWeight=idle``). A task in a cgroup of its own leaves its session's autogroup,
   so the two mechanisms above then only order the worker's own tasks.
+
+Where the kernel lets a woken task wait for the tick before it takes the core from a job
+(``PREEMPT_NONE`` kernels, within a few milliseconds), the station itself can go first:
+**real-time priority** for its threads (:func:`put_the_station_first`, opt-in: it needs
+``CAP_SYS_NICE``), which a job's task never holds up.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ IDLE_GROUP = "steelscan-workers"  # the idle CPU group a worker moves into, besi
 WORKER_NICE = 10  # where idle priority is refused: well below the station's live link
 AUTOGROUP = Path("/proc/self/autogroup")  # this session's scheduling group (Linux)
 AUTOGROUP_NICE = 19  # the group's least share of the CPU: the worker's session yields
+RAISE_EVERY_S = 2.0  # the station raises the threads it started since, this often
 LONGEST_SLICE_NS = 100_000_000  # the longest time slice a task may ask for (Linux)
 # sched_setattr(2) has no wrapper in Python's standard library or in glibc
 _SCHED_SETATTR = {"x86_64": 314, "aarch64": 274, "arm64": 274}
@@ -147,3 +153,26 @@ def yield_to_the_station() -> None:
             AUTOGROUP.write_text(f"{AUTOGROUP_NICE}\n")
         except OSError:  # no autogroups (disabled, not Linux): the priority above suffices
             pass
+
+
+def put_the_station_first(priority: int) -> int:
+    """Real-time round-robin priority (``SCHED_RR`` at ``priority``, 1-99) for every thread
+    of this process, so that a woken thread of the station's live link takes a core from a
+    job's task at once. With ``SCHED_RESET_ON_FORK``: the threads and processes they start
+    (job and live-view workers among them) begin at normal priority, and the station raises
+    its new threads by calling this again (every ``RAISE_EVERY_S``). How many threads were
+    raised: 0 where the kernel refuses (neither ``CAP_SYS_NICE`` nor an ``RLIMIT_RTPRIO``
+    of ``priority``) or it is not Linux."""
+    if not hasattr(os, "SCHED_RR") or not hasattr(os, "SCHED_RESET_ON_FORK"):
+        return 0
+    policy, param = os.SCHED_RR | os.SCHED_RESET_ON_FORK, os.sched_param(priority)
+    raised = 0
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setscheduler(int(tid), policy, param)
+        except ProcessLookupError:  # the thread ended meanwhile
+            continue
+        except OSError:  # not permitted
+            return 0
+        raised += 1
+    return raised

@@ -8,6 +8,7 @@ import os
 import platform
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -142,3 +143,69 @@ def test_a_worker_joins_an_idle_cpu_group_its_children_inherit() -> None:
         [sys.executable, "-c", IDLE_CHILD], capture_output=True, text=True, check=True
     )
     assert out.stdout.split() == ["True", "1", "True"], out
+
+
+STATION_CHILD = """
+import os, threading
+from server.jobs.priority import put_the_station_first
+
+RR = os.SCHED_RR | os.SCHED_RESET_ON_FORK
+before = threading.Thread(target=threading.Event().wait, daemon=True)
+before.start()
+raised = put_the_station_first(10)
+after = []
+t = threading.Thread(target=lambda: after.append(os.sched_getscheduler(0)))
+t.start(); t.join()
+pid = os.fork()
+if pid == 0:
+    os._exit(0 if os.sched_getscheduler(0) == os.SCHED_OTHER else 1)
+forked_normal = os.waitpid(pid, 0)[1] == 0
+print(raised, os.sched_getscheduler(0) == RR, os.sched_getscheduler(before.native_id) == RR,
+      after == [os.SCHED_OTHER], forked_normal, os.sched_param(10) == os.sched_getparam(0))
+"""
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="real-time priority needs CAP_SYS_NICE")
+def test_the_station_goes_first_and_what_it_starts_does_not() -> None:
+    """Every thread of the station at real-time priority; the threads and processes they
+    start (job and live-view workers) at normal priority until raised; refused without the
+    capability."""
+    out = subprocess.run(
+        [sys.executable, "-c", STATION_CHILD], capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert out == ["2", "True", "True", "True", "True", "True"], out
+    refused = subprocess.run(
+        ["setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice", "--", sys.executable,
+         "-c", "from server.jobs.priority import put_the_station_first as f; print(f(10))"],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert refused.stdout.split() == ["0"], refused
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="real-time priority needs CAP_SYS_NICE")
+def test_a_station_set_to_go_first_raises_its_threads_started_later(tmp_path: Path) -> None:
+    from server.jobs.priority import RAISE_EVERY_S
+    from server.loopback import free_port, serve_process
+
+    log = tmp_path / "serve.log"
+    proc = serve_process(
+        tmp_path / "data",
+        free_port(),
+        log=log,
+        STEELSCAN_REALTIME_PRIORITY="10",
+        STEELSCAN_VIEW3D="false",
+        STEELSCAN_AUTO_PROCESS="false",
+    )
+    try:
+        rr = os.SCHED_RR | os.SCHED_RESET_ON_FORK
+        deadline = time.monotonic() + 4 * RAISE_EVERY_S
+        while True:
+            policies = {os.sched_getscheduler(int(t)) for t in os.listdir(f"/proc/{proc.pid}/task")}
+            if policies == {rr} or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
+        assert policies == {rr}, policies  # those answering the health check's too
+        assert "real-time priority 10" in log.read_text()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
