@@ -15,8 +15,23 @@ import pytest
 
 from server.jobs.priority import IDLE_GROUP, LONGEST_SLICE_NS, cpu_cgroup, join_idle_group
 
-CHILD = """
+STARTED = """
 import os, threading
+
+def started():
+    '''The scheduling policies of a thread and of a process this one starts.'''
+    seen = []
+    t = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0)))
+    t.start(); t.join()
+    pid = os.fork()
+    if pid == 0:
+        os._exit(os.sched_getscheduler(0))
+    return seen[0], os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+"""
+
+CHILD = (
+    STARTED
+    + """
 from server.jobs.priority import ask_long_slice, yield_to_the_station
 
 def sched(path="/proc/thread-self/sched"):
@@ -26,14 +41,10 @@ assert ask_long_slice()
 print(sched()["se.slice"])
 yield_to_the_station()
 yield_to_the_station()  # again, from idle priority: harmless
-seen = []
-t = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0)))
-t.start(); t.join()
-pid = os.fork()
-if pid == 0:
-    os._exit(0 if os.sched_getscheduler(0) == os.SCHED_IDLE else 1)
-print(os.sched_getscheduler(0) == os.SCHED_IDLE, seen == [os.SCHED_IDLE], os.waitpid(pid, 0)[1] == 0)
+thread, child = started()
+print(os.sched_getscheduler(0) == os.SCHED_IDLE, thread == os.SCHED_IDLE, child == os.SCHED_IDLE)
 """
+)
 
 
 def _kernel() -> tuple[int, int]:
@@ -145,24 +156,20 @@ def test_a_worker_joins_an_idle_cpu_group_its_children_inherit() -> None:
     assert out.stdout.split() == ["True", "1", "True"], out
 
 
-STATION_CHILD = """
-import os, threading
+STATION_CHILD = (
+    STARTED
+    + """
 from server.jobs.priority import put_the_station_first
 
 RR = os.SCHED_RR | os.SCHED_RESET_ON_FORK
 before = threading.Thread(target=threading.Event().wait, daemon=True)
 before.start()
 raised = put_the_station_first(10)
-after = []
-t = threading.Thread(target=lambda: after.append(os.sched_getscheduler(0)))
-t.start(); t.join()
-pid = os.fork()
-if pid == 0:
-    os._exit(0 if os.sched_getscheduler(0) == os.SCHED_OTHER else 1)
-forked_normal = os.waitpid(pid, 0)[1] == 0
+thread, child = started()
 print(raised, os.sched_getscheduler(0) == RR, os.sched_getscheduler(before.native_id) == RR,
-      after == [os.SCHED_OTHER], forked_normal, os.sched_param(10) == os.sched_getparam(0))
+      thread == os.SCHED_OTHER, child == os.SCHED_OTHER, os.sched_param(10) == os.sched_getparam(0))
 """
+)
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="real-time priority needs CAP_SYS_NICE")
