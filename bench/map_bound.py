@@ -25,24 +25,12 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.poses import se3_adjoint_inverse, skew
 from robot_link.sim.sensors import TofCamera
 
 MIN_INCIDENCE = 0.05  # |n·d| floor: returns at grazing incidence count as if at this angle
 NO_SLIP_M = 1e-4  # the wheels' constraint, as good as exact (the simulated robot never slips)
 WEAK_PRIOR = 10.0  # m and rad: what fixes the whole trajectory where nothing else does
-
-
-def _skew(a: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(K, 3) vectors -> (K, 3, 3) cross-product matrices."""
-    z = np.zeros(len(a))
-    return np.stack(
-        [
-            np.stack([z, -a[:, 2], a[:, 1]], -1),
-            np.stack([a[:, 2], z, -a[:, 0]], -1),
-            np.stack([-a[:, 1], a[:, 0], z], -1),
-        ],
-        1,
-    )
 
 
 def view_information(
@@ -59,15 +47,6 @@ def view_information(
     return (J * w[:, None]).T @ J
 
 
-def _adjoint_inverse(T: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Ad(T⁻¹) (6, 6) for (ω, v) twists: a world-frame perturbation in T's own frame."""
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.zeros((6, 6))
-    out[:3, :3] = out[3:, 3:] = R.T
-    out[3:, :3] = -R.T @ _skew(t[None])[0]
-    return out
-
-
 def pose_information(
     infos: list[NDArray[np.float64]],
     truth: NDArray[np.float64],
@@ -82,7 +61,7 @@ def pose_information(
     rot, trans = odometry_sigmas
     Lam = np.diag([rot**-2] * 3 + [trans**-2] * 3)
     for k in range(1, n):
-        A = _adjoint_inverse(truth[k])
+        A = se3_adjoint_inverse(truth[k])
         E = A.T @ Lam @ A  # residual A (ξ_k - ξ_(k-1))
         a, b = slice(6 * (k - 1), 6 * k), slice(6 * k, 6 * k + 6)
         H[a, a] += E
@@ -94,7 +73,7 @@ def pose_information(
 
 def _point_jacobian(p: NDArray[np.float64]) -> NDArray[np.float64]:
     """(3, 6): how a point p fixed to a pose moves with the pose's world-frame (ω, v)."""
-    return np.hstack([-_skew(p[None])[0], np.eye(3)])
+    return np.hstack([-skew(p), np.eye(3)])
 
 
 def no_slip_information(

@@ -22,6 +22,8 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.poses import skew
+
 
 @dataclass(frozen=True)
 class Plane:
@@ -165,11 +167,6 @@ def _halves_agree(plane: Plane, max_deg: float) -> bool:
     return True
 
 
-def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The cross-product matrix [v]×: [v]× w = v × w."""
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
 def to_frame(plane: Plane, T: NDArray[np.float64]) -> Plane:
     """The plane in another frame, ``T`` mapping its frame into that one."""
     R, t = T[:3, :3], T[:3, 3]
@@ -215,7 +212,7 @@ def plane_edge(
     correction = np.eye(4)
     centre = T_target_source[:3, :3] @ source.centroid + T_target_source[:3, 3]
     if s > 1e-12:  # rotate the source's plane onto the target's, about its inliers' centre
-        K = _skew(axis / s)
+        K = skew(axis / s)
         R = np.eye(3) + s * K + (1 - c) * K @ K  # Rodrigues
         correction[:3, :3] = R
         correction[:3, 3] = centre - R @ centre
@@ -225,7 +222,7 @@ def plane_edge(
     # J = [q × n, n] per inlier q (source frame, where Open3D measures an edge's error) and
     # the target's normal n in that frame; q × n = Mᵀ q, so Σ JᵀJ needs only Σ q and Σ q qᵀ
     n = measurement[:3, :3].T @ target.normal
-    M = _skew(n)
+    M = skew(n)
     count = len(source.points)
     info = np.empty((6, 6))
     info[:3, :3] = M.T @ source.second_moment @ M

@@ -214,6 +214,20 @@ def world_box(
     return float(lo[0]), float(lo[1]), float(hi[0] - lo[0]), float(hi[1] - lo[1])
 
 
+def skew(v: NDArray[np.floating]) -> NDArray[np.float64]:
+    """The cross-product matrix [v]× (3, 3) of a 3-vector: [v]× w = v × w."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]], np.float64)
+
+
+def se3_adjoint_inverse(T: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Ad(T⁻¹) (6, 6) for (ω, v) motions: a world-frame perturbation of T in T's own frame."""
+    R, t = np.asarray(T[:3, :3], np.float64), np.asarray(T[:3, 3], np.float64)
+    out = np.zeros((6, 6))
+    out[:3, :3] = out[3:, 3:] = R.T
+    out[3:, :3] = -R.T @ skew(t)
+    return out
+
+
 def se3_exp(xi: NDArray[np.floating]) -> NDArray[np.float64]:
     """4x4 transform of a small motion xi = (ω, v) (rotation vector, translation), as used
     for a right perturbation T · exp(xi) (rotation and translation apart: exact for the
@@ -221,7 +235,7 @@ def se3_exp(xi: NDArray[np.floating]) -> NDArray[np.float64]:
     T = np.eye(4)
     w = np.asarray(xi[:3], dtype=np.float64)
     theta = float(np.sqrt(w @ w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    K = skew(w)
     if theta < 1e-8:  # Rodrigues' formula to first order
         T[:3, :3] += K
     else:

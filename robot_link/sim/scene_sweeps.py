@@ -51,7 +51,7 @@ class SceneSweepConfig:
     sensor: int | None = None  # index into SENSORS; None: drawn from the seed
 
 
-def _odometry(
+def drifting_odometry(
     truth: NDArray[np.float64], cfg: SceneSweepConfig, rng: np.random.Generator
 ) -> NDArray[np.float64]:
     """The true steps with errors, integrated from the true first pose."""
@@ -115,7 +115,7 @@ def scene_sweep(cfg: SceneSweepConfig = SceneSweepConfig()) -> TofSweep:
         rock[2, 3] = -rng.uniform(0, cfg.bump_m)
         truth.append(se2_to_se3(x, y, yaw) @ rock @ tof.T_robot_tof)
     truth = np.array(truth)
-    odometry = _odometry(truth, cfg, rng)
+    odometry = drifting_odometry(truth, cfg, rng)
     clouds = [
         depth_to_points(tof.render(T, rng), tof.fx, tof.fy, tof.cx, tof.cy).astype(np.float32)
         for T in truth

@@ -3,7 +3,6 @@ sequences: it agrees with the error of odometry drawn many times where odometry 
 there is, and a view fixes only the directions its surfaces face."""
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from bench.map_bound import (
     aligned_error_bound,
@@ -12,29 +11,27 @@ from bench.map_bound import (
     trajectory_bound,
 )
 from processing.metrics import absolute_trajectory_error
-from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_camera, scene_sweep
-
-
-def _odometry(truth: np.ndarray, sigmas: tuple[float, float], rng: np.random.Generator):
-    """The true steps with 6-DoF errors in each later pose's frame, integrated."""
-    out = [truth[0]]
-    for k in range(1, len(truth)):
-        noise = np.eye(4)
-        noise[:3, :3] = Rotation.from_rotvec(rng.normal(0, sigmas[0], 3)).as_matrix()
-        noise[:3, 3] = rng.normal(0, sigmas[1], 3)
-        out.append(out[-1] @ np.linalg.inv(truth[k - 1]) @ truth[k] @ noise)
-    return np.array(out)
+from processing.poses import se3_exp
+from robot_link.sim.scene_sweeps import (
+    SceneSweepConfig,
+    drifting_odometry,
+    scene_camera,
+    scene_sweep,
+)
 
 
 def test_with_odometry_alone_the_bound_is_the_odometrys_own_error() -> None:
     """Odometry alone is the only estimate there is: the root mean square of its aligned
     error over many draws is the bound (small errors, where the bound's linearisation holds)."""
     truth = scene_sweep(SceneSweepConfig(kind="truss", seed=5, clouds=30)).truth
-    sigmas = (np.radians(0.2), 0.002)
+    config = SceneSweepConfig(odometry_deg=0.2, odometry_m=0.002)
+    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
     nothing = [np.zeros((6, 6))] * len(truth)
     bound = aligned_error_bound(pose_information(nothing, truth, sigmas), truth)
     rng = np.random.default_rng(0)
-    drawn = [absolute_trajectory_error(_odometry(truth, sigmas, rng), truth) for _ in range(1000)]
+    drawn = [
+        absolute_trajectory_error(drifting_odometry(truth, config, rng), truth) for _ in range(1000)
+    ]
     assert abs(np.sqrt(np.mean(np.square(drawn))) / bound - 1) < 0.04
 
 
@@ -72,18 +69,10 @@ def test_the_wheels_fix_each_steps_sideways_part() -> None:
     rng = np.random.default_rng(1)
     for _ in range(5):
         xi = rng.normal(0, 1e-5, (len(truth), 6))
-        moved = np.array([_exp(x) @ T for x, T in zip(xi, truth)])
+        moved = np.array([se3_exp(x) @ T for x, T in zip(xi, truth)])
         change = _sideways(moved, mount)
         assert np.isclose(np.sum(change**2), xi.ravel() @ H @ xi.ravel(), rtol=1e-3, atol=0)
     sigmas = (np.radians(config.odometry_deg), config.odometry_m)
     odometry = pose_information([np.zeros((6, 6))] * len(truth), truth, sigmas)
     wheels = odometry + no_slip_information(truth, mount)
     assert aligned_error_bound(wheels, truth) < aligned_error_bound(odometry, truth)
-
-
-def _exp(xi: np.ndarray) -> np.ndarray:
-    """A world-frame perturbation (ω, v) as a transform (first order is all the test needs)."""
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(xi[:3]).as_matrix()
-    T[:3, 3] = xi[3:]
-    return T
