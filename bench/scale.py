@@ -6,8 +6,9 @@
   (the stitch's pair registrations, detection's frames and mosaic bands) and of the whole
   jobs, one against two, each the shorter of its two runs (a passing disturbance on the
   machine lengthens a run, never shortens one).
-- The live link while a big job runs: four robots at a camera's 30 frames/s, with the
-  workers idle and then while they process the session; ingest rate and ACK p99 of each.
+- The live link while a big job runs: four robots at a camera's 30 frames/s, in phases
+  with the workers idle and phases while they process the session, alternating
+  (:mod:`bench.scale_live`); ingest rate and ACK p99 of each.
 - Ingest flood (4 robots, 16 frames in flight) on PostgreSQL against SQLite.
 
 PostgreSQL and Redis are Debian's packages started in temporary folders
@@ -22,7 +23,6 @@ import os
 import shutil
 import subprocess
 import tempfile
-import threading
 import time
 import uuid
 from collections.abc import Iterator
@@ -30,10 +30,10 @@ from pathlib import Path
 
 import cv2
 import httpx
-import numpy as np
 
 from bench.common import Result, robot_session
 from bench.ingest import ROBOTS, drive_robots
+from bench.scale_live import live_results
 from bench.scale_map import map_results, record_clouds
 from bench.services import Postgres, Redis, start_worker, stop_workers
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
@@ -43,7 +43,6 @@ FRAMES = 2000
 FRAME_SIZE = (320, 240)
 LIVE_ROBOTS = 4
 LIVE_FPS = 30.0
-LIVE_S = 15.0
 FLOOD_S = 10.0
 PX_PER_M = 1000.0
 RUNS = 2  # of each job on one worker and on two: the shorter counts
@@ -122,10 +121,6 @@ def _best_of(url: str, sid: str, kind: str, runs: int = RUNS) -> tuple[dict, flo
     for stage in seconds:
         seconds[stage] = min(j["result"]["seconds"][stage] for j, _ in done)
     return job, min(s for _, s in done)
-
-
-def _p99_ms(latencies: list[float]) -> float:
-    return round(float(np.percentile(np.array(latencies) * 1000, 99)), 2)
 
 
 def _station(
@@ -260,40 +255,9 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
                 "frames": frames,
                 "mosaic_px": [stitch["result"]["width_px"], stitch["result"]["height_px"]],
             }
-            quiet, quiet_lat, quiet_s = drive_robots(port, token, LIVE_ROBOTS, LIVE_S, LIVE_FPS)
-            stop, jobs_run = threading.Event(), []
-
-            def keep_busy() -> None:  # detect jobs back to back: the workers never idle
-                while not stop.is_set():
-                    jobs_run.append(_job(url, sid, "detect"))
-
-            big = threading.Thread(target=keep_busy)
-            big.start()
-            time.sleep(2.0)  # the job is under way on both workers
-            busy, busy_lat, busy_s = drive_robots(port, token, LIVE_ROBOTS, LIVE_S, LIVE_FPS)
-            stop.set()
-            big.join()
-            q_rate = sum(a for _, a in quiet) / quiet_s
-            b_rate = sum(a for _, a in busy) / busy_s
-            yield {
-                "name": "scale.live_ack_p99_with_job",
-                "value": _p99_ms(busy_lat),
-                "unit": "ms",
-                "baseline": _p99_ms(quiet_lat),
-                "baseline_is": "the same robots with the workers idle",
-                "ratio": round(_p99_ms(busy_lat) / _p99_ms(quiet_lat), 2),
-                "robots": LIVE_ROBOTS,
-                "fps_per_robot": LIVE_FPS,
-                "jobs_meanwhile": len(jobs_run),
-            }
-            yield {
-                "name": "scale.live_frames_per_second_with_job",
-                "value": round(b_rate, 1),
-                "unit": "frames/s",
-                "baseline": round(q_rate, 1),
-                "ratio": round(b_rate / q_rate, 3),
-                "offered": LIVE_ROBOTS * LIVE_FPS,
-            }
+            yield from live_results(
+                port, token, url, sid, LIVE_ROBOTS, LIVE_FPS, [w.pid for w in workers.procs]
+            )
         finally:
             workers.stop()
             station.terminate()
