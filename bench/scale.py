@@ -46,6 +46,10 @@ LIVE_FPS = 30.0
 FLOOD_S = 10.0
 PX_PER_M = 1000.0
 RUNS = 2  # of each job on one worker and on two: the shorter counts
+# real-time priorities of the station's threads and of PostgreSQL, as docker/compose.yaml
+# sets them for a station, its database and workers on one machine (where permitted)
+STATION_REALTIME = 10
+POSTGRES_REALTIME = 5
 
 
 def _record(port: int, token: str, frames: int) -> str:
@@ -123,6 +127,12 @@ def _best_of(url: str, sid: str, kind: str, runs: int = RUNS) -> tuple[dict, flo
     return job, min(s for _, s in done)
 
 
+def _realtime(pid: int) -> int:
+    """The real-time priority of a process's main thread (0: normal priority)."""
+    policy = os.sched_getscheduler(pid) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+    return os.sched_getparam(pid).sched_priority if policy == os.SCHED_RR else 0
+
+
 def _station(
     data: Path, database_url: str, env: dict[str, str]
 ) -> tuple[subprocess.Popen[bytes], int, str]:
@@ -155,12 +165,14 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
     with and without a big job on the workers; ingest on PostgreSQL against SQLite."""
     frames = int(limit or FRAMES)
     root = Path(tempfile.mkdtemp(prefix="steelscan-scale-"))
-    pg, redis = Postgres(), Redis()
+    pg, redis = Postgres(realtime=POSTGRES_REALTIME), Redis()
     try:
         queue_env = {"STEELSCAN_JOB_BACKEND": "celery", "STEELSCAN_BROKER_URL": redis.url}
         data = root / "data"
         db_url = pg.new_database()
-        station, port, token = _station(data, db_url, queue_env)
+        station, port, token = _station(
+            data, db_url, {**queue_env, "STEELSCAN_REALTIME_PRIORITY": str(STATION_REALTIME)}
+        )
         url = f"http://127.0.0.1:{port}"
         workers = _Workers(
             {
@@ -255,26 +267,32 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
                 "frames": frames,
                 "mosaic_px": [stitch["result"]["width_px"], stitch["result"]["height_px"]],
             }
-            yield from live_results(
+            realtime = {"station": _realtime(station.pid), "postgresql": pg.realtime}
+            for result in live_results(
                 port, token, url, sid, LIVE_ROBOTS, LIVE_FPS, [w.pid for w in workers.procs]
-            )
+            ):
+                yield {**result, "realtime_priority": realtime}
         finally:
             workers.stop()
             station.terminate()
             station.wait(timeout=30)
         rates = {}
-        for name, url_db in (
-            ("postgresql", pg.new_database()),
-            ("sqlite", f"sqlite:///{root / 'flood' / 'steelscan.db'}"),
-        ):
-            flood_dir = root / f"flood-{name}"
-            proc, fport, ftoken = _station(flood_dir, url_db, {})
-            try:
-                done, _, secs = drive_robots(fport, ftoken, ROBOTS, FLOOD_S, None)
-                rates[name] = sum(a for _, a in done) / secs
-            finally:
-                proc.terminate()
-                proc.wait(timeout=30)
+        flood_pg = Postgres()  # at normal priority, as the SQLite station is
+        try:
+            for name, url_db in (
+                ("postgresql", flood_pg.new_database()),
+                ("sqlite", f"sqlite:///{root / 'flood' / 'steelscan.db'}"),
+            ):
+                flood_dir = root / f"flood-{name}"
+                proc, fport, ftoken = _station(flood_dir, url_db, {})
+                try:
+                    done, _, secs = drive_robots(fport, ftoken, ROBOTS, FLOOD_S, None)
+                    rates[name] = sum(a for _, a in done) / secs
+                finally:
+                    proc.terminate()
+                    proc.wait(timeout=30)
+        finally:
+            flood_pg.stop()
         yield {
             "name": "scale.ingest_flood_postgresql",
             "value": round(rates["postgresql"], 1),

@@ -35,14 +35,29 @@ def _pg_bin(name: str) -> str:
     return found
 
 
+def may_raise(priority: int) -> bool:
+    """Whether this process may start programs at real-time priority ``priority``
+    (``CAP_SYS_NICE``, or an ``RLIMIT_RTPRIO`` of it)."""
+    chrt = shutil.which("chrt")
+    if chrt is None or priority <= 0:
+        return False
+    done = subprocess.run([chrt, "--rr", str(priority), "true"], capture_output=True, check=False)
+    return done.returncode == 0
+
+
 class Postgres:
-    """A PostgreSQL cluster of its own; :meth:`new_database` gives a fresh empty database."""
+    """A PostgreSQL cluster of its own; :meth:`new_database` gives a fresh empty database.
+
+    With ``realtime`` (1-99, where :func:`may_raise`), the server and every backend it
+    starts run at real-time round-robin priority, as ``docker/compose.yaml`` starts it
+    beside a station and workers on one machine; ``realtime`` is 0 where that is refused."""
 
     user = "steelscan"
 
-    def __init__(self) -> None:
+    def __init__(self, realtime: int = 0) -> None:
         self.dir = Path(tempfile.mkdtemp(prefix="steelscan-pg-"))
         self.port = free_port()
+        self.realtime = realtime if may_raise(realtime) else 0
         self._as: list[str] = []
         if os.geteuid() == 0:
             shutil.chown(self.dir, "postgres", "postgres")
@@ -68,12 +83,16 @@ class Postgres:
                 "-t",
                 str(int(STARTUP_S)),
                 "start",
-            ]  # fmt: skip
+            ],  # fmt: skip
+            raised=["chrt", "--rr", str(self.realtime)] if self.realtime else [],
         )
         self._data = data
 
-    def _run(self, cmd: list[str]) -> None:
-        done = subprocess.run(self._as + cmd, capture_output=True, text=True, check=False)
+    def _run(self, cmd: list[str], raised: list[str] | None = None) -> None:
+        """``cmd`` as the server's user, started by ``raised`` (a priority's command) first."""
+        done = subprocess.run(
+            (raised or []) + self._as + cmd, capture_output=True, text=True, check=False
+        )
         if done.returncode != 0:
             raise RuntimeError(f"{Path(cmd[0]).name} failed: {done.stderr or done.stdout}")
 

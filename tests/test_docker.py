@@ -13,6 +13,7 @@ from pathlib import Path
 import jsonschema
 import yaml
 
+from bench.scale import POSTGRES_REALTIME, STATION_REALTIME
 from server.cli import build_parser
 from server.config import Settings
 
@@ -46,6 +47,18 @@ def test_station_workers_and_services_with_health_checks_and_named_volumes() -> 
     assert services["worker"]["deploy"]["replicas"] >= 2
     assert services["worker"]["depends_on"]["station"]["condition"] == "service_healthy"
     assert services["station"]["image"] == services["worker"]["image"]  # one image
+
+
+def test_the_station_and_its_database_run_at_the_priorities_the_benchmark_measured() -> None:
+    services = compose()["services"]
+    station, postgres = services["station"], services["postgres"]
+    assert station["environment"]["STEELSCAN_REALTIME_PRIORITY"] == str(STATION_REALTIME)
+    assert postgres["entrypoint"][:3] == ["chrt", "--rr", str(POSTGRES_REALTIME)]
+    assert postgres["command"] == ["postgres"]  # an entrypoint given clears the image's command
+    assert 0 < POSTGRES_REALTIME < STATION_REALTIME
+    for s in (station, postgres):
+        assert "SYS_NICE" in s["cap_add"]
+    assert "cap_add" not in services["worker"]  # workers stay below both
 
 
 def test_what_the_containers_run_is_ours() -> None:
