@@ -4,6 +4,7 @@ alternate, a busy phase has a job on the workers and a quiet phase none."""
 from __future__ import annotations
 
 import os
+import threading
 from pathlib import Path
 from urllib.parse import urlparse
 
@@ -12,7 +13,7 @@ import pytest
 
 from bench.ingest import drive_robots
 from bench.scale import _job, _record
-from bench.scale_live import cpu_s, live_phases
+from bench.scale_live import ROBOTS_REALTIME, cpu_s, live_phases, robots_apart
 from server.config import Settings
 from tests.conftest import LiveServer
 
@@ -57,3 +58,17 @@ def test_phases_alternate_with_a_job_running_only_while_busy(live_server: LiveSe
     detects = [j for j in jobs if j["kind"] == "detect"]
     assert len(detects) >= 2
     assert all(j["state"] in ("done", "cancelled") for j in detects), detects
+
+
+def test_the_robots_run_apart_for_the_phases_and_normal_after() -> None:
+    policy = os.sched_getscheduler(0)
+    with robots_apart() as raised:
+        if raised:  # refused without CAP_SYS_NICE: the robots then share the jobs' cores
+            assert os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK == os.SCHED_RR
+            assert os.sched_getparam(0).sched_priority == ROBOTS_REALTIME
+            seen: list[int] = []
+            started = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0)))
+            started.start()
+            started.join()
+            assert seen == [os.SCHED_OTHER]  # the job-following thread is not raised
+    assert os.sched_getscheduler(0) == policy == os.SCHED_OTHER
