@@ -1,6 +1,6 @@
 """The live link beside busy workers, for ``steelscan bench scale``: phases with the
 workers idle and phases with a big job on them, alternating, so that a drift of the
-machine (another tenant, a cache warming) falls on both alike.
+machine (other programs, a cache warming) falls on both alike.
 
 One phase's ACK p99 rests on its dozen slowest acknowledgements, and quiet phases of the
 same run differ by up to half of it; each side's p99 is therefore taken over all its
