@@ -67,14 +67,14 @@ def robots_apart() -> Iterator[int]:
                     continue
 
 
-def wait_idle(cpu_s: Callable[[], float]) -> None:
-    """Until the processes whose CPU time ``cpu_s`` gives use less than ``IDLE_CORES``
-    (a cancelled job's processes run on to their next check)."""
+def wait_idle(workers_cpu_s: Callable[[], float]) -> None:
+    """Until the processes whose CPU time ``workers_cpu_s`` gives use less than
+    ``IDLE_CORES`` (a cancelled job's processes run on to their next check)."""
     deadline = time.monotonic() + IDLE_WAIT_S
     while time.monotonic() < deadline:
-        before = cpu_s()
+        before = workers_cpu_s()
         time.sleep(IDLE_WINDOW_S)
-        if cpu_s() - before < IDLE_CORES * IDLE_WINDOW_S:
+        if workers_cpu_s() - before < IDLE_CORES * IDLE_WINDOW_S:
             return
     raise RuntimeError(f"the workers are still busy {IDLE_WAIT_S:.0f} s after their job ended")
 
@@ -133,11 +133,11 @@ def live_phases(
     url: str,
     sid: str,
     drive: Callable[[], tuple[list[tuple[str, int]], list[float], float]],
-    cpu_s: Callable[[], float],
+    workers_cpu_s: Callable[[], float],
     pairs: int = PAIRS,
 ) -> tuple[dict[str, list[float]], dict[str, list[float]], dict[str, float], dict[str, float]]:
     """``pairs`` quiet and busy phases of ``drive`` (robots streaming: their sessions and
-    counts acknowledged, ACK latencies, wall time), ``cpu_s`` the workers' CPU time so far:
+    counts acknowledged, ACK latencies, wall time), ``workers_cpu_s`` the workers' CPU time:
     every latency of each side, every phase's p99 (ms), each side's frames stored per
     second, and each side's CPU use by the workers (cores)."""
     lat: dict[str, list[float]] = {"quiet": [], "busy": []}
@@ -151,10 +151,10 @@ def live_phases(
             if busy is not None:
                 time.sleep(RAMP_S)
             else:
-                wait_idle(cpu_s)
-            cpu0 = cpu_s()
+                wait_idle(workers_cpu_s)
+            cpu0 = workers_cpu_s()
             done, latencies, secs = drive()
-            cpu[side] += cpu_s() - cpu0
+            cpu[side] += workers_cpu_s() - cpu0
             if busy is not None:
                 busy.stop()
             lat[side] += latencies
