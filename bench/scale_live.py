@@ -89,7 +89,7 @@ class _Busy:
 
     def __init__(self, url: str, sid: str) -> None:
         self.url, self.sid = url, sid
-        self.job_id: str | None = None
+        self.job_id: int | None = None
         self.error: Exception | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="busy-jobs")
