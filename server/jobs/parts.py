@@ -1,16 +1,19 @@
-"""One job's independent parts spread over several workers through the shared data
-directory: only ids and a folder's name pass through the broker.
+"""One job's independent parts spread over several workers through the shared data directory:
+only ids and a folder's name pass through the broker.
 
 The job's worker writes a *plan* (the part function, what every part shares, the chunks of
 items) into ``DATA/.parts/<name>/``, asks other workers for help (a Celery group of
 ``steelscan.part`` tasks) and works through the chunks itself too. A chunk is taken by
 creating its claim file exclusively, done, and its result written atomically beside it; the
-claim file is touched while the chunk runs. A claim is silent when its modification time
-stops changing for a lease, timed on the job's worker's own clock (the helper's or the file
-server's clock may be set differently). Chunks another worker took but left silent for a
-lease are done again by the job's worker, so a helper lost mid-chunk costs time, never a
-result; helpers that come late find every chunk taken and return. Nothing waits on a
-helper, so a job never deadlocks on a busy queue.
+claim file is touched while the chunk runs. Each worker taking part holds a *seat*, and the
+seats work through the chunks in pairs from both ends of a run of consecutive chunks (see
+:func:`seat_run`): each worker does consecutive items, so what it decoded and cached for one
+serves the next, and the pair meet wherever their speeds put them. A claim is silent when
+its modification time stops changing for a lease, timed on the job's worker's own clock
+(the helper's or the file server's clock may be set differently). Chunks another worker
+took but left silent for a lease are done again by the job's worker, so a helper lost
+mid-chunk costs time, never a result; helpers that come late find every chunk taken and
+return. Nothing waits on a helper, so a job never deadlocks on a busy queue.
 
 A plan's folder is named by its job, attempt and the digest of the plan. When the job's
 worker is lost and a new attempt makes the same plan (same function, same shared data, same
@@ -40,7 +43,10 @@ log = logging.getLogger(__name__)
 
 PARTS_DIR = ".parts"
 POLL_S = 0.05
-CHUNKS_PER_WORKER = 4  # chunks per worker taking part: evens out chunks of unequal cost
+CHUNKS_PER_WORKER = 4  # chunks per worker taking part, at least: evens out unequal costs
+MAX_CHUNKS = 64  # a plan's chunks when the items allow: a worker left waiting at the end
+# waits for one small chunk (a chunk costs a claim file and a result file, ~1 ms)
+SEATS = "seats"  # the file holding the number of seats of a plan
 
 
 def chunked(items: Sequence[Any], pieces: int) -> list[list[Any]]:
@@ -58,7 +64,7 @@ class FolderFanout:
         self.ask, self.helpers, self.lease_s = ask, helpers, lease_s
 
     def __call__(self, ctx: JobContext, fn: Part, shared: Any, items: Sequence[Any]) -> list[Any]:
-        chunks = chunked(items, CHUNKS_PER_WORKER * (self.helpers + 1))
+        chunks = chunked(items, max(MAX_CHUNKS, CHUNKS_PER_WORKER * (self.helpers + 1)))
         plan = pickle.dumps((fn, shared, chunks))
         digest = hashlib.blake2b(plan, digest_size=8).hexdigest()
         name = f"{ctx.job_id}-{ctx.attempt}-{digest}-{uuid.uuid4().hex[:8]}"
@@ -75,9 +81,11 @@ class FolderFanout:
                     adopted,
                     len(chunks),
                 )
-            if self.helpers and len(chunks) - adopted > 1:
-                self.ask(ctx.job_id, name, min(self.helpers, len(chunks) - adopted - 1))
-            work_through(folder, ctx.files, self.lease_s / 4, stop=ctx.check)
+            helpers = min(self.helpers, len(chunks) - adopted - 1)
+            if helpers > 0:
+                write_atomic(folder / SEATS, str(helpers + 1).encode())
+                self.ask(ctx.job_id, name, helpers)
+            work_through(folder, ctx.files, self.lease_s / 4, stop=ctx.check, seat=0)
             results = _collect(folder, ctx.files, len(chunks), self.lease_s, ctx)
         finally:
             shutil.rmtree(folder, ignore_errors=True)
@@ -118,25 +126,81 @@ def help_with(data_dir: Path, name: str, lease_s: float) -> int:
     folder = Path(data_dir) / PARTS_DIR / name
     if not (folder / "plan.pkl").is_file():
         return 0
-    return work_through(folder, SessionFiles(Path(data_dir)), lease_s / 4)
+    seats = _seats(folder)
+    seat = next((j for j in range(1, seats) if _take(folder / f"seat-{j}")), seats)
+    return work_through(folder, SessionFiles(Path(data_dir)), lease_s / 4, seat=seat)
+
+
+def _seats(folder: Path) -> int:
+    try:
+        return max(1, int((folder / SEATS).read_text()))
+    except (OSError, ValueError):
+        return 1
+
+
+def seat_run(n: int, seat: int, seats: int) -> range:
+    """The chunks of a plan's ``n`` that the worker in ``seat`` (0 for the job's own) of
+    ``seats`` works through first, in that order. Seats 2r and 2r + 1 share the r-th of
+    ⌈seats / 2⌉ runs of consecutive chunks, the even seat from its start forwards, the odd
+    one from its end backwards, so that each does consecutive chunks and the two meet
+    wherever their speeds put them; a worker with no seat (``seat >= seats``) has none."""
+    if seat >= seats:
+        return range(0)
+    runs = -(-seats // 2)
+    lo, hi = (seat // 2) * n // runs, (seat // 2 + 1) * n // runs
+    return range(lo, hi) if seat % 2 == 0 else range(hi - 1, lo - 1, -1)
+
+
+def widest_gap(taken: set[int], n: int) -> range:
+    """Where a worker whose own run is done goes on: the back half of the longest run of
+    chunks nobody has taken (it meets whoever works towards it from the front); empty when
+    every chunk is taken."""
+    best, start = (0, 0), None
+    for i in range(n + 1):
+        if i < n and i not in taken:
+            start = i if start is None else start
+        elif start is not None:
+            best, start = max(best, (start, i), key=lambda r: r[1] - r[0]), None
+    lo, hi = best
+    return range(lo + (hi - lo) // 2, hi)
 
 
 def work_through(
-    folder: Path, files: SessionFiles, touch_s: float, stop: Callable[[], None] = lambda: None
+    folder: Path,
+    files: SessionFiles,
+    touch_s: float,
+    stop: Callable[[], None] = lambda: None,
+    seat: int = 0,
 ) -> int:
-    """Take and do chunks until none is left to take; the number done."""
+    """Take and do chunks until none is left to take: ``seat``'s own run (chunks others
+    took skipped), then again and again the back half of the widest gap; the number done."""
     try:
         fn, shared, chunks = pickle.loads((folder / "plan.pkl").read_bytes())
     except (OSError, EOFError, pickle.UnpicklingError):
         return 0  # the plan was removed: the job finished without us
-    done = 0
-    for i in range(len(chunks)):
+    n, done = len(chunks), 0
+    for i in seat_run(n, seat, _seats(folder)):
         stop()
-        if not _take(folder / f"{i}.claim"):
-            continue
-        _run_chunk(folder, files, fn, shared, chunks, i, touch_s)
-        done += 1
+        if _take(folder / f"{i}.claim"):
+            _run_chunk(folder, files, fn, shared, chunks, i, touch_s)
+            done += 1
+    while (taken := _taken(folder)) is not None and (gap := widest_gap(taken, n)):
+        for i in gap:  # until the chunk of whoever works towards us
+            stop()
+            if not _take(folder / f"{i}.claim"):
+                break
+            _run_chunk(folder, files, fn, shared, chunks, i, touch_s)
+            done += 1
     return done
+
+
+def _taken(folder: Path) -> set[int] | None:
+    """The chunks of the plan in ``folder`` that are taken; None once the plan is cleared."""
+    try:
+        names = os.listdir(folder)
+    except FileNotFoundError:
+        return None
+    return {int(m[: -len(".claim")]) for m in names if m.endswith(".claim") and m[0].isdigit()}
 
 
 def _take(claim: Path) -> bool:

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from server.jobs.context import JobContext
-from server.jobs.parts import PARTS_DIR, FolderFanout, chunked, help_with
+from server.jobs.parts import PARTS_DIR, FolderFanout, chunked, help_with, seat_run, widest_gap
 from server.storage.files import SessionFiles
 
 
@@ -41,6 +41,57 @@ def test_chunks_cover_the_items_in_order() -> None:
         chunks = chunked(list(range(n)), pieces)
         assert [x for c in chunks for x in c] == list(range(n))
         assert len(chunks) == min(n, pieces) and all(chunks)
+
+
+def test_seats_share_runs_from_both_ends() -> None:
+    """Seats pair up on runs of consecutive chunks, one from each end: each does consecutive
+    chunks (its caches serve the next) and any split of a run between the two is a prefix
+    and a suffix."""
+    assert list(seat_run(6, 0, 2)) == [0, 1, 2, 3, 4, 5]
+    assert list(seat_run(6, 1, 2)) == [5, 4, 3, 2, 1, 0]
+    four = [list(seat_run(12, seat, 4)) for seat in range(4)]
+    assert four == [
+        [0, 1, 2, 3, 4, 5],
+        [5, 4, 3, 2, 1, 0],
+        [6, 7, 8, 9, 10, 11],
+        [11, 10, 9, 8, 7, 6],
+    ]
+    for n, seats in ((7, 3), (64, 5), (3, 8)):  # every chunk in some seat's run
+        assert set().union(*(seat_run(n, k, seats) for k in range(seats))) == set(range(n))
+    assert not seat_run(10, 2, 2)  # a helper that found no seat free
+
+
+def test_a_worker_done_with_its_run_takes_the_back_half_of_the_widest_gap() -> None:
+    assert list(widest_gap(set(), 8)) == [4, 5, 6, 7]
+    assert list(widest_gap({0, 1, 5, 9}, 10)) == [3, 4]  # 2..4 beats 6..8 (first of equals)
+    assert list(widest_gap({0, 1, 2, 3, 4, 5, 8, 9}, 10)) == [7]
+    assert list(widest_gap({0, 2}, 4)) == [1]
+    assert not widest_gap(set(range(5)), 5)
+
+
+def test_helpers_take_seats_and_consecutive_chunks(tmp_path: Path) -> None:
+    """Two helpers and the job's worker, each doing its items in runs of consecutive ones;
+    every item once, the results in order."""
+    threads: list[threading.Thread] = []
+
+    def ask(job_id: int, name: str, helpers: int) -> None:
+        assert (tmp_path / PARTS_DIR / name / "seats").read_text() == str(helpers + 1)
+        for _ in range(helpers):
+            t = threading.Thread(target=help_with, args=(tmp_path, name, 5.0))
+            t.start()
+            threads.append(t)
+
+    items = list(range(96))
+    out = FolderFanout(ask, 2, lease_s=5.0)(context(tmp_path), who_did_it, 0.005, items)
+    for t in threads:
+        t.join()
+    assert [i for i, _ in out] == items
+    who = [w for _, w in out]
+    assert len(set(who)) == 3
+    runs = 1 + sum(a != b for a, b in zip(who, who[1:]))
+    # three runs of seats, then halves of what is left taken: a dozen runs at most, where
+    # chunks dealt out in turn would make about sixty
+    assert runs <= 12
 
 
 def test_helpers_take_chunks_and_results_come_back_in_order(tmp_path: Path) -> None:
@@ -122,7 +173,7 @@ def no_helpers(job_id: int, name: str, helpers: int) -> None:
 
 
 def test_a_new_attempt_adopts_the_chunks_a_lost_attempt_finished(tmp_path: Path) -> None:
-    items = list(range(12))  # four chunks of three: the first attempt dies in the third
+    items = list(range(12))  # a chunk an item: the first attempt dies in the eighth
     (tmp_path / "die").touch()
     lost = multiprocessing.get_context("spawn").Process(
         target=first_attempt, args=(tmp_path, items)
@@ -136,8 +187,8 @@ def test_a_new_attempt_adopts_the_chunks_a_lost_attempt_finished(tmp_path: Path)
         context(tmp_path, 2), doubled_or_die, None, items
     )
     assert [v for v, _ in out] == [2 * i for i in items]
-    assert {who for _, who in out[:6]} == {pid}  # the first two chunks: the lost attempt's
-    assert {who for _, who in out[6:]} == {os.getpid()}
+    assert {who for _, who in out[:7]} == {pid}  # the chunks the lost attempt finished
+    assert {who for _, who in out[7:]} == {os.getpid()}
     done = sorted(p.name for p in (tmp_path / "done").iterdir())
     assert [d for d in done if d.startswith("0-")] == [f"0-{pid}"]  # not done again
     assert not any((tmp_path / PARTS_DIR).iterdir())  # both attempts' folders are gone
