@@ -1,13 +1,15 @@
-"""What every benchmark shares: the result type, a robot's session on a station, and small
-geometric helpers."""
+"""What every benchmark shares: the result type, a robot's session on a station, a job
+followed as a dashboard follows it, and small geometric helpers."""
 
 from __future__ import annotations
 
+import time
 import uuid
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Any
 
+import httpx
 import numpy as np
 from numpy.typing import NDArray
 from websockets.asyncio.client import ClientConnection, connect
@@ -15,6 +17,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from robot_link.protocol import Message, MessageType, encode_message
 
 Result = dict[str, Any]
+FINISHED = ("done", "failed", "cancelled")
 
 
 @asynccontextmanager
@@ -32,6 +35,22 @@ async def robot_session(
         await ws.send(encode_message(Message(MessageType.SESSION_START, sid, 1, 0.0, start)))
         await ws.recv()
         yield ws
+
+
+def follow_job(
+    client: httpx.Client, job_id: int, every_s: float, until: Callable[[], bool] = lambda: False
+) -> dict[str, Any] | None:
+    """Poll job ``job_id`` every ``every_s`` through ``client`` (one connection: a client made
+    per request loads its TLS context each time) until it is done (its record) or ``until()``
+    (None); a job that failed or was cancelled raises."""
+    while not until():
+        job: dict[str, Any] = client.get(f"/api/jobs/{job_id}").json()
+        if job["state"] in FINISHED:
+            if job["state"] != "done":
+                raise RuntimeError(f"{job.get('kind', 'the')} job {job['state']}: {job['error']}")
+            return job
+        time.sleep(every_s)
+    return None
 
 
 def rigid_align_2d(src: NDArray[np.float64], dst: NDArray[np.float64]) -> NDArray[np.float64]:

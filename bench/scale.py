@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import httpx
 
-from bench.common import Result, robot_session
+from bench.common import Result, follow_job, robot_session
 from bench.ingest import ROBOTS, drive_robots
 from bench.scale_live import live_results
 from bench.scale_map import map_results, record_clouds
@@ -101,19 +101,13 @@ class _Workers:
 
 
 def _job(url: str, sid: str, kind: str) -> tuple[dict, float]:
-    """Run a job and follow it as the dashboard does: one connection, four polls a second
-    (a client made per request would load its TLS context each time, a CPU's worth of
-    work beside the robots the live phase measures)."""
+    """Run a job and follow it, four polls a second; its record and how long it took."""
     t0 = time.perf_counter()
     with httpx.Client(base_url=url) as client:
         job_id = client.post(f"/api/sessions/{sid}/jobs", json={"kind": kind}).json()["id"]
-        while True:
-            job = client.get(f"/api/jobs/{job_id}").json()
-            if job["state"] in ("done", "failed", "cancelled"):
-                if job["state"] != "done":
-                    raise RuntimeError(f"{kind} job {job['state']}: {job['error']}")
-                return job, time.perf_counter() - t0
-            time.sleep(0.25)  # a dashboard's pace
+        job = follow_job(client, job_id, 0.25)
+        assert job is not None
+        return job, time.perf_counter() - t0
 
 
 def _best_of(url: str, sid: str, kind: str, runs: int = RUNS) -> tuple[dict, float]:

@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 import psutil
 
-from bench.common import Result
+from bench.common import FINISHED, Result, follow_job
 from bench.ingest import drive_robots
 from server.jobs.priority import put_the_station_first
 
@@ -109,17 +109,9 @@ class _Busy:
             while not self._stop.is_set():
                 post = client.post(f"/api/sessions/{self.sid}/jobs", json={"kind": "detect"})
                 self.job_id = post.json()["id"]
-                while not self._stop.is_set():
-                    job = client.get(f"/api/jobs/{self.job_id}").json()
-                    if job["state"] in ("done", "failed", "cancelled"):
-                        if job["state"] != "done":
-                            raise RuntimeError(f"detect job {job['state']}: {job['error']}")
-                        break
-                    time.sleep(FOLLOW_S)
+                follow_job(client, self.job_id, FOLLOW_S, self._stop.is_set)
             client.post(f"/api/jobs/{self.job_id}/cancel")
-            while client.get(f"/api/jobs/{self.job_id}").json()["state"] not in (
-                "done", "failed", "cancelled",
-            ):  # fmt: skip
+            while client.get(f"/api/jobs/{self.job_id}").json()["state"] not in FINISHED:
                 time.sleep(0.1)
 
     def stop(self) -> None:
