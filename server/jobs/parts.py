@@ -5,10 +5,11 @@ The job's worker writes a *plan* (the part function, what every part shares, the
 items) into ``DATA/.parts/<name>/``, asks other workers for help (a Celery group of
 ``steelscan.part`` tasks) and works through the chunks itself too. A chunk is taken by
 creating its claim file exclusively, done, and its result written atomically beside it; the
-claim file is touched while the chunk runs. Each worker taking part holds a *seat*, and the
-seats work through the chunks in pairs from both ends of a run of consecutive chunks (see
-:func:`seat_run`): each worker does consecutive items, so what it decoded and cached for one
-serves the next, and the pair meet wherever their speeds put them. A claim is silent when
+claim file is touched while the chunk runs, and says which way its worker is heading. A
+worker goes through consecutive chunks, so that what it decoded and cached for one serves
+the next, and when it meets a taken chunk it moves to the widest stretch nobody has taken,
+heading towards whoever works into it (:func:`next_stretch`): a helper joining the job's
+worker starts at the last chunk and the two meet wherever their speeds put them. A claim is silent when
 its modification time stops changing for a lease, timed on the job's worker's own clock
 (the helper's or the file server's clock may be set differently). Chunks another worker
 took but left silent for a lease are done again by the job's worker, so a helper lost
@@ -43,10 +44,10 @@ log = logging.getLogger(__name__)
 
 PARTS_DIR = ".parts"
 POLL_S = 0.05
+FORWARDS, BACKWARDS = b"+", b"-"  # a claim file's content: which way its worker heads
 CHUNKS_PER_WORKER = 4  # chunks per worker taking part, at least: evens out unequal costs
 MAX_CHUNKS = 64  # a plan's chunks when the items allow: a worker left waiting at the end
 # waits for one small chunk (a chunk costs a claim file and a result file, ~1 ms)
-SEATS = "seats"  # the file holding the number of seats of a plan
 
 
 def chunked(items: Sequence[Any], pieces: int) -> list[list[Any]]:
@@ -81,11 +82,9 @@ class FolderFanout:
                     adopted,
                     len(chunks),
                 )
-            helpers = min(self.helpers, len(chunks) - adopted - 1)
-            if helpers > 0:
-                write_atomic(folder / SEATS, str(helpers + 1).encode())
-                self.ask(ctx.job_id, name, helpers)
-            work_through(folder, ctx.files, self.lease_s / 4, stop=ctx.check, seat=0)
+            if self.helpers and len(chunks) - adopted > 1:
+                self.ask(ctx.job_id, name, min(self.helpers, len(chunks) - adopted - 1))
+            work_through(folder, ctx.files, self.lease_s / 4, stop=ctx.check)
             results = _collect(folder, ctx.files, len(chunks), self.lease_s, ctx)
         finally:
             shutil.rmtree(folder, ignore_errors=True)
@@ -126,68 +125,54 @@ def help_with(data_dir: Path, name: str, lease_s: float) -> int:
     folder = Path(data_dir) / PARTS_DIR / name
     if not (folder / "plan.pkl").is_file():
         return 0
-    seats = _seats(folder)
-    seat = next((j for j in range(1, seats) if _take(folder / f"seat-{j}")), seats)
-    return work_through(folder, SessionFiles(Path(data_dir)), lease_s / 4, seat=seat)
+    return work_through(folder, SessionFiles(Path(data_dir)), lease_s / 4)
 
 
-def _seats(folder: Path) -> int:
-    try:
-        return max(1, int((folder / SEATS).read_text()))
-    except (OSError, ValueError):
-        return 1
-
-
-def seat_run(n: int, seat: int, seats: int) -> range:
-    """The chunks of a plan's ``n`` that the worker in ``seat`` (0 for the job's own) of
-    ``seats`` works through first, in that order. Seats 2r and 2r + 1 share the r-th of
-    ⌈seats / 2⌉ runs of consecutive chunks, the even seat from its start forwards, the odd
-    one from its end backwards, so that each does consecutive chunks and the two meet
-    wherever their speeds put them; a worker with no seat (``seat >= seats``) has none."""
-    if seat >= seats:
-        return range(0)
-    runs = -(-seats // 2)
-    lo, hi = (seat // 2) * n // runs, (seat // 2 + 1) * n // runs
-    return range(lo, hi) if seat % 2 == 0 else range(hi - 1, lo - 1, -1)
-
-
-def widest_gap(taken: set[int], n: int) -> range:
-    """Where a worker whose own run is done goes on: the back half of the longest run of
-    chunks nobody has taken (it meets whoever works towards it from the front); empty when
-    every chunk is taken."""
-    best, start = (0, 0), None
+def widest_gap(taken: set[int], n: int) -> tuple[int, int] | None:
+    """The longest run ``lo .. hi - 1`` of a plan's ``n`` chunks that nobody has taken (the
+    first of equals); None when every chunk is taken."""
+    best, start = None, None
     for i in range(n + 1):
         if i < n and i not in taken:
             start = i if start is None else start
         elif start is not None:
-            best, start = max(best, (start, i), key=lambda r: r[1] - r[0]), None
-    lo, hi = best
-    return range(lo + (hi - lo) // 2, hi)
+            if best is None or i - start > best[1] - best[0]:
+                best = (start, i)
+            start = None
+    return best
+
+
+def next_stretch(lo: int, hi: int, from_left: bool, from_right: bool) -> range:
+    """The chunks ``lo .. hi - 1`` in the order a worker goes through them, given whether a
+    worker is heading into them from the left (forwards from ``lo - 1``) or from the right
+    (backwards from ``hi``): towards the one worker coming, so the two meet and neither
+    jumps again; from the middle forwards when one comes from each side; from ``lo`` when
+    none does."""
+    if from_left and not from_right:
+        return range(hi - 1, lo - 1, -1)
+    if from_left and from_right:
+        return range(lo + (hi - lo) // 2, hi)
+    return range(lo, hi)
 
 
 def work_through(
-    folder: Path,
-    files: SessionFiles,
-    touch_s: float,
-    stop: Callable[[], None] = lambda: None,
-    seat: int = 0,
+    folder: Path, files: SessionFiles, touch_s: float, stop: Callable[[], None] = lambda: None
 ) -> int:
-    """Take and do chunks until none is left to take: ``seat``'s own run (chunks others
-    took skipped), then again and again the back half of the widest gap; the number done."""
+    """Take and do chunks until none is left to take, stretch by stretch (see
+    :func:`next_stretch`); the number done."""
     try:
         fn, shared, chunks = pickle.loads((folder / "plan.pkl").read_bytes())
     except (OSError, EOFError, pickle.UnpicklingError):
         return 0  # the plan was removed: the job finished without us
-    n, done = len(chunks), 0
-    for i in seat_run(n, seat, _seats(folder)):
-        stop()
-        if _take(folder / f"{i}.claim"):
-            _run_chunk(folder, files, fn, shared, chunks, i, touch_s)
-            done += 1
-    while (taken := _taken(folder)) is not None and (gap := widest_gap(taken, n)):
-        for i in gap:  # until the chunk of whoever works towards us
+    done = 0
+    while (taken := _taken(folder)) is not None and (gap := widest_gap(taken, len(chunks))):
+        lo, hi = gap
+        order = next_stretch(
+            lo, hi, _heading(folder, lo - 1) == FORWARDS, _heading(folder, hi) == BACKWARDS
+        )
+        for i in order:  # until the chunk of whoever comes the other way
             stop()
-            if not _take(folder / f"{i}.claim"):
+            if not _take(folder / f"{i}.claim", FORWARDS if order.step > 0 else BACKWARDS):
                 break
             _run_chunk(folder, files, fn, shared, chunks, i, touch_s)
             done += 1
@@ -203,13 +188,25 @@ def _taken(folder: Path) -> set[int] | None:
     return {int(m[: -len(".claim")]) for m in names if m.endswith(".claim") and m[0].isdigit()}
 
 
-def _take(claim: Path) -> bool:
+def _heading(folder: Path, i: int) -> bytes:
+    """Which way the worker that took chunk ``i`` was heading (empty when unknown)."""
     try:
-        os.close(os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+        return (folder / f"{i}.claim").read_bytes()[:1]
+    except OSError:
+        return b""
+
+
+def _take(claim: Path, heading: bytes = b"") -> bool:
+    try:
+        fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
     except FileExistsError:
         return False
     except FileNotFoundError:  # the folder is gone
         return False
+    try:
+        os.write(fd, heading)
+    finally:
+        os.close(fd)
     return True
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from server.jobs.context import JobContext
-from server.jobs.parts import PARTS_DIR, FolderFanout, chunked, help_with, seat_run, widest_gap
+from server.jobs.parts import PARTS_DIR, FolderFanout, chunked, help_with, next_stretch, widest_gap
 from server.storage.files import SessionFiles
 
 
@@ -43,39 +43,47 @@ def test_chunks_cover_the_items_in_order() -> None:
         assert len(chunks) == min(n, pieces) and all(chunks)
 
 
-def test_seats_share_runs_from_both_ends() -> None:
-    """Seats pair up on runs of consecutive chunks, one from each end: each does consecutive
-    chunks (its caches serve the next) and any split of a run between the two is a prefix
-    and a suffix."""
-    assert list(seat_run(6, 0, 2)) == [0, 1, 2, 3, 4, 5]
-    assert list(seat_run(6, 1, 2)) == [5, 4, 3, 2, 1, 0]
-    four = [list(seat_run(12, seat, 4)) for seat in range(4)]
-    assert four == [
-        [0, 1, 2, 3, 4, 5],
-        [5, 4, 3, 2, 1, 0],
-        [6, 7, 8, 9, 10, 11],
-        [11, 10, 9, 8, 7, 6],
-    ]
-    for n, seats in ((7, 3), (64, 5), (3, 8)):  # every chunk in some seat's run
-        assert set().union(*(seat_run(n, k, seats) for k in range(seats))) == set(range(n))
-    assert not seat_run(10, 2, 2)  # a helper that found no seat free
+def test_the_widest_gap_is_the_longest_run_nobody_took() -> None:
+    assert widest_gap(set(), 8) == (0, 8)
+    assert widest_gap({0, 1, 5, 9}, 10) == (2, 5)  # 2..4 beats 6..8 (the first of equals)
+    assert widest_gap({0, 1, 2, 3, 4, 5, 8, 9}, 10) == (6, 8)
+    assert widest_gap({0, 2}, 4) == (1, 2)
+    assert widest_gap(set(range(5)), 5) is None
 
 
-def test_a_worker_done_with_its_run_takes_the_back_half_of_the_widest_gap() -> None:
-    assert list(widest_gap(set(), 8)) == [4, 5, 6, 7]
-    assert list(widest_gap({0, 1, 5, 9}, 10)) == [3, 4]  # 2..4 beats 6..8 (first of equals)
-    assert list(widest_gap({0, 1, 2, 3, 4, 5, 8, 9}, 10)) == [7]
-    assert list(widest_gap({0, 2}, 4)) == [1]
-    assert not widest_gap(set(range(5)), 5)
+def test_a_worker_heads_towards_whoever_comes() -> None:
+    """So that the two meet and neither jumps again: a helper joining the job's worker
+    (coming forwards from chunk 0) starts at the last chunk."""
+    assert list(next_stretch(1, 6, from_left=True, from_right=False)) == [5, 4, 3, 2, 1]
+    assert list(next_stretch(1, 6, from_left=False, from_right=True)) == [1, 2, 3, 4, 5]
+    assert list(next_stretch(0, 6, from_left=False, from_right=False)) == list(range(6))
+    assert list(next_stretch(2, 10, from_left=True, from_right=True)) == [6, 7, 8, 9]
 
 
-def test_helpers_take_seats_and_consecutive_chunks(tmp_path: Path) -> None:
+def test_a_helper_and_the_jobs_worker_meet_from_both_ends(tmp_path: Path) -> None:
+    """Whichever comes second starts at the other end: one prefix of the items each."""
+    threads: list[threading.Thread] = []
+
+    def ask(job_id: int, name: str, helpers: int) -> None:
+        t = threading.Thread(target=help_with, args=(tmp_path, name, 5.0))
+        t.start()
+        threads.append(t)
+
+    items = list(range(40))
+    out = FolderFanout(ask, 1, lease_s=5.0)(context(tmp_path), who_did_it, 0.005, items)
+    threads[0].join()
+    who = [w for _, w in out]
+    assert [i for i, _ in out] == items
+    assert len(set(who)) == 2
+    assert sum(a != b for a, b in zip(who, who[1:])) == 1
+
+
+def test_each_worker_does_runs_of_consecutive_chunks(tmp_path: Path) -> None:
     """Two helpers and the job's worker, each doing its items in runs of consecutive ones;
     every item once, the results in order."""
     threads: list[threading.Thread] = []
 
     def ask(job_id: int, name: str, helpers: int) -> None:
-        assert (tmp_path / PARTS_DIR / name / "seats").read_text() == str(helpers + 1)
         for _ in range(helpers):
             t = threading.Thread(target=help_with, args=(tmp_path, name, 5.0))
             t.start()
@@ -89,8 +97,8 @@ def test_helpers_take_seats_and_consecutive_chunks(tmp_path: Path) -> None:
     who = [w for _, w in out]
     assert len(set(who)) == 3
     runs = 1 + sum(a != b for a, b in zip(who, who[1:]))
-    # three runs of seats, then halves of what is left taken: a dozen runs at most, where
-    # chunks dealt out in turn would make about sixty
+    # a run each, then the stretches left between them: a dozen runs at most, where chunks
+    # dealt out in turn would make about sixty
     assert runs <= 12
 
 
