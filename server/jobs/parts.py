@@ -87,7 +87,7 @@ class FolderFanout:
             work_through(folder, ctx.files, self.lease_s / 4, stop=ctx.check)
             results = _collect(folder, ctx.files, len(chunks), self.lease_s, ctx)
         finally:
-            shutil.rmtree(folder, ignore_errors=True)
+            clear(folder)
         return [r for chunk in results for r in chunk]
 
 
@@ -115,8 +115,19 @@ def adopt_earlier(folder: Path, job_id: int, attempt: int, digest: str) -> int:
                     continue
             _take(folder / f"{result.stem}.claim")
             adopted += 1
-        shutil.rmtree(old, ignore_errors=True)
+        clear(old)
     return adopted
+
+
+def clear(folder: Path) -> None:
+    """Remove a plan's folder, renamed away first: a helper never sees it half removed (its
+    claim files gone, its chunks seemingly free) and takes nothing more from it."""
+    gone = folder.with_name(f".cleared-{folder.name}")
+    try:
+        os.rename(folder, gone)
+    except FileNotFoundError:
+        return
+    shutil.rmtree(gone, ignore_errors=True)
 
 
 def help_with(data_dir: Path, name: str, lease_s: float) -> int:

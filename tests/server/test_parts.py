@@ -13,7 +13,16 @@ from pathlib import Path
 from typing import Any
 
 from server.jobs.context import JobContext
-from server.jobs.parts import PARTS_DIR, FolderFanout, chunked, help_with, next_stretch, widest_gap
+from server.jobs.parts import (
+    PARTS_DIR,
+    FolderFanout,
+    chunked,
+    clear,
+    help_with,
+    next_stretch,
+    widest_gap,
+    work_through,
+)
 from server.storage.files import SessionFiles
 
 
@@ -204,3 +213,25 @@ def test_a_new_attempt_adopts_the_chunks_a_lost_attempt_finished(tmp_path: Path)
 
 def test_a_helper_coming_late_finds_nothing_to_do(tmp_path: Path) -> None:
     assert help_with(tmp_path, "7-1-gone", 5.0) == 0
+
+
+def test_a_helper_takes_nothing_from_a_plan_being_cleared(tmp_path: Path) -> None:
+    """The job's worker clears its plan once every result is in; a helper still going
+    through it stops there, and the plan is gone whole (renamed away before it is removed,
+    so no claim file is ever seen missing while the folder stands)."""
+    folder = tmp_path / PARTS_DIR / "7-1-plan-x"
+    folder.mkdir(parents=True)
+    (folder / "plan.pkl").write_bytes(pickle.dumps((who_did_it, 0.0, [[0], [1], [2], [3]])))
+    done = work_through(folder, SessionFiles(tmp_path), 1.0, stop=lambda: None)
+    assert done == 4
+    calls: list[int] = []
+
+    def cleared_after_one() -> None:
+        calls.append(1)
+        if len(calls) == 2:
+            clear(folder)
+
+    for claim in folder.glob("*.claim"):
+        claim.unlink()
+    assert work_through(folder, SessionFiles(tmp_path), 1.0, stop=cleared_after_one) == 1
+    assert not any((tmp_path / PARTS_DIR).iterdir())
