@@ -114,15 +114,24 @@ class CeleryQueue:
 @worker_process_init.connect
 def _init_worker_process(**_: Any) -> None:
     """Each worker process: idle priority (below the live link of a station on the same
-    machine), arrays on the heap, and one thread per library (a process per core scales:
-    ``--concurrency``)."""
-    import cv2
-
+    machine), arrays on the heap, and ``worker_threads`` threads per library (a process per
+    core scales: ``--concurrency``)."""
     from server.jobs.allocator import keep_arrays_on_heap
 
+    limit_threads(_settings().worker_threads)
     yield_to_the_station()
     keep_arrays_on_heap()
-    cv2.setNumThreads(_settings().worker_threads)
+
+
+def limit_threads(threads: int) -> None:
+    """Keep this process's libraries to ``threads`` threads each: OpenCV's pool and Open3D's
+    (oneTBB, which no environment variable bounds; its ICP took 1.7 cores of a 2-core
+    machine unbounded)."""
+    import cv2
+    import open3d as o3d
+
+    cv2.setNumThreads(threads)
+    o3d.utility.set_max_threads(threads)
 
 
 def ping_worker(timeout_s: float = 3.0) -> bool:

@@ -4,6 +4,7 @@ time, never a result; a job completes once; cancelling stops it wherever it runs
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -12,6 +13,7 @@ import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -21,6 +23,7 @@ from bench.services import start_worker, stop_workers
 from robot_link.protocol import MessageType, decode_message
 from server.config import Settings
 from server.jobs.priority import cpu_cgroup
+from server.jobs.queue import limit_threads
 from server.loopback import BackgroundServer, free_port
 from tests.conftest import make_token
 from tests.server.test_ingest import msg, ws_url
@@ -220,3 +223,35 @@ def test_cancelling_stops_a_running_job_and_what_needs_it(cluster: Cluster) -> N
     time.sleep(2 * LEASE_S)  # the attempt notices at its next beat and its result is dropped
     stitch = httpx.get(f"{cluster.url}/api/jobs/{stitch_id}").json()
     assert stitch["state"] == "cancelled" and stitch["result"] == {}
+
+
+def _icp_cores(queue: Any) -> None:
+    """In a fresh process limited as a worker process is: Open3D's thread limit, and the
+    cores an ICP of 100,000 points kept busy (CPU time over wall time)."""
+    import numpy as np
+    import open3d as o3d
+
+    limit_threads(1)
+    reg = o3d.pipelines.registration
+    pts = np.random.default_rng(3).random((100_000, 3))
+    a = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    b = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts + 0.001))
+    b.estimate_normals()
+    wall, cpu = time.perf_counter(), time.process_time()
+    for _ in range(3):
+        reg.registration_icp(a, b, 0.05, np.eye(4), reg.TransformationEstimationPointToPlane())
+    cores = (time.process_time() - cpu) / (time.perf_counter() - wall)
+    queue.put((o3d.utility.get_max_threads(), cores))
+
+
+def test_a_worker_process_keeps_open3d_to_its_threads() -> None:
+    """A worker process is one core's worth of work (``STEELSCAN_WORKER_THREADS``): Open3D's
+    oneTBB pool, which no environment variable bounds, would take every core for an ICP."""
+    ctx = multiprocessing.get_context("spawn")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_icp_cores, args=(queue,))
+    proc.start()
+    threads, cores = queue.get(timeout=120)
+    proc.join(30)
+    assert threads == 1
+    assert cores < 1.3
