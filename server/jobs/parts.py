@@ -1,5 +1,5 @@
-"""One job's independent parts spread over several workers through the shared data directory:
-only ids and a folder's name pass through the broker.
+"""One job's independent parts spread over several workers through the shared data
+directory: only ids and a folder's name pass through the broker.
 
 The job's worker writes a *plan* (the part function, what every part shares, the chunks of
 items) into ``DATA/.parts/<name>/``, asks other workers for help (a Celery group of
@@ -9,12 +9,12 @@ claim file is touched while the chunk runs, and says which way its worker is hea
 worker goes through consecutive chunks, so that what it decoded and cached for one serves
 the next, and when it meets a taken chunk it moves to the widest stretch nobody has taken,
 heading towards whoever works into it (:func:`next_stretch`): a helper joining the job's
-worker starts at the last chunk and the two meet wherever their speeds put them. A claim is silent when
-its modification time stops changing for a lease, timed on the job's worker's own clock
-(the helper's or the file server's clock may be set differently). Chunks another worker
-took but left silent for a lease are done again by the job's worker, so a helper lost
-mid-chunk costs time, never a result; helpers that come late find every chunk taken and
-return. Nothing waits on a helper, so a job never deadlocks on a busy queue.
+worker starts at the last chunk and the two meet wherever their speeds put them. A claim is
+silent when its modification time stops changing for a lease, timed on the job's worker's
+own clock (the helper's or the file server's clock may be set differently). Chunks another
+worker took but left silent for a lease are done again by the job's worker, so a helper
+lost mid-chunk costs time, never a result; helpers that come late find every chunk taken
+and return. Nothing waits on a helper, so a job never deadlocks on a busy queue.
 
 A plan's folder is named by its job, attempt and the digest of the plan. When the job's
 worker is lost and a new attempt makes the same plan (same function, same shared data, same
@@ -47,7 +47,7 @@ POLL_S = 0.05
 FORWARDS, BACKWARDS = b"+", b"-"  # a claim file's content: which way its worker heads
 CHUNKS_PER_WORKER = 4  # chunks per worker taking part, at least: evens out unequal costs
 MAX_CHUNKS = 64  # a plan's chunks when the items allow: a worker left waiting at the end
-# waits for one small chunk (a chunk costs a claim file and a result file, ~1 ms)
+# waits for one small chunk (a chunk costs a claim file and a result file)
 
 
 def chunked(items: Sequence[Any], pieces: int) -> list[list[Any]]:

@@ -45,6 +45,23 @@ def doubled_or_die(files: SessionFiles, shared: None, item: int) -> tuple[int, i
     return item * 2, os.getpid()
 
 
+def fan_out(tmp_path: Path, helpers: int, items: list[int], pause: float) -> list[Any]:
+    """``items`` through :func:`who_did_it` on the job's worker (this thread) and
+    ``helpers`` helper threads asked through the queue; the results, helpers joined."""
+    threads: list[threading.Thread] = []
+
+    def ask(job_id: int, name: str, helpers: int) -> None:
+        for _ in range(helpers):
+            t = threading.Thread(target=help_with, args=(tmp_path, name, 5.0))
+            t.start()
+            threads.append(t)
+
+    out = FolderFanout(ask, helpers, lease_s=5.0)(context(tmp_path), who_did_it, pause, items)
+    for t in threads:
+        t.join()
+    return out
+
+
 def test_chunks_cover_the_items_in_order() -> None:
     for n, pieces in ((10, 3), (3, 8), (1, 4), (100, 16)):
         chunks = chunked(list(range(n)), pieces)
@@ -70,17 +87,10 @@ def test_a_worker_heads_towards_whoever_comes() -> None:
 
 
 def test_a_helper_and_the_jobs_worker_meet_from_both_ends(tmp_path: Path) -> None:
-    """Whichever comes second starts at the other end: one prefix of the items each."""
-    threads: list[threading.Thread] = []
-
-    def ask(job_id: int, name: str, helpers: int) -> None:
-        t = threading.Thread(target=help_with, args=(tmp_path, name, 5.0))
-        t.start()
-        threads.append(t)
-
+    """Whichever comes second starts at the other end: the items split into a prefix and a
+    suffix, one for each."""
     items = list(range(40))
-    out = FolderFanout(ask, 1, lease_s=5.0)(context(tmp_path), who_did_it, 0.005, items)
-    threads[0].join()
+    out = fan_out(tmp_path, 1, items, 0.005)
     who = [w for _, w in out]
     assert [i for i, _ in out] == items
     assert len(set(who)) == 2
@@ -90,18 +100,8 @@ def test_a_helper_and_the_jobs_worker_meet_from_both_ends(tmp_path: Path) -> Non
 def test_each_worker_does_runs_of_consecutive_chunks(tmp_path: Path) -> None:
     """Two helpers and the job's worker, each doing its items in runs of consecutive ones;
     every item once, the results in order."""
-    threads: list[threading.Thread] = []
-
-    def ask(job_id: int, name: str, helpers: int) -> None:
-        for _ in range(helpers):
-            t = threading.Thread(target=help_with, args=(tmp_path, name, 5.0))
-            t.start()
-            threads.append(t)
-
     items = list(range(96))
-    out = FolderFanout(ask, 2, lease_s=5.0)(context(tmp_path), who_did_it, 0.005, items)
-    for t in threads:
-        t.join()
+    out = fan_out(tmp_path, 2, items, 0.005)
     assert [i for i, _ in out] == items
     who = [w for _, w in out]
     assert len(set(who)) == 3
@@ -112,18 +112,8 @@ def test_each_worker_does_runs_of_consecutive_chunks(tmp_path: Path) -> None:
 
 
 def test_helpers_take_chunks_and_results_come_back_in_order(tmp_path: Path) -> None:
-    threads: list[threading.Thread] = []
-
-    def ask(job_id: int, name: str, helpers: int) -> None:
-        for _ in range(helpers):
-            t = threading.Thread(target=help_with, args=(tmp_path, name, 5.0))
-            t.start()
-            threads.append(t)
-
     items = list(range(40))
-    out = FolderFanout(ask, 2, lease_s=5.0)(context(tmp_path), who_did_it, 0.01, items)
-    for t in threads:
-        t.join()
+    out = fan_out(tmp_path, 2, items, 0.01)
     assert [i for i, _ in out] == items
     assert len({who for _, who in out}) > 1  # the helpers did some of it
     assert not any((tmp_path / PARTS_DIR).iterdir())  # the plan is cleared
