@@ -208,11 +208,31 @@ def _heading(folder: Path, i: int) -> bytes:
 
 
 def _take(claim: Path, heading: bytes = b"") -> bool:
+    """Create ``claim`` holding ``heading`` unless it exists: written beside it first and
+    hard-linked into place, so no worker ever reads a claim without its heading (exclusive
+    creation where the file system has no hard links)."""
+    if not heading:
+        return _create(claim)
+    tmp = claim.with_name(f".{claim.name}.{uuid.uuid4().hex}")
+    try:
+        tmp.write_bytes(heading)
+    except FileNotFoundError:  # the folder is gone
+        return False
+    try:
+        os.link(tmp, claim)
+    except (FileExistsError, FileNotFoundError):
+        return False
+    except OSError:  # no hard links here
+        return _create(claim, heading)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return True
+
+
+def _create(claim: Path, heading: bytes = b"") -> bool:
     try:
         fd = os.open(claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-    except FileExistsError:
-        return False
-    except FileNotFoundError:  # the folder is gone
+    except (FileExistsError, FileNotFoundError):  # taken, or the folder is gone
         return False
     try:
         os.write(fd, heading)
