@@ -1,11 +1,13 @@
 """``steelscan bench scale``: the station on PostgreSQL with Celery workers, on this machine.
 
 - A long simulated session (2,000 camera frames by default, ``--limit`` for another count)
-  is recorded through the robot protocol; its stitch and detect jobs run on one worker
-  process, and again on two, twice each: the wall time of the stages spread over workers
-  (the stitch's pair registrations, detection's frames and mosaic bands) and of the whole
-  jobs, one against two, each the shorter of its two runs (a passing disturbance on the
-  machine lengthens a run, never shortens one).
+  is recorded through the robot protocol, and a long ToF session (:mod:`bench.scale_map`);
+  their stitch, detect and map jobs run on one worker process, and again on two, three
+  times each in alternating order (:func:`round_order`): the wall time of the stages
+  spread over workers (the stitch's pair registrations and bands, detection's frames and
+  mosaic bands, the map's runs of clouds) and of the whole jobs, one against two, each the
+  shortest of its runs (a passing disturbance on the machine lengthens a run, never
+  shortens one).
 - The live link while a big job runs: four robots at a camera's 30 frames/s, in phases
   with the workers idle and phases while they process the session, alternating
   (:mod:`bench.scale_live`); ingest rate and ACK p99 of each.
@@ -21,11 +23,12 @@ import asyncio
 import copy
 import os
 import shutil
+import socket
 import subprocess
 import tempfile
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import cv2
@@ -45,7 +48,7 @@ LIVE_ROBOTS = 4
 LIVE_FPS = 30.0
 FLOOD_S = 10.0
 PX_PER_M = 1000.0
-RUNS = 2  # of each job on one worker and on two: the shorter counts
+ROUNDS = 3  # of the jobs on one worker and on two, interleaved: each stage's best counts
 # real-time priorities of the station's threads and of PostgreSQL, as docker/compose.yaml
 # sets them for a station, its database and workers on one machine (where permitted)
 STATION_REALTIME = 10
@@ -87,17 +90,42 @@ def _record(port: int, token: str, frames: int) -> str:
 
 
 class _Workers:
-    """``steelscan worker`` processes (one job process each) against the station's services."""
+    """``steelscan worker`` processes (one job process each) against the station's services,
+    started and stopped to a given count."""
 
-    def __init__(self, env: dict[str, str], logs: Path) -> None:
-        self.env, self.logs, self.procs = env, logs, []  # type: list[subprocess.Popen[bytes]]
+    def __init__(self, env: dict[str, str], logs: Path, broker_url: str) -> None:
+        self.env, self.logs, self.broker_url = env, logs, broker_url
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.started = 0
 
-    def add(self) -> None:
-        self.procs.append(start_worker(self.env, self.logs / f"worker{len(self.procs)}.log"))
-        time.sleep(3.0)  # connected to the broker before jobs are sent
+    def scale_to(self, count: int) -> None:
+        """``count`` workers running, each answering the broker (ready for jobs); the
+        newest stopped first (a warm shutdown: its task, if any, finishes)."""
+        while len(self.procs) > count:
+            stop_workers([self.procs.pop()])
+        while len(self.procs) < count:
+            proc = start_worker(self.env, self.logs / f"worker{self.started}.log")
+            self.started += 1
+            self.procs.append(proc)
+            _await_worker(self.broker_url, proc)
 
     def stop(self) -> None:
         stop_workers(self.procs)
+
+
+def _await_worker(broker_url: str, proc: subprocess.Popen[bytes], timeout_s: float = 60.0) -> None:
+    """Until worker ``proc`` answers a ping through the broker (its pool started)."""
+    from celery import Celery
+
+    name = f"steelscan-{proc.pid}@{socket.gethostname()}"
+    app = Celery(broker=broker_url)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while not app.control.ping(destination=[name], timeout=0.5):
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"worker {name} did not come up (exit {proc.poll()})")
+    finally:
+        app.close()
 
 
 def _job(url: str, sid: str, kind: str) -> tuple[dict, float]:
@@ -110,15 +138,35 @@ def _job(url: str, sid: str, kind: str) -> tuple[dict, float]:
         return job, time.perf_counter() - t0
 
 
-def _best_of(url: str, sid: str, kind: str, runs: int = RUNS) -> tuple[dict, float]:
-    """The job run ``runs`` times: the last run's record with each stage's shortest time,
-    and the shortest time of the whole job."""
-    done = [_job(url, sid, kind) for _ in range(runs)]
+def round_order(rounds: int, sides: Sequence[int] = (1, 2)) -> list[int]:
+    """The worker counts to run, round after round, the sides' order reversed each round
+    (ABBA...): a slow stretch of the machine falls on both sides alike, and every other
+    change of side needs no worker started or stopped."""
+    return [n for r in range(rounds) for n in (sides if r % 2 == 0 else sides[::-1])]
+
+
+def best_of(done: Sequence[tuple[dict, float]]) -> tuple[dict, float]:
+    """Runs of one job: the last run's record with each stage's shortest time, and the
+    shortest time of the whole job (a passing disturbance lengthens a run, never shortens
+    one)."""
     job = copy.deepcopy(done[-1][0])
     seconds = job["result"]["seconds"]
     for stage in seconds:
         seconds[stage] = min(j["result"]["seconds"][stage] for j, _ in done)
     return job, min(s for _, s in done)
+
+
+def _interleaved(
+    url: str, jobs: Sequence[tuple[str, str]], workers: _Workers, rounds: int = ROUNDS
+) -> dict[int, dict[str, tuple[dict, float]]]:
+    """Each of ``jobs`` (kind, session) run ``rounds`` times on one worker and as often on
+    two, in :func:`round_order`: by worker count and kind, the best of its runs."""
+    done: dict[int, dict[str, list[tuple[dict, float]]]] = {1: {}, 2: {}}
+    for count in round_order(rounds):
+        workers.scale_to(count)
+        for kind, sid in jobs:
+            done[count].setdefault(kind, []).append(_job(url, sid, kind))
+    return {n: {kind: best_of(runs) for kind, runs in by.items()} for n, by in done.items()}
 
 
 def _realtime(pid: int) -> int:
@@ -176,18 +224,14 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
                 "STEELSCAN_DATABASE_URL": db_url,
             },
             root,
+            redis.url,
         )
         try:
             sid = _record(port, token, frames)
             tof_sid = record_clouds(port, token, limit)
-            workers.add()
-            stitch, stitch_s = _best_of(url, sid, "stitch")
-            one, one_s = _best_of(url, sid, "detect")
-            map1, map1_s = _best_of(url, tof_sid, "map")
-            workers.add()
-            stitch2, stitch2_s = _best_of(url, sid, "stitch")
-            two, two_s = _best_of(url, sid, "detect")
-            map2, map2_s = _best_of(url, tof_sid, "map")
+            best = _interleaved(url, [("stitch", sid), ("detect", sid), ("map", tof_sid)], workers)
+            (stitch, stitch_s), (one, one_s), (map1, map1_s) = best[1].values()
+            (stitch2, stitch2_s), (two, two_s), (map2, map2_s) = best[2].values()
             yield from map_results(map1, map1_s, map2, map2_s)
             par1, par2 = one["result"]["seconds"]["frames"], two["result"]["seconds"]["frames"]
             yield {
@@ -220,20 +264,27 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
                 "one_worker_s": round(one_s, 1),
                 "two_workers_s": round(two_s, 1),
             }
-            pairs1 = stitch["result"]["seconds"]["pairs"]
-            pairs2 = stitch2["result"]["seconds"]["pairs"]
+            sec1, sec2 = stitch["result"]["seconds"], stitch2["result"]["seconds"]
             yield {
                 "name": "scale.stitch_pairs_speedup",
-                "value": round(pairs1 / pairs2, 2),
+                "value": round(sec1["registrations"] / sec2["registrations"], 2),
                 "unit": "x",
                 "target": 1.6,
-                "stage": "stitch job, pair registrations (spread over workers; the pose "
-                "graph solved on the job's worker)",
+                "stage": "stitch job, the pair registrations (spread over workers)",
                 "pairs": stitch["result"]["pairs"],
-                "one_worker_s": pairs1,
-                "two_workers_s": pairs2,
+                "one_worker_s": sec1["registrations"],
+                "two_workers_s": sec2["registrations"],
             }
-            sec1, sec2 = stitch["result"]["seconds"], stitch2["result"]["seconds"]
+            yield {
+                "name": "scale.stitch_poses_speedup",
+                "value": round(sec1["pairs"] / sec2["pairs"], 2),
+                "unit": "x",
+                "stage": "stitch job, the frames' poses: the pair registrations with the "
+                "frames prepared, the lens falloff estimated and the pose graph solved on "
+                "the job's worker",
+                "one_worker_s": sec1["pairs"],
+                "two_workers_s": sec2["pairs"],
+            }
             yield {
                 "name": "scale.stitch_bands_speedup",
                 "value": round(sec1["bands"] / sec2["bands"], 2),
@@ -261,6 +312,7 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
                 "frames": frames,
                 "mosaic_px": [stitch["result"]["width_px"], stitch["result"]["height_px"]],
             }
+            workers.scale_to(2)
             realtime = {"station": _realtime(station.pid), "postgresql": pg.realtime}
             for result in live_results(
                 port, token, url, sid, LIVE_ROBOTS, LIVE_FPS, [w.pid for w in workers.procs]

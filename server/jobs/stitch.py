@@ -100,16 +100,20 @@ def _stored(
 
 
 def spread_pairs(
-    ctx: JobContext, where: list[tuple[str, int | None, int]]
+    ctx: JobContext, where: list[tuple[str, int | None, int]], seconds: list[float]
 ) -> Callable[[FrameCache], PairSpread]:
     """The stitch's pair registrations as parts of the job (:meth:`JobContext.map`); the
-    job's own worker does its share with the frames it has already prepared."""
+    job's own worker does its share with the frames it has already prepared. The seconds
+    each batch of pairs took are appended to ``seconds``."""
 
     def spread(frames: FrameCache) -> PairSpread:
         stored = _stored(ctx, where, frames)
 
         def pairs(requests: Sequence[PairRequest]) -> list[PairMeasurement | None]:
-            return ctx.map(register_pair_part, stored, list(requests))
+            t0 = time.perf_counter()
+            found = ctx.map(register_pair_part, stored, list(requests))
+            seconds.append(time.perf_counter() - t0)
+            return found
 
         return pairs
 
@@ -238,6 +242,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     params = replace(params, registration=replace(params.registration, workers=ctx.threads))
     where = [(f.path, f.data_offset, f.size_bytes) for f in use]
     banded: list[float] = []
+    registered: list[float] = []
     t0 = time.perf_counter()
     try:
         layout, loaded = plan_mosaic(
@@ -246,7 +251,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
             px_per_m=px_per_m if with_pose and px_per_m else 1.0,
             params=params,
             progress=lambda f, m: ctx.progress(0.7 * f, m),
-            spread=spread_pairs(ctx, where) if ctx.fanout is not None else None,
+            spread=spread_pairs(ctx, where, registered) if ctx.fanout is not None else None,
         )
         t_pairs = time.perf_counter() - t0
         world = {
@@ -274,6 +279,8 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         "pairs": round(t_pairs, 3),  # with the pose graph, solved on the job's worker
         "render": round(time.perf_counter() - t0 - t_pairs, 3),  # the files written here
     }
+    if registered:  # of the pairs' stage, the registrations themselves, on a job queue
+        seconds["registrations"] = round(sum(registered), 3)
     if banded:  # of which the bands (and the PNG's segments), on a job queue
         seconds["bands"] = round(banded[0], 3)
     results = ctx.results_dir()  # where the files are once the job is done
