@@ -2,12 +2,12 @@
 
 - A long simulated session (2,000 camera frames by default, ``--limit`` for another count)
   is recorded through the robot protocol, and a long ToF session (:mod:`bench.scale_map`);
-  their stitch, detect and map jobs run on one worker process, and again on two, three
-  times each in alternating order (:func:`round_order`): the wall time of the stages
-  spread over workers (the stitch's pair registrations and bands, detection's frames and
-  mosaic bands, the map's runs of clouds) and of the whole jobs, one against two, each the
-  shortest of its runs (a passing disturbance on the machine lengthens a run, never
-  shortens one).
+  their stitch, detect and map jobs run on one worker process, and again on two, in three
+  rounds a side in alternating order (:func:`round_order`; a short job several times a
+  round): the wall time of the stages spread over workers (the stitch's pair
+  registrations and bands, detection's frames and mosaic bands, the map's runs of clouds)
+  and of the whole jobs, one against two, each the shortest of its runs (a passing
+  disturbance on the machine lengthens a run, never shortens one).
 - The live link while a big job runs: four robots at a camera's 30 frames/s, in phases
   with the workers idle and phases while they process the session, alternating
   (:mod:`bench.scale_live`); ingest rate and ACK p99 of each.
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import math
 import os
 import shutil
 import socket
@@ -49,6 +50,7 @@ LIVE_FPS = 30.0
 FLOOD_S = 10.0
 PX_PER_M = 1000.0
 ROUNDS = 3  # of the jobs on one worker and on two, interleaved: each stage's best counts
+SAMPLE_S = 40.0  # a job's runs a round: as many as its first run fits in this
 # real-time priorities of the station's threads and of PostgreSQL, as docker/compose.yaml
 # sets them for a station, its database and workers on one machine (where permitted)
 STATION_REALTIME = 10
@@ -159,13 +161,19 @@ def best_of(done: Sequence[tuple[dict, float]]) -> tuple[dict, float]:
 def _interleaved(
     url: str, jobs: Sequence[tuple[str, str]], workers: _Workers, rounds: int = ROUNDS
 ) -> dict[int, dict[str, tuple[dict, float]]]:
-    """Each of ``jobs`` (kind, session) run ``rounds`` times on one worker and as often on
-    two, in :func:`round_order`: by worker count and kind, the best of its runs."""
+    """Each of ``jobs`` (kind, session) run in ``rounds`` rounds on one worker and as many
+    on two, in :func:`round_order`; a job shorter than ``SAMPLE_S`` runs several times a
+    round (as often as its first run fits in ``SAMPLE_S``), so a short stage is sampled
+    as long as a long one. By worker count and kind, the best of its runs."""
     done: dict[int, dict[str, list[tuple[dict, float]]]] = {1: {}, 2: {}}
+    repeats: dict[str, int] = {}
     for count in round_order(rounds):
         workers.scale_to(count)
         for kind, sid in jobs:
-            done[count].setdefault(kind, []).append(_job(url, sid, kind))
+            first = _job(url, sid, kind)
+            repeat = repeats.setdefault(kind, max(1, math.ceil(SAMPLE_S / first[1])))
+            runs = [first] + [_job(url, sid, kind) for _ in range(repeat - 1)]
+            done[count].setdefault(kind, []).extend(runs)
     return {n: {kind: best_of(runs) for kind, runs in by.items()} for n, by in done.items()}
 
 
