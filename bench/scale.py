@@ -29,7 +29,7 @@ import subprocess
 import tempfile
 import time
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import cv2
@@ -158,21 +158,25 @@ def best_of(done: Sequence[tuple[dict, float]]) -> tuple[dict, float]:
     return job, min(s for _, s in done)
 
 
-def _interleaved(
-    url: str, jobs: Sequence[tuple[str, str]], workers: _Workers, rounds: int = ROUNDS
+def interleaved(
+    run: Callable[[str, str], tuple[dict, float]],
+    scale_to: Callable[[int], None],
+    jobs: Sequence[tuple[str, str]],
+    rounds: int = ROUNDS,
 ) -> dict[int, dict[str, tuple[dict, float]]]:
-    """Each of ``jobs`` (kind, session) run in ``rounds`` rounds on one worker and as many
-    on two, in :func:`round_order`; a job shorter than ``SAMPLE_S`` runs several times a
-    round (as often as its first run fits in ``SAMPLE_S``), so a short stage is sampled
-    as long as a long one. By worker count and kind, the best of its runs."""
+    """Each of ``jobs`` (kind, session) run (``run``: its record and seconds) in ``rounds``
+    rounds on one worker and as many on two (``scale_to``), in :func:`round_order`; a job
+    shorter than ``SAMPLE_S`` runs several times a round (as often as its first run fits in
+    ``SAMPLE_S``), so a short stage is sampled as long as a long one. By worker count and
+    kind, the best of its runs."""
     done: dict[int, dict[str, list[tuple[dict, float]]]] = {1: {}, 2: {}}
     repeats: dict[str, int] = {}
     for count in round_order(rounds):
-        workers.scale_to(count)
+        scale_to(count)
         for kind, sid in jobs:
-            first = _job(url, sid, kind)
+            first = run(kind, sid)
             repeat = repeats.setdefault(kind, max(1, math.ceil(SAMPLE_S / first[1])))
-            runs = [first] + [_job(url, sid, kind) for _ in range(repeat - 1)]
+            runs = [first] + [run(kind, sid) for _ in range(repeat - 1)]
             done[count].setdefault(kind, []).extend(runs)
     return {n: {kind: best_of(runs) for kind, runs in by.items()} for n, by in done.items()}
 
@@ -237,7 +241,11 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
         try:
             sid = _record(port, token, frames)
             tof_sid = record_clouds(port, token, limit)
-            best = _interleaved(url, [("stitch", sid), ("detect", sid), ("map", tof_sid)], workers)
+            best = interleaved(
+                lambda kind, session: _job(url, session, kind),
+                workers.scale_to,
+                [("stitch", sid), ("detect", sid), ("map", tof_sid)],
+            )
             (stitch, stitch_s), (one, one_s), (map1, map1_s) = best[1].values()
             (stitch2, stitch2_s), (two, two_s), (map2, map2_s) = best[2].values()
             yield from map_results(map1, map1_s, map2, map2_s)
