@@ -129,11 +129,15 @@ def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster) -> None:
     stitch = wait_job(cluster.url, stitch_id)
     assert stitch["state"] == "done", stitch
     assert stitch["attempt"] == 1 and stitch["worker"].startswith("steelscan-")
-    assert stitch["result"]["pairs"] > 59 and set(stitch["result"]["seconds"]) == {
+    seconds = stitch["result"]["seconds"]
+    assert stitch["result"]["pairs"] > 59 and set(seconds) == {
         "pairs",
-        "bands",  # spread over the workers on a job queue
+        "registrations",  # spread over the workers on a job queue, as are the bands
+        "bands",
         "render",
     }
+    assert 0 < seconds["registrations"] < seconds["pairs"]
+    assert 0 < seconds["bands"] < seconds["render"]
     detect_id = start_job(cluster, sid, "detect")
     wait_running(cluster, detect_id)
     seen = set()  # the progress the workers report, as the dashboard reads it
