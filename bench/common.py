@@ -53,6 +53,17 @@ def follow_job(
     return None
 
 
+def speedup(
+    name: str, one_s: float, two_s: float, target: float | None = None, **about: Any
+) -> Result:
+    """A ``scale.`` result: one worker's time against two workers' (the ratio as its value),
+    with its ``target`` ratio where it has one and what it measured (``about``)."""
+    result: Result = {"name": f"scale.{name}", "value": round(one_s / two_s, 2), "unit": "x"}
+    if target is not None:
+        result["target"] = target
+    return {**result, **about, "one_worker_s": one_s, "two_workers_s": two_s}
+
+
 def rigid_align_2d(src: NDArray[np.float64], dst: NDArray[np.float64]) -> NDArray[np.float64]:
     """``src`` points moved by the rotation and translation that best fit them to ``dst``."""
     ms, md = src.mean(axis=0), dst.mean(axis=0)

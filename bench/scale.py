@@ -31,11 +31,12 @@ import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import cv2
 import httpx
 
-from bench.common import Result, follow_job, robot_session
+from bench.common import Result, follow_job, robot_session, speedup
 from bench.ingest import ROBOTS, drive_robots
 from bench.scale_live import live_results
 from bench.scale_map import map_results, record_clouds
@@ -49,8 +50,10 @@ LIVE_ROBOTS = 4
 LIVE_FPS = 30.0
 FLOOD_S = 10.0
 PX_PER_M = 1000.0
+TARGET = 1.6  # a spread stage's ratio, two workers against one
 ROUNDS = 3  # of the jobs on one worker and on two, interleaved: each stage's best counts
-SAMPLE_S = 40.0  # a job's runs a round: as many as its first run fits in this
+SAMPLE_S = 40.0  # a job's runs a round: as many as its first run fits in this,
+MAX_REPEATS = 4  # and at most this many (a short ``--limit`` session's jobs are short)
 # real-time priorities of the station's threads and of PostgreSQL, as docker/compose.yaml
 # sets them for a station, its database and workers on one machine (where permitted)
 STATION_REALTIME = 10
@@ -167,18 +170,106 @@ def interleaved(
     """Each of ``jobs`` (kind, session) run (``run``: its record and seconds) in ``rounds``
     rounds on one worker and as many on two (``scale_to``), in :func:`round_order`; a job
     shorter than ``SAMPLE_S`` runs several times a round (as often as its first run fits in
-    ``SAMPLE_S``), so a short stage is sampled as long as a long one. By worker count and
-    kind, the best of its runs."""
+    ``SAMPLE_S``, up to ``MAX_REPEATS``), so a short stage is sampled longer. By worker
+    count and kind, the best of its runs."""
     done: dict[int, dict[str, list[tuple[dict, float]]]] = {1: {}, 2: {}}
     repeats: dict[str, int] = {}
     for count in round_order(rounds):
         scale_to(count)
         for kind, sid in jobs:
             first = run(kind, sid)
-            repeat = repeats.setdefault(kind, max(1, math.ceil(SAMPLE_S / first[1])))
+            fits = math.ceil(SAMPLE_S / first[1])
+            repeat = repeats.setdefault(kind, max(1, min(MAX_REPEATS, fits)))
             runs = [first] + [run(kind, sid) for _ in range(repeat - 1)]
             done[count].setdefault(kind, []).extend(runs)
     return {n: {kind: best_of(runs) for kind, runs in by.items()} for n, by in done.items()}
+
+
+def _stage(
+    name: str,
+    key: str,
+    one: dict,
+    two: dict,
+    stage: str,
+    target: float | None = TARGET,
+    **about: Any,
+) -> Result:
+    """A stage of a job (``key`` of its seconds), one worker against two; a spread stage
+    has the ``target`` ratio."""
+    s1, s2 = one["result"]["seconds"][key], two["result"]["seconds"][key]
+    return speedup(name, s1, s2, target, stage=stage, **about)
+
+
+def _detect_results(one: dict, one_s: float, two: dict, two_s: float, frames: int) -> list[Result]:
+    """The detect job's spread stages and whole job, one worker against two."""
+    return [
+        _stage(
+            "parallel_stage_speedup",
+            "frames",
+            one,
+            two,
+            "detect job, frames (spread over workers)",
+            frames=frames,
+            cores=os.cpu_count(),
+        ),
+        _stage(
+            "mosaic_stage_speedup",
+            "mosaic",
+            one,
+            two,
+            "detect job, the mosaic: its PNG's pieces unpacked and its bands searched (spread "
+            "over workers); components across band seams joined and measured, the mask PNGs "
+            "joined on the job's worker",
+        ),
+        speedup("detect_job_speedup", round(one_s, 1), round(two_s, 1)),
+    ]
+
+
+def _stitch_results(one: dict, one_s: float, two: dict, two_s: float, frames: int) -> list[Result]:
+    """The stitch job's spread stages, the stages around them and the whole job, one
+    worker against two."""
+    return [
+        _stage(
+            "stitch_pairs_speedup",
+            "registrations",
+            one,
+            two,
+            "stitch job, the pair registrations (spread over workers)",
+            pairs=one["result"]["pairs"],
+        ),
+        _stage(
+            "stitch_poses_speedup",
+            "pairs",
+            one,
+            two,
+            "stitch job, the frames' poses: the pair registrations with the frames prepared, "
+            "the lens falloff estimated and the pose graph solved on the job's worker",
+            target=None,
+        ),
+        _stage(
+            "stitch_bands_speedup",
+            "bands",
+            one,
+            two,
+            "stitch job, the mosaic's bands and the PNG's segments (spread)",
+        ),
+        _stage(
+            "stitch_render_speedup",
+            "render",
+            one,
+            two,
+            "stitch job, bands and outputs (the PNG joined, the Deep Zoom pyramid, overview "
+            "and coverage saved: one worker each)",
+            target=None,
+        ),
+        speedup(
+            "stitch_job_speedup",
+            round(one_s, 1),
+            round(two_s, 1),
+            frames=frames,
+            mosaic_px=[one["result"]["width_px"], one["result"]["height_px"]],
+        ),
+    ]
 
 
 def _realtime(pid: int) -> int:
@@ -248,86 +339,9 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
             )
             (stitch, stitch_s), (one, one_s), (map1, map1_s) = best[1].values()
             (stitch2, stitch2_s), (two, two_s), (map2, map2_s) = best[2].values()
-            yield from map_results(map1, map1_s, map2, map2_s)
-            par1, par2 = one["result"]["seconds"]["frames"], two["result"]["seconds"]["frames"]
-            yield {
-                "name": "scale.parallel_stage_speedup",
-                "value": round(par1 / par2, 2),
-                "unit": "x",
-                "target": 1.6,
-                "stage": "detect job, frames (spread over workers)",
-                "frames": frames,
-                "one_worker_s": par1,
-                "two_workers_s": par2,
-                "cores": os.cpu_count(),
-            }
-            mos1, mos2 = one["result"]["seconds"]["mosaic"], two["result"]["seconds"]["mosaic"]
-            yield {
-                "name": "scale.mosaic_stage_speedup",
-                "value": round(mos1 / mos2, 2),
-                "unit": "x",
-                "target": 1.6,
-                "stage": "detect job, the mosaic: its PNG's pieces unpacked and its bands "
-                "searched (spread over workers); components across band seams joined and "
-                "measured, the mask PNGs joined on the job's worker",
-                "one_worker_s": mos1,
-                "two_workers_s": mos2,
-            }
-            yield {
-                "name": "scale.detect_job_speedup",
-                "value": round(one_s / two_s, 2),
-                "unit": "x",
-                "one_worker_s": round(one_s, 1),
-                "two_workers_s": round(two_s, 1),
-            }
-            sec1, sec2 = stitch["result"]["seconds"], stitch2["result"]["seconds"]
-            yield {
-                "name": "scale.stitch_pairs_speedup",
-                "value": round(sec1["registrations"] / sec2["registrations"], 2),
-                "unit": "x",
-                "target": 1.6,
-                "stage": "stitch job, the pair registrations (spread over workers)",
-                "pairs": stitch["result"]["pairs"],
-                "one_worker_s": sec1["registrations"],
-                "two_workers_s": sec2["registrations"],
-            }
-            yield {
-                "name": "scale.stitch_poses_speedup",
-                "value": round(sec1["pairs"] / sec2["pairs"], 2),
-                "unit": "x",
-                "stage": "stitch job, the frames' poses: the pair registrations with the "
-                "frames prepared, the lens falloff estimated and the pose graph solved on "
-                "the job's worker",
-                "one_worker_s": sec1["pairs"],
-                "two_workers_s": sec2["pairs"],
-            }
-            yield {
-                "name": "scale.stitch_bands_speedup",
-                "value": round(sec1["bands"] / sec2["bands"], 2),
-                "unit": "x",
-                "target": 1.6,
-                "stage": "stitch job, the mosaic's bands and the PNG's segments (spread)",
-                "one_worker_s": sec1["bands"],
-                "two_workers_s": sec2["bands"],
-            }
-            yield {
-                "name": "scale.stitch_render_speedup",
-                "value": round(sec1["render"] / sec2["render"], 2),
-                "unit": "x",
-                "stage": "stitch job, bands and outputs (the PNG joined, the Deep Zoom "
-                "pyramid, overview and coverage saved: one worker each)",
-                "one_worker_s": sec1["render"],
-                "two_workers_s": sec2["render"],
-            }
-            yield {
-                "name": "scale.stitch_job_speedup",
-                "value": round(stitch_s / stitch2_s, 2),
-                "unit": "x",
-                "one_worker_s": round(stitch_s, 1),
-                "two_workers_s": round(stitch2_s, 1),
-                "frames": frames,
-                "mosaic_px": [stitch["result"]["width_px"], stitch["result"]["height_px"]],
-            }
+            yield from map_results(map1, map1_s, map2, map2_s, TARGET)
+            yield from _detect_results(one, one_s, two, two_s, frames)
+            yield from _stitch_results(stitch, stitch_s, stitch2, stitch2_s, frames)
             workers.scale_to(2)
             realtime = {"station": _realtime(station.pid), "postgresql": pg.realtime}
             for result in live_results(

@@ -7,7 +7,7 @@ import uuid
 
 import numpy as np
 
-from bench.common import Result, robot_session
+from bench.common import Result, robot_session, speedup
 from processing.poses import se2_of_matrix
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
 
@@ -48,27 +48,22 @@ def record_clouds(port: int, token: str, limit: int | None = None) -> str:
     return str(sid)
 
 
-def map_results(one: dict, one_s: float, two: dict, two_s: float) -> list[Result]:
+def map_results(one: dict, one_s: float, two: dict, two_s: float, target: float) -> list[Result]:
     """The map job's pair stage and whole job, one worker against two."""
-    pairs1, pairs2 = one["result"]["seconds"]["pairs"], two["result"]["seconds"]["pairs"]
     return [
-        {
-            "name": "scale.map_pairs_speedup",
-            "value": round(pairs1 / pairs2, 2),
-            "unit": "x",
-            "target": 1.6,
-            "stage": "map job, each run of clouds registered to the clouds before it (spread "
+        speedup(
+            "map_pairs_speedup",
+            one["result"]["seconds"]["pairs"],
+            two["result"]["seconds"]["pairs"],
+            target,
+            stage="map job, each run of clouds registered to the clouds before it (spread "
             "over workers; loops and the pose graph on the job's worker)",
-            "clouds": one["result"]["clouds"],
-            "one_worker_s": pairs1,
-            "two_workers_s": pairs2,
-        },
-        {
-            "name": "scale.map_job_speedup",
-            "value": round(one_s / two_s, 2),
-            "unit": "x",
-            "one_worker_s": round(one_s, 1),
-            "two_workers_s": round(two_s, 1),
-            "graph_s": two["result"]["seconds"]["graph"],
-        },
+            clouds=one["result"]["clouds"],
+        ),
+        speedup(
+            "map_job_speedup",
+            round(one_s, 1),
+            round(two_s, 1),
+            graph_s=two["result"]["seconds"]["graph"],
+        ),
     ]

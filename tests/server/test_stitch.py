@@ -43,9 +43,11 @@ def test_pairs_and_bands_done_by_another_process_equal_those_of_the_jobs_threads
 
     here, loaded = plan_mosaic(source(), guess, params=params)
     assert loaded.inv_flat is not None
-    spread, _ = plan_mosaic(source(), guess, params=params, spread=spread_pairs(ctx, where))
+    timed: list[float] = []  # seconds of each batch of pairs
+    spread, _ = plan_mosaic(source(), guess, params=params, spread=spread_pairs(ctx, where, timed))
     # consecutive, then other pairs; again with the flat field
     assert len(done_by_helper) == 4 and all(n > 0 for n in done_by_helper)
+    assert len(timed) == 4 and all(s > 0 for s in timed)
     assert spread.pairs == here.pairs > len(sweep) - 1  # lane neighbours too
     np.testing.assert_allclose(spread.poses_px, here.poses_px, atol=1e-9)
     np.testing.assert_allclose(spread.gains, here.gains, atol=1e-9)
