@@ -8,10 +8,11 @@ from fastapi import Path
 from sqlalchemy import Select, func, select
 from sqlalchemy.orm import Session
 
-from server.api.schemas import JobPublic, SessionPublic
+from server.api.schemas import JobPublic, ResultsCover, SessionPublic
 from server.errors import NotFound
+from server.jobs.inputs import is_current, latest_inputs, stored_inputs
 from server.storage.files import SessionFiles
-from server.storage.models import Cloud, Defect, Frame, InspectionSession, Job, TelemetrySample
+from server.storage.models import Cloud, Defect, Frame, InspectionSession, Job
 from server.storage.spans import duration_s
 
 MAX_INT = 2**63 - 1  # SQLite's largest integer: a bigger id cannot exist
@@ -58,9 +59,16 @@ def get_session_or_404(db: Session, session_id: str) -> InspectionSession:
 def session_public(db: Session, s: InspectionSession, *, with_jobs: bool = True) -> SessionPublic:
     """A session with counts of what it stored (and its jobs)."""
     out = SessionPublic.model_validate(s)
-    out.frames = count_rows(db, Frame, s.id)
-    out.clouds = count_rows(db, Cloud, s.id)
-    out.telemetry = count_rows(db, TelemetrySample, s.id)
+    now = stored_inputs(db, s.id)
+    out.frames, out.clouds, out.telemetry = now["frames"], now["clouds"], now["telemetry"]
+    inputs = latest_inputs(db, s.id)
+    if inputs is not None:
+        out.results_cover = ResultsCover(
+            frames=inputs.get("frames", 0),
+            clouds=inputs.get("clouds", 0),
+            telemetry=inputs.get("telemetry", 0),
+            current=is_current(inputs, now),
+        )
     defects = select(func.count()).select_from(Defect).where(Defect.session_id == s.id)
     out.defects = db.scalar(defects.where(Defect.source == "mosaic")) or 0
     out.frame_defects = db.scalar(defects.where(Defect.source == "frame")) or 0

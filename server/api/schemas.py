@@ -59,6 +59,19 @@ class JobCreate(BaseModel):
         return self
 
 
+class ResultsCover(BaseModel):
+    """What a session's newest processing read: the frames, clouds and telemetry stored
+    when it was queued."""
+
+    frames: int
+    clouds: int
+    telemetry: int
+    current: bool = Field(
+        description="whether it covers everything the session holds now (false: data came "
+        "after it, and the session is processed again)"
+    )
+
+
 class SessionPublic(ORM):
     id: str
     structure: str
@@ -80,6 +93,9 @@ class SessionPublic(ORM):
     )
     calibration: dict[str, Any] = Field(default_factory=dict)
     jobs: list[JobPublic] = Field(default_factory=list)
+    results_cover: ResultsCover | None = Field(
+        default=None, description="what its results were made from (None: not processed)"
+    )
 
 
 class SessionUpdate(BaseModel):

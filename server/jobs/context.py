@@ -12,9 +12,11 @@ from typing import Any, Protocol
 
 import cv2
 import numpy as np
+from sqlalchemy import Select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.jobs import leases
+from server.jobs.inputs import rows_of
 from server.jobs.outputs import staging_dir
 from server.storage.files import SessionFiles, write_atomic
 from server.storage.models import InspectionSession
@@ -89,6 +91,11 @@ class JobContext:
             if s is None:
                 raise ValueError(f"session {self.session_id} no longer exists")
             return s
+
+    def rows(self, model: Any) -> Select[Any]:
+        """SELECT of the session's frames, clouds or telemetry (``model``) that this job
+        reads: those stored when it was queued (:mod:`server.jobs.inputs`), in seq order."""
+        return rows_of(model, self.session_id, self.params.get("inputs"))
 
     def results_dir(self) -> Path:
         """Folder of this session's results (earlier jobs' files; read only)."""

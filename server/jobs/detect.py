@@ -121,9 +121,7 @@ def _detect_frames(ctx: JobContext) -> list[Defect]:
     px_per_m = float(calib.get("px_per_m", 0)) or None
     T_rc = np.array(calib.get("T_robot_camera", [0.0, 0.0, 0.0]))
     with ctx.factory() as db:
-        frames = list(
-            db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq))
-        )
+        frames = list(db.scalars(ctx.rows(Frame)))
     mm_per_px = 1000.0 / px_per_m if px_per_m else None
     ctx.progress(0.0, f"{len(frames)} frames")
     found = ctx.map(
@@ -253,9 +251,7 @@ def _frame_surface(ctx: JobContext, n: int = 9) -> SurfaceStats | None:
     ``n`` frames spread through the session (None without readable frames), so that every
     tile and band of the mosaic is thresholded alike."""
     with ctx.factory() as db:
-        frames = list(
-            db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq))
-        )
+        frames = list(db.scalars(ctx.rows(Frame)))
     found = []
     for i in np.unique(np.linspace(0, len(frames) - 1, n).astype(int)) if frames else []:
         try:

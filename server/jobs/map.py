@@ -11,7 +11,6 @@ from typing import Any, overload
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from sqlalchemy import select
 
 from processing.mapping import (
     CloudMeasurement,
@@ -81,9 +80,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     calib = ctx.session().calibration.get("tof", {})
     T_rt = np.array(calib.get("T_robot_tof", np.eye(4).tolist()), dtype=np.float64)
     with ctx.factory() as db:
-        rows = list(
-            db.scalars(select(Cloud).where(Cloud.session_id == ctx.session_id).order_by(Cloud.seq))
-        )
+        rows = list(db.scalars(ctx.rows(Cloud)))
     if not rows:
         raise ValueError("the session has no ToF clouds")
     # the clouds are checked here and read again where they are registered: a long session's
@@ -190,11 +187,7 @@ def _visual_robot_poses(
     placed = {f["frame"]: f for f in world.get("frames", []) if f.get("confident")}
     with ctx.factory() as db:
         frames = [
-            f
-            for f in db.scalars(
-                select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq)
-            )
-            if f.seq in placed and f.pose_x is not None
+            f for f in db.scalars(ctx.rows(Frame)) if f.seq in placed and f.pose_x is not None
         ]
     if len(frames) < 2:
         return None

@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -17,11 +18,13 @@ from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.jobs import leases
+from server.jobs.inputs import is_current, latest_inputs, stored_inputs
 from server.jobs.orphans import init_worker
 from server.jobs.worker import JOB_KINDS, PIPELINE, run_job
 from server.storage.models import Job, JobState, utcnow
 
 Send = Callable[[int], None]  # hands a job id to a job queue
+MAX_ATTEMPTS = 3  # attempts a job gets when the station stops under it
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +49,11 @@ class JobRunner:
         *,
         send: Send | None = None,
         lease_s: float = leases.LEASE_S,
+        settle_s: float = 2.0,
     ) -> None:
-        """``defaults``: parameters per job kind, under those a caller gives."""
+        """``defaults``: parameters per job kind, under those a caller gives; ``settle_s``:
+        how long a session that got data after its end stays quiet before it is processed
+        again."""
         self.factory = factory
         self.send, self.lease_s = send, lease_s
         self.defaults = defaults or {}
@@ -59,11 +65,16 @@ class JobRunner:
         self._running: dict[int, Future[None]] = {}
         self._pool: ProcessPoolExecutor | None = None
         self._thread: threading.Thread | None = None
+        self.settle_s = settle_s
+        self._stale: dict[str, float] = {}  # session -> when data was last stored after its end
+        self._stale_lock = threading.Lock()
 
     def start(self) -> None:
-        """Fail jobs a crash of the station interrupted (its own workers died with it; a job
-        queue's workers carry on, and queued jobs are handed to the queue again, in case the
-        crash came between marking and sending), then start dispatching."""
+        """Queue again the jobs a crash of the station interrupted (its own workers died with
+        it), up to :data:`MAX_ATTEMPTS` attempts each, then fail them (a job that brings the
+        station down every time); a job queue's workers carry on, and queued jobs are handed
+        to the queue again, in case the crash came between marking and sending. Then start
+        dispatching."""
         if self.send is not None:
             with self.factory() as db:
                 db.execute(
@@ -73,8 +84,15 @@ class JobRunner:
         else:
             with self.factory() as db:
                 for job in db.scalars(select(Job).where(Job.state == JobState.running)):
+                    if job.attempt < MAX_ATTEMPTS:  # run again: what waits on it waits on
+                        job.state, job.worker, job.heartbeat_at = JobState.queued, None, None
+                        job.message = "interrupted: the ground station stopped; queued again"
+                        continue
                     job.state = JobState.failed
-                    job.error = "interrupted: the ground station stopped while the job ran"
+                    job.error = (
+                        f"interrupted {job.attempt} times: the ground station stopped while "
+                        "the job ran"
+                    )
                     job.finished_at = utcnow()
                 db.commit()
             self._pool = self._new_pool()
@@ -110,6 +128,7 @@ class JobRunner:
                 kind=kind,
                 params={
                     **self.defaults.get(kind, {}),
+                    "inputs": stored_inputs(db, session_id),
                     **(params or {}),
                     "after": after or [],
                     "uses": uses or [],
@@ -128,13 +147,48 @@ class JobRunner:
         return done
 
     def enqueue_pipeline(self, session_id: str) -> list[int]:
-        """Queue every processing stage of a session in dependency order."""
+        """Queue every processing stage of a session in dependency order, every stage on
+        the data stored now (:mod:`server.jobs.inputs`)."""
+        with self.factory() as db:
+            inputs = stored_inputs(db, session_id)
         ids: dict[str, int] = {}
         for kind, deps, uses in PIPELINE:
             ids[kind] = self.enqueue(
-                session_id, kind, after=[ids[d] for d in deps], uses=[ids[u] for u in uses]
+                session_id,
+                kind,
+                after=[ids[d] for d in deps],
+                uses=[ids[u] for u in uses],
+                params={"inputs": inputs},
             )
         return list(ids.values())
+
+    def refresh(self, session_id: str) -> list[int]:
+        """Queue the pipeline again if the session holds data its newest processing does
+        not cover (stored after its inputs were fixed); the new jobs' ids, or none."""
+        with self.factory() as db:
+            if is_current(latest_inputs(db, session_id), stored_inputs(db, session_id)):
+                return []
+        log.info("session %s: data stored after its processing; processing it again", session_id)
+        return self.enqueue_pipeline(session_id)
+
+    def mark_stale(self, session_id: str) -> None:
+        """Data was stored into an ended session: :meth:`refresh` it once no more has come
+        for ``settle_s`` (a robot's spool drains in a burst: one re-run for all of it)."""
+        with self._stale_lock:
+            self._stale[session_id] = time.monotonic()
+        self._wake.set()
+
+    def _refresh_settled(self) -> None:
+        now = time.monotonic()
+        with self._stale_lock:
+            due = [sid for sid, t in self._stale.items() if now - t >= self.settle_s]
+            for sid in due:
+                del self._stale[sid]
+        for sid in due:
+            try:
+                self.refresh(sid)
+            except Exception:  # the session was deleted, the database is away: logged
+                log.exception("session %s: could not queue its processing again", sid)
 
     def _new_pool(self) -> ProcessPoolExecutor:
         ctx = multiprocessing.get_context("spawn")
@@ -147,6 +201,7 @@ class JobRunner:
             self._wake.wait(timeout=1.0)
             self._wake.clear()
             try:
+                self._refresh_settled()
                 self._dispatch()
             except Exception:  # the dispatcher must outlive any one bad row
                 log.exception("job dispatcher error")

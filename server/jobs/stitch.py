@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from sqlalchemy import select
 
 from processing.alignment import PairRequest, PairSpread, measure_pair
 from processing.blending import BandPainter, band_rows
@@ -212,9 +211,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     px_per_m = float(calib.get("px_per_m", 0)) or None
     T_rc = calib.get("T_robot_camera", [0.0, 0.0, 0.0])
     with ctx.factory() as db:
-        frames = list(
-            db.scalars(select(Frame).where(Frame.session_id == ctx.session_id).order_by(Frame.seq))
-        )
+        frames = list(db.scalars(ctx.rows(Frame)))
     if not frames:
         raise ValueError("the session has no camera frames")
     # frames of another size than most, whose file is gone or whose image data is corrupt

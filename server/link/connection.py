@@ -229,8 +229,11 @@ class RobotConnection:
             and result.status == "stored"
         ):
             live_detect.offer(sid, message.seq, message.payload, message.meta)
-        if result.session_ended and self.state.settings.auto_process:
-            await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, sid)
+        if self.state.settings.auto_process:
+            if result.session_ended:
+                await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, sid)
+            elif result.late:  # its results miss this: processed again once the rest is in
+                self.state.jobs.mark_stale(sid)
 
     async def owns(self, sid: str) -> bool:
         """Whether this robot recorded session ``sid`` (looked up at most once a second for

@@ -35,7 +35,8 @@ class StoreResult:
     """What storing one message did."""
 
     status: StoreStatus
-    session_ended: bool = False
+    session_ended: bool = False  # this message ended its session: process it
+    late: bool = False  # stored into a session already ended: its results miss it
 
 
 @dataclass
@@ -43,7 +44,8 @@ class _Owner:
     """What ingest needs to know of a stored session (cached: only ingest changes it)."""
 
     robot_id: int | None  # None: imported, not recorded by a robot
-    end_seq: int | None  # the SESSION_END's seq once ended
+    end_seq: int | None  # the SESSION_END's seq once its robot ended it
+    ended: bool = False  # ended, by its robot or by the station
 
 
 class Ingest:
@@ -223,13 +225,12 @@ class Ingest:
         owner = batch.new_owners.get(sid) or self._owners.get(sid)
         if owner is None:
             row = conn.execute(
-                select(SESSIONS.c.robot_id, SESSIONS.c.status).where(SESSIONS.c.id == sid)
+                select(SESSIONS.c.robot_id, SESSIONS.c.status, SESSIONS.c.end_seq).where(
+                    SESSIONS.c.id == sid
+                )
             ).first()
             if row is not None:
-                end_seq = None
-                if row[1] == SessionStatus.ended:  # None: ended by the station, not the robot
-                    end_seq = conn.execute(END_SEQ, {"sid": sid}).scalar()
-                owner = _Owner(row[0], end_seq)
+                owner = _Owner(row[0], row[2], row[1] == SessionStatus.ended)
                 self._owners[sid] = owner
         return owner
 
@@ -247,18 +248,21 @@ class Ingest:
             raise IngestError(f"session {sid} is unknown: send SESSION_START first", retry=True)
         else:
             self._check_owner(sid, owner, robot_id)
-            self._check_not_after_end(sid, owner, message)
+            if self._check_not_after_end(sid, owner, message) == "duplicate":
+                return StoreResult("duplicate")
         if (sid, message.seq) in batch.seen:
             return StoreResult("duplicate")
         if self.reserve is not None:
             self.reserve.claim(len(message.payload) + ROW_BYTES)
-        ended = self._add_rows(
-            conn, message, sid, robot_id, batch
-        )  # the file first: a failed write adds no row
+        # the file first: a failed write adds no row
+        self._add_rows(conn, message, sid, robot_id, batch)
         batch.seen.add((sid, message.seq))
-        if ended and owner is not None:
-            batch.new_owners[sid] = _Owner(owner.robot_id, message.seq)
-        return StoreResult("stored", session_ended=ended)
+        was_ended = owner is not None and owner.ended
+        if message.type is MessageType.SESSION_END and owner is not None:
+            batch.new_owners[sid] = _Owner(owner.robot_id, message.seq, ended=True)
+            # an END after the station ended the session: processed already, its data too
+            return StoreResult("stored", session_ended=not was_ended, late=was_ended)
+        return StoreResult("stored", late=was_ended)
 
     @staticmethod
     def _check_owner(sid: str, owner: _Owner, robot_id: int | None) -> None:
@@ -268,19 +272,30 @@ class Ingest:
             raise IngestError(f"session {sid} belongs to another robot")
 
     @staticmethod
-    def _check_not_after_end(sid: str, owner: _Owner, message: Message) -> None:
+    def _check_not_after_end(sid: str, owner: _Owner, message: Message) -> StoreStatus | None:
         """Messages sent before the SESSION_END (resends after a storage fault) are taken;
-        nothing sent after it is."""
+        nothing sent after it is, and a session ends once: its END again is a duplicate,
+        another END is refused (an ended session never reopens)."""
         end = owner.end_seq
-        if end is not None and message.seq > end and message.type is not MessageType.SESSION_END:
+        if end is None:
+            return None
+        if message.type is MessageType.SESSION_END:
+            if message.seq == end:
+                return "duplicate"
+            raise IngestError(
+                f"session {sid} ended at seq {end}: a second SESSION_END (seq {message.seq}) "
+                "is refused"
+            )
+        if message.seq > end:
             raise IngestError(
                 f"session {sid} ended at seq {end}: {message.type.name} seq {message.seq} "
                 "comes after its end"
             )
+        return None
 
     def _add_rows(
         self, conn: Connection, message: Message, sid: str, robot_id: int | None, batch: _Batch
-    ) -> bool:
+    ) -> None:
         meta = message.meta
         pose = meta.get("pose") or {}
         mtype = message.type
@@ -292,6 +307,22 @@ class Ingest:
             rel, offset = self.files.append(
                 sid, "frames" if mtype is MessageType.FRAME else "clouds", message.payload
             )
+        if mtype is MessageType.SESSION_END:  # before its row: a refused END adds none
+            # once: the row ends only where no END is recorded (and the database's trigger
+            # refuses to reopen an ended session or move its end)
+            ended = conn.execute(
+                SESSIONS.update()
+                .where(SESSIONS.c.id == sid, SESSIONS.c.end_seq.is_(None))
+                .values(
+                    status=SessionStatus.ended,
+                    end_seq=message.seq,
+                    ended_at=func.coalesce(SESSIONS.c.ended_at, utcnow()),
+                    end_reason=meta.get("reason", "completed"),
+                )
+            )
+            if ended.rowcount != 1:
+                raise IngestError(f"session {sid} has ended already: SESSION_END refused")
+            self.files.close_session(sid)
         if mtype is MessageType.SESSION_START:  # at once: the batch's other rows refer to it
             conn.execute(
                 SESSIONS.insert().values(
@@ -348,19 +379,6 @@ class Ingest:
                     "data": meta,
                 }
             )
-        elif mtype is MessageType.SESSION_END:
-            conn.execute(
-                SESSIONS.update()
-                .where(SESSIONS.c.id == sid)
-                .values(
-                    status=SessionStatus.ended,
-                    ended_at=utcnow(),
-                    end_reason=meta.get("reason", "completed"),
-                )
-            )
-            self.files.close_session(sid)
-            return True
-        return False
 
 
 SESSIONS = InspectionSession.__table__
@@ -368,9 +386,6 @@ RECEIVED = ReceivedMessage.__table__
 FRAMES = Frame.__table__
 CLOUDS = Cloud.__table__
 TELEMETRY = TelemetrySample.__table__
-END_SEQ = select(RECEIVED.c.seq).where(
-    RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.type == MessageType.SESSION_END.name
-)
 STORED = select(RECEIVED.c.seq).where(
     RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.seq.in_(bindparam("seqs", expanding=True))
 )

@@ -89,6 +89,9 @@ class InspectionSession(Base):
     started_at: Mapped[datetime] = mapped_column(default=utcnow)
     ended_at: Mapped[datetime | None]
     end_reason: Mapped[str | None] = mapped_column(String(200))
+    # the seq of the robot's SESSION_END (None: live, or ended by the station); once ended a
+    # session stays ended and its end never moves (a trigger of migration 0008)
+    end_seq: Mapped[int | None] = mapped_column(BigInteger)
     calibration: Mapped[dict[str, Any]] = mapped_column(default=dict)
     robot: Mapped[Robot | None] = relationship()
 

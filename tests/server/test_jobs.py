@@ -184,7 +184,7 @@ def test_map_job_on_tof_clouds_alone_beats_the_odometry(live_server: LiveServer)
     assert ate < 0.75 * absolute_trajectory_error(sweep.odometry[kept], sweep.truth[kept])
 
 
-def test_a_job_the_station_died_in_is_marked_failed_on_restart(settings) -> None:  # type: ignore[no-untyped-def]
+def test_a_job_the_station_died_in_runs_again_on_restart_and_fails_after_three(settings) -> None:  # type: ignore[no-untyped-def]
     from server.loopback import BackgroundServer, free_port
     from server.storage.db import make_engine, make_sessionmaker
     from server.storage.models import InspectionSession, Job, JobState
@@ -196,16 +196,19 @@ def test_a_job_the_station_died_in_is_marked_failed_on_restart(settings) -> None
         db.add(InspectionSession(id=str(uuid.uuid4()), structure="killed mid-job"))
         db.flush()
         sid = db.scalars(select(InspectionSession.id)).one()
-        running = Job(session_id=sid, kind="stitch", state=JobState.running)
-        db.add(running)
+        running = Job(session_id=sid, kind="stitch", state=JobState.running, attempt=1)
+        poison = Job(session_id=sid, kind="map", state=JobState.running, attempt=3)
+        db.add_all([running, poison])
         db.commit()
-        job_id = running.id
+        job_id, poison_id = running.id, poison.id
     engine.dispose()
     server = BackgroundServer(settings, free_port())
     server.start()
     try:
-        job = httpx.get(f"{server.url}/api/jobs/{job_id}").raise_for_status().json()
-        assert job["state"] == "failed" and "interrupted" in job["error"]
+        job = wait_job(server.url, job_id)  # ran again: an empty session has no frames
+        assert job["attempt"] == 2 and "no camera frames" in job["error"], job
+        job = httpx.get(f"{server.url}/api/jobs/{poison_id}").raise_for_status().json()
+        assert job["state"] == "failed" and "interrupted 3 times" in job["error"]
     finally:
         server.stop()
 

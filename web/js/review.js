@@ -267,6 +267,16 @@ function view3dButton(s, root) {
   return button;
 }
 
+// which data the results were made from; a warning when data came after them
+function resultsCover(s) {
+  const c = s.results_cover;
+  if (!c) return el("p", { id: "results-cover", class: "muted" }, "Not processed yet.");
+  const of = (n, total, what) => (n === total ? `${n} ${what}` : `${n} of ${total} ${what}`);
+  const text = `Results made from ${of(c.frames, s.frames, "frames")}, ${of(c.clouds, s.clouds, "clouds")}, ${of(c.telemetry, s.telemetry, "telemetry samples")}`;
+  return el("p", { id: "results-cover", class: c.current ? "muted" : "warning", dataset: { current: String(c.current) } },
+    c.current ? `${text}: everything the session holds.` : `${text}: data stored after them is being processed.`);
+}
+
 export async function showSession(id, defectNumber = null) {
   const root = document.getElementById("session-detail");
   root.replaceChildren(el("p", { class: "muted" }, "loading…"));
@@ -280,7 +290,7 @@ export async function showSession(id, defectNumber = null) {
     el("h3", {}, `${s.structure} — ${s.id}`),
     el("p", { class: "muted" }, `${new Date(s.started_at).toLocaleString()} · ${duration(s.duration_s)} · operator ${s.operator || "–"} · robot ${s.robot_name || "–"} · ${s.status}`
       + ` · ${s.frames} frames, ${s.clouds} clouds · ${jobs}`),
-    detailsForm(s), exportsBar(s), jobsBar(s, () => showSession(s.id)), coverageNote(s),
+    resultsCover(s), detailsForm(s), exportsBar(s), jobsBar(s, () => showSession(s.id)), coverageNote(s),
     el("div", { class: "review" },
       el("div", {}, toolbar(), el("div", { id: "mosaic-viewer", class: "mosaic-viewer" })),
       el("aside", { id: "defect-detail", class: "defect-detail" }, el("p", { class: "muted" }, "Select a defect (click it, or j / k)."))),

@@ -1,0 +1,97 @@
+"""A session's lifecycle: it ends once, nothing reopens it, and its results follow the data
+it holds (data stored after its end is processed again), on the real server, SQLite and
+PostgreSQL."""
+
+import time
+import uuid
+
+import httpx
+import pytest
+from sqlalchemy import text
+from sqlalchemy.exc import DBAPIError
+
+from robot_link.protocol import MessageType, decode_message
+from server.storage.db import make_engine
+from tests.conftest import LiveServer
+from tests.server.test_ingest import frame, msg, robot_ws, session_json, start
+
+
+def _send(ws, data: bytes):  # type: ignore[no-untyped-def]
+    ws.send(data)
+    return decode_message(ws.recv(timeout=10))
+
+
+def _end(sid: uuid.UUID, seq: int) -> bytes:
+    return msg(sid, seq, MessageType.SESSION_END, {"reason": "done"})
+
+
+def _stitch_jobs(server: LiveServer, sid: uuid.UUID) -> list[dict]:
+    return [j for j in session_json(server, sid)["jobs"] if j["kind"] == "stitch"]
+
+
+def test_data_stored_after_the_end_is_processed_again(live_server: LiveServer) -> None:
+    """START, FRAME 2, END at 20, then FRAMEs 3-11 (resends from before the end): all
+    stored, and the session's newest processing covers all ten frames."""
+    sid = uuid.uuid4()
+    with robot_ws(live_server) as ws:
+        assert _send(ws, start(sid)).meta["status"] == "stored"
+        assert _send(ws, frame(sid, 2)).meta["status"] == "stored"
+        assert _send(ws, _end(sid, 20)).meta["status"] == "stored"
+        # the first processing fixed its inputs at the END: one frame
+        deadline = time.monotonic() + 10
+        while not _stitch_jobs(live_server, sid):
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        for seq in range(3, 12):
+            assert _send(ws, frame(sid, seq)).meta["status"] == "stored"
+    first = session_json(live_server, sid)
+    assert first["frames"] == 10
+    assert first["results_cover"]["frames"] == 1 and not first["results_cover"]["current"]
+    deadline = time.monotonic() + 30
+    while True:
+        s = session_json(live_server, sid)
+        cover = s["results_cover"]
+        if cover["current"]:
+            break
+        assert time.monotonic() < deadline, s
+        time.sleep(0.2)
+    assert cover["frames"] == 10 and cover["clouds"] == 0
+    stitches = _stitch_jobs(live_server, sid)
+    assert len(stitches) == 2, stitches  # the nine late frames: one re-run, not nine
+
+
+def test_a_session_ends_once_and_a_second_end_changes_nothing(live_server: LiveServer) -> None:
+    sid = uuid.uuid4()
+    with robot_ws(live_server) as ws:
+        _send(ws, start(sid))
+        _send(ws, frame(sid, 2))
+        assert _send(ws, _end(sid, 3)).meta["status"] == "stored"
+        assert _send(ws, _end(sid, 3)).meta["status"] == "duplicate"  # its resend
+        for seq in range(100, 130):  # another END: refused for good, never reopens it
+            reply = _send(ws, _end(sid, seq))
+            assert reply.type is MessageType.ERROR and not reply.meta["retry"]
+            assert "second SESSION_END" in reply.meta["error"]
+        reply = _send(ws, frame(sid, 99))
+        assert reply.type is MessageType.ERROR and "after its end" in reply.meta["error"]
+    time.sleep(1.0)
+    s = session_json(live_server, sid)
+    assert (s["status"], s["frames"]) == ("ended", 1)
+    assert len(s["jobs"]) == 4  # one pipeline
+
+
+def test_the_database_refuses_to_reopen_an_ended_session(live_server: LiveServer) -> None:
+    sid = uuid.uuid4()
+    with robot_ws(live_server) as ws:
+        _send(ws, start(sid))
+        _send(ws, _end(sid, 2))
+    engine = make_engine(live_server.settings.resolved_database_url())
+    try:
+        for change in ("status = 'live'", "end_seq = 50"):
+            with pytest.raises(DBAPIError, match="cannot reopen"), engine.begin() as conn:
+                conn.execute(
+                    text(f"UPDATE inspection_sessions SET {change} WHERE id = :id"),
+                    {"id": str(sid)},
+                )
+    finally:
+        engine.dispose()
+    assert httpx.get(f"{live_server.url}/api/sessions/{sid}").json()["status"] == "ended"
