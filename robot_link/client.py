@@ -16,6 +16,8 @@ import websockets
 from websockets.asyncio.client import ClientConnection, connect
 
 from robot_link.protocol import (
+    MAX_BYTES_HEADER,
+    MAX_MESSAGE_BYTES,
     STOP_COMMANDS,
     Message,
     MessageType,
@@ -120,6 +122,8 @@ class RobotLink:
         self._reserved = 0
         self._warned_full = False
         self._retry_streak = 0  # "retry later" answers since the last ACK
+        # the largest message the station takes: its handshake says (until then, the protocol's)
+        self.max_message_bytes = MAX_MESSAGE_BYTES
         if spool is not None:
             resumed = spool.load_session()
             if resumed is not None:
@@ -168,7 +172,8 @@ class RobotLink:
         self._raise_if_failed()
         stamp = time.time() if timestamp is None else timestamp
         message = Message(mtype, self.session_id, self.next_seq(), stamp, meta or {}, payload)
-        data = encode_message(message)
+        # over the station's limit (ProtocolError): refused here, never queued
+        data = encode_message(message, max_bytes=self.max_message_bytes)
         spool = self.spool
         async with self._space:
             if spool is None:
@@ -268,6 +273,7 @@ class RobotLink:
                 ) as ws:
                     self._ws = ws
                     backoff = 0.1
+                    self._learn_limit(ws)
                     await self._resend_all(ws)
                     self._connected.set()
                     self._link_changed(True)
@@ -294,6 +300,42 @@ class RobotLink:
             self.stats.reconnects += 1
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, self.max_backoff_s)
+
+    def _learn_limit(self, ws: ClientConnection) -> None:
+        """Take the station's message size limit from its handshake's answer."""
+        value = ws.response.headers.get(MAX_BYTES_HEADER) if ws.response is not None else None
+        try:
+            limit = int(value) if value is not None else MAX_MESSAGE_BYTES
+        except ValueError:
+            log.warning("link: the station's %s is not a number: %r", MAX_BYTES_HEADER, value)
+            return
+        if limit != self.max_message_bytes:
+            log.info("link: the ground station takes messages of up to %d bytes", limit)
+        self.max_message_bytes = limit
+
+    async def _over_limit(self, seq: int, data: bytes) -> bool:
+        """Drop a queued message the station would refuse for its size (its limit came down
+        since it was queued): resending it could never succeed."""
+        if len(data) <= self.max_message_bytes:
+            return False
+        self.stats.errors += 1
+        log.error(
+            "link: seq %d is %d bytes, over the ground station's limit of %d: dropped",
+            seq,
+            len(data),
+            self.max_message_bytes,
+        )
+        await self._drop(seq)
+        return True
+
+    async def _drop(self, seq: int) -> None:
+        """Forget an unacknowledged message for good (refused: it will never be stored)."""
+        self._unacked.pop(seq, None)
+        if self.spool is not None:
+            self.spool.remove(seq)
+        self._transmitted.discard(seq)
+        async with self._space:
+            self._space.notify_all()
 
     def _link_changed(self, up: bool) -> None:
         if self.on_link_change is not None:
@@ -327,7 +369,7 @@ class RobotLink:
                 return
             for seq in todo:
                 data = await self._bytes_of(seq)
-                if data is None:
+                if data is None or await self._over_limit(seq, data):
                     continue
                 await ws.send(data)
                 done.add(seq)
@@ -339,7 +381,9 @@ class RobotLink:
     async def _retry(self, seq: int) -> None:
         """Send one unacknowledged message again (after a retryable ERROR)."""
         data = await self._bytes_of(seq)
-        if data is not None and await self._transmit(data):
+        if data is None or await self._over_limit(seq, data):
+            return
+        if await self._transmit(data):
             self.stats.resent += 1
 
     async def _bytes_of(self, seq: int) -> bytes | None:
@@ -401,12 +445,7 @@ class RobotLink:
                 "link: ground station rejected seq %d: %s", message.seq, message.meta.get("error")
             )
             # A rejected message will never be accepted: drop it so flush() can finish.
-            self._unacked.pop(message.seq, None)
-            if self.spool is not None:
-                self.spool.remove(message.seq)
-            self._transmitted.discard(message.seq)
-            async with self._space:
-                self._space.notify_all()
+            await self._drop(message.seq)
         elif message.type is MessageType.COMMAND and self.on_command is not None:
             cmd = message.meta.get("cmd")
             if message.seq <= self._last_command_seq and cmd not in STOP_COMMANDS:

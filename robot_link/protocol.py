@@ -33,6 +33,8 @@ MAGIC = b"STLS"
 HEADER = struct.Struct("<4sBBH16sQdI")
 HEADER_BYTES = HEADER.size
 MAX_MESSAGE_BYTES = 8 * 1024 * 1024
+# the station's answer to the websocket handshake carries its own limit, which robots obey
+MAX_BYTES_HEADER = "X-Steelscan-Max-Message-Bytes"
 MAX_META_BYTES = 64 * 1024
 MAX_FRAME_PIXELS = 40_000_000  # a camera frame or video image (8000×5000)
 MAX_CLOUD_PIXELS = 4_000_000  # a ToF depth image or organised cloud
@@ -189,6 +191,10 @@ class Message:
 def encode_message(message: Message, *, max_bytes: int = MAX_MESSAGE_BYTES) -> bytes:
     """Serialise a message to its binary form (validating its meta, seq and size first: a
     message the station would refuse is never sent)."""
+    try:  # NaN or infinity: the station refuses them
+        json.dumps(message.meta, allow_nan=False, default=str)
+    except ValueError:
+        raise ProtocolError(NON_FINITE.format("NaN or infinity")) from None
     meta = _validate_meta(message.type, message.meta)
     meta_bytes = json.dumps(meta, separators=(",", ":")).encode()
     if len(meta_bytes) > MAX_META_BYTES:
@@ -241,7 +247,15 @@ def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Messag
         raise ProtocolError(f"timestamp {timestamp} is not a valid time")
     raw_meta = data[HEADER_BYTES : HEADER_BYTES + meta_len]
     try:
-        meta_obj = json.loads(raw_meta.decode("utf-8")) if meta_len else {}
+        meta_obj = (
+            json.loads(
+                raw_meta.decode("utf-8"), parse_constant=_no_constant, parse_float=_finite_float
+            )
+            if meta_len
+            else {}
+        )
+    except NonFiniteError as exc:
+        raise ProtocolError(str(exc)) from None
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ProtocolError(f"meta is not valid UTF-8 JSON: {exc}") from None
     except RecursionError:
@@ -261,6 +275,27 @@ def decode_message(data: bytes, *, max_bytes: int = MAX_MESSAGE_BYTES) -> Messag
     payload = data[HEADER_BYTES + meta_len :]
     _check_payload(mtype, meta, payload)
     return Message(mtype, uuid.UUID(bytes=sid), seq, timestamp, meta, payload)
+
+
+class NonFiniteError(ValueError):
+    """A NaN or infinite number in a message's meta."""
+
+
+NON_FINITE = (
+    "meta holds a non-finite number ({}): JSON has none; send null (or leave the field out) "
+    "for a reading the robot does not have"
+)
+
+
+def _no_constant(name: str) -> float:
+    raise NonFiniteError(NON_FINITE.format(name))
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):  # 1e999
+        raise NonFiniteError(NON_FINITE.format(text))
+    return value
 
 
 def _holds_nul(value: Any) -> bool:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import os
 import secrets
 import threading
@@ -11,20 +12,26 @@ import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import Any, TypeVar
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
 from sqlalchemy import delete, func, select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.errors import Conflict
 from server.link.limits import TokenBucket
 from server.link.robots import hash_token
 from server.storage.models import AuthToken, Role, User, utcnow
+from server.storage.space import is_disk_full
 
+log = logging.getLogger(__name__)
+# tokens handed out while the storage was full (the database could not take their rows):
+# valid until they expire or the station stops
+_unstored: dict[str, tuple[int, datetime]] = {}
+_unstored_lock = threading.Lock()
 ROLE_RANK = {Role.viewer: 0, Role.operator: 1, Role.admin: 2}
 TOKEN_LIFETIME = timedelta(hours=12)
 _hasher = PasswordHasher()
@@ -72,13 +79,21 @@ def issue_token(
             return None
         token = secrets.token_urlsafe(32)
         now = utcnow()
-        db.execute(delete(AuthToken).where(AuthToken.expires_at < now))
-        db.add(
-            AuthToken(
-                token_hash=hash_token(token), user_id=user.id, expires_at=now + TOKEN_LIFETIME
+        try:
+            db.execute(delete(AuthToken).where(AuthToken.expires_at < now))
+            db.add(
+                AuthToken(
+                    token_hash=hash_token(token), user_id=user.id, expires_at=now + TOKEN_LIFETIME
+                )
             )
-        )
-        db.commit()
+            db.commit()
+        except (OperationalError, OSError) as exc:
+            if not is_disk_full(exc):
+                raise
+            db.rollback()  # signed in all the same, to see the storage warning and act on it
+            log.warning("storage full: %s's sign-in kept in memory until the station stops", name)
+            with _unstored_lock:
+                _unstored[hash_token(token)] = (user.id, now + TOKEN_LIFETIME)
         return token, user
 
 
@@ -86,24 +101,32 @@ def user_for_token(db: Session, token: str | None) -> User | None:
     """The account a bearer token belongs to, if the token is valid and unexpired."""
     if not token:
         return None
-    row = db.get(AuthToken, hash_token(token))
+    digest = hash_token(token)
+    row = db.get(AuthToken, digest)
     if row is None:
-        return None
-    expires = (
-        row.expires_at if row.expires_at.tzinfo else row.expires_at.replace(tzinfo=utcnow().tzinfo)
-    )
+        with _unstored_lock:
+            kept = _unstored.get(digest)
+        if kept is None:
+            return None
+        user_id, expires = kept
+    else:
+        user_id, expires = row.user_id, row.expires_at
+    if expires.tzinfo is None:
+        expires = expires.replace(tzinfo=utcnow().tzinfo)
     if expires < utcnow():
         return None
-    return db.get(User, row.user_id)
+    return db.get(User, user_id)
 
 
 def revoke_token(db: Session, token: str | None) -> bool:
     """Make a bearer token invalid (signing out); whether it was valid."""
     if not token:
         return False
+    with _unstored_lock:
+        kept = _unstored.pop(hash_token(token), None)
     gone = db.execute(delete(AuthToken).where(AuthToken.token_hash == hash_token(token)))
     db.commit()
-    return bool(gone.rowcount)
+    return bool(gone.rowcount) or kept is not None
 
 
 def has_role(user: User, role: Role) -> bool:
@@ -188,20 +211,46 @@ class PasswordBudget:
     """Password hashing (argon2: ~0.1 s of several cores each) for the whole station: at
     most ``rate`` checks a second (``burst`` at once), one at a time on one thread of low
     scheduling priority (its argon2 lanes inherit it), so logins can never take the CPU
-    the robots' ingest needs."""
+    the robots' ingest needs.
 
-    def __init__(self, rate: float = 1.0, burst: float = 8.0) -> None:
+    Each client address has a share of its own first (``client_rate``, ``client_burst``):
+    one address flooding the sign-in spends its share, never the station's budget, so an
+    operator elsewhere still signs in. At most ``max_clients`` addresses are remembered."""
+
+    def __init__(
+        self,
+        rate: float = 1.0,
+        burst: float = 8.0,
+        client_rate: float = 0.25,
+        client_burst: float = 4.0,
+        max_clients: int = 10_000,
+    ) -> None:
         self._bucket = TokenBucket(rate, burst)
+        self.client_rate, self.client_burst, self.max_clients = (
+            client_rate,
+            client_burst,
+            max_clients,
+        )
+        self._clients: dict[str, TokenBucket] = {}
         self._lock = threading.Lock()
         self.executor = ThreadPoolExecutor(
             1, thread_name_prefix="passwords", initializer=_lower_priority
         )
 
+    def take_for(self, client: str) -> bool:
+        """Whether a check for ``client`` (its address) may start now: within its own share,
+        then within the station's budget."""
+        with self._lock:
+            bucket = self._clients.pop(client, None)  # re-inserted: most recent last
+            if bucket is None:
+                bucket = TokenBucket(self.client_rate, self.client_burst)
+                while len(self._clients) >= self.max_clients:  # forget the longest idle
+                    del self._clients[next(iter(self._clients))]
+            self._clients[client] = bucket
+            if not bucket.take():
+                return False
+            return self._bucket.take()
+
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """``fn(*args)`` on the password thread."""
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
-
-    def take(self) -> bool:
-        """Whether a check may start now."""
-        with self._lock:
-            return self._bucket.take()

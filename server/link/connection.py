@@ -14,6 +14,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from robot_link.protocol import (
     HEADER,
+    MAX_BYTES_HEADER,
     Message,
     MessageType,
     ProtocolError,
@@ -185,6 +186,14 @@ class RobotConnection:
             await self.send_error(message.session_id, message.seq, str(exc), retry=exc.retry)
             return
         except Exception as exc:  # noqa: BLE001  the station's own fault: never "dropped"
+            if self.state.ingest.refuses_value(exc):  # the same message fails every time
+                await self.send_error(
+                    message.session_id,
+                    message.seq,
+                    f"a value cannot be stored: {_first_line(exc)}",
+                    retry=False,
+                )
+                return
             if is_disk_full(exc):
                 _log_disk_full(exc)
                 await self.send_error(
@@ -295,6 +304,11 @@ class RobotConnection:
             )
 
 
+def _first_line(exc: BaseException) -> str:
+    orig = getattr(exc, "orig", None) or exc
+    return (str(orig).splitlines() or [type(orig).__name__])[0][:300]
+
+
 def _log_disk_full(exc: BaseException) -> None:
     """One warning, without a traceback, per FULL_LOG_INTERVAL_S while the disk is full."""
     global _full_logged
@@ -320,5 +334,6 @@ async def robot_socket(websocket: WebSocket) -> None:
     if state.malformed.barred_for(robot.id) > 0:  # refused before the upgrade: cheap
         await websocket.close(code=1008, reason="barred for malformed messages; retry later")
         return
-    await websocket.accept()
+    limit = str(state.settings.max_message_bytes).encode()
+    await websocket.accept(headers=[(MAX_BYTES_HEADER.lower().encode(), limit)])
     await RobotConnection(websocket, robot.id, robot.name, digest).run()

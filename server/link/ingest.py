@@ -9,7 +9,7 @@ from datetime import timedelta
 from typing import Any, Literal
 
 from sqlalchemy import Connection, bindparam, func, select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import DataError, IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from robot_link.protocol import Message, MessageType
@@ -73,6 +73,7 @@ class Ingest:
             for table in (RECEIVED, FRAMES, CLOUDS, TELEMETRY)
         }
         self._dbapi_integrity_error: type[Exception] = self.engine.dialect.dbapi.IntegrityError
+        self._dbapi_data_error: type[Exception] = self.engine.dialect.dbapi.DataError
         self._conn: Connection | None = None
         self._checkpointer: WalCheckpointer | None = None
         self._lock = threading.RLock()  # one transaction at a time on the one connection
@@ -130,6 +131,12 @@ class Ingest:
             for sid, owner in batch.new_owners.items():
                 self._owners[sid] = owner
             return results
+
+    def refuses_value(self, exc: BaseException) -> bool:
+        """Whether a failure to store is the database refusing a value of the message (a
+        data error: out of range, not representable), which no resend can mend, as opposed
+        to the station's own transient fault (a lost connection, a full disk)."""
+        return isinstance(exc, (DataError, self._dbapi_data_error))
 
     def robot_of(self, sid: str) -> int | None:
         """The robot that recorded a session (None: unknown, or imported)."""

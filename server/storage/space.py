@@ -13,6 +13,7 @@ from pathlib import Path
 from server.errors import IngestError
 
 MIB = 2**20
+DISK_FULL_SQLSTATES = ("53100", "53200")  # PostgreSQL: disk full, out of memory
 
 
 @dataclass(frozen=True)
@@ -71,14 +72,17 @@ class DiskReserve:
 
 def is_disk_full(exc: BaseException) -> bool:
     """Whether ``exc`` (or what caused it) says the filesystem or SQLite ran out of room:
-    ``ENOSPC``/``EDQUOT``, or SQLite's "database or disk is full" (SQLITE_FULL)."""
+    ``ENOSPC``/``EDQUOT``, SQLite's "database or disk is full" (SQLITE_FULL), PostgreSQL's
+    disk-full class of errors."""
     seen: set[int] = set()
     cause: BaseException | None = exc
     while cause is not None and id(cause) not in seen:
         seen.add(id(cause))
         if isinstance(cause, OSError) and cause.errno in (errno.ENOSPC, errno.EDQUOT):
             return True
-        if "database or disk is full" in str(cause):
+        if getattr(cause, "sqlstate", None) in DISK_FULL_SQLSTATES:  # PostgreSQL's
+            return True
+        if any(text in str(cause) for text in ("database or disk is full", "No space left")):
             return True
         cause = cause.__cause__ or cause.__context__
     return False

@@ -31,7 +31,8 @@ async def create_token(
 ) -> TokenPublic:
     """Exchange a user name and password for a bearer token (429 after repeated wrong
     passwords from one client, for one user or over all, until the throttle's window has
-    passed; 429 too while the station checks more passwords a second than it allows)."""
+    passed; 429 too while one client address, or the whole station, asks for more
+    password checks a second than it allows)."""
     client = request.client.host if request.client else "?"
     wait = state.logins.retry_after(client, form.username)
     if wait > 0:
@@ -40,11 +41,11 @@ async def create_token(
             f"too many wrong passwords; try again in {wait:.0f} s",
             headers={"Retry-After": str(max(1, round(wait)))},
         )
-    if not state.passwords.take():
+    if not state.passwords.take_for(client):
         raise HTTPException(
             status.HTTP_429_TOO_MANY_REQUESTS,
-            "the station is checking too many passwords; try again in a second",
-            headers={"Retry-After": "1"},
+            "too many sign-ins at once; try again in a few seconds",
+            headers={"Retry-After": "5"},
         )
     issued = await state.passwords.run(issue_token, state.factory, form.username, form.password)
     if issued is None:
