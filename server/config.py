@@ -31,6 +31,39 @@ class Settings(BaseSettings):
     max_connections_per_client: int = Field(
         default=64, ge=1, description="open connections one address may hold (robots, browsers)"
     )
+    max_connections: int = Field(
+        default=0,
+        ge=0,
+        description="open connections the station holds in all (0: what its open-file limit, "
+        "raised at start, leaves beside 256 for files)",
+    )
+    max_pending_connections: int = Field(
+        default=256,
+        ge=1,
+        description="connections still sending their request head, station-wide; a new one "
+        "closes the longest-waiting",
+    )
+    max_body_bytes: int = Field(
+        default=1024 * 1024,
+        ge=1024,
+        description="largest request body of any route but the MCAP import (max_import_bytes)",
+    )
+    body_grace_s: float = Field(
+        default=20.0,
+        gt=0,
+        description="time a request body has beyond its size at body_min_rate_bps (else 408)",
+    )
+    body_min_rate_bps: float = Field(
+        default=64 * 1024, gt=0, description="slowest a request body may arrive, bytes a second"
+    )
+    body_idle_s: float = Field(
+        default=15.0, gt=0, description="longest pause inside a request body (else 408)"
+    )
+    max_live_sessions_per_robot: int = Field(
+        default=4,
+        ge=1,
+        description="live sessions one robot may hold; its next SESSION_START ends the oldest",
+    )
     request_head_timeout_s: float = Field(
         default=10.0, gt=0, description="time a client has to send a request's line and headers"
     )
@@ -145,7 +178,12 @@ class Settings(BaseSettings):
         )
         return {
             **tls,
-            "http": guarded_http(self.max_connections_per_client, self.request_head_timeout_s),
+            "http": guarded_http(
+                self.max_connections_per_client,
+                self.request_head_timeout_s,
+                max_connections=self.max_connections,
+                max_pending=self.max_pending_connections,
+            ),
             "ws_max_size": self.ws_max_bytes,
             "ws_per_message_deflate": False,  # media does not deflate: it would only cost CPU
         }

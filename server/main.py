@@ -17,11 +17,14 @@ from fastapi.responses import HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from sqlalchemy.exc import DataError
+from starlette.types import Scope
 
-from server.api.accounts import accounts_exist
+from server.api.accounts import accounts_exist, user_for_token
+from server.api.bodies import BodyLimits, RequestBodies
 from server.api.deps import get_current_user
 from server.api.headers import SecurityHeaders
 from server.api.routes import ROUTERS
+from server.api.routes.reports import IMPORT_PATH
 from server.config import Settings
 from server.errors import Conflict, NotFound
 from server.heap import freeze_startup_objects
@@ -29,6 +32,7 @@ from server.jobs.priority import RAISE_EVERY_S, put_the_station_first
 from server.jobs.runner import JobRunner
 from server.link.connection import router as robot_router
 from server.link.group_commit import GroupCommit
+from server.link.guard import raise_fd_limit
 from server.link.ingest import Ingest
 from server.live.hub import LiveHub
 from server.live.live_detect import LiveDetect
@@ -65,7 +69,7 @@ def build_state(settings: Settings) -> AppState:
         lease_s=settings.job_lease_s,
     )
     reserve = DiskReserve(settings.data_dir, settings.min_free_bytes)
-    ingest = Ingest(factory, files, reserve)
+    ingest = Ingest(factory, files, reserve, settings.max_live_sessions_per_robot)
     return AppState(
         settings,
         engine,
@@ -112,12 +116,25 @@ async def _keep_the_station_first(priority: int) -> None:
         put_the_station_first(priority)
 
 
+async def may_send_body(scope: Scope, token: str | None) -> bool:
+    """Whether a request may have its body read: a valid bearer token (any role: the route
+    checks its own), or no accounts yet."""
+    state = scope["app"].state.steelscan
+
+    def check() -> bool:
+        with state.factory() as db:
+            return not accounts_exist(db) or user_for_token(db, token) is not None
+
+    return await anyio.to_thread.run_sync(check)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The ground-station ASGI app."""
     settings = settings or Settings()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        log.info("open-file limit: %d", raise_fd_limit())
         state = build_state(settings)
         app.state.steelscan = state
         if settings.view3d:
@@ -196,6 +213,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             },
         }
 
+    app.add_middleware(
+        RequestBodies,
+        limits=BodyLimits(
+            max_bytes=settings.max_body_bytes,
+            large=((IMPORT_PATH, settings.max_import_bytes),),
+            grace_s=settings.body_grace_s,
+            min_rate_bps=settings.body_min_rate_bps,
+            idle_s=settings.body_idle_s,
+        ),
+        authenticate=may_send_body,
+        open_paths=frozenset({"/api/auth/token"}),
+    )
     app.add_middleware(SecurityHeaders)
     app.include_router(robot_router)
     for router in ROUTERS:

@@ -239,6 +239,8 @@ class RobotConnection:
         ):
             live_detect.offer(sid, message.seq, message.payload, message.meta)
         if self.state.settings.auto_process:
+            for old in result.superseded:  # ended by the station: processed as they are
+                await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, old)
             if result.session_ended:
                 await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, sid)
             elif result.late:  # its results miss this: processed again once the rest is in

@@ -37,6 +37,7 @@ class StoreResult:
     status: StoreStatus
     session_ended: bool = False  # this message ended its session: process it
     late: bool = False  # stored into a session already ended: its results miss it
+    superseded: tuple[str, ...] = ()  # sessions of the robot its SESSION_START ended
 
 
 @dataclass
@@ -62,8 +63,10 @@ class Ingest:
         factory: sessionmaker[Session],
         files: SessionFiles,
         reserve: DiskReserve | None = None,
+        max_live_per_robot: int = 4,
     ) -> None:
         self.factory = factory
+        self.max_live_per_robot = max_live_per_robot
         self.engine = factory.kw["bind"]
         self.files = files
         self.reserve = reserve
@@ -261,15 +264,50 @@ class Ingest:
             return StoreResult("duplicate")
         if self.reserve is not None:
             self.reserve.claim(len(message.payload) + ROW_BYTES)
+        superseded: tuple[str, ...] = ()
+        if message.type is MessageType.SESSION_START and robot_id is not None:
+            superseded = self._make_room(conn, robot_id, sid, batch)
         # the file first: a failed write adds no row
         self._add_rows(conn, message, sid, robot_id, batch)
         batch.seen.add((sid, message.seq))
+        if superseded:
+            return StoreResult("stored", superseded=superseded)
         was_ended = owner is not None and owner.ended
         if message.type is MessageType.SESSION_END and owner is not None:
             batch.new_owners[sid] = _Owner(owner.robot_id, message.seq, ended=True)
             # an END after the station ended the session: processed already, its data too
             return StoreResult("stored", session_ended=not was_ended, late=was_ended)
         return StoreResult("stored", late=was_ended)
+
+    def _make_room(
+        self, conn: Connection, robot_id: int, sid: str, batch: _Batch
+    ) -> tuple[str, ...]:
+        """End the robot's oldest live sessions beyond ``max_live_per_robot - 1`` (it is
+        starting another: a robot that restarted without ending its last one), so that one
+        robot can hold only so many sessions, and their files, open."""
+        live = list(
+            conn.execute(
+                select(SESSIONS.c.id)
+                .where(SESSIONS.c.robot_id == robot_id, SESSIONS.c.status == SessionStatus.live)
+                .order_by(SESSIONS.c.started_at, SESSIONS.c.id)
+            ).scalars()
+        )
+        over = live[: max(0, len(live) - self.max_live_per_robot + 1)]
+        if not over:
+            return ()
+        conn.execute(
+            SESSIONS.update()
+            .where(SESSIONS.c.id.in_(over), SESSIONS.c.status == SessionStatus.live)
+            .values(
+                status=SessionStatus.ended,
+                ended_at=utcnow(),
+                end_reason=f"ended by the station: its robot started session {sid}",
+            )
+        )
+        for old in over:
+            self.files.close_session(old)
+            batch.new_owners[old] = _Owner(robot_id, None, ended=True)
+        return tuple(over)
 
     @staticmethod
     def _check_owner(sid: str, owner: _Owner, robot_id: int | None) -> None:

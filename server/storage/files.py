@@ -5,26 +5,35 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any, BinaryIO
 
 from server.storage.write_behind import WriteBehind, read_up_to
 
 SEGMENT_BYTES = 512 * 2**20  # payload segment files are closed and a new one started beyond this
+MAX_OPEN_SEGMENTS = 64  # segment files kept open at once, over all sessions
 
 
 class SessionFiles:
     """Paths of one data directory; everything stored in the DB is relative to it."""
 
     def __init__(
-        self, data_dir: Path, *, fsync: bool = False, segment_bytes: int = SEGMENT_BYTES
+        self,
+        data_dir: Path,
+        *,
+        fsync: bool = False,
+        segment_bytes: int = SEGMENT_BYTES,
+        max_open: int = MAX_OPEN_SEGMENTS,
     ) -> None:
         self.data_dir = data_dir.resolve()
         self.fsync = fsync
         self.segment_bytes = segment_bytes
-        self._segments: dict[
-            tuple[str, str], tuple[int, BinaryIO]
-        ] = {}  # (session, kind) -> (number, open file)
+        self.max_open = max_open
+        # (session, kind) -> (number, open file), least recently appended to first: beyond
+        # ``max_open`` the first is closed, and opened again at its next append
+        self._segments: OrderedDict[tuple[str, str], tuple[int, BinaryIO]] = OrderedDict()
+        self._numbers: dict[tuple[str, str], int] = {}  # the segment each (session, kind) is at
         self._last_append: dict[str, float] = {}  # session -> time.monotonic() of its last append
 
     def session_dir(self, session_id: str) -> Path:
@@ -47,9 +56,10 @@ class SessionFiles:
         after it, so a torn append is never read, and a resend appends again. Called by the
         one ingest writer thread."""
         key = (session_id, kind)
-        number, fh = self._segments.get(key, (0, None))  # type: ignore[arg-type]
+        number, fh = self._segments.get(key, (self._numbers.get(key, 0), None))  # type: ignore[arg-type]
         if fh is not None and fh.tell() + len(data) > self.segment_bytes:
             fh.close()
+            del self._segments[key]
             number, fh = number + 1, None
         if fh is None:
             folder = self.session_dir(session_id) / kind
@@ -58,8 +68,13 @@ class SessionFiles:
                 folder / f"segment-{number:05d}.bin"
             ).stat().st_size + len(data) > self.segment_bytes:
                 number += 1
-            fh = open(folder / f"segment-{number:05d}.bin", "ab")  # noqa: SIM115 - kept open across appends
+            while len(self._segments) >= self.max_open:  # the least recently used gives way
+                self._segments.popitem(last=False)[1][1].close()
+            # kept open across appends
+            fh = open(folder / f"segment-{number:05d}.bin", "ab")  # noqa: SIM115
             self._segments[key] = (number, fh)
+            self._numbers[key] = number
+        self._segments.move_to_end(key)
         self._last_append[session_id] = time.monotonic()
         offset = fh.seek(0, os.SEEK_END)
         fh.write(data)
@@ -72,7 +87,14 @@ class SessionFiles:
         """Close the session's open segment files (it ended, or went quiet)."""
         for key in [k for k in self._segments if k[0] == session_id]:
             self._segments.pop(key)[1].close()
+        for key in [k for k in self._numbers if k[0] == session_id]:
+            del self._numbers[key]
         self._last_append.pop(session_id, None)
+
+    @property
+    def open_files(self) -> int:
+        """Segment files open now (at most ``max_open``)."""
+        return len(self._segments)
 
     def quiet_sessions(self, idle_s: float) -> list[str]:
         """Sessions with open segment files and no append for ``idle_s`` seconds."""

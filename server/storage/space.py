@@ -46,15 +46,15 @@ class DiskReserve:
         with self._lock:
             return SpaceStatus(self._free_now(), self.reserve_bytes)
 
-    def claim(self, size: int) -> None:
+    def claim(self, size: int, headroom: int = 0) -> None:
         """Let ``size`` bytes be stored, or raise a retryable IngestError if they would
-        leave less than the reserve free."""
+        leave less than the reserve (and ``headroom`` beyond it) free."""
         with self._lock:
             free = self._free_now()
-            if free - size < self.reserve_bytes:
+            if free - size < self.reserve_bytes + headroom:
                 raise IngestError(
                     f"ground station storage is full ({free / MIB:.0f} MiB free, "
-                    f"{self.reserve_bytes / MIB:.0f} MiB reserve): retry later",
+                    f"{(self.reserve_bytes + headroom) / MIB:.0f} MiB kept free): retry later",
                     retry=True,
                 )
             self._free = free - size

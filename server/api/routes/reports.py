@@ -5,7 +5,7 @@ from __future__ import annotations
 import uuid
 from typing import Any
 
-from fastapi import APIRouter, Depends, HTTPException, Request, UploadFile, status
+from fastapi import APIRouter, Depends, HTTPException, Request, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from sqlalchemy import select
@@ -15,6 +15,7 @@ from server.api.accounts import has_role
 from server.api.deps import CurrentUser, OperatorUser, SessionDep, StateDep, get_current_user
 from server.api.queries import get_session_or_404
 from server.api.schemas import JobPublic
+from server.api.uploads import receive_upload
 from server.reports.content import build_report
 from server.reports.pdf import write_pdf
 from server.reports.tables import defects_csv
@@ -24,6 +25,7 @@ router = APIRouter(
     prefix="/api/sessions", tags=["reports"], dependencies=[Depends(get_current_user)]
 )
 MCAP_NAME = "session.mcap"
+IMPORT_PATH = "/api/sessions/import"
 
 
 def _base_url(request: Request) -> str:
@@ -165,33 +167,52 @@ def read_session_mcap(db: SessionDep, state: StateDep, session_id: str, user: Cu
     )
 
 
-@router.post("/import", status_code=status.HTTP_201_CREATED)
+@router.post(
+    "/import",
+    status_code=status.HTTP_201_CREATED,
+    openapi_extra={
+        "requestBody": {
+            "content": {
+                "multipart/form-data": {
+                    "schema": {
+                        "type": "object",
+                        "properties": {"file": {"type": "string", "format": "binary"}},
+                        "required": ["file"],
+                    }
+                },
+                "application/octet-stream": {"schema": {"type": "string", "format": "binary"}},
+            },
+            "required": True,
+        }
+    },
+)
 async def import_mcap(
-    db: SessionDep, state: StateDep, file: UploadFile, _: OperatorUser
+    request: Request, db: SessionDep, state: StateDep, _: OperatorUser
 ) -> dict[str, Any]:
     """Import a session's MCAP log (as exported by this station) into a new session (operator
-    role); frames and clouds are stored byte for byte."""
+    role): a form's ``file`` field, or the file as the body. The caller is authenticated
+    before the upload is read; it streams into the data directory within the import limit
+    and the disk reserve (507 when the disk is short). Frames and clouds are stored byte
+    for byte."""
     from server.reports.mcap_import import McapImportError, import_session
 
     tmp_dir = state.files.data_dir / "imports"
     tmp_dir.mkdir(parents=True, exist_ok=True)
     tmp = tmp_dir / f".upload-{uuid.uuid4().hex}.mcap"
+    reserve = state.ingest.reserve
     try:
-        size = 0
-        with tmp.open("wb") as fh:
-            while chunk := await file.read(1 << 20):
-                size += len(chunk)
-                if size > state.settings.max_import_bytes:
-                    raise HTTPException(
-                        status.HTTP_413_REQUEST_ENTITY_TOO_LARGE,
-                        f"the file is larger than the import limit of {state.settings.max_import_bytes} bytes",
-                    )
-                fh.write(chunk)
+        name = await receive_upload(
+            request,
+            tmp,
+            state.settings.max_import_bytes,
+            # an import stops a reserve's worth earlier than robots do: their data comes first
+            (lambda n: reserve.claim(n, headroom=reserve.reserve_bytes))
+            if reserve is not None
+            else (lambda _: None),
+        )
         try:
             return await run_in_threadpool(import_session, db, state.files, tmp)
         except McapImportError as exc:
-            raise HTTPException(
-                422, str(exc).replace(tmp.name, file.filename or "upload")
-            ) from None
+            raise HTTPException(422, str(exc).replace(tmp.name, name)) from None
     finally:
         tmp.unlink(missing_ok=True)
