@@ -43,12 +43,18 @@ def paper_blend_mask(
     return take | ~covered
 
 
-def band_rows(layout: MosaicLayout, params: StitchParams, in_flight: int = 1) -> int:
-    """Height of a rendering band: at most as many rows as the working-memory budget allows
-    with ``in_flight`` bands rendered at once (accumulators and finished bands), and the
-    bands a multiple of ``in_flight`` in number, so that no worker idles while another
-    renders the last band (3 bands on 2 threads took as long as 4)."""
-    c = layout.channels
+BANDS_IN_FLIGHT = 4  # bands a mosaic's grid is sized for rendering at once
+
+
+def band_rows(layout: MosaicLayout, params: StitchParams) -> int:
+    """Height of a rendering band, from the mosaic and the parameters alone: the same grid
+    whatever renders it (threads or workers, any number of either), because a band's warps
+    round at its own origin and a different grid moves a few pixels by a grey level. At
+    most as many rows as the working-memory budget allows with :data:`BANDS_IN_FLIGHT`
+    bands rendered at once (accumulators and finished bands), and the bands a multiple of
+    it in number, so that no worker idles while another renders the last band (3 bands
+    on 2 threads took as long as 4)."""
+    c, in_flight = layout.channels, BANDS_IN_FLIGHT
     per_row = (
         max(layout.width, 1) * ((c + 1) * 4 * (params.blend == "feather") + c + 1) * (in_flight + 1)
     )
@@ -103,7 +109,7 @@ def render_bands(
     """The mosaic, top to bottom, one band at a time (bounded memory for any size); bands
     are rendered on ``params.registration.workers`` threads, at most that many at once."""
     workers = max(1, params.registration.workers)
-    rows = band_rows(layout, params, workers)
+    rows = band_rows(layout, params)
     paint = BandPainter(layout, frames, params)
     scratch = local()  # each worker thread's accumulator, reused band after band (no fresh pages)
 

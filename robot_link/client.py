@@ -286,6 +286,14 @@ class RobotLink:
                     )
                     return
                 log.warning("link: ground station answered HTTP %s; retrying", status)
+            except ssl.SSLCertVerificationError as exc:  # no retry can make it trusted
+                await self._fail(
+                    LinkError(
+                        f"the ground station's certificate is not trusted ({exc.verify_message}): "
+                        "give its certificate (or its CA's) as the CA file"
+                    )
+                )
+                return
             except (OSError, websockets.WebSocketException, asyncio.TimeoutError) as exc:
                 if self._closing:
                     return

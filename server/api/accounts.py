@@ -213,16 +213,17 @@ class PasswordBudget:
     scheduling priority (its argon2 lanes inherit it), so logins can never take the CPU
     the robots' ingest needs.
 
-    Each client address has a share of its own first (``client_rate``, ``client_burst``):
-    one address flooding the sign-in spends its share, never the station's budget, so an
-    operator elsewhere still signs in. At most ``max_clients`` addresses are remembered."""
+    Each client address has a share of its own first (``client_rate``, ``client_burst``,
+    half the station's burst): one address flooding the sign-in spends its share, never
+    the whole budget, so an operator elsewhere still signs in; a right password gives its
+    check back (:meth:`refund`). At most ``max_clients`` addresses are remembered."""
 
     def __init__(
         self,
         rate: float = 1.0,
-        burst: float = 8.0,
+        burst: float = 12.0,
         client_rate: float = 0.25,
-        client_burst: float = 4.0,
+        client_burst: float = 6.0,
         max_clients: int = 10_000,
     ) -> None:
         self._bucket = TokenBucket(rate, burst)
@@ -249,7 +250,18 @@ class PasswordBudget:
             self._clients[client] = bucket
             if not bucket.take():
                 return False
-            return self._bucket.take()
+            if not self._bucket.take():
+                bucket.tokens += 1  # not spent: the station's budget refused it
+                return False
+            return True
+
+    def refund(self, client: str) -> None:
+        """Give ``client`` back the check it spent on a right password: its share counts
+        wrong passwords, so an operator who signs in often never runs out."""
+        with self._lock:
+            bucket = self._clients.get(client)
+            if bucket is not None:
+                bucket.tokens = min(bucket.burst, bucket.tokens + 1)
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """``fn(*args)`` on the password thread."""

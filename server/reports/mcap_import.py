@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
+import zstandard
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
@@ -22,9 +23,7 @@ from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from google.protobuf.message import DecodeError
 from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Chunk
-from mcap.stream_reader import StreamReader
+from mcap.records import Metadata
 from sqlalchemy import update
 from sqlalchemy.exc import StatementError
 from sqlalchemy.orm import Session
@@ -32,6 +31,7 @@ from sqlalchemy.orm import Session
 from robot_link.image_header import ImageHeaderError, check_pixels, png_header
 from robot_link.protocol import MAX_CLOUD_PIXELS, MAX_FRAME_PIXELS
 from server.reports.mcap_common import METADATA, Progress
+from server.reports.mcap_records import ChunkError, messages
 from server.storage.files import SessionFiles
 from server.storage.models import (
     Cloud,
@@ -54,8 +54,6 @@ def import_session(
     session_id = str(uuid.uuid4())
     try:
         with path.open("rb") as fh:
-            _check_sizes(fh)
-            fh.seek(0)
             meta, poses, calibration, depth_seqs = _first_pass(fh)
             db.add(_new_session(session_id, meta, path.name))
             db.flush()
@@ -78,6 +76,9 @@ def import_session(
         raise
     except (
         McapError,
+        ChunkError,
+        zstandard.ZstdError,
+        RuntimeError,  # lz4's errors
         DecodeError,
         EOFError,
         KeyError,
@@ -131,20 +132,6 @@ def _new_session(session_id: str, meta: dict[str, str], name: str) -> Inspection
     )
 
 
-MAX_RECORD_BYTES = 256 * 2**20  # a record (a chunk, compressed or not) read into memory
-
-
-def _check_sizes(fh: BinaryIO) -> None:
-    """Refuse, before anything is decompressed, a file with a record or a chunk that would
-    take more memory than ``MAX_RECORD_BYTES`` (a decompression bomb)."""
-    for record in StreamReader(fh, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES).records:
-        if isinstance(record, Chunk) and record.uncompressed_size > MAX_RECORD_BYTES:
-            raise McapImportError(
-                f"a chunk decompresses to {record.uncompressed_size:,} bytes, more than the "
-                f"{MAX_RECORD_BYTES:,} allowed"
-            )
-
-
 def _first_pass(
     fh: BinaryIO,
 ) -> tuple[
@@ -154,21 +141,21 @@ def _first_pass(
     set[int],
 ]:
     """Session metadata, odometry and calibration per sequence number, clouds sent as depth PNG."""
-    reader = make_reader(fh)
     meta: dict[str, str] = {}
-    for record in reader.iter_metadata():
-        if record.name == METADATA:
-            meta = dict(record.metadata)
     poses: dict[str, dict[int, tuple[float, float, float]]] = {
         "/camera/odometry": {},
         "/tof/odometry": {},
     }
     calibration: dict[int, dict[str, float]] = {}
     depth: set[int] = set()
-    for _, channel, message in reader.iter_messages(
-        topics=["/camera/odometry", "/tof/odometry", "/tof/calibration", "/tof/depth"],
-        log_time_order=False,
+    for item in messages(
+        fh, {"/camera/odometry", "/tof/odometry", "/tof/calibration", "/tof/depth"}
     ):
+        if isinstance(item, Metadata):
+            if item.name == METADATA:
+                meta = dict(item.metadata)
+            continue
+        channel, message = item
         if channel.topic == "/tof/depth":
             depth.add(message.sequence)
         elif channel.topic == "/tof/calibration":
@@ -197,15 +184,13 @@ def _second_pass(
     calibration: dict[int, dict[str, float]],
     progress: Progress,
 ) -> dict[str, int]:
-    reader = make_reader(fh)
     counts = {"frames": 0, "clouds": 0, "telemetry": 0}
     seen: set[tuple[str, int]] = set()
-    for i, (_, channel, m) in enumerate(
-        reader.iter_messages(
-            topics=["/camera/image", "/tof/depth", "/tof/points", "/robot/telemetry"],
-            log_time_order=False,
-        )
-    ):
+    topics = {"/camera/image", "/tof/depth", "/tof/points", "/robot/telemetry"}
+    for i, item in enumerate(messages(fh, topics)):
+        if isinstance(item, Metadata):
+            continue
+        channel, m = item
         topic, seq, t = channel.topic, m.sequence, m.log_time / 1e9
         if topic == "/camera/image":
             img = CompressedImage.FromString(m.data)

@@ -11,6 +11,7 @@ from typing import Any
 from server.reports.fields import DEFECT_FIELDS
 
 FORMULA_START = frozenset("=+-@|%")  # what spreadsheets start a formula or DDE call with
+INVISIBLE = frozenset({"Cf", "Cc", "Zs"})  # format and control characters, odd spaces
 
 
 def _cell(value: Any) -> Any:
@@ -28,10 +29,16 @@ def _cell(value: Any) -> Any:
 def _formula_like(text: str) -> bool:
     """Whether a spreadsheet might read the text as a formula: its first visible character,
     once full-width forms are folded (＝ is =), starts one, or it starts with a control
-    character that some spreadsheets skip."""
+    or invisible format character (a zero-width space, a byte-order mark) that some
+    spreadsheets skip."""
     if text[:1] in ("\t", "\r", "\n"):
         return True
-    head = unicodedata.normalize("NFKC", text.lstrip())[:1]
+    visible = text.lstrip()
+    while visible and unicodedata.category(visible[0]) in INVISIBLE:  # U+200B, U+FEFF, ...
+        visible = visible[1:].lstrip()
+    if len(visible) != len(text.lstrip()):
+        return True  # a cell that hides its first character is quoted whatever follows
+    head = unicodedata.normalize("NFKC", visible)[:1]
     return head in FORMULA_START
 
 

@@ -82,13 +82,11 @@ def test_connections_that_never_finish_their_head_give_way(tmp_path: Path) -> No
             sock.sendall(b"GET /api/health HTTP/1.1\r\nHo")
             slow.append(sock)
         time.sleep(0.5)
-        started = time.monotonic()
         for _ in range(5):
             assert httpx.get(f"{server.url}/api/health", timeout=5).status_code == 200
         with robot_ws(LiveServer(server.url, settings, token), open_timeout=5) as ws:
             sid = uuid.uuid4()
             assert _send(ws, start(sid)).meta["status"] == "stored"
-        assert time.monotonic() - started < 5
         closed = 0
         for sock in slow:
             sock.settimeout(0.01)

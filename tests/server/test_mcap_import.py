@@ -55,6 +55,19 @@ def _bomb() -> bytes:
     return bytes(data)
 
 
+def _understated(compression: CompressionType) -> bytes:
+    """A chunk of 64 MiB of telemetry that says it holds 1,000 bytes (it inflates from a few
+    kilobytes: a decompression bomb its header does not announce)."""
+    padding = b" " * (64 * 2**20)
+    data = bytearray(_mcap([("/robot/telemetry", b'{"a": 1' + padding + b"}")], compression))
+    at = 8
+    (header_len,) = struct.unpack_from("<Q", data, at + 1)
+    at += 9 + header_len
+    assert data[at] == 0x06 and len(data) < 2**20
+    struct.pack_into("<Q", data, at + 1 + 8 + 16, 1000)
+    return bytes(data)
+
+
 TELEMETRY = "/robot/telemetry"
 CASES = {
     "magic only": b"\x89MCAP0\r\n",
@@ -68,7 +81,28 @@ CASES = {
         [("/camera/image", CompressedImage(format="jpeg", data=_huge_jpeg()).SerializeToString())]
     ),
     "a decompression bomb": _bomb(),
+    "a zstd chunk that understates its size": _understated(CompressionType.ZSTD),
+    "an lz4 chunk that understates its size": _understated(CompressionType.LZ4),
 }
+
+
+def test_byte_flipped_files_are_refused_with_422_never_500(live_server: LiveServer) -> None:
+    import random
+
+    messages = [
+        ("/camera/image", CompressedImage(format="jpeg", data=jpeg(64, 48)).SerializeToString()),
+        *[(TELEMETRY, b'{"battery_v": {"main": %d}}' % k) for k in range(40)],
+    ]
+    url = f"{live_server.url}/api/sessions"
+    rng = random.Random(7)
+    for compression in (CompressionType.ZSTD, CompressionType.LZ4):
+        good = _mcap(messages, compression)
+        for _ in range(15):
+            bad = bytearray(good)
+            for _ in range(3):
+                bad[rng.randrange(8, len(bad) - 8)] ^= 1 << rng.randrange(8)
+            r = httpx.post(f"{url}/import", files={"file": ("flipped.mcap", bytes(bad))})
+            assert r.status_code in (201, 422), r.text
 
 
 @pytest.mark.parametrize("case", list(CASES))

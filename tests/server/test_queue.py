@@ -15,7 +15,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import httpx
+import numpy as np
 import pytest
 from websockets.sync.client import connect
 
@@ -123,7 +125,47 @@ def wait_running(c: Cluster, job_id: int, timeout_s: float = 60) -> dict:
     raise AssertionError(f"job {job_id} never started")
 
 
-def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster) -> None:
+def _results(url: str, data_dir: Path, sid: str) -> tuple[np.ndarray, list[tuple]]:
+    """A processed session's mosaic (pixels) and defects (class, box, area, source)."""
+    mosaic = cv2.imread(str(data_dir / "sessions" / sid / "results" / "mosaic.png"))
+    assert mosaic is not None
+    rows = httpx.get(f"{url}/api/sessions/{sid}/defects", params={"limit": 5000}).json()["data"]
+    keys = (
+        "source",
+        "frame_seq",
+        "defect_class",
+        "bbox_x",
+        "bbox_y",
+        "bbox_w",
+        "bbox_h",
+        "area_px",
+    )
+    return mosaic, sorted(tuple(d[k] for k in keys) for d in rows)
+
+
+def embedded_results(tmp_path: Path, frames: int) -> tuple[np.ndarray, list[tuple]]:
+    """The same recording processed by a station's own worker processes (SQLite)."""
+    settings = Settings(
+        data_dir=tmp_path / "embedded",
+        database_url=f"sqlite:///{tmp_path / 'embedded' / 'steelscan.db'}",
+        auto_process=False,
+        view3d=False,
+        live_map=False,
+    )
+    token = make_token(settings)
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    try:
+        here = Cluster(server.url, token, settings, [], [])
+        sid = record(here, frames)
+        for kind in ("stitch", "detect"):
+            assert wait_job(server.url, start_job(here, sid, kind))["state"] == "done"
+        return _results(server.url, settings.data_dir, sid)
+    finally:
+        server.stop()
+
+
+def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster, tmp_path: Path) -> None:
     sid = record(cluster, 60)
     stitch_id = start_job(cluster, sid, "stitch")
     stitch = wait_job(cluster.url, stitch_id)
@@ -150,6 +192,12 @@ def test_jobs_run_on_workers_and_share_one_jobs_parts(cluster: Cluster) -> None:
     frame_rows = [d for d in defects if d["source"] == "frame"]
     assert len(frame_rows) == detect["result"]["frame_defects"]  # every part's rows, once
     assert detect["result"]["frame_defects"] > 0
+    # the same recording gives the same results in a station's own processes: the mosaic
+    # to the pixel, the same defects
+    mosaic, found = _results(cluster.url, cluster.settings.data_dir, sid)
+    here_mosaic, here_found = embedded_results(tmp_path, 60)
+    assert mosaic.shape == here_mosaic.shape and np.array_equal(mosaic, here_mosaic)
+    assert found == here_found
     # the frames were spread: both workers did parts of the one job
     for job in (stitch, detect):  # the pairs of the one, the frames of the other
         helped = [

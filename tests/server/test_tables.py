@@ -29,6 +29,10 @@ def _comment_cell(comment: str) -> str:
         "|calc",
         "%0A",
         "　＝x",
+        "\u200b=1+1",
+        "\ufeff=1+1",
+        "\u200b\u200bcmd",
+        "\u2060@SUM(A1)",
     ],
 )
 def test_formula_like_comments_are_quoted(comment: str) -> None:

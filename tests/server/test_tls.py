@@ -6,6 +6,7 @@ import asyncio
 import shutil
 import ssl
 import subprocess
+import sys
 from pathlib import Path
 
 import httpx
@@ -66,8 +67,30 @@ def test_robots_send_over_wss_to_a_station_they_trust(tmp_path: Path, database_u
         link = asyncio.run(record(str(cert)))
         session = httpx.get(f"{server.url}/api/sessions/{link.session_id}", verify=trust)
         assert session.json()["frames"] == 1
-        with pytest.raises(LinkError):  # an unknown certificate is not trusted
+        with pytest.raises(LinkError, match="not trusted"):  # an unknown certificate
             asyncio.run(record(None))
+        sim = subprocess.run(  # the simulated robot says so and exits, not retries forever
+            [
+                sys.executable,
+                "-m",
+                "server.cli",
+                "sim",
+                "--server",
+                server.url,
+                "--token",
+                token,
+                "--exit-when-done",
+                "--lanes",
+                "1",
+                "--time-scale",
+                "0",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert sim.returncode != 0 and "not trusted" in sim.stderr, sim.stderr[-2000:]
+        assert "Traceback" not in sim.stderr
     finally:
         server.stop()
 

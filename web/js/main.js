@@ -35,7 +35,9 @@ async function loginError(res) {
   if (res.status === 429) {
     const wait = Number(res.headers.get("Retry-After") || 0);
     const at = new Date(Date.now() + wait * 1000).toLocaleTimeString();
-    return `too many wrong passwords: wait ${wait} s (until ${at}) and try again`;
+    let why = "too many wrong passwords";
+    try { why = (await res.json()).detail.split(";")[0] || why; } catch { /* not JSON */ }
+    return `${why}: wait ${wait} s (until ${at}) and try again`;
   }
   let detail = "";
   try { detail = (await res.json()).detail; } catch { /* not JSON */ }

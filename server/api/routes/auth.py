@@ -56,6 +56,7 @@ async def create_token(
             headers={"WWW-Authenticate": "Bearer"},
         )
     state.logins.succeeded(client, form.username)
+    state.passwords.refund(client)
     token, user = issued
     return TokenPublic(access_token=token, role=user.role.value)
 
