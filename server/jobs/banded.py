@@ -199,11 +199,27 @@ MIN_BAND_ROWS = 128  # twice the context rows: thinner bands would mostly repeat
 BYTES_PER_PX = 96  # measured: the detectors' intermediates per pixel of a band
 
 
+MAX_PARALLEL = 4  # bands a worker searches at once, within the budget together
+BANDS_TO_SHARE = 16  # bands a mosaic is cut into at most for sharing, however small
+MIN_SHARED_ROWS = 256  # core rows of a band cut for sharing: its context costs at most half
+
+
 def band_rows(
     width: int, overlap: int, budget_bytes: int = BUDGET_BYTES, per_px: int = BYTES_PER_PX
 ) -> int:
     """Core rows per band so that a band with its context rows fits the memory budget."""
     return int(max(MIN_BAND_ROWS, budget_bytes // max(1, width * per_px) - 2 * overlap))
+
+
+def band_grid(width: int, height: int, overlap: int) -> int:
+    """Core rows of the bands a mosaic is searched in, from its size alone: the same bands
+    whoever searches it (a station's threads, any number of workers), so the same defects.
+    Small enough for :data:`MAX_PARALLEL` bands in the budget at once, and cut into up to
+    :data:`BANDS_TO_SHARE` bands for workers to share."""
+    return min(
+        band_rows(width, overlap, BUDGET_BYTES // MAX_PARALLEL),
+        max(MIN_SHARED_ROWS, -(-height // BANDS_TO_SHARE)),
+    )
 
 
 def detect_banded(
@@ -217,23 +233,17 @@ def detect_banded(
     overlap: int = 64,
     progress: Callable[[float, str], None] = lambda f, m: None,
     map_bands: MapBands = _serial,
-    parallel: int = 1,
-    min_bands: int = 1,
 ) -> list[Defect]:
     """Cracks and corrosion of ``results/mosaic.png`` (with its coverage and seams), band by
     band; writes the two mask PNGs into ``out`` (its scratch files too) and returns the
     measured defects (mosaic pixels).
 
     The PNGs' pieces, then the bands, are independent parts (``map_bands``: in turn, on
-    threads, or on other workers; ``parallel`` bands at once share the memory budget; at
-    least ``min_bands`` of them, for workers to share); the bands' components are then
-    joined across seams in order, and measured."""
+    threads, or on other workers; ``rows`` high, else :func:`band_grid`'s); the bands'
+    components are then joined across seams in order, and measured."""
     header = pyvips.Image.new_from_file(str(results / "mosaic.png"))
     width, height = header.width, header.height
-    rows = rows or min(
-        band_rows(width, overlap, BUDGET_BYTES // max(1, parallel)),
-        max(MIN_BAND_ROWS, -(-height // max(1, min_bands))),
-    )
+    rows = rows or band_grid(width, height, overlap)
     scratch = out / ".detect-scratch"
     shutil.rmtree(scratch, ignore_errors=True)
     scratch.mkdir()

@@ -24,14 +24,11 @@ from processing.defects import measure_defects
 from processing.detection import CrackMethod, defect_masks
 from processing.learned import LearnedParams, load_model
 from processing.poses import compose_se2, world_box
-from processing.surface import on_surface, surface_level
+from processing.surface import surface_level
 from server.jobs.banded import detect_banded
-from server.jobs.context import JobContext, params_record, write_png
+from server.jobs.context import JobContext, params_record
 from server.storage.files import SessionFiles
 from server.storage.models import Defect, Frame
-
-MOSAIC_IN_MEMORY_PX = 48_000_000  # larger mosaics are searched band by band with bounded memory
-BANDS_TO_SHARE = 16  # on a job queue every mosaic is searched in bands, at least these many
 
 
 def _defect_row(
@@ -191,13 +188,8 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     ctx.progress(0.6, "mosaic")
     surface = _frame_surface(ctx)
     out = ctx.output_dir()
-    if (
-        ctx.fanout is not None
-        or int(world["width_px"]) * int(world["height_px"]) > MOSAIC_IN_MEMORY_PX
-    ):
-        found = _detect_mosaic_banded(ctx, source, out, mm_per_px, surface)
-    else:
-        found = _detect_mosaic(source, out, mm_per_px, _method(ctx), surface, ctx.threads)
+    # in bands whose grid depends on the mosaic alone: the same defects whatever searches it
+    found = _detect_mosaic_banded(ctx, source, out, mm_per_px, surface)
     mosaic_rows: list[Defect] = []
     for d in found:
         x, y, w, h = d.bbox
@@ -280,44 +272,6 @@ def _crack_record(method: CrackMethod) -> dict[str, Any]:
     return {"method": "learned", **{k: record.get(k) for k in keys}}
 
 
-def _detect_mosaic(
-    source: Path,
-    out: Path,
-    mm_per_px: float | None,
-    method: CrackMethod = "proposed",
-    surface: SurfaceStats | None = None,
-    threads: int = 2,
-) -> list[Defect_]:
-    """Defects of a mosaic (in ``source``) that fits in memory, found in one pass on
-    ``threads``; writes the mask PNGs into ``out``."""
-    mosaic = cv2.imread(str(source / "mosaic.png"), cv2.IMREAD_COLOR)
-    if mosaic is None:
-        raise ValueError("mosaic.png cannot be read")
-    coverage = cv2.imread(str(source / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
-    if coverage is None or coverage.shape != mosaic.shape[:2]:
-        coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
-    seams = (
-        cv2.imread(str(source / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE)
-        if (source / "mosaic_seams.png").is_file()
-        else None
-    )
-    seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
-    valid = on_surface(mosaic, coverage)
-    cracks, rust, found = detect_in(
-        mosaic,
-        mm_per_px,
-        valid,
-        seams,
-        workers=threads,
-        method=method,
-        surface=surface,
-        network_threads=threads,
-    )
-    write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
-    write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
-    return found
-
-
 def _detect_mosaic_banded(
     ctx: JobContext,
     source: Path,
@@ -347,8 +301,6 @@ def _detect_mosaic_banded(
         level,
         progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m),
         map_bands=ctx.map,
-        parallel=ctx.threads if ctx.fanout is None else 1,  # bands in memory at once here
-        min_bands=1 if ctx.fanout is None else BANDS_TO_SHARE,
     )
 
 

@@ -12,13 +12,53 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from processing.crack_filter import sample_surface
-from processing.detection import defect_masks
+from processing.crack_filter import SurfaceStats, sample_surface
+from processing.defects import Defect as Defect_
+from processing.detection import CrackMethod, defect_masks
 from processing.surface import on_surface, surface_level
 from server.jobs.banded import MAX_PIECES, detect_banded, pieces_of
-from server.jobs.detect import _detect_mosaic
+from server.jobs.context import write_png
+from server.jobs.detect import detect_in
 from server.storage.png_segments import join_segments, read_rows, write_segment
 from tests.conftest import LiveServer
+
+
+def one_pass(
+    source: Path,
+    out: Path,
+    mm_per_px: float | None,
+    method: CrackMethod = "proposed",
+    surface: SurfaceStats | None = None,
+    threads: int = 2,
+) -> list[Defect_]:
+    """The reference: defects of a mosaic (in ``source``) found in one pass over it in
+    memory, on ``threads``; writes the mask PNGs into ``out``."""
+    mosaic = cv2.imread(str(source / "mosaic.png"), cv2.IMREAD_COLOR)
+    if mosaic is None:
+        raise ValueError("mosaic.png cannot be read")
+    coverage = cv2.imread(str(source / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
+    if coverage is None or coverage.shape != mosaic.shape[:2]:
+        coverage = np.any(mosaic > 0, axis=2).astype(np.uint8) * 255
+    seams = (
+        cv2.imread(str(source / "mosaic_seams.png"), cv2.IMREAD_GRAYSCALE)
+        if (source / "mosaic_seams.png").is_file()
+        else None
+    )
+    seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
+    valid = on_surface(mosaic, coverage)
+    cracks, rust, found = detect_in(
+        mosaic,
+        mm_per_px,
+        valid,
+        seams,
+        workers=threads,
+        method=method,
+        surface=surface,
+        network_threads=threads,
+    )
+    write_png(out / "crack_mask.png", cracks.astype(np.uint8) * 255)
+    write_png(out / "corrosion_mask.png", rust.astype(np.uint8) * 255)
+    return found
 
 
 def test_pieces_are_runs_of_whole_segments_covering_every_row(tmp_path: Path) -> None:
@@ -45,7 +85,7 @@ def test_banded_detection_matches_the_one_pass_result(
     shutil.copytree(live.settings.data_dir / "sessions" / sid / "results", results)
     mosaic = cv2.imread(str(results / "mosaic.png"), cv2.IMREAD_COLOR)
     surface = sample_surface(mosaic)
-    one = _detect_mosaic(results, results, 0.25, surface=surface)
+    one = one_pass(results, results, 0.25, surface=surface)
     coverage = cv2.imread(str(results / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
     level = surface_level(mosaic, coverage)
     assert on_surface(mosaic, coverage, level).any()
@@ -75,6 +115,6 @@ def test_banded_detection_matches_the_one_pass_result(
     seams = np.zeros(mosaic.shape[:2], np.uint8)
     seams[:, ::97] = 255
     cv2.imwrite(str(results / "mosaic_seams.png"), seams)
-    one = _detect_mosaic(results, results, 0.25, surface=surface)
+    one = one_pass(results, results, 0.25, surface=surface)
     across = detect_banded(results, results, masks_of, 0.25, level, rows=200)
     assert sorted(map(key, across)) == sorted(map(key, one))
