@@ -146,6 +146,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 state.factory, state.hub, asyncio.get_running_loop(), settings.detect_method
             )
         state.jobs.start()
+        if settings.auto_process:  # data stored after a processing whose re-run was lost
+            await anyio.to_thread.run_sync(state.jobs.catch_up)
         reaper = asyncio.create_task(_end_quiet_sessions(state))
         first = (
             asyncio.create_task(_keep_the_station_first(settings.realtime_priority))

@@ -21,7 +21,7 @@ from server.jobs import leases
 from server.jobs.inputs import is_current, latest_inputs, stored_inputs
 from server.jobs.orphans import init_worker
 from server.jobs.worker import JOB_KINDS, PIPELINE, run_job
-from server.storage.models import Job, JobState, utcnow
+from server.storage.models import InspectionSession, Job, JobState, SessionStatus, utcnow
 
 Send = Callable[[int], None]  # hands a job id to a job queue
 MAX_ATTEMPTS = 3  # attempts a job gets when the station stops under it
@@ -170,6 +170,21 @@ class JobRunner:
                 return []
         log.info("session %s: data stored after its processing; processing it again", session_id)
         return self.enqueue_pipeline(session_id)
+
+    def catch_up(self) -> int:
+        """Look again at every ended session that was processed: one that holds data its
+        newest processing does not cover (its re-run was lost when the station stopped) is
+        processed again. How many were looked at."""
+        with self.factory() as db:
+            sids = db.scalars(
+                select(Job.session_id)
+                .join(InspectionSession, InspectionSession.id == Job.session_id)
+                .where(Job.kind == "stitch", InspectionSession.status == SessionStatus.ended)
+                .distinct()
+            ).all()
+        for sid in sids:
+            self.mark_stale(sid)
+        return len(sids)
 
     def mark_stale(self, session_id: str) -> None:
         """Data was stored into an ended session: :meth:`refresh` it once no more has come

@@ -95,3 +95,37 @@ def test_the_database_refuses_to_reopen_an_ended_session(live_server: LiveServer
     finally:
         engine.dispose()
     assert httpx.get(f"{live_server.url}/api/sessions/{sid}").json()["status"] == "ended"
+
+
+def test_a_re_run_lost_with_a_stop_is_caught_up_at_the_next_start(settings) -> None:  # type: ignore[no-untyped-def]
+    from server.loopback import BackgroundServer, free_port
+    from tests.conftest import make_token
+
+    token = make_token(settings)
+    sid = uuid.uuid4()
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    live = LiveServer(server.url, settings, token)
+    try:
+        with robot_ws(live) as ws:
+            _send(ws, start(sid))
+            _send(ws, frame(sid, 2))
+            _send(ws, _end(sid, 20))
+            deadline = time.monotonic() + 10
+            while not _stitch_jobs(live, sid):
+                assert time.monotonic() < deadline
+                time.sleep(0.1)
+            assert _send(ws, frame(sid, 3)).meta["status"] == "stored"
+    finally:
+        server.stop()  # before the late frame's re-run settled
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    live = LiveServer(server.url, settings, token)
+    try:
+        deadline = time.monotonic() + 30
+        while not (cover := session_json(live, sid)["results_cover"])["current"]:
+            assert time.monotonic() < deadline, cover
+            time.sleep(0.2)
+        assert cover["frames"] == 2
+    finally:
+        server.stop()

@@ -87,6 +87,9 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
         wait_js(
             page, "document.querySelector('#session-coverage').textContent.includes('m² imaged')"
         )
+        # which data the results were made from: all of it
+        cover = page.inner_text("#results-cover")
+        assert "frames" in cover and "everything the session holds" in cover, cover
         # defects carry their session number (#1, #2, ...) in the table and on the mosaic
         numbers = page.locator("#defects tr[data-defect] td:first-child").all_inner_texts()
         assert sorted(numbers, key=lambda n: int(n[1:])) == [
