@@ -146,8 +146,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 state.factory, state.hub, asyncio.get_running_loop(), settings.detect_method
             )
         state.jobs.start()
-        if settings.auto_process:  # data stored after a processing whose re-run was lost
-            await anyio.to_thread.run_sync(state.jobs.catch_up)
         reaper = asyncio.create_task(_end_quiet_sessions(state))
         first = (
             asyncio.create_task(_keep_the_station_first(settings.realtime_priority))
@@ -155,11 +153,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             else None
         )
         freeze_startup_objects()  # a full collection would pause every robot's link
+        # data stored after a processing whose re-run was lost with a stop (after the
+        # freeze: what it makes is not start-up's)
+        caught_up = (
+            asyncio.create_task(anyio.to_thread.run_sync(state.jobs.catch_up))
+            if settings.auto_process
+            else None
+        )
         try:
             yield
         finally:
             gc.unfreeze()  # an app run inside another program leaves its heap as it was
             reaper.cancel()
+            if caught_up is not None:
+                await asyncio.gather(caught_up, return_exceptions=True)
             if first is not None:
                 first.cancel()
             state.passwords.executor.shutdown(wait=False)
