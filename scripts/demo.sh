@@ -2,5 +2,5 @@
 # Set up (first run only) and run the end-to-end demo. Extra arguments go to `steelscan demo`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-STEELSCAN_BROWSER_TESTS=0 scripts/setup.sh
+scripts/setup.sh run
 exec .venv/bin/steelscan demo "$@"

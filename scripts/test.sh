@@ -4,6 +4,6 @@
 # pytest: `-n 0` runs every test in this one process.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-scripts/setup.sh
+scripts/setup.sh test
 cores=$(nproc 2>/dev/null || echo 1)
 exec .venv/bin/python -m pytest -n "$(( cores < 4 ? cores : 4 ))" --dist worksteal "$@"
