@@ -207,11 +207,10 @@ def _mosaic_throughput() -> Iterator[Result]:
     and each crack filter alone."""
     from skimage.filters import threshold_sauvola
 
-    from processing.detection import detect_cracks_tiled
+    from processing.detection import detect_cracks_tiled, find_defects
     from processing.learned import crack_probability
     from processing.surface import on_surface
     from robot_link.sim.structure import make_structure
-    from server.jobs.detect import detect_in
 
     mosaic = make_structure(11).texture
     h, w = mosaic.shape[:2]
@@ -224,11 +223,11 @@ def _mosaic_throughput() -> Iterator[Result]:
     _ = gray < threshold_sauvola(gray, window_size=25, k=0.2)
     base = mp / (time.perf_counter() - t0)
     for method in ("proposed", "learned"):
-        detect_in(mosaic[:512, :512], 0.25, method=method)  # warm-up
+        find_defects(mosaic[:512, :512], 0.25, method=method)  # warm-up
         runs = []
         for _ in range(3):
             t0 = time.perf_counter()
-            _, _, found = detect_in(
+            _, _, found = find_defects(
                 mosaic, 0.25, on_surface(mosaic, coverage), seams, method=method
             )
             runs.append(time.perf_counter() - t0)

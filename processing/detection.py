@@ -11,7 +11,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any, Literal
 
 import cv2
@@ -28,7 +29,7 @@ from processing.crack_filter import (
     proposed_with_contrast,
     sample_surface,
 )
-from processing.defects import Components
+from processing.defects import Components, Defect, measure_defects
 from processing.learned import LearnedParams, learned_cracks
 from processing.peaks import dominant_peaks, smooth_histogram, valley_emphasis_threshold
 from processing.region_growing import grow_regions
@@ -280,3 +281,50 @@ def _off_lines(
     keep = on <= max_fraction * np.maximum(comps.stats[:, cv2.CC_STAT_AREA], 1)
     keep[0] = False
     return keep
+
+
+def find_defects(
+    image: NDArray[np.uint8],
+    mm_per_px: float | None,
+    valid: NDArray[np.bool_] | None = None,
+    seams: NDArray[np.bool_] | None = None,
+    workers: int = 2,
+    method: CrackMethod = "proposed",
+    surface: SurfaceStats | None = None,
+    network_threads: int = 2,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], list[Defect]]:
+    """Crack (by ``method``) and rust masks of one (H, W, 3) uint8 BGR image, and its
+    defects measured (``mm_per_px``: the image's scale, None for pixels only); rust and
+    cracks are measured on two threads when ``workers`` allows."""
+    masks = defect_masks(
+        image,
+        valid,
+        seams,
+        crack_method=method,
+        surface=surface,
+        workers=workers,
+        learned_params=LearnedParams(threads=network_threads),
+    )
+    cracks = partial(
+        measure_defects,
+        masks.cracks,
+        "crack",
+        mm_per_px=mm_per_px,
+        contrast=masks.contrast,
+        components=masks.crack_components,
+    )
+    rust = partial(
+        measure_defects,
+        masks.rust,
+        "corrosion",
+        mm_per_px=mm_per_px,
+        components=masks.rust_components,
+    )
+    if workers <= 1:
+        found, rusty = cracks(), rust()
+    else:
+        with ThreadPoolExecutor(max_workers=2) as pool:  # labelling and distances release the GIL
+            other = pool.submit(rust)
+            found, rusty = cracks(), other.result()
+    found += [replace(d, id=len(found) + d.id) for d in rusty]
+    return masks.cracks, masks.rust, found

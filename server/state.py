@@ -8,12 +8,11 @@ from typing import Any
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.api.accounts import LoginThrottle, PasswordBudget
 from server.config import Settings
 from server.jobs.runner import JobRunner
+from server.limits import LoginThrottle, MalformedGuard, PasswordBudget
 from server.link.group_commit import GroupCommit
 from server.link.ingest import Ingest
-from server.link.limits import MalformedGuard
 from server.live.hub import LiveHub
 from server.live.live_detect import LiveDetect
 from server.live.live_map import LiveMap

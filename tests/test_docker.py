@@ -14,7 +14,7 @@ import jsonschema
 import yaml
 
 from bench.scale import POSTGRES_REALTIME, STATION_REALTIME
-from server.cli import build_parser
+from server.cli.main import build_parser
 from server.config import Settings
 
 ROOT = Path(__file__).resolve().parent.parent

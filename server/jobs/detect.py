@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import time
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -20,8 +18,7 @@ from sqlalchemy.orm import Session
 from processing.corrosion import CorrosionParams
 from processing.crack_filter import CrackParams, SurfaceStats, measure_surface
 from processing.defects import Defect as Defect_
-from processing.defects import measure_defects
-from processing.detection import CrackMethod, defect_masks
+from processing.detection import CrackMethod, defect_masks, find_defects
 from processing.learned import LearnedParams, load_model
 from processing.poses import compose_se2, world_box
 from processing.surface import surface_level
@@ -66,51 +63,6 @@ def _defect_row(
     )
 
 
-def detect_in(
-    image: np.ndarray,
-    mm_per_px: float | None,
-    valid: np.ndarray | None = None,
-    seams: np.ndarray | None = None,
-    workers: int = 2,
-    method: CrackMethod = "proposed",
-    surface: SurfaceStats | None = None,
-    network_threads: int = 2,
-) -> tuple[np.ndarray, np.ndarray, list[Defect_]]:
-    """Crack (by ``method``) and rust masks of one image and its measured defects."""
-    masks = defect_masks(
-        image,
-        valid,
-        seams,
-        crack_method=method,
-        surface=surface,
-        workers=workers,
-        learned_params=LearnedParams(threads=network_threads),
-    )
-    cracks = partial(
-        measure_defects,
-        masks.cracks,
-        "crack",
-        mm_per_px=mm_per_px,
-        contrast=masks.contrast,
-        components=masks.crack_components,
-    )
-    rust = partial(
-        measure_defects,
-        masks.rust,
-        "corrosion",
-        mm_per_px=mm_per_px,
-        components=masks.rust_components,
-    )
-    if workers <= 1:
-        found, rusty = cracks(), rust()
-    else:
-        with ThreadPoolExecutor(max_workers=2) as pool:  # labelling and distances release the GIL
-            other = pool.submit(rust)
-            found, rusty = cracks(), other.result()
-    found += [replace(d, id=len(found) + d.id) for d in rusty]
-    return masks.cracks, masks.rust, found
-
-
 def _detect_frames(ctx: JobContext) -> list[Defect]:
     """Defects of every camera frame, placed on the structure through the frame's pose; the
     frames are independent parts (:meth:`JobContext.map`: threads here, or other workers)."""
@@ -148,7 +100,7 @@ def detect_frame(
         return None
     if img is None:
         return None
-    found = detect_in(img, mm_per_px, workers=1, method=method, network_threads=threads)[2]
+    found = find_defects(img, mm_per_px, workers=1, method=method, network_threads=threads)[2]
     return (img.shape[1], img.shape[0]), found
 
 

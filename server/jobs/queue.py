@@ -116,7 +116,7 @@ def _init_worker_process(**_: Any) -> None:
     """Each worker process: idle priority (below the live link of a station on the same
     machine), arrays on the heap, and ``worker_threads`` threads per library (a process per
     core scales: ``--concurrency``)."""
-    from server.jobs.allocator import keep_arrays_on_heap
+    from server.process.allocator import keep_arrays_on_heap
 
     limit_threads(_settings().worker_threads)
     yield_to_the_station()

@@ -19,8 +19,8 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.jobs import leases
 from server.jobs.inputs import is_current, latest_inputs, stored_inputs
-from server.jobs.orphans import init_worker
 from server.jobs.worker import JOB_KINDS, PIPELINE, run_job
+from server.process.orphans import init_worker
 from server.storage.models import InspectionSession, Job, JobState, SessionStatus, utcnow
 
 Send = Callable[[int], None]  # hands a job id to a job queue

@@ -22,7 +22,7 @@ from robot_link.protocol import (
     encode_message,
 )
 from server.errors import IngestError
-from server.link.limits import TokenBucket
+from server.limits import TokenBucket
 from server.link.robots import authenticate_robot, hash_token
 from server.storage.space import is_disk_full
 

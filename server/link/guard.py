@@ -14,7 +14,7 @@ from collections import OrderedDict, defaultdict
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from server.link.limits import TokenBucket
+from server.limits import TokenBucket
 
 log = logging.getLogger(__name__)
 NEW_PER_S, NEW_BURST = 100.0, 300.0  # new connections an address may open (a reconnect storm)

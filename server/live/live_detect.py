@@ -23,13 +23,13 @@ def _detect(
     """In the worker: the defects of one frame as world boxes (metres)."""
     import cv2
 
+    from processing.detection import find_defects
     from processing.poses import world_box
-    from server.jobs.detect import detect_in
 
     image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
     if image is None:
         return []
-    found = detect_in(image, 1000.0 / px_per_m, workers=1, method=method)[2]  # type: ignore[arg-type]
+    found = find_defects(image, 1000.0 / px_per_m, workers=1, method=method)[2]  # type: ignore[arg-type]
     size = (image.shape[1], image.shape[0])
     return [
         {

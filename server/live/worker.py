@@ -15,7 +15,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any
 
-from server.jobs.orphans import init_worker
+from server.process.orphans import init_worker
 
 log = logging.getLogger(__name__)
 WARMING_CAP = 64  # items that may wait for a worker still warming up

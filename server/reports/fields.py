@@ -1,5 +1,12 @@
 """Fields every report format shares: defect columns, condition states, the generator."""
 
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from server.storage.models import Defect
+
 GENERATOR = "steelscan 0.1.0"
 CONDITION_STATES = ("CS1", "CS2", "CS3", "CS4")
 CONDITION_MEANING = {"CS1": "good", "CS2": "fair", "CS3": "poor", "CS4": "severe"}
@@ -31,3 +38,17 @@ DEFECT_FIELDS = (
     "reviewed_by",
     "reviewed_at",
 )
+
+# what a defect's stored record holds (all of its row but the session and job it belongs to)
+RECORD_FIELDS = tuple(
+    c.key for c in Defect.__table__.columns if c.key not in ("session_id", "job_id")
+)
+
+
+def defect_record(d: Defect) -> dict[str, Any]:
+    """A defect's row as JSON-ready data (times as ISO 8601), as the REST API gives it."""
+    out: dict[str, Any] = {}
+    for key in RECORD_FIELDS:
+        value = getattr(d, key)
+        out[key] = value.isoformat() if isinstance(value, datetime) else value
+    return out

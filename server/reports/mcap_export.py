@@ -47,7 +47,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from robot_link.clouds import decode_cloud
-from server.reports.fields import GENERATOR
+from server.reports.fields import GENERATOR, defect_record
 from server.reports.mcap_common import JSON_SCHEMA, METADATA, Progress
 from server.storage.files import SessionFiles
 from server.storage.models import (
@@ -323,13 +323,7 @@ def _write_results(
         db.scalars(select(Defect).where(Defect.session_id == session_id).order_by(Defect.id))
     )
     if defects:
-        from server.api.schemas import DefectPublic
-
-        ch.write(
-            "/inspection/defects",
-            {"defects": [DefectPublic.model_validate(d).model_dump(mode="json") for d in defects]},
-            t,
-        )
+        ch.write("/inspection/defects", {"defects": [defect_record(d) for d in defects]}, t)
         placed = [d for d in defects if d.source == "mosaic" and d.world_x_m is not None]
         if placed:
             ch.write("/inspection/defect_markers", _defect_markers(placed, t), t)

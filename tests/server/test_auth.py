@@ -188,7 +188,7 @@ def test_password_guessing_is_throttled_and_the_right_password_still_works_later
 
 
 def test_login_throttle_forgets_on_success_and_stays_bounded() -> None:
-    from server.api.accounts import LoginThrottle
+    from server.limits import LoginThrottle
 
     throttle = LoginThrottle(max_failures=2, window_s=60, max_keys=3)
     throttle.failed("a", "u")
@@ -242,7 +242,7 @@ def test_a_browser_flooding_or_sending_huge_messages_is_refused_but_can_always_s
 
 
 def test_guessing_over_many_user_names_is_throttled_per_client() -> None:
-    from server.api.accounts import LoginThrottle
+    from server.limits import LoginThrottle
 
     throttle = LoginThrottle(max_failures=5, window_s=60, max_client_failures=20)
     for k in range(20):
@@ -260,7 +260,7 @@ def test_password_checks_have_a_budget_per_address_and_for_the_station(
     """A login flood from one address (random user names) is answered 429 beyond that
     address's share, before any hashing: it can neither take the CPU ingest needs nor
     spend the station's budget, so an operator at another address still signs in."""
-    from server.api.accounts import PasswordBudget
+    from server.limits import PasswordBudget
 
     budget = PasswordBudget(rate=1.0, burst=3.0, client_rate=0.1, client_burst=2.0)
     assert [budget.take_for("a") for _ in range(3)] == [True, True, False]

@@ -14,11 +14,10 @@ import numpy as np
 
 from processing.crack_filter import SurfaceStats, sample_surface
 from processing.defects import Defect as Defect_
-from processing.detection import CrackMethod, defect_masks
+from processing.detection import CrackMethod, defect_masks, find_defects
 from processing.surface import on_surface, surface_level
 from server.jobs.banded import MAX_PIECES, detect_banded, pieces_of
 from server.jobs.context import write_png
-from server.jobs.detect import detect_in
 from server.storage.png_segments import join_segments, read_rows, write_segment
 from tests.conftest import LiveServer
 
@@ -46,7 +45,7 @@ def one_pass(
     )
     seams = seams > 0 if seams is not None and seams.shape == mosaic.shape[:2] else None
     valid = on_surface(mosaic, coverage)
-    cracks, rust, found = detect_in(
+    cracks, rust, found = find_defects(
         mosaic,
         mm_per_px,
         valid,

@@ -364,7 +364,7 @@ def test_detect_job_method_is_chosen_per_job_and_reviews_carry_over(
     assert job["result"]["reviews_carried_over"] >= 1
     from processing.metrics import Box, match_defects
     from robot_link.sim.structure import make_structure
-    from server.demo import world_boxes
+    from server.cli.demo import world_boxes
 
     truth = [Box(d.defect_class, *d.bbox_m) for d in make_structure(11).defects]
     again = httpx.get(f"{url}/api/sessions/{sid}/defects", params=mosaic).json()["data"]

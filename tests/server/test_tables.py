@@ -42,3 +42,10 @@ def test_formula_like_comments_are_quoted(comment: str) -> None:
 @pytest.mark.parametrize("comment", ["crack at weld toe", "2 mm wide", "Riß", ""])
 def test_plain_comments_pass_unchanged(comment: str) -> None:
     assert _comment_cell(comment) == comment
+
+
+def test_the_mcap_defect_record_has_the_rest_apis_fields() -> None:
+    from server.api.schemas import DefectPublic
+    from server.reports.fields import RECORD_FIELDS
+
+    assert set(RECORD_FIELDS) == set(DefectPublic.model_fields)

@@ -13,7 +13,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from robot_link.protocol import STOP_COMMANDS, ProtocolError
 from server.api.accounts import accounts_exist, has_role, user_for_token
 from server.api.deps import same_origin
-from server.link.limits import TokenBucket
+from server.limits import TokenBucket
 from server.live.messages import BadBrowserMessage, ControlMessage, is_stop, parse_browser_message
 from server.storage.models import InspectionSession, Role, User
 

@@ -7,7 +7,7 @@ import argparse
 import sys
 
 from server.errors import CommandError
-from server.session_commands import settings_from_args
+from server.cli.session_commands import settings_from_args
 
 
 def cmd_create_robot(args: argparse.Namespace) -> int:

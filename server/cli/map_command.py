@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 
 from server.errors import CommandError
-from server.inputs import list_files, read_odometry
+from server.cli.inputs import list_files, read_odometry
 from server.storage.files import write_atomic
 
 log = logging.getLogger(__name__)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 import threading
 
-from server.jobs.allocator import keep_arrays_on_heap
+from server.process.allocator import keep_arrays_on_heap
 
 PARENT_POLL_S = 0.5
 

@@ -9,11 +9,12 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Sequence
+from importlib.metadata import entry_points
 from pathlib import Path
 
 from server.errors import CommandError
-from server.jobs.allocator import keep_arrays_on_heap
 from server.logs import RedactSecrets, uvicorn_log_config
+from server.process.allocator import keep_arrays_on_heap
 
 Command = Callable[[argparse.Namespace], int]
 
@@ -36,7 +37,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from server.main import create_app
-    from server.session_commands import settings_from_args
+    from server.cli.session_commands import settings_from_args
 
     settings = settings_from_args(args)
     host = args.host or settings.host
@@ -128,8 +129,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run the ground station, the simulated robot and the jobs; print the summary."""
-    from server.demo import run_demo
-    from server.session_commands import settings_from_args
+    from server.cli.demo import run_demo
+    from server.cli.session_commands import settings_from_args
 
     settings = settings_from_args(args)
     return run_demo(
@@ -145,7 +146,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_detect(args: argparse.Namespace) -> int:
     """Segment defects in images."""
-    from server.commands import detect_images
+    from server.cli.commands import detect_images
 
     detect_images(
         [Path(p) for p in args.images], Path(args.out), method=args.method, px_per_mm=args.px_per_mm
@@ -180,7 +181,7 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
 
 def cmd_stitch(args: argparse.Namespace) -> int:
     """Stitch a folder of frames."""
-    from server.commands import stitch_folder
+    from server.cli.commands import stitch_folder
 
     stitch_folder(
         Path(args.frames_dir),
@@ -193,26 +194,13 @@ def cmd_stitch(args: argparse.Namespace) -> int:
 
 def cmd_map(args: argparse.Namespace) -> int:
     """Register a folder of point clouds into a map."""
-    from server.map_command import map_folder
+    from server.cli.map_command import map_folder
 
     map_folder(
         Path(args.clouds_dir),
         Path(args.out),
         odometry=Path(args.odometry) if args.odometry else None,
         units=args.units,
-    )
-    return 0
-
-
-def cmd_bench(args: argparse.Namespace) -> int:
-    """Run benchmarks; one JSON line per result."""
-    from bench import run_benchmarks
-
-    run_benchmarks(
-        args.names,
-        dataset=Path(args.dataset) if args.dataset else None,
-        limit=args.limit,
-        models=Path(args.models) if args.models else None,
     )
     return 0
 
@@ -342,33 +330,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=cmd_map, image_work=True)
 
-    s = sub.add_parser("bench", help="benchmarks against baselines measured in the same run")
-    s.add_argument(
-        "names",
-        nargs="*",
-        help="benchmarks to run: detect, stitch, map, ingest, teleop (the default set), stitch-scale, scale",
-    )
-    s.add_argument(
-        "--dataset", help="one dataset folder with images/ and masks/ (detect; default: all)"
-    )
-    s.add_argument(
-        "--models", help="folder of leave-one-out networks, <dataset>.onnx (detect: learned)"
-    )
-    s.add_argument("--limit", type=int, help="use at most this many images")
-    s.set_defaults(func=cmd_bench, image_work=True)
+    for plugin in entry_points(group="steelscan.commands"):  # the benchmarks: bench.cli
+        plugin.load()(sub)
 
     s = sub.add_parser(
         "import", help="import a session's MCAP log (as exported) into a new session"
     )
     s.add_argument("file")
     s.add_argument("--data-dir")
-    s.set_defaults(func=_imported_when_run("server.session_commands", "cmd_import"))
+    s.set_defaults(func=_imported_when_run("server.cli.session_commands", "cmd_import"))
 
     s = sub.add_parser("export", help="write a session as an MCAP log that opens in Foxglove")
     s.add_argument("session_id")
     s.add_argument("--out", required=True)
     s.add_argument("--data-dir")
-    s.set_defaults(func=_imported_when_run("server.session_commands", "cmd_export"))
+    s.set_defaults(func=_imported_when_run("server.cli.session_commands", "cmd_export"))
 
     s = sub.add_parser(
         "report", help="write a session's inspection report (PDF, JSON, CSV) into a folder"
@@ -376,7 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("session_id")
     s.add_argument("--out", required=True)
     s.add_argument("--data-dir")
-    s.set_defaults(func=_imported_when_run("server.session_commands", "cmd_report"))
+    s.set_defaults(func=_imported_when_run("server.cli.session_commands", "cmd_report"))
 
     admin = sub.add_parser("admin", help="accounts and robots")
     asub = admin.add_subparsers(dest="admin_command", required=True)
@@ -384,11 +360,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("name")
     s.add_argument("--role", required=True, choices=["admin", "operator", "viewer"])
     s.add_argument("--data-dir")
-    s.set_defaults(func=_imported_when_run("server.admin_commands", "cmd_create_user"))
+    s.set_defaults(func=_imported_when_run("server.cli.admin_commands", "cmd_create_user"))
     s = asub.add_parser("create-robot", help="register a robot and print its token")
     s.add_argument("name")
     s.add_argument("--data-dir")
-    s.set_defaults(func=_imported_when_run("server.admin_commands", "cmd_create_robot"))
+    s.set_defaults(func=_imported_when_run("server.cli.admin_commands", "cmd_create_robot"))
     return p
 
 

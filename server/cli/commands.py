@@ -1,4 +1,4 @@
-"""File-based commands (detect, stitch; map: :mod:`server.map_command`): read inputs, call ``processing``, write outputs.
+"""File-based commands (detect, stitch; map: :mod:`server.cli.map_command`): read inputs, call ``processing``, write outputs.
 
 Every output is written atomically, so a failed command leaves no half-written file.
 """
@@ -20,7 +20,7 @@ from processing.detection import detect_cracks, detect_cracks_tiled
 from processing.poses import yaw_of
 from processing.stitching import plan_mosaic, render_bands
 from server.errors import CommandError
-from server.inputs import list_files, read_odometry
+from server.cli.inputs import list_files, read_odometry
 from server.storage.files import write_atomic
 from server.storage.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
 
