@@ -6,8 +6,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from server.errors import CommandError
 from server.cli.session_commands import settings_from_args
+from server.errors import CommandError
 
 
 def cmd_create_robot(args: argparse.Namespace) -> int:

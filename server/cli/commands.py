@@ -19,8 +19,8 @@ from processing.defects import measure_defects
 from processing.detection import detect_cracks, detect_cracks_tiled
 from processing.poses import yaw_of
 from processing.stitching import plan_mosaic, render_bands
-from server.errors import CommandError
 from server.cli.inputs import list_files, read_odometry
+from server.errors import CommandError
 from server.storage.files import write_atomic
 from server.storage.mosaic_files import ImageFiles, frame_records, image_header, write_mosaic
 

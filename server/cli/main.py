@@ -36,8 +36,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the ground station until interrupted."""
     import uvicorn
 
-    from server.main import create_app
     from server.cli.session_commands import settings_from_args
+    from server.main import create_app
 
     settings = settings_from_args(args)
     host = args.host or settings.host

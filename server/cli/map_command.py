@@ -18,8 +18,8 @@ from typing import Literal
 
 import numpy as np
 
-from server.errors import CommandError
 from server.cli.inputs import list_files, read_odometry
+from server.errors import CommandError
 from server.storage.files import write_atomic
 
 log = logging.getLogger(__name__)

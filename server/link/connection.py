@@ -24,6 +24,7 @@ from robot_link.protocol import (
 from server.errors import IngestError
 from server.limits import TokenBucket
 from server.link.robots import authenticate_robot, hash_token
+from server.live.events import CommandAck, FrameHeader, Session, Telemetry
 from server.storage.space import is_disk_full
 
 log = logging.getLogger(__name__)
@@ -152,24 +153,21 @@ class RobotConnection:
             return
         if message.type is MessageType.VIDEO:  # live preview: relayed, never stored or acknowledged
             if within_rate:
-                self.state.hub.publish_frame(
-                    {
-                        "session_id": str(message.session_id),
-                        "seq": message.seq,
-                        "t": message.timestamp,
-                        "video": True,
-                    },
-                    message.payload,
+                header = FrameHeader(
+                    session_id=str(message.session_id),
+                    seq=message.seq,
+                    t=message.timestamp,
+                    video=True,
                 )
+                self.state.hub.publish_frame(header, message.payload)
             return
         if message.type is MessageType.COMMAND_ACK:
-            self.state.hub.publish_json(
-                {
-                    "type": "command_ack",
-                    "session_id": str(message.session_id),
-                    "seq": message.seq,
-                    **message.meta,
-                }
+            self.state.hub.publish(
+                CommandAck(
+                    **{k: v for k, v in message.meta.items() if k not in ("type", "seq")},
+                    session_id=str(message.session_id),
+                    seq=message.seq,
+                )
             )
             return
         if not within_rate:
@@ -278,32 +276,15 @@ class RobotConnection:
                 sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"])
             )
         if message.type is MessageType.FRAME:
-            hub.publish_frame(
-                {
-                    "session_id": sid,
-                    "seq": message.seq,
-                    "t": message.timestamp,
-                    "pose": message.meta.get("pose"),
-                },
-                message.payload,
+            header = FrameHeader(
+                session_id=sid, seq=message.seq, t=message.timestamp, pose=message.meta.get("pose")
             )
+            hub.publish_frame(header, message.payload)
         elif message.type is MessageType.TELEMETRY:
-            hub.publish_json(
-                {
-                    "type": "telemetry",
-                    "session_id": sid,
-                    "data": {**message.meta, "t": message.timestamp},
-                }
-            )
+            hub.publish(Telemetry(session_id=sid, data={**message.meta, "t": message.timestamp}))
         elif message.type in (MessageType.SESSION_START, MessageType.SESSION_END):
-            hub.publish_json(
-                {
-                    "type": "session",
-                    "session_id": sid,
-                    "event": message.type.name.lower(),
-                    "robot": self.robot_name,
-                }
-            )
+            event = "session_start" if message.type is MessageType.SESSION_START else "session_end"
+            hub.publish(Session(session_id=sid, event=event, robot=self.robot_name))
 
 
 def _first_line(exc: BaseException) -> str:

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import json
-import struct
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
+
+from server.live.events import Control, Event, FrameHeader, Hello, Robot, Session, Telemetry
 
 SendCommand = Callable[[str, dict[str, Any]], Awaitable[int]]
 
@@ -32,12 +32,6 @@ class Watcher:
             except asyncio.QueueFull:
                 self.queue.get_nowait()
                 self.dropped += 1
-
-
-def pack_frame(header: dict[str, Any], jpeg: bytes) -> bytes:
-    """Binary message for a browser: u32 header length, JSON header, JPEG bytes."""
-    head = json.dumps(header, separators=(",", ":")).encode()
-    return struct.pack("<I", len(head)) + head + jpeg
 
 
 class LiveHub:
@@ -68,13 +62,13 @@ class LiveHub:
             queue=asyncio.Queue(maxsize=self.queue_size), id=next(self._watcher_ids), user=user
         )
         self.watchers.add(watcher)
-        watcher.offer(json.dumps({"type": "hello", "watcher_id": watcher.id}))
+        watcher.offer(Hello(watcher_id=watcher.id).text())
         for sid in self.robots:
-            watcher.offer(json.dumps(self._robot_event(sid, connected=True)))
+            watcher.offer(self._robot_event(sid, connected=True).text())
         for sid, telemetry in self.latest.items():
-            watcher.offer(json.dumps({"type": "telemetry", "session_id": sid, "data": telemetry}))
+            watcher.offer(Telemetry(session_id=sid, data=telemetry).text())
         for sid in self.controllers:
-            watcher.offer(json.dumps(self._control_event(sid)))
+            watcher.offer(self._control_event(sid).text())
         return watcher
 
     def unwatch(self, watcher: Watcher) -> list[str]:
@@ -85,22 +79,16 @@ class LiveHub:
             self.release_control(sid, watcher)
         return released
 
-    def _robot_event(self, session_id: str, *, connected: bool) -> dict[str, Any]:
-        return {
-            "type": "robot",
-            "session_id": session_id,
-            "connected": connected,
-            "robot": self.names.get(session_id, ""),
-        }
+    def _robot_event(self, session_id: str, *, connected: bool) -> Robot:
+        return Robot(
+            session_id=session_id, connected=connected, robot=self.names.get(session_id, "")
+        )
 
-    def _control_event(self, session_id: str) -> dict[str, Any]:
+    def _control_event(self, session_id: str) -> Control:
         w = self.controllers.get(session_id)
-        return {
-            "type": "control",
-            "session_id": session_id,
-            "holder": w.user if w else None,
-            "holder_id": w.id if w else None,
-        }
+        return Control(
+            session_id=session_id, holder=w.user if w else None, holder_id=w.id if w else None
+        )
 
     def take_control(self, session_id: str, watcher: Watcher, *, force: bool = False) -> str:
         """Make ``watcher`` the one that drives the robot of a session; '' on success, else
@@ -110,35 +98,35 @@ class LiveHub:
             return f"the robot is driven by {holder.user or 'another operator'}"
         self.controllers[session_id] = watcher
         if holder is not watcher:
-            self.publish_json(self._control_event(session_id))
+            self.publish(self._control_event(session_id))
         return ""
 
     def release_control(self, session_id: str, watcher: Watcher) -> None:
         """Give up driving a robot (only its holder can)."""
         if self.controllers.get(session_id) is watcher:
             del self.controllers[session_id]
-            self.publish_json(self._control_event(session_id))
+            self.publish(self._control_event(session_id))
 
     def controller(self, session_id: str) -> Watcher | None:
         """The browser that drives the robot of a session, if any."""
         return self.controllers.get(session_id)
 
-    def publish_json(self, event: dict[str, Any]) -> None:
-        """Send a JSON event to every browser (the last telemetry of a live session is kept
+    def publish(self, event: Event) -> None:
+        """Send an event to every browser (the last telemetry of a live session is kept
         for browsers that open later; an ended session's is dropped)."""
-        if event.get("type") == "telemetry":
-            self.latest[event["session_id"]] = event["data"]
-        elif event.get("type") == "session" and event.get("event") == "session_end":
-            self.latest.pop(event["session_id"], None)
-        text = json.dumps(event, separators=(",", ":"))
+        if isinstance(event, Telemetry):
+            self.latest[event.session_id] = event.data
+        elif isinstance(event, Session) and event.event == "session_end":
+            self.latest.pop(event.session_id, None)
+        text = event.text()
         for watcher in list(self.watchers):
             watcher.offer(text)
 
-    def publish_frame(self, header: dict[str, Any], jpeg: bytes) -> None:
+    def publish_frame(self, header: FrameHeader, jpeg: bytes) -> None:
         """Send a camera frame to every browser."""
         if not self.watchers:
             return
-        data = pack_frame(header, jpeg)
+        data = header.pack(jpeg)
         for watcher in list(self.watchers):
             watcher.offer(data)
 
@@ -146,13 +134,13 @@ class LiveHub:
         """A robot (registered as ``name``) streaming this session can now take commands."""
         self.robots[session_id] = sender
         self.names[session_id] = name
-        self.publish_json(self._robot_event(session_id, connected=True))
+        self.publish(self._robot_event(session_id, connected=True))
 
     def detach_robot(self, session_id: str, sender: SendCommand) -> None:
         """The robot of this session went away."""
         if self.robots.get(session_id) is sender:
             del self.robots[session_id]
-            self.publish_json(self._robot_event(session_id, connected=False))
+            self.publish(self._robot_event(session_id, connected=False))
             self.names.pop(session_id, None)
             self.latest.pop(session_id, None)
 

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from server.live.events import FrameDefects
 from server.live.worker import LiveWorker
 
 MAX_PENDING = 2  # frames waiting for the worker; beyond, frames are skipped
@@ -81,9 +82,8 @@ class LiveDetect:
         cam = compose_se2(robot, np.asarray(T_rc, dtype=np.float64)).tolist()
 
         def publish(defects: list[dict[str, Any]]) -> None:  # in the pool's thread
-            event = {"type": "frame_defects", "session_id": session_id, "seq": seq}
-            event["defects"] = defects
-            self.loop.call_soon_threadsafe(self.hub.publish_json, event)
+            event = FrameDefects(session_id=session_id, seq=seq, defects=defects)
+            self.loop.call_soon_threadsafe(self.hub.publish, event)
 
         return self.worker.submit(_detect, jpeg, cam, ppm, self.method, done=publish)
 

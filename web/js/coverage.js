@@ -6,6 +6,7 @@
 import { api, apiJSON, el, fmt, text } from "./api.js";
 import { selectedSession } from "./drive.js";
 import { on } from "./live.js";
+import { EVENT } from "./events.js";
 
 const POLL_MS = 1500;
 const THUMB_W = 160;
@@ -61,13 +62,13 @@ async function fetchMissing(sid) {
 }
 
 function onEvent(ev) {
-  if (ev.type === "frame_defects" && ev.session_id === state.sid) { // searched as it arrived
+  if (ev.type === EVENT.FRAME_DEFECTS && ev.session_id === state.sid) { // searched as it arrived
     for (const d of ev.defects) state.found.push({ seq: ev.seq, ...d });
     canvas.dataset.found = String(state.found.length);
     draw(); summary();
     return;
   }
-  if (ev.type === "telemetry" && ev.session_id === state.sid && ev.data.pose) {
+  if (ev.type === EVENT.TELEMETRY && ev.session_id === state.sid && ev.data.pose) {
     const p = ev.data.pose;
     state.pose = p;
     const last = state.trail[state.trail.length - 1];

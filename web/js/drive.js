@@ -4,6 +4,7 @@
 // an explicit stop when the input is released, the tab is hidden or loses focus.
 import { text } from "./api.js";
 import { link, on, send } from "./live.js";
+import { EVENT } from "./events.js";
 
 const REPEAT_MS = 50;
 const TURN_RADPS = 0.5;
@@ -201,22 +202,22 @@ function drawFrame(header, jpeg) {
 }
 
 function onEvent(ev) {
-  if (ev.type === "robot") {
+  if (ev.type === EVENT.ROBOT) {
     const r = robot(ev.session_id);
     r.connected = ev.connected;
     if (ev.robot) r.name = ev.robot;
     if (!ev.connected) r.lastTelemetry = null;
     refreshRobots();
   }
-  else if (ev.type === "control") {
+  else if (ev.type === EVENT.CONTROL) {
     const r = robot(ev.session_id); r.holder = ev.holder; r.holderId = ev.holder_id; refreshControl();
-  } else if (ev.type === "command_ack" && typeof ev.latency_ms === "number") {
+  } else if (ev.type === EVENT.COMMAND_ACK && typeof ev.latency_ms === "number") {
     stats.command.push(ev.latency_ms);
     if (stats.command.length > 5000) stats.command.shift();
     if (!ev.accepted && ev.reason) text(document.getElementById("command-result"), `robot refused ${ev.cmd}: ${ev.reason}`);
-  } else if (ev.type === "command_result") {
+  } else if (ev.type === EVENT.COMMAND_RESULT) {
     text(document.getElementById("command-result"), ev.ok ? `${ev.cmd} sent` : `${ev.cmd || "command"}: ${ev.error}`);
-  } else if (ev.type === "telemetry") {
+  } else if (ev.type === EVENT.TELEMETRY) {
     const r = robot(ev.session_id);
     r.lastTelemetry = ev.data;
     if (ev.session_id === selected && ev.data.lift) {
@@ -224,7 +225,7 @@ function onEvent(ev) {
     }
     if (ev.session_id === selected && ev.data.drive) text(document.getElementById("hold-ms"), String(ev.data.drive.hold_ms));
     refreshAlerts();
-  } else if (ev.type === "session" && ev.event === "session_end") {
+  } else if (ev.type === EVENT.SESSION && ev.event === "session_end") {
     const r = robot(ev.session_id);
     r.connected = false; r.lastTelemetry = null;
     const wasSelected = ev.session_id === selected;

@@ -1,5 +1,6 @@
 // The browser's live link (/ws/live): JSON events and binary camera frames in, commands out.
 import { text, token } from "./api.js";
+import { EVENT } from "./events.js";
 
 const handlers = { event: [], frame: [] };
 let socket = null;
@@ -23,7 +24,7 @@ export function connect() {
   socket.onmessage = (ev) => {
     if (typeof ev.data === "string") {
       const event = JSON.parse(ev.data);
-      if (event.type === "hello") link.watcherId = event.watcher_id;
+      if (event.type === EVENT.HELLO) link.watcherId = event.watcher_id;
       handlers.event.forEach((fn) => fn(event));
     } else {
       const view = new DataView(ev.data);

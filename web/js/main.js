@@ -7,6 +7,7 @@ import { connect, on } from "./live.js";
 import { initReview, showSession } from "./review.js";
 import { initSessions, loadSessions } from "./sessions.js";
 import { initTelemetry } from "./telemetry.js";
+import { EVENT } from "./events.js";
 
 let started = false;
 
@@ -93,7 +94,7 @@ async function start() {
   initSessions();
   document.getElementById("sign-out").addEventListener("click", signOut);
   connect();
-  on("event", (ev) => { if (ev.type === "session" && location.hash === "#/sessions") loadSessions().catch(() => {}); });
+  on("event", (ev) => { if (ev.type === EVENT.SESSION && location.hash === "#/sessions") loadSessions().catch(() => {}); });
   setInterval(() => { if (location.hash === "#/sessions") loadSessions().catch(() => {}); }, 3000);
   watchStorage();
   setInterval(watchStorage, 5000);

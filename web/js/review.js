@@ -6,6 +6,7 @@ import { replay } from "./replay.js";
 import { on } from "./live.js";
 import { attachTools, toolbar } from "./mosaic_tools.js";
 import { api, apiJSON, authHeaders, download, duration, el, fmt, patchJSON, text, token } from "./api.js";
+import { EVENT } from "./events.js";
 
 // column, heading, decimals: one format per quantity wherever it is shown
 const COLUMNS = [
@@ -318,7 +319,7 @@ export async function showSession(id, defectNumber = null) {
 export function initReview() {
   document.addEventListener("keydown", onKey);
   on("event", (ev) => { // a marker clicked in this session's 3D view selects its defect here
-    if (ev.type === "defect_selected" && ev.session_id === view.session?.id && !document.getElementById("view-session").hidden) {
+    if (ev.type === EVENT.DEFECT_SELECTED && ev.session_id === view.session?.id && !document.getElementById("view-session").hidden) {
       select(ev.defect_id, { focus3d: false });
     }
   });

@@ -4,6 +4,7 @@ import uPlot from "/vendor/uplot/uPlot.esm.js";
 import { el, fmt, text } from "./api.js";
 import { selectedSession, stats } from "./drive.js";
 import { on } from "./live.js";
+import { EVENT } from "./events.js";
 
 const WINDOW_S = 60;
 const LOW_MAIN_V = 11.4; // 12 V pack (3S): warn below 3.8 V per cell
@@ -126,7 +127,7 @@ export function initTelemetry() {
   makePlot("adhesion margin", ["adhesion"], ["margin, eq. (1)"], ["#d9443c"], "× needed", 1.0);
   makePlot("ACK latency", ["ack"], ["robot ← station"], ["#b07cd8"], "ms", 20);
   on("event", (ev) => {
-    const gone = (ev.type === "robot" && !ev.connected) || (ev.type === "session" && ev.event === "session_end");
+    const gone = (ev.type === EVENT.ROBOT && !ev.connected) || (ev.type === EVENT.SESSION && ev.event === "session_end");
     if (gone && (!selectedSession() || ev.session_id === selectedSession() || ev.session_id === shown)) { clear(); return; }
     if (ev.type !== "telemetry") return;
     const sid = selectedSession();

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 from typing import Any
 
 import anyio
@@ -14,6 +13,7 @@ from robot_link.protocol import STOP_COMMANDS, ProtocolError
 from server.api.accounts import accounts_exist, has_role, user_for_token
 from server.api.deps import same_origin
 from server.limits import TokenBucket
+from server.live.events import CommandResult
 from server.live.messages import BadBrowserMessage, ControlMessage, is_stop, parse_browser_message
 from server.storage.models import InspectionSession, Role, User
 
@@ -74,14 +74,10 @@ async def live_socket(websocket: WebSocket) -> None:
                 )
                 continue
             if not has_role(user, Role.operator):
-                await websocket.send_text(
-                    json.dumps(
-                        {
-                            "type": "command_result",
-                            "ok": False,
-                            "error": f"commands need the operator role; you are {user.role.value}",
-                        }
-                    )
+                await _reply(
+                    websocket,
+                    ok=False,
+                    error=f"commands need the operator role; you are {user.role.value}",
                 )
                 continue
             await _handle_browser_message(websocket, hub, watcher, user, text)
@@ -122,7 +118,7 @@ def _set_operator(factory: Any, session_id: str, operator: str) -> None:
 
 
 async def _reply(websocket: WebSocket, **fields: Any) -> None:
-    await websocket.send_text(json.dumps({"type": "command_result", **fields}))
+    await websocket.send_text(CommandResult(**fields).text())
 
 
 async def _handle_browser_message(

@@ -29,6 +29,7 @@ from server.api.accounts import accounts_exist, user_for_token
 from server.api.deps import SessionDep, StateDep, get_current_user, same_origin
 from server.api.queries import get_session_or_404
 from server.errors import NotFound
+from server.live.events import DefectSelected
 from server.live.scene3d import DefectMarker, Scene3D
 from server.live.scenes import Scenes
 from server.state import AppState
@@ -230,8 +231,8 @@ async def show_in_3d(db: SessionDep, state: StateDep, session_id: str) -> dict[s
     scene = scenes.get(session_id)
 
     def selected(defect_id: int) -> None:  # in viser's thread: hand over to the event loop
-        event = {"type": "defect_selected", "session_id": session_id, "defect_id": defect_id}
-        loop.call_soon_threadsafe(state.hub.publish_json, event)
+        event = DefectSelected(session_id=session_id, defect_id=defect_id)
+        loop.call_soon_threadsafe(state.hub.publish, event)
 
     if scene is not None:
         scene.on_select = selected
