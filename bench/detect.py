@@ -21,9 +21,9 @@ from numpy.typing import NDArray
 
 from bench.common import Result
 from bench.detect_loo import leave_one_out_proposed
-from processing.corrosion import detect_corrosion
 from processing.detection import detect_cracks, to_gray
-from processing.learned import MODEL_PATH, LearnedParams, learned_cracks, load_model
+from processing.detection.corrosion import detect_corrosion
+from processing.detection.learned import MODEL_PATH, LearnedParams, learned_cracks, load_model
 from processing.learning.data import Sample, load_dataset, split_holdout
 from processing.metrics import PooledCounts
 from server.config import PROJECT_ROOT
@@ -208,8 +208,8 @@ def _mosaic_throughput() -> Iterator[Result]:
     from skimage.filters import threshold_sauvola
 
     from processing.detection import detect_cracks_tiled, find_defects
-    from processing.learned import crack_probability
-    from processing.surface import on_surface
+    from processing.detection.learned import crack_probability
+    from processing.detection.surface import on_surface
     from robot_link.sim.structure import make_structure
 
     mosaic = make_structure(11).texture

@@ -3,7 +3,7 @@ chosen on the other sets (the grid below, for the largest worst-case ratio of po
 2-px DSC to the paper's Sauvola on those sets) and scored on the one left out.
 
 The line response and darkness of each image are computed once; every parameter set is
-then a cheap selection of components (:func:`processing.crack_filter.select_cracks`).
+then a cheap selection of components (:func:`processing.detection.crack_filter.select_cracks`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from bench.common import Result
-from processing.crack_filter import CrackParams, line_and_dark_spreads, select_cracks
+from processing.detection.crack_filter import CrackParams, line_and_dark_spreads, select_cracks
 from processing.learning.data import Sample
 from processing.metrics import PooledCounts
 

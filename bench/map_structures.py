@@ -180,7 +180,11 @@ def _whole_command(name: str, clouds: Path, folder: Path, n: int) -> Result:
         raise RuntimeError(f"steelscan map failed: {proc.stderr[-2000:]}")
     t0 = time.perf_counter()
     subprocess.run(
-        [sys.executable, "-c", "import server.cli, server.cli.map_command, processing.mapping, open3d"],
+        [
+            sys.executable,
+            "-c",
+            "import server.cli, server.cli.map_command, processing.mapping, open3d",
+        ],
         check=True,
         env=env,
     )

@@ -24,8 +24,8 @@ from bench.common import Result, rigid_align_2d, similarity_align_2d
 from bench.detect import DATASETS_ROOT
 from processing.metrics import mosaic_overlap_errors
 from processing.poses import chain_se2, delta_of_map, frame_i_to_j, relative_se2
-from processing.registration import overlap_rect
 from processing.stitching import plan_mosaic, render_bands
+from processing.stitching.registration import overlap_rect
 from robot_link.sim.sweeps import (
     Sweep,
     SweepConfig,

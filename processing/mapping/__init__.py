@@ -31,7 +31,7 @@ ICP edge carries the point-to-plane information of its correspondences
 so a flat plate says nothing about sliding along it and the odometry edges hold the
 trajectory there; the result reports how many such directions each cloud had. The large
 planes each cloud sees (the deck plate, the girder's web, the stiffeners' faces:
-:mod:`processing.planes`) are landmarks with their own graph nodes: every cloud that sees
+:mod:`processing.mapping.planes`) are landmarks with their own graph nodes: every cloud that sees
 one is tied to it in the three directions a plane fixes, so heading, tilt and height do
 not drift along a lane the way a chain of pairwise registrations does. The odometry
 edges' errors are raised to what the data show (:meth:`IncrementalMap.odometry_error_scale`:

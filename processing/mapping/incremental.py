@@ -14,10 +14,10 @@ from processing.mapping.landmarks import PlaneLandmarks
 from processing.mapping.loops import close_loop, loop_candidates
 from processing.mapping.pairwise import CloudMeasurement, PairEdge, Step, edge_of, measure_step
 from processing.mapping.params import MapParams
+from processing.mapping.planes import Plane, extract_planes
 from processing.mapping.selection import fuse_map, select
 from processing.mapping.tracking import Tracker, axis_information
 from processing.mapping.wheels import WheelModel, fit_wheel_model, wheel_edge
-from processing.planes import Plane, extract_planes
 
 reg = o3d.pipelines.registration
 

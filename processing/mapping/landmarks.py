@@ -1,6 +1,6 @@
 """Plane landmarks of the pose graph: the large planes each cloud sees (deck plate, web,
 stiffener faces) matched to planes seen before, each landmark a frame on its plane (z
-along the normal) whose sightings become graph edges (:func:`processing.planes.plane_edge`).
+along the normal) whose sightings become graph edges (:func:`processing.mapping.planes.plane_edge`).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from processing.mapping.params import PlaneParams
-from processing.planes import Plane, plane_edge, plane_frame, same_plane, to_frame
+from processing.mapping.planes import Plane, plane_edge, plane_frame, same_plane, to_frame
 
 reg = o3d.pipelines.registration
 

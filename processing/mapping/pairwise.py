@@ -25,8 +25,8 @@ from processing.mapping.icp import (
     structure_share,
 )
 from processing.mapping.params import IcpParams, MapParams
+from processing.mapping.planes import Plane, extract_planes
 from processing.mapping.selection import select
-from processing.planes import Plane, extract_planes
 
 Facts = tuple[float, float, bool, int]  # fitness, RMSE, placed by odometry, degenerate dims
 

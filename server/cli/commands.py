@@ -15,8 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from processing.defects import measure_defects
 from processing.detection import detect_cracks, detect_cracks_tiled
+from processing.detection.defects import measure_defects
 from processing.poses import yaw_of
 from processing.stitching import plan_mosaic, render_bands
 from server.cli.inputs import list_files, read_odometry

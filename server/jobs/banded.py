@@ -30,9 +30,9 @@ import pyvips
 from numpy.typing import NDArray
 from scipy.cluster.hierarchy import DisjointSet
 
-from processing.defects import Components, Defect, measure_defects, moved, seam_links
 from processing.detection import DefectMasks
-from processing.surface import on_surface
+from processing.detection.defects import Components, Defect, measure_defects, moved, seam_links
+from processing.detection.surface import on_surface
 from server.storage.files import write_atomic
 from server.storage.png_segments import join_segments, read_rows, segment_rows, write_segment
 from server.storage.write_behind import save_behind, write_file_behind

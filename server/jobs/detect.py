@@ -15,13 +15,13 @@ from numpy.typing import NDArray
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from processing.corrosion import CorrosionParams
-from processing.crack_filter import CrackParams, SurfaceStats, measure_surface
-from processing.defects import Defect as Defect_
 from processing.detection import CrackMethod, defect_masks, find_defects
-from processing.learned import LearnedParams, load_model
+from processing.detection.corrosion import CorrosionParams
+from processing.detection.crack_filter import CrackParams, SurfaceStats, measure_surface
+from processing.detection.defects import Defect as Defect_
+from processing.detection.learned import LearnedParams, load_model
+from processing.detection.surface import surface_level
 from processing.poses import compose_se2, world_box
-from processing.surface import surface_level
 from server.jobs.banded import detect_banded
 from server.jobs.context import JobContext, params_record
 from server.storage.files import SessionFiles

@@ -14,10 +14,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.alignment import PairRequest, PairSpread, measure_pair
-from processing.blending import BandPainter, band_rows
-from processing.frame_cache import FrameCache
-from processing.registration import PairMeasurement
 from processing.stitching import (
     MosaicLayout,
     StitchParams,
@@ -25,6 +21,10 @@ from processing.stitching import (
     plan_mosaic,
     render_bands,
 )
+from processing.stitching.alignment import PairRequest, PairSpread, measure_pair
+from processing.stitching.blending import BandPainter, band_rows
+from processing.stitching.frame_cache import FrameCache
+from processing.stitching.registration import PairMeasurement
 from server.jobs.context import JobContext, params_record
 from server.storage.files import SessionFiles
 from server.storage.models import Frame

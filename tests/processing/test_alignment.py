@@ -2,11 +2,11 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.alignment import BLIND_ANGLES
-from processing.exposure import solve_gains
-from processing.pose_graph import solve_pose_graph
 from processing.poses import compose_se2, frame_to_mosaic, relative_se2, wrap_angle
-from processing.registration import Level, PairMeasurement, register_pair
+from processing.stitching.alignment import BLIND_ANGLES
+from processing.stitching.exposure import solve_gains
+from processing.stitching.pose_graph import solve_pose_graph
+from processing.stitching.registration import Level, PairMeasurement, register_pair
 from tests.processing.test_stitching import texture
 
 

@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.defects import measure_defects
+from processing.detection.defects import measure_defects
 
 
 def test_measurements_of_a_drawn_line() -> None:
@@ -48,7 +48,7 @@ def test_width_at_half_contrast_ignores_a_blurred_rim() -> None:
 
 @pytest.mark.parametrize("threshold", [0.58, 0.5, 0.3])
 def test_components_have_opencvs_statistics(threshold: float) -> None:
-    from processing.defects import Components
+    from processing.detection.defects import Components
 
     rng = np.random.default_rng(4)
     mask = cv2.GaussianBlur(rng.random((400, 500)), (0, 0), 2) > threshold  # sparse to dense

@@ -2,8 +2,8 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.corrosion import detect_corrosion
 from processing.detection import detect_cracks
+from processing.detection.corrosion import detect_corrosion
 
 
 def plate_with_crack(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -88,7 +88,7 @@ def test_tiled_detection_matches_whole_image_detection_away_from_tile_seams() ->
 
 @pytest.mark.parametrize("fraction", [0.0, 0.02, 0.5, 0.98, 1.0])
 def test_select_components_equals_a_lookup_whatever_the_share_kept(fraction: float) -> None:
-    from processing.thresholds import select_components
+    from processing.detection.thresholds import select_components
 
     rng = np.random.default_rng(3)
     mask = cv2.GaussianBlur(rng.random((300, 400)), (0, 0), 3) > 0.52
@@ -112,7 +112,7 @@ def test_proposed_finds_a_hairline_on_textured_paint(seed: int) -> None:
 
 
 def test_surface_statistics_of_frames_apply_to_a_mosaic_of_them() -> None:
-    from processing.crack_filter import SurfaceStats, measure_surface, proposed_cracks
+    from processing.detection.crack_filter import SurfaceStats, measure_surface, proposed_cracks
     from tests.processing.test_learned import textured_plate
 
     frames = [textured_plate((240, 320), s, width=2, depth=30)[0] for s in range(3)]

@@ -10,7 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.learned import MODEL_PATH, CrackModel, LearnedParams, crack_probability, load_model
+from processing.detection.learned import (
+    MODEL_PATH,
+    CrackModel,
+    LearnedParams,
+    crack_probability,
+    load_model,
+)
 
 
 def textured_plate(

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from processing.peaks import (
+from processing.detection.peaks import (
     crossover_indices,
     dominant_peaks,
     initial_peaks,

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from processing.phase import phase_candidates
 from processing.poses import relative_se2, wrap_angle
+from processing.stitching.phase import phase_candidates
 from tests.processing.test_alignment import frame_at
 from tests.processing.test_stitching import texture
 

@@ -4,7 +4,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from processing.mapping import SelectParams, select
-from processing.planes import Plane, extract_planes, plane_edge, plane_frame, same_plane, to_frame
+from processing.mapping.planes import (
+    Plane,
+    extract_planes,
+    plane_edge,
+    plane_frame,
+    same_plane,
+    to_frame,
+)
 from robot_link.clouds import depth_to_points
 from robot_link.sim.sensors import TofCamera
 from robot_link.sim.structure import make_structure
@@ -76,7 +83,7 @@ def test_a_plane_through_two_separate_faces_is_refused() -> None:
     tilt = Plane(
         *_plane_through(web[:3].mean(axis=0), edges[:3].mean(axis=0)), np.vstack([web, edges])
     )
-    from processing.planes import _halves_agree
+    from processing.mapping.planes import _halves_agree
 
     assert not _halves_agree(tilt, 2.0)
     strip = extract_planes(web, min_points=40)

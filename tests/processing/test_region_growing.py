@@ -1,6 +1,6 @@
 import numpy as np
 
-from processing.region_growing import grow_regions
+from processing.detection.region_growing import grow_regions
 
 
 def test_growth_follows_similar_pixels_and_stops_at_the_background() -> None:

@@ -2,7 +2,12 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.ridges import hessian_eigenvalues, line_emphasis, line_measure, line_response
+from processing.detection.ridges import (
+    hessian_eigenvalues,
+    line_emphasis,
+    line_measure,
+    line_response,
+)
 
 
 def test_eq12_line_measure_cases() -> None:

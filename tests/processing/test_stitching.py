@@ -82,7 +82,7 @@ def test_a_pair_phase_correlation_cannot_place_is_registered_from_its_neighbours
 ) -> None:
     """On a straight run nothing else overlaps a pair: when no phase-correlation guess of
     it verifies (here: they all point elsewhere), the neighbouring pairs' steps are tried."""
-    import processing.alignment as alignment
+    import processing.stitching.alignment as alignment
 
     s = sweep(frames=8, pattern="straight")
     frames = decoded(s)
@@ -127,7 +127,7 @@ def test_pairs_the_quarter_resolution_phase_correlation_misplaces_are_placed_at_
     of its guesses verifies surely, the step of the pair before and then the
     half-resolution guesses are tried (the first pair of each thread's run has no pair
     before it)."""
-    import processing.alignment as alignment
+    import processing.stitching.alignment as alignment
 
     s = sweep(frames=8, pattern="straight", seed=6)
     genuine = alignment.phase_candidates

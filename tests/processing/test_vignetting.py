@@ -2,7 +2,7 @@ import numpy as np
 
 from processing.poses import frame_i_to_j, relative_se2
 from processing.stitching import plan_mosaic
-from processing.vignetting import overlap_samples, radius2, solve_photometry
+from processing.stitching.vignetting import overlap_samples, radius2, solve_photometry
 from tests.processing.test_stitching import decoded, sweep, worst_pair_error
 
 

@@ -1,9 +1,9 @@
 """Global pose estimation for mosaics: every overlapping pair registered, all poses solved together.
 
-Every pair of frames that overlaps is registered (:mod:`processing.registration`), and all
-frame poses are solved together as a 2D pose graph (:mod:`processing.pose_graph`), so error
+Every pair of frames that overlaps is registered (:mod:`processing.stitching.registration`), and all
+frame poses are solved together as a 2D pose graph (:mod:`processing.stitching.pose_graph`), so error
 does not accumulate along the robot's path. Without odometry, the first guesses come from
-phase correlation (:mod:`processing.phase`).
+phase correlation (:mod:`processing.stitching.phase`).
 
 A pose is (x, y, θ): the frame centre in mosaic pixels and the angle from the mosaic's
 x axis to the frame's x axis (radians, positive from x towards y).
@@ -19,10 +19,15 @@ from itertools import pairwise
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.phase import PHASE_SCALES, PhaseView, phase_candidates
-from processing.pose_graph import candidate_pairs, measurement_residuals, solve_pose_graph
 from processing.poses import chain_se2, relative_se2
-from processing.registration import Level, PairMeasurement, RegistrationParams, register_pair
+from processing.stitching.phase import PHASE_SCALES, PhaseView, phase_candidates
+from processing.stitching.pose_graph import candidate_pairs, measurement_residuals, solve_pose_graph
+from processing.stitching.registration import (
+    Level,
+    PairMeasurement,
+    RegistrationParams,
+    register_pair,
+)
 
 
 @dataclass

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 from skimage.morphology import skeletonize
 
-from processing.labels import component_stats
+from processing.detection.labels import component_stats
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 from scipy.sparse.linalg import spsolve
 
 from processing.poses import relative_se2, wrap_angle
-from processing.registration import PairMeasurement, RegistrationParams
+from processing.stitching.registration import PairMeasurement, RegistrationParams
 
 
 def candidate_pairs(

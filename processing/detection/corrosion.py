@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.thresholds import remove_small
+from processing.detection.thresholds import remove_small
 
 
 @dataclass(frozen=True)

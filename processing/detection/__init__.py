@@ -3,7 +3,7 @@
 Methods: ``paper`` (the published pipeline: automatic peak detection, Hessian line
 emphasis, region growing), ``proposed`` (illumination-normalised, scale-normalised line
 emphasis with thresholds in units of the image's own texture), ``learned`` (the shipped
-crack network, :mod:`processing.learned`), and the paper's baselines ``otsu`` and
+crack network, :mod:`processing.detection.learned`), and the paper's baselines ``otsu`` and
 ``sauvola``; rust areas by colour; each defect measured as an object.
 """
 
@@ -20,8 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 from skimage.filters import threshold_sauvola
 
-from processing.corrosion import CorrosionParams, corrosion_candidates, rust_saturation
-from processing.crack_filter import (
+from processing.detection.corrosion import CorrosionParams, corrosion_candidates, rust_saturation
+from processing.detection.crack_filter import (
     CrackParams,
     SurfaceStats,
     estimate_background,
@@ -29,16 +29,16 @@ from processing.crack_filter import (
     proposed_with_contrast,
     sample_surface,
 )
-from processing.defects import Components, Defect, measure_defects
-from processing.learned import LearnedParams, learned_cracks
-from processing.peaks import dominant_peaks, smooth_histogram, valley_emphasis_threshold
-from processing.region_growing import grow_regions
-from processing.ridges import line_emphasis
-from processing.thresholds import (
+from processing.detection.defects import Components, Defect, measure_defects
+from processing.detection.learned import LearnedParams, learned_cracks
+from processing.detection.peaks import dominant_peaks, smooth_histogram, valley_emphasis_threshold
+from processing.detection.region_growing import grow_regions
+from processing.detection.ridges import line_emphasis
+from processing.detection.thresholds import (
     remove_small,
     select_components,
 )
-from processing.tiling import tile_core, tile_cores
+from processing.detection.tiling import tile_core, tile_cores
 
 Method = Literal["proposed", "learned", "paper", "otsu", "sauvola"]
 METHODS: tuple[str, ...] = ("proposed", "learned", "paper", "otsu", "sauvola")

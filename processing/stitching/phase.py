@@ -2,7 +2,7 @@
 correlation (the stitcher's initial overlap estimate when there is no odometry): the
 shift of the strongest correlation peaks, each checked by the correlation of the overlap
 it implies, with frame b turned around (a robot turns at lane ends) and tilted by a few
-degrees when nothing is sure. Registration (:mod:`processing.alignment`) verifies them.
+degrees when nothing is sure. Registration (:mod:`processing.stitching.alignment`) verifies them.
 """
 
 from __future__ import annotations

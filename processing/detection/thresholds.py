@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.labels import component_flags, lookup
+from processing.detection.labels import component_flags, lookup
 
 
 def select_components(

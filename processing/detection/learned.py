@@ -1,6 +1,6 @@
 """The ``learned`` crack detector: the shipped crack network run by ONNX Runtime on the CPU.
 
-The model file (``processing/models/crack_net.onnx``) is made by ``steelscan
+The model file (``processing/detection/models/crack_net.onnx``) is made by ``steelscan
 train-detector`` (:mod:`processing.learning.train`); its metadata key ``steelscan`` holds
 the training record, including the probability threshold chosen on held-back images.
 Large images (mosaics) are run tile by tile with overlap; each tile contributes its core.
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.tiling import tile_core, tile_cores
+from processing.detection.tiling import tile_core, tile_cores
 
 MODEL_PATH = Path(__file__).parent / "models" / "crack_net.onnx"
 _MULTIPLE = 32  # the network halves the resolution five times

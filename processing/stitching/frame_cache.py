@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.mosaic import FrameSource, StitchParams
-from processing.registration import Level
+from processing.stitching.mosaic import FrameSource, StitchParams
+from processing.stitching.registration import Level
 
 
 def gray_of(img: NDArray[np.uint8]) -> NDArray[np.uint8]:

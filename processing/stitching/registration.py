@@ -1,7 +1,7 @@
 """Registration of one pair of overlapping frames: where frame j lies in frame i's frame.
 
 A coarse normalised cross-correlation (at half resolution, over quarter turns and a few
-angles) followed by sub-pixel Lucas–Kanade with rotation (:mod:`processing.lucas_kanade`).
+angles) followed by sub-pixel Lucas–Kanade with rotation (:mod:`processing.stitching.lucas_kanade`).
 Relative poses are (dx, dy, dθ) in frame i's centred pixel coordinates
 (:func:`processing.poses.relative_se2`).
 """
@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.lucas_kanade import Smoothed, refine_euclidean
-from processing.phase import QUARTER_TURNS, Gray
 from processing.poses import delta_of_map, frame_i_to_j, rot2, wrap_angle
+from processing.stitching.lucas_kanade import Smoothed, refine_euclidean
+from processing.stitching.phase import QUARTER_TURNS, Gray
 
 
 @dataclass(frozen=True)

@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.corrosion import rust_saturation
-from processing.ridges import line_emphasis
-from processing.thresholds import select_components
+from processing.detection.corrosion import rust_saturation
+from processing.detection.ridges import line_emphasis
+from processing.detection.thresholds import select_components
 
 
 @dataclass(frozen=True)

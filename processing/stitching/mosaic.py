@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from processing.poses import frame_to_mosaic
-from processing.registration import RegistrationParams
+from processing.stitching.registration import RegistrationParams
 
 Blend = Literal["feather", "paper", "newest"]
 Progress = Callable[[float, str], None]

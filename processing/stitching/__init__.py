@@ -3,7 +3,7 @@
 The paper's method, step by step: the camera's motion from the robot's odometry through
 the frame chain image → camera → robot → world (:func:`camera_poses`) gives each frame's
 initial place; appearance-based matching refines it (here sub-pixel, with rotation, over
-every overlapping pair, solved globally: :mod:`processing.alignment`); exposure is
+every overlapping pair, solved globally: :mod:`processing.stitching.alignment`); exposure is
 compensated and frames blended by the rule of eq. (2) with its threshold τ, gaps in the
 new frame's region filled by a 2D median filter (:func:`paper_blend_mask`).
 
@@ -24,11 +24,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.alignment import PairSpread, estimate_poses
-from processing.blending import feather_weight, paper_blend_mask, render_bands
-from processing.exposure import solve_gains
-from processing.frame_cache import FrameCache, estimate_flat_field, prepare_frames
-from processing.mosaic import (
+from processing.poses import frame_i_to_j
+from processing.stitching.alignment import PairSpread, estimate_poses
+from processing.stitching.blending import feather_weight, paper_blend_mask, render_bands
+from processing.stitching.exposure import solve_gains
+from processing.stitching.frame_cache import FrameCache, estimate_flat_field, prepare_frames
+from processing.stitching.mosaic import (
     Band,
     Blend,
     FrameSource,
@@ -38,9 +39,8 @@ from processing.mosaic import (
     StitchParams,
     camera_poses,
 )
-from processing.poses import frame_i_to_j
-from processing.registration import PairMeasurement
-from processing.vignetting import overlap_samples, solve_photometry
+from processing.stitching.registration import PairMeasurement
+from processing.stitching.vignetting import overlap_samples, solve_photometry
 
 __all__ = [
     "Band",
@@ -147,7 +147,7 @@ def _scaled(progress: Progress | None, lo: float, hi: float) -> Progress | None:
 def _correct_vignetting(
     frames: FrameCache, measurements: Sequence[PairMeasurement], params: StitchParams
 ) -> bool:
-    """Estimate the lens falloff from registered overlaps (:mod:`processing.vignetting`) on
+    """Estimate the lens falloff from registered overlaps (:mod:`processing.stitching.vignetting`) on
     up to ``params.vignetting_pairs`` pairs; install its correction when it is real and
     differs from the one in use. True when frames must be registered again."""
     if not measurements:

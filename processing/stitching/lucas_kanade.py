@@ -13,7 +13,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.phase import Gray
+from processing.stitching.phase import Gray
 
 
 def _strong_points(

@@ -13,9 +13,9 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.frame_cache import FrameCache, gray_of
-from processing.mosaic import Band, MosaicLayout, Progress, StitchParams
 from processing.poses import frame_to_mosaic
+from processing.stitching.frame_cache import FrameCache, gray_of
+from processing.stitching.mosaic import Band, MosaicLayout, Progress, StitchParams
 
 
 def feather_weight(size: tuple[int, int]) -> NDArray[np.float32]:

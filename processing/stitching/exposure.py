@@ -9,7 +9,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 from scipy.sparse.linalg import spsolve
 
-from processing.registration import PairMeasurement
+from processing.stitching.registration import PairMeasurement
 
 
 def solve_gains(
