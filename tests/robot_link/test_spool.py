@@ -12,7 +12,7 @@ from robot_link.spool import Spool, SpoolFull
 from server.config import Settings
 from server.loopback import BackgroundServer, free_port
 from tests.conftest import LiveServer, make_token
-from tests.server.test_ingest import JPEG, session_json
+from tests.server.helpers import JPEG, session_json
 
 
 def test_spool_keeps_messages_on_disk_in_order_within_its_bound(tmp_path: Path) -> None:

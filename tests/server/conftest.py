@@ -22,7 +22,7 @@ from tests.conftest import LiveServer, databases_under_test, make_token
 TRUE_CAMERA_POSES: dict[str, list[list[float]]] = {}
 
 
-@pytest.fixture(scope="package", params=databases_under_test())
+@pytest.fixture(scope="session", params=databases_under_test())
 def inspected(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[tuple[LiveServer, str]]:

@@ -14,8 +14,7 @@ import pytest
 from robot_link.protocol import MessageType, decode_message
 from server.config import Settings
 from tests.conftest import LiveServer
-from tests.server.test_ingest import frame, msg, robot_ws, start
-from tests.server.test_jobs import wait_job
+from tests.server.helpers import frame, msg, robot_ws, start, wait_job
 from tests.web.browser import CHROMIUM, launch, shot, wait_js, watch_errors
 
 pytestmark = [

@@ -16,7 +16,7 @@ import pytest
 
 from robot_link.protocol import MessageType
 from tests.conftest import LiveServer
-from tests.server.test_ingest import msg, robot_ws, start
+from tests.server.helpers import msg, robot_ws, start
 from tests.web.browser import (
     CHROMIUM,
     drove_on,

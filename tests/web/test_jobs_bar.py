@@ -14,7 +14,7 @@ from robot_link.protocol import MessageType, decode_message
 from server.config import Settings
 from server.loopback import BackgroundServer, free_port
 from tests.conftest import LiveServer, make_token
-from tests.server.test_ingest import frame, msg, robot_ws, start
+from tests.server.helpers import frame, msg, robot_ws, start
 from tests.web.browser import CHROMIUM, launch, wait_js, watch_errors
 
 pytestmark = [

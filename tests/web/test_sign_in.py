@@ -9,7 +9,7 @@ import pytest
 
 from server.storage.models import Role
 from tests.conftest import LiveServer
-from tests.server.test_auth import add_user
+from tests.server.helpers import add_user
 from tests.web.browser import CHROMIUM, launch, shot, wait_js
 
 pytestmark = [

@@ -1,0 +1,94 @@
+"""``steelscan map`` on foreign input: unorganised clouds, millimetres, empty and all-NaN
+clouds, broken files."""
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from processing.poses import parse_tum
+from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_sweep, write_sweep
+from robot_link.sim.tof_sweeps import TofSweep
+from tests.server.helpers import assert_clean_error, steelscan
+
+
+@pytest.fixture(scope="module")
+def sweep() -> TofSweep:
+    return scene_sweep(SceneSweepConfig(kind="cross_frames", seed=8, clouds=10))
+
+
+def _run(folder: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    return steelscan(
+        "map",
+        str(folder / "clouds"),
+        "--out",
+        str(folder / "out"),
+        "--odometry",
+        str(folder / "odom.tum"),
+        *extra,
+    )
+
+
+def test_millimetres_are_refused_with_the_flag_to_convert_them(
+    tmp_path: Path, sweep: TofSweep
+) -> None:
+    clouds = write_sweep(sweep, tmp_path)
+    for f in sorted(clouds.glob("*.ply")):
+        pcd = o3d.io.read_point_cloud(str(f), remove_nan_points=False)
+        pcd.points = o3d.utility.Vector3dVector(np.asarray(pcd.points) * 1000)
+        o3d.io.write_point_cloud(str(f), pcd)
+    assert_clean_error(_run(tmp_path), "--units mm")
+    assert not (tmp_path / "out").exists()
+    proc = _run(tmp_path, "--units", "mm")
+    assert proc.returncode == 0, proc.stderr
+    _, poses = parse_tum((tmp_path / "out" / "poses.tum").read_text())
+    assert np.abs(poses[:, :3, 3] - sweep.truth[:, :3, 3]).max() < 0.2  # metres, near the truth
+
+
+def test_empty_and_all_nan_clouds_are_skipped_and_reported(tmp_path: Path, sweep: TofSweep) -> None:
+    clouds = write_sweep(sweep, tmp_path)
+    nan = o3d.geometry.PointCloud(
+        o3d.utility.Vector3dVector(np.full_like(sweep.clouds[3], np.nan, dtype=float))
+    )
+    o3d.io.write_point_cloud(str(clouds / "c0003.ply"), nan)
+    (clouds / "c0005.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    (clouds / "sensor.json").unlink()  # c0005 has no points: not organised any more
+    proc = _run(tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((tmp_path / "out" / "map_report.json").read_text())
+    assert report["skipped"] == [
+        {"file": "c0003.ply", "reason": "every point is NaN or infinite"},
+        {"file": "c0005.ply", "reason": "no points"},
+    ]
+    assert "c0003.ply" in proc.stderr and "c0005.ply" in proc.stderr
+    _, poses = parse_tum((tmp_path / "out" / "poses.tum").read_text())
+    assert len(poses) == 10 and np.isfinite(poses).all()
+
+
+def test_unorganised_pcd_from_another_tool_is_mapped(tmp_path: Path, sweep: TofSweep) -> None:
+    write_sweep(sweep, tmp_path)
+    clouds = tmp_path / "clouds"
+    for i, c in enumerate(sweep.clouds):  # NaNs dropped, shuffled, as .pcd
+        (clouds / f"c{i:04d}.ply").unlink()
+        pts = c[np.isfinite(c).all(axis=1)].astype(float)
+        pts = pts[np.random.default_rng(i).permutation(len(pts))]
+        o3d.io.write_point_cloud(
+            str(clouds / f"c{i:04d}.pcd"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        )
+    (clouds / "sensor.json").unlink()
+    proc = _run(tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((tmp_path / "out" / "map_report.json").read_text())
+    assert report["organised"] is False and report["clouds"] == 10 and report["map_points"] > 1000
+
+
+def test_a_broken_cloud_file_is_refused_by_name(tmp_path: Path, sweep: TofSweep) -> None:
+    clouds = write_sweep(sweep, tmp_path)
+    (clouds / "c0002.ply").write_bytes(b"\x00garbage" * 10)
+    assert_clean_error(_run(tmp_path), "c0002.ply")
+    assert not (tmp_path / "out").exists()
