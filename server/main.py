@@ -6,8 +6,9 @@ import asyncio
 import gc
 import json
 import logging
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Callable
+from contextlib import AbstractAsyncContextManager, asynccontextmanager
+from pathlib import Path
 
 import anyio
 from fastapi import Depends, FastAPI, Request
@@ -29,57 +30,11 @@ from server.config import Settings
 from server.errors import Conflict, NotFound
 from server.heap import freeze_startup_objects
 from server.jobs.priority import RAISE_EVERY_S, put_the_station_first
-from server.jobs.runner import JobRunner
 from server.link.connection import router as robot_router
-from server.link.group_commit import GroupCommit
 from server.link.guard import raise_fd_limit
-from server.link.ingest import Ingest
-from server.live.hub import LiveHub
-from server.live.live_detect import LiveDetect
-from server.live.live_map import LiveMap
-from server.live.scenes import Scenes
 from server.state import AppState
-from server.storage import db
-from server.storage.files import SessionFiles
-from server.storage.space import DiskReserve
 
 log = logging.getLogger(__name__)
-
-
-def build_state(settings: Settings) -> AppState:
-    """Open the database (migrated to head) and build the shared objects."""
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    url = settings.resolved_database_url()
-    db.upgrade(url)
-    engine = db.make_engine(url)
-    factory = db.make_sessionmaker(engine)
-    files = SessionFiles(settings.data_dir, fsync=settings.fsync)
-    send = None
-    if settings.job_backend == "celery":
-        from server.jobs.queue import CeleryQueue
-
-        send = CeleryQueue(settings).send
-    runner = JobRunner(
-        factory,
-        url,
-        str(settings.data_dir.resolve()),
-        settings.job_workers,
-        defaults={"detect": {"method": settings.detect_method}},
-        send=send,
-        lease_s=settings.job_lease_s,
-    )
-    reserve = DiskReserve(settings.data_dir, settings.min_free_bytes)
-    ingest = Ingest(factory, files, reserve, settings.max_live_sessions_per_robot)
-    return AppState(
-        settings,
-        engine,
-        factory,
-        files,
-        ingest,
-        LiveHub(settings.live_queue),
-        runner,
-        GroupCommit(ingest),
-    )
 
 
 async def _end_quiet_sessions(state: AppState) -> None:
@@ -131,82 +86,14 @@ async def may_send_body(scope: Scope, token: str | None) -> bool:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The ground-station ASGI app."""
     settings = settings or Settings()
-
-    @asynccontextmanager
-    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        log.info("open-file limit: %d", raise_fd_limit())
-        state = build_state(settings)
-        app.state.steelscan = state
-        if settings.view3d:
-            state.scenes = Scenes(settings.view3d_port)
-            if settings.live_map:
-                state.live_map = LiveMap(state.factory, state.scenes.live)
-        if settings.live_detect:
-            state.live_detect = LiveDetect(
-                state.factory, state.hub, asyncio.get_running_loop(), settings.detect_method
-            )
-        state.jobs.start()
-        reaper = asyncio.create_task(_end_quiet_sessions(state))
-        first = (
-            asyncio.create_task(_keep_the_station_first(settings.realtime_priority))
-            if settings.realtime_priority
-            else None
-        )
-        freeze_startup_objects()  # a full collection would pause every robot's link
-        # data stored after a processing whose re-run was lost with a stop (after the
-        # freeze: what it makes is not start-up's)
-        caught_up = (
-            asyncio.create_task(anyio.to_thread.run_sync(state.jobs.catch_up))
-            if settings.auto_process
-            else None
-        )
-        try:
-            yield
-        finally:
-            gc.unfreeze()  # an app run inside another program leaves its heap as it was
-            reaper.cancel()
-            if caught_up is not None:
-                await asyncio.gather(caught_up, return_exceptions=True)
-            if first is not None:
-                first.cancel()
-            state.passwords.executor.shutdown(wait=False)
-            state.jobs.stop()
-            state.writer.close()
-            if state.live_map is not None:
-                state.live_map.close()
-            if state.live_detect is not None:
-                state.live_detect.close()
-            if state.scenes is not None:
-                state.scenes.close()
-            state.engine.dispose()
-
     # the API docs serve Swagger/ReDoc from the station itself: no CDN on a bridge
     app = FastAPIOffline(
         title="steelscan ground station",
         version="0.1.0",
-        lifespan=lifespan,
+        lifespan=_lifespan(settings),
         description="Live link, storage, processing and review for steel-inspection climbing robots.",
     )
-
-    @app.exception_handler(RequestValidationError)
-    async def invalid(_: Request, exc: RequestValidationError) -> Response:
-        # as FastAPI's own, written as ASCII: the refused input may hold what UTF-8 cannot
-        body = json.dumps({"detail": jsonable_encoder(exc.errors())}, ensure_ascii=True)
-        return Response(body, status_code=422, media_type="application/json")
-
-    @app.exception_handler(DataError)
-    async def unstorable(_: Request, exc: DataError) -> JSONResponse:
-        # a value the database refuses (on PostgreSQL: a NUL in text, a number out of range)
-        reason = str(exc.orig).splitlines()[0] if exc.orig is not None else "invalid value"
-        return JSONResponse({"detail": f"a value cannot be stored: {reason}"}, status_code=422)
-
-    @app.exception_handler(NotFound)
-    async def not_found(_: Request, exc: NotFound) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=404)
-
-    @app.exception_handler(Conflict)
-    async def conflict(_: Request, exc: Conflict) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=409)
+    _add_error_handlers(app)
 
     @app.get("/api/health", tags=["health"], dependencies=[Depends(get_current_user)])
     def read_health(request: Request) -> dict[str, object]:
@@ -238,7 +125,73 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(robot_router)
     for router in ROUTERS:
         app.include_router(router)
-    web_dir = settings.web_dir
+    _add_web(app, settings.web_dir)
+    return app
+
+
+def _lifespan(settings: Settings) -> Callable[[FastAPI], AbstractAsyncContextManager[None]]:
+    """The app's services for as long as it runs (:meth:`AppState.open` and ``close``),
+    and the station's background tasks."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        log.info("open-file limit: %d", raise_fd_limit())
+        state = AppState.open(settings, asyncio.get_running_loop())
+        app.state.steelscan = state
+        reaper = asyncio.create_task(_end_quiet_sessions(state))
+        first = (
+            asyncio.create_task(_keep_the_station_first(settings.realtime_priority))
+            if settings.realtime_priority
+            else None
+        )
+        freeze_startup_objects()  # a full collection would pause every robot's link
+        # data stored after a processing whose re-run was lost with a stop (after the
+        # freeze: what it makes is not start-up's)
+        caught_up = (
+            asyncio.create_task(anyio.to_thread.run_sync(state.jobs.catch_up))
+            if settings.auto_process
+            else None
+        )
+        try:
+            yield
+        finally:
+            gc.unfreeze()  # an app run inside another program leaves its heap as it was
+            reaper.cancel()
+            if caught_up is not None:
+                await asyncio.gather(caught_up, return_exceptions=True)
+            if first is not None:
+                first.cancel()
+            state.close()
+
+    return lifespan
+
+
+def _add_error_handlers(app: FastAPI) -> None:
+    """Errors as JSON with the right status."""
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(_: Request, exc: RequestValidationError) -> Response:
+        # as FastAPI's own, written as ASCII: the refused input may hold what UTF-8 cannot
+        body = json.dumps({"detail": jsonable_encoder(exc.errors())}, ensure_ascii=True)
+        return Response(body, status_code=422, media_type="application/json")
+
+    @app.exception_handler(DataError)
+    async def unstorable(_: Request, exc: DataError) -> JSONResponse:
+        # a value the database refuses (on PostgreSQL: a NUL in text, a number out of range)
+        reason = str(exc.orig).splitlines()[0] if exc.orig is not None else "invalid value"
+        return JSONResponse({"detail": f"a value cannot be stored: {reason}"}, status_code=422)
+
+    @app.exception_handler(NotFound)
+    async def not_found(_: Request, exc: NotFound) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=404)
+
+    @app.exception_handler(Conflict)
+    async def conflict(_: Request, exc: Conflict) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=409)
+
+
+def _add_web(app: FastAPI, web_dir: Path) -> None:
+    """The dashboard's page, its files and its front-end libraries."""
 
     @app.get("/", include_in_schema=False)
     def read_index(request: Request) -> HTMLResponse:
@@ -264,4 +217,3 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.mount(f"/vendor/{name}", StaticFiles(directory=path), name=f"vendor-{name}")
         else:
             log.warning("web: %s is missing: run scripts/setup.sh (npm ci in web/)", path)
-    return app

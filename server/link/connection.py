@@ -23,8 +23,9 @@ from robot_link.protocol import (
 )
 from server.errors import IngestError
 from server.limits import TokenBucket
+from server.link.ingest import StoreResult
 from server.link.robots import authenticate_robot, hash_token
-from server.live.events import CommandAck, FrameHeader, Session, Telemetry
+from server.live.events import CommandAck, FrameHeader
 from server.storage.space import is_disk_full
 
 log = logging.getLogger(__name__)
@@ -129,85 +130,13 @@ class RobotConnection:
                 self.state.hub.detach_robot(sid, sender)
 
     async def handle(self, data: bytes, senders: dict[str, Any]) -> None:
-        """Decode, store, acknowledge and relay one message."""
+        """One message: admitted, stored, acknowledged, then handed on."""
         within_rate = self.bucket.take()  # every message counts, readable or not
-        try:
-            message = decode_message(data, max_bytes=self.state.settings.max_message_bytes)
-        except ProtocolError as exc:
-            if not self.state.malformed.malformed(self.robot_id, self.token_digest):  # barred
-                if not self.cut_off:
-                    self.cut_off = True
-                    log.warning("robot %s: too many malformed messages, barred", self.robot_name)
-                    await self.ws.close(code=1008, reason="too many malformed messages")
-            elif within_rate:
-                await self.send_error(uuid.UUID(int=0), _seq_of(data), f"malformed message: {exc}")
+        message = await self.admit(data, within_rate)
+        if message is None:
             return
-        if message.type in (MessageType.ACK, MessageType.ERROR, MessageType.COMMAND):
-            await self.send_error(
-                message.session_id, message.seq, f"{message.type.name} is not sent by robots"
-            )
-            return
-        if message.type in (MessageType.VIDEO, MessageType.COMMAND_ACK) and not await self.owns(
-            str(message.session_id)
-        ):  # another robot's live channel: never relayed
-            return
-        if message.type is MessageType.VIDEO:  # live preview: relayed, never stored or acknowledged
-            if within_rate:
-                header = FrameHeader(
-                    session_id=str(message.session_id),
-                    seq=message.seq,
-                    t=message.timestamp,
-                    video=True,
-                )
-                self.state.hub.publish_frame(header, message.payload)
-            return
-        if message.type is MessageType.COMMAND_ACK:
-            self.state.hub.publish(
-                CommandAck(
-                    **{k: v for k, v in message.meta.items() if k not in ("type", "seq")},
-                    session_id=str(message.session_id),
-                    seq=message.seq,
-                )
-            )
-            return
-        if not within_rate:
-            await self.send_error(
-                message.session_id,
-                message.seq,
-                "rate limit: too many messages, send it again shortly",
-                retry=True,
-            )
-            return
-        try:
-            result = await self.state.writer.store(message, self.robot_id)
-        except IngestError as exc:
-            await self.send_error(message.session_id, message.seq, str(exc), retry=exc.retry)
-            return
-        except Exception as exc:  # noqa: BLE001  the station's own fault: never "dropped"
-            if self.state.ingest.refuses_value(exc):  # the same message fails every time
-                await self.send_error(
-                    message.session_id,
-                    message.seq,
-                    f"a value cannot be stored: {_first_line(exc)}",
-                    retry=False,
-                )
-                return
-            if is_disk_full(exc):
-                _log_disk_full(exc)
-                await self.send_error(
-                    message.session_id,
-                    message.seq,
-                    "ground station storage is full: retry later",
-                    retry=True,
-                )
-                return
-            log.exception("ingest: could not store seq %d", message.seq)
-            await self.send_error(
-                message.session_id,
-                message.seq,
-                f"ground station could not store it ({type(exc).__name__}): retry later",
-                retry=True,
-            )
+        result = await self.store(message)
+        if result is None:
             return
         await self.send(
             Message(
@@ -223,26 +152,74 @@ class RobotConnection:
         if sid not in senders:
             senders[sid] = self.command_sender(message.session_id)
             self.state.hub.attach_robot(sid, senders[sid], self.robot_name)
-        self.relay(message)
-        live_map = self.state.live_map
-        if live_map is not None and message.type is MessageType.SESSION_START:
-            live_map.warm()
-        if live_map is not None and message.type is MessageType.CLOUD and result.status == "stored":
-            live_map.offer(sid, message.payload, message.meta, message.timestamp)
-        live_detect = self.state.live_detect
-        if (
-            live_detect is not None
-            and message.type is MessageType.FRAME
-            and result.status == "stored"
-        ):
-            live_detect.offer(sid, message.seq, message.payload, message.meta)
-        if self.state.settings.auto_process:
-            for old in result.superseded:  # ended by the station: processed as they are
-                await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, old)
-            if result.session_ended:
-                await anyio.to_thread.run_sync(self.state.jobs.enqueue_pipeline, sid)
-            elif result.late:  # its results miss this: processed again once the rest is in
-                self.state.jobs.mark_stale(sid)
+        for subscriber in self.state.on_stored:  # the live views, then the jobs
+            await subscriber(self.robot_name, message, result)
+
+    async def admit(self, data: bytes, within_rate: bool) -> Message | None:
+        """The decoded message if it is to be stored; None when it was answered here
+        (malformed, not a robot's to send, over the rate) or is live only (VIDEO,
+        COMMAND_ACK: relayed to the browsers, never stored)."""
+        try:
+            message = decode_message(data, max_bytes=self.state.settings.max_message_bytes)
+        except ProtocolError as exc:
+            if not self.state.malformed.malformed(self.robot_id, self.token_digest):  # barred
+                if not self.cut_off:
+                    self.cut_off = True
+                    log.warning("robot %s: too many malformed messages, barred", self.robot_name)
+                    await self.ws.close(code=1008, reason="too many malformed messages")
+            elif within_rate:
+                await self.send_error(uuid.UUID(int=0), _seq_of(data), f"malformed message: {exc}")
+            return None
+        if message.type in (MessageType.ACK, MessageType.ERROR, MessageType.COMMAND):
+            await self.send_error(
+                message.session_id, message.seq, f"{message.type.name} is not sent by robots"
+            )
+            return None
+        if message.type in (MessageType.VIDEO, MessageType.COMMAND_ACK):
+            # another robot's live channel is never relayed
+            if await self.owns(str(message.session_id)):
+                self.relay_live(message, within_rate)
+            return None
+        if not within_rate:
+            await self.send_error(
+                message.session_id,
+                message.seq,
+                "rate limit: too many messages, send it again shortly",
+                retry=True,
+            )
+            return None
+        return message
+
+    def relay_live(self, message: Message, within_rate: bool) -> None:
+        """A live preview frame (VIDEO, dropped over the rate) or a command's answer to the
+        browsers."""
+        sid = str(message.session_id)
+        if message.type is MessageType.VIDEO and within_rate:
+            header = FrameHeader(session_id=sid, seq=message.seq, t=message.timestamp, video=True)
+            self.state.hub.publish_frame(header, message.payload)
+        elif message.type is MessageType.COMMAND_ACK:
+            fields = {k: v for k, v in message.meta.items() if k not in ("type", "seq")}
+            self.state.hub.publish(CommandAck(**fields, session_id=sid, seq=message.seq))
+
+    async def store(self, message: Message) -> StoreResult | None:
+        """Store the message; None when it was refused, the robot told why and whether to
+        send it again."""
+        try:
+            return await self.state.writer.store(message, self.robot_id)
+        except IngestError as exc:
+            await self.send_error(message.session_id, message.seq, str(exc), retry=exc.retry)
+        except Exception as exc:  # noqa: BLE001  the station's own fault: never "dropped"
+            if self.state.ingest.refuses_value(exc):  # the same message fails every time
+                error, retry = f"a value cannot be stored: {_first_line(exc)}", False
+            elif is_disk_full(exc):
+                _log_disk_full(exc)
+                error, retry = "ground station storage is full: retry later", True
+            else:
+                log.exception("ingest: could not store seq %d", message.seq)
+                error = f"ground station could not store it ({type(exc).__name__}): retry later"
+                retry = True
+            await self.send_error(message.session_id, message.seq, error, retry=retry)
+        return None
 
     async def owns(self, sid: str) -> bool:
         """Whether this robot recorded session ``sid`` (looked up at most once a second for
@@ -261,30 +238,6 @@ class RobotConnection:
             )
         self.refused[sid] = time.monotonic()
         return False
-
-    def relay(self, message: Message) -> None:
-        """Show the message to watching browsers."""
-        hub = self.state.hub
-        sid = str(message.session_id)
-        pose = message.meta.get("pose")
-        if (
-            self.state.scenes is not None
-            and isinstance(pose, dict)
-            and message.type in (MessageType.FRAME, MessageType.TELEMETRY)
-        ):
-            self.state.scenes.live.show_pose(
-                sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"])
-            )
-        if message.type is MessageType.FRAME:
-            header = FrameHeader(
-                session_id=sid, seq=message.seq, t=message.timestamp, pose=message.meta.get("pose")
-            )
-            hub.publish_frame(header, message.payload)
-        elif message.type is MessageType.TELEMETRY:
-            hub.publish(Telemetry(session_id=sid, data={**message.meta, "t": message.timestamp}))
-        elif message.type in (MessageType.SESSION_START, MessageType.SESSION_END):
-            event = "session_start" if message.type is MessageType.SESSION_START else "session_end"
-            hub.publish(Session(session_id=sid, event=event, robot=self.robot_name))
 
 
 def _first_line(exc: BaseException) -> str:

@@ -1,0 +1,59 @@
+"""What a stored robot message shows live: its frame and telemetry to the watching
+browsers, the robot's pose in the live 3D view, its cloud to the live map and its frame to
+live detection."""
+
+from __future__ import annotations
+
+from robot_link.protocol import Message, MessageType
+from server.link.ingest import StoreResult
+from server.live.events import FrameHeader, Session, Telemetry
+from server.live.hub import LiveHub
+from server.live.live_detect import LiveDetect
+from server.live.live_map import LiveMap
+from server.live.scenes import Scenes
+
+
+class LiveRelay:
+    """Fans a stored message out to the live views that are switched on."""
+
+    def __init__(
+        self,
+        hub: LiveHub,
+        scenes: Scenes | None,
+        live_map: LiveMap | None,
+        live_detect: LiveDetect | None,
+    ) -> None:
+        self.hub, self.scenes, self.live_map, self.live_detect = hub, scenes, live_map, live_detect
+
+    async def on_stored(self, robot: str, message: Message, result: StoreResult) -> None:
+        """Called after each stored message's ACK (``robot``: the sender's name)."""
+        self.show(robot, message)
+        sid, new = str(message.session_id), result.status == "stored"
+        if self.live_map is not None and message.type is MessageType.SESSION_START:
+            self.live_map.warm()
+        if self.live_map is not None and message.type is MessageType.CLOUD and new:
+            self.live_map.offer(sid, message.payload, message.meta, message.timestamp)
+        if self.live_detect is not None and message.type is MessageType.FRAME and new:
+            self.live_detect.offer(sid, message.seq, message.payload, message.meta)
+
+    def show(self, robot: str, message: Message) -> None:
+        """Show the message to watching browsers (and the robot's pose in the 3D view)."""
+        sid = str(message.session_id)
+        pose = message.meta.get("pose")
+        if (
+            self.scenes is not None
+            and isinstance(pose, dict)
+            and message.type in (MessageType.FRAME, MessageType.TELEMETRY)
+        ):
+            self.scenes.live.show_pose(sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"]))
+        if message.type is MessageType.FRAME:
+            header = FrameHeader(
+                session_id=sid, seq=message.seq, t=message.timestamp, pose=message.meta.get("pose")
+            )
+            self.hub.publish_frame(header, message.payload)
+        elif message.type is MessageType.TELEMETRY:
+            data = {**message.meta, "t": message.timestamp}
+            self.hub.publish(Telemetry(session_id=sid, data=data))
+        elif message.type in (MessageType.SESSION_START, MessageType.SESSION_END):
+            event = "session_start" if message.type is MessageType.SESSION_START else "session_end"
+            self.hub.publish(Session(session_id=sid, event=event, robot=robot))
