@@ -36,9 +36,8 @@ from robot_link.sim.sweeps import (
 )
 
 SEEDS = (101, 202)
-DRIFT_SEEDS = tuple(
-    range(301, 309)
-)  # straight runs for the end drift's spread (photographs and painted steel in turn)
+# straight runs for the end drift's spread (photographs and painted steel in turn)
+DRIFT_SEEDS = tuple(range(301, 309))
 
 
 class _Jpegs:
@@ -157,9 +156,8 @@ def _ecc_steps(sweep: Sweep, poses: NDArray[np.float64]) -> tuple[list[NDArray[n
             steps.append(start)
             continue
         x0, y0, x1, y1 = rect
-        W = W0 = (M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2].astype(
-            np.float32
-        )  # template pixel -> frame k+1
+        # template pixel -> frame k+1
+        W = W0 = (M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2].astype(np.float32)
         t0 = time.perf_counter()
         try:
             _, W = cv2.findTransformECC(
@@ -234,9 +232,8 @@ def _sequence(
         "target": 1.0,
         **vs_odometry(drift, odo_drift),
     }
-    if (
-        sweep.config.pattern == "straight" and not blind
-    ):  # a chain of pairs only: is a pixel at the far end reachable?
+    # a chain of pairs only: is a pixel at the far end reachable?
+    if sweep.config.pattern == "straight" and not blind:
         steps, ecc_seconds = _ecc_steps(sweep, poses)
         ecc_pairs, ecc_drift = mosaic_overlap_errors(
             chain_se2(sweep.truth[0], steps), sweep.truth, size

@@ -97,9 +97,8 @@ class RobotLink:
         self._ssl = (
             ssl.create_default_context(cafile=ca_file) if self.url.startswith("wss://") else None
         )
-        self.on_link_change = (
-            on_link_change  # called with True on (re)connect, False when the link drops
-        )
+        # called with True on (re)connect, False when the link drops
+        self.on_link_change = on_link_change
         self._video_busy = False
         self._video_seq = 0
         self.token = token

@@ -128,9 +128,8 @@ class VideoMeta(_Sized):
     encoding: Literal["jpeg"] = "jpeg"
 
 
-STOP_COMMANDS = frozenset(
-    {"stop", "estop"}
-)  # always safe: never refused, rate-limited or ignored as a replay
+# always safe: never refused, rate-limited or ignored as a replay
+STOP_COMMANDS = frozenset({"stop", "estop"})
 DRIVE_HOLD_S = 0.2  # a drive command holds this long; the robot stops unless a newer one arrives
 
 

@@ -88,10 +88,11 @@ def serve_process(
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         try:
+            # 401: up, with accounts
             if httpx.get(f"http://127.0.0.1:{port}/api/health", timeout=1).status_code in (
                 200,
                 401,
-            ):  # 401: up, with accounts
+            ):
                 return proc
         except httpx.HTTPError:
             time.sleep(0.1)

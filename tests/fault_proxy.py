@@ -23,9 +23,8 @@ class FaultProxy:
     connections: int = 0
     _rng: random.Random = field(init=False)
     _server: asyncio.AbstractServer | None = field(default=None, init=False)
-    _open: set[asyncio.Event] = field(
-        default_factory=set, init=False
-    )  # the cut switch of each open connection
+    # the cut switch of each open connection
+    _open: set[asyncio.Event] = field(default_factory=set, init=False)
 
     def __post_init__(self) -> None:
         self._rng = random.Random(self.seed)

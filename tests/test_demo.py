@@ -58,9 +58,8 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
         assert Path(summary["mosaic_path"]).is_file() and Path(summary["map_path"]).is_file()
         assert 0 <= summary["defects_matched"] <= summary["defects_true"] == 9
         assert summary["defects_found"] >= summary["defects_matched"]
-        assert (
-            summary["frame_defects_found"] >= summary["frame_defects_matched"] >= 1
-        )  # frames placed on the structure
+        # frames placed on the structure
+        assert summary["frame_defects_found"] >= summary["frame_defects_matched"] >= 1
         assert isinstance(summary["map_ate_m"], float) and summary["map_ate_m"] < 0.05
 
         base = lines[0].split()[1].rstrip("/")
@@ -68,9 +67,8 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
             f"{base}/api/auth/token", data={"username": name, "password": password}
         ).json()["access_token"]
         auth = {"Authorization": f"Bearer {token}"}
-        assert (
-            httpx.get(summary["report_pdf_url"]).status_code == 401
-        )  # the URLs need the operator's login
+        # the URLs need the operator's login
+        assert httpx.get(summary["report_pdf_url"]).status_code == 401
         report = httpx.get(summary["report_json_url"], headers=auth).json()
         assert report["summary"]["defects"] == summary["defects_found"]
         pdf = httpx.get(summary["report_pdf_url"], headers=auth, timeout=120)

@@ -67,7 +67,7 @@ from processing.mapping.icp import (
     structure_fitness,
     within_bounds,
 )
-from processing.mapping.incremental import IncrementalMap, MapResult
+from processing.mapping.incremental import IncrementalMap
 from processing.mapping.pairwise import CloudMeasurement, measure_run
 from processing.mapping.params import (
     IcpParams,
@@ -78,6 +78,7 @@ from processing.mapping.params import (
     SelectParams,
     TrackingParams,
 )
+from processing.mapping.result import MapResult
 from processing.mapping.selection import clean_cloud, filter_organised, fuse_map, select
 from processing.mapping.tracking import Tracker, register_to_map
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
@@ -15,6 +15,7 @@ from processing.mapping.loops import close_loop, loop_candidates
 from processing.mapping.pairwise import CloudMeasurement, PairEdge, Step, edge_of, measure_step
 from processing.mapping.params import MapParams
 from processing.mapping.planes import Plane, extract_planes
+from processing.mapping.result import MapResult
 from processing.mapping.selection import fuse_map, select
 from processing.mapping.tracking import Tracker, axis_information
 from processing.mapping.wheels import WheelModel, fit_wheel_model, wheel_edge
@@ -23,23 +24,25 @@ reg = o3d.pipelines.registration
 
 
 @dataclass
-class MapResult:
-    """Registered poses T_world_sensor (N, 4, 4), the fused map (M, 3) and per-cloud facts."""
+class MapCloud:
+    """What the map keeps of one cloud: the points it was registered with, its odometry
+    pose, the step into it (odometry, or the seed without), how its registration went,
+    and what its odometry edge is worth."""
 
-    poses: NDArray[np.float64]
-    points: NDArray[np.float32]
-    fitness: NDArray[np.float64]
-    rmse: NDArray[np.float64]
-    used_odometry: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
-    degenerate_dims: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, int))
-    loop_closures: int = 0
-    pruned_edges: int = 0
-    odometry_error_scale: float = (
-        1.0  # the odometry's error measured against ICP, over the configured one (>= 1)
-    )
-    plane_landmarks: int = (
-        0  # large planes (deck plate, web, stiffener faces) that tied the clouds seeing them
-    )
+    pcd: o3d.geometry.PointCloud
+    guess: NDArray[np.float64] | None  # odometry pose T_world_sensor, if the robot sent one
+    step: NDArray[np.float64] | None = None  # odometry (or seed) step into it; None: the first
+    fitness: float = 1.0
+    rmse: float = 0.0
+    used_odometry: bool = False
+    degenerate_dims: int = 0
+    odometry_sigma: tuple[float, float] | None = None  # configured (rotation rad, translation m)
+    # information of its tracked pose (the geometry's where it observes, the prediction's
+    # prior elsewhere): its odometry edge's once the wheel model holds the steps
+    tracked_information: NDArray[np.float64] | None = None
+    # ICP's heading step minus the odometry's, where the structure fixes it, over its
+    # configured error
+    heading_gap: float | None = None
 
 
 class IncrementalMap:
@@ -61,39 +64,22 @@ class IncrementalMap:
         self.params = params
         self.optimise_every = optimise_every
         self.graph = reg.PoseGraph()
-        self._pose_buffer = np.zeros(
-            (64, 4, 4)
-        )  # the nodes' poses (the first len(graph.nodes) rows)
+        # the nodes' poses (the first len(graph.nodes) rows)
+        self._pose_buffer = np.zeros((64, 4, 4))
         self.loop_closures = 0
         self._looped: set[tuple[int, int]] = set()  # (i, j) pairs tied by a loop closure
         self.pruned_edges = 0
-        self._pcds: list[o3d.geometry.PointCloud] = []
-        self._guesses: list[NDArray[np.float64] | None] = []
-        self._steps: list[NDArray[np.float64]] = []  # odometry (or seed) step into each cloud
-        self._facts: list[
-            tuple[float, float, bool, int]
-        ] = []  # fitness, rmse, used odometry, degenerate dims
-        self._odometry_sigmas: dict[
-            int, tuple[float, float]
-        ] = {}  # cloud -> configured (rotation rad, translation m) of its odometry edge
-        self._heading_gaps: list[
-            float
-            # ICP's heading step minus the odometry's, where the structure fixes it, over its configured
-            # error
-        ] = []
+        self.clouds: list[MapCloud] = []
         self.landmarks = PlaneLandmarks(params.planes)
         self._fused = o3d.geometry.PointCloud()
         self._fused_upto = 0  # clouds fused into ``_fused`` at their current pose
         self.tracker = Tracker(params.tracking, params.select.voxel_m)
         self.wheel_model: WheelModel | None = None  # fitted in :meth:`result`
-        # cloud -> information of its tracked pose (the geometry's where it observes, the
-        # prediction's prior elsewhere): its odometry edge's
-        self._tracked_information: dict[int, NDArray[np.float64]] = {}
 
     @property
     def usable_clouds(self) -> int:
         """Clouds with enough points after selection to be registered."""
-        return sum(len(pcd.points) >= self.params.icp.min_points for pcd in self._pcds)
+        return sum(len(c.pcd.points) >= self.params.icp.min_points for c in self.clouds)
 
     @property
     def poses(self) -> NDArray[np.float64]:
@@ -119,38 +105,56 @@ class IncrementalMap:
     ) -> NDArray[np.float64]:
         """Place one cloud (sensor frame) given its odometry pose ``guess``; its pose."""
         guess = None if guess is None else np.asarray(guess, dtype=np.float64)
+        # 1. selection: filter, downsample, normals
         pcd = select(points, self.params.select, shape)
-        i = len(self._pcds)
-        if self.params.tracking.enabled:  # the tracked pose is the graph's odometry
+        i = len(self.clouds)
+        # 2. tracking, where enabled: the tracked pose is the graph's odometry
+        tracked_information = None
+        if self.params.tracking.enabled:
             guess = self.tracker.track(pcd, guess)
-            self._tracked_information[i] = self.tracker.information()
+            tracked_information = self.tracker.information()
+        # 3. the step from the previous cloud: odometry (or the last step), corrected by ICP
         step = None
         if i > 0:
-            previous = self._guesses[i - 1]
+            previous = self.clouds[i - 1].guess
             if guess is not None and previous is not None:
                 odometry = np.linalg.inv(previous) @ guess
             else:
-                odometry = self._steps[-1] if self._steps else np.eye(4)
+                odometry = self._last_step()
             tracked = self._tracked_facts(len(pcd.points)) if self.params.tracking.enabled else None
             step = measure_step(
-                pcd, self._pcds[i - 1], odometry, guess is not None, i, self.params.icp, tracked
+                pcd,
+                self.clouds[i - 1].pcd,
+                odometry,
+                guess is not None,
+                i,
+                self.params.icp,
+                tracked,
             )
+        # 4. edges to the clouds a few steps back (a tracked cloud was registered to every
+        # cloud before it: edges beyond the previous one add nothing measurable there)
         edges = []
-        # a tracked cloud was registered to every cloud before it (the step): edges beyond
-        # the previous cloud add nothing measurable there, and cost a registration each
         if self.params.pose_graph and step is not None and not self.params.tracking.enabled:
             pose = np.asarray(self.graph.nodes[i - 1].pose) @ step.seed
             for j in range(max(0, i - self.params.neighbours), i - 1):
                 init = np.linalg.inv(np.asarray(self.graph.nodes[j].pose)) @ pose
-                edge = edge_of(pcd, self._pcds[j], j, init, self.params.icp)
+                edge = edge_of(pcd, self.clouds[j].pcd, j, init, self.params.icp)
                 if edge is not None:
                     edges.append(edge)
+        # 5. its large planes, landmarks of the map
         planes = (
             extract_planes(np.asarray(pcd.points), np.asarray(pcd.normals))
             if self.params.planes.enabled and pcd.has_normals()
             else []
         )
-        return self._attach(pcd, planes, step, edges, guess)
+        # 6. into the graph: node, odometry and ICP edges, landmarks, loop closures
+        return self._attach(
+            MapCloud(pcd, guess, tracked_information=tracked_information), planes, step, edges
+        )
+
+    def _last_step(self) -> NDArray[np.float64]:
+        """The step into the latest cloud that has one (the constant-velocity guess)."""
+        return next((c.step for c in reversed(self.clouds) if c.step is not None), np.eye(4))
 
     def attach(
         self, measured: CloudMeasurement, guess: NDArray[np.floating] | None = None
@@ -160,33 +164,25 @@ class IncrementalMap:
         give the graph :meth:`add` gives from the same clouds and odometry, edges to earlier
         clouds measured from the odometry's chain rather than the graph's current poses."""
         guess = None if guess is None else np.asarray(guess, dtype=np.float64)
-        return self._attach(measured.cloud(), measured.planes, measured.step, measured.edges, guess)
+        cloud = MapCloud(measured.cloud(), guess)
+        return self._attach(cloud, measured.planes, measured.step, measured.edges)
 
     def _attach(
-        self,
-        pcd: o3d.geometry.PointCloud,
-        planes: list[Plane],
-        step: Step | None,
-        edges: list[PairEdge],
-        guess: NDArray[np.float64] | None,
+        self, cloud: MapCloud, planes: list[Plane], step: Step | None, edges: list[PairEdge]
     ) -> NDArray[np.float64]:
-        i = len(self._pcds)
-        self._pcds.append(pcd)
-        self._guesses.append(guess)
+        i = len(self.clouds)
+        self.clouds.append(cloud)
         self.landmarks.planes.append(planes)
         if i == 0 or step is None:
-            pose = guess if guess is not None else np.eye(4)
+            pose = cloud.guess if cloud.guess is not None else np.eye(4)
             self._append_node(pose)
-            self._facts.append((1.0, 0.0, False, 0))
             self.landmarks.associate(i, pose)
             return pose
         if step.heading_gap is not None:
             up = np.asarray(self.graph.nodes[i - 1].pose)[2, :3]  # the world's z in cloud i-1
-            self._heading_gaps.append(
-                float(step.heading_gap @ up) / self._odometry_sigma(step.step)[0]
-            )
-        self._steps.append(step.step if guess is not None else step.seed)
-        self._facts.append(step.facts)
+            cloud.heading_gap = float(step.heading_gap @ up) / self._odometry_sigma(step.step)[0]
+        cloud.step = step.step if cloud.guess is not None else step.seed
+        cloud.fitness, cloud.rmse, cloud.used_odometry, cloud.degenerate_dims = step.facts
         pose = np.asarray(self.graph.nodes[i - 1].pose) @ step.seed
         self._append_node(pose)
         self._add_odometry_edge(i)
@@ -221,8 +217,9 @@ class IncrementalMap:
 
     def _add_odometry_edge(self, i: int) -> None:
         """Odometry edge into cloud i: holds what the geometry cannot; its error grows with the step."""
-        step = self._steps[i - 1]
-        sigma_r, sigma_t = self._odometry_sigmas[i] = self._odometry_sigma(step)
+        step = self.clouds[i].step
+        assert step is not None
+        self.clouds[i].odometry_sigma = self._odometry_sigma(step)
         info = self._odometry_information(i, 1.0)
         self.graph.edges.append(reg.PoseGraphEdge(i, i - 1, step, info, uncertain=False))
 
@@ -239,9 +236,10 @@ class IncrementalMap:
         spread (1.4826 MAD) of its heading steps against ICP's, where the structure fixes
         them, each over its configured error; 1 until 10 such steps were seen. ICP's own
         error is in the spread, so odometry as good as configured stays at 1."""
-        if not self.params.odometry.calibrate or len(self._heading_gaps) < 10:
+        gaps = [c.heading_gap for c in self.clouds if c.heading_gap is not None]
+        if not self.params.odometry.calibrate or len(gaps) < 10:
             return 1.0
-        return max(1.0, 1.4826 * float(np.median(np.abs(self._heading_gaps))))
+        return max(1.0, 1.4826 * float(np.median(np.abs(gaps))))
 
     def _calibrate_odometry_edges(self) -> None:
         """Set every odometry edge's information for :meth:`odometry_error_scale` (each cloud's
@@ -250,7 +248,7 @@ class IncrementalMap:
         seen: set[int] = set()
         for edge in self.graph.edges:
             s, t = edge.source_node_id, edge.target_node_id
-            if edge.uncertain or t != s - 1 or s in seen or s not in self._odometry_sigmas:
+            if edge.uncertain or t != s - 1 or s in seen or self.clouds[s].odometry_sigma is None:
                 continue
             seen.add(s)
             edge.information = self._odometry_information(s, scale)
@@ -259,9 +257,11 @@ class IncrementalMap:
         """Information of cloud i's odometry edge: once the wheel model holds the steps, its
         tracked pose's (the geometry's where it observes, the prediction's elsewhere:
         :meth:`Tracker.information`), else the configured odometry errors times ``scale``."""
-        if self.wheel_model is not None and i in self._tracked_information:
-            return self._tracked_information[i]
-        sigma_r, sigma_t = self._odometry_sigmas[i]
+        cloud = self.clouds[i]
+        if self.wheel_model is not None and cloud.tracked_information is not None:
+            return cloud.tracked_information
+        assert cloud.odometry_sigma is not None
+        sigma_r, sigma_t = cloud.odometry_sigma
         return axis_information(scale * sigma_r, scale * sigma_t)
 
     def _add_edge(
@@ -270,7 +270,7 @@ class IncrementalMap:
         """An ICP edge from cloud s to cloud t with its point-to-plane information (1 if added)."""
         if result is None:
             return 0
-        info = plane_information(self._pcds[s], self._pcds[t], result, self.params.icp)
+        info = plane_information(self.clouds[s].pcd, self.clouds[t].pcd, result, self.params.icp)
         self.graph.edges.append(
             reg.PoseGraphEdge(s, t, np.asarray(result.transformation), info, uncertain=uncertain)
         )
@@ -290,7 +290,11 @@ class IncrementalMap:
             if (i, j) in self._looped:
                 continue
             result = close_loop(
-                self._pcds[i], self._pcds[j], self._relative(j, i), self.params, optimised=optimised
+                self.clouds[i].pcd,
+                self.clouds[j].pcd,
+                self._relative(j, i),
+                self.params,
+                optimised=optimised,
             )
             if self._add_edge(i, j, result, uncertain=True):
                 self._looped.add((i, j))
@@ -365,11 +369,11 @@ class IncrementalMap:
         poses = self.poses
         if self._fused_upto == 0:
             self._fused = o3d.geometry.PointCloud()
-        for k in range(self._fused_upto, len(self._pcds)):
-            self._fused += o3d.geometry.PointCloud(self._pcds[k]).transform(poses[k])
-        if self._fused_upto < len(self._pcds):
+        for k in range(self._fused_upto, len(self.clouds)):
+            self._fused += o3d.geometry.PointCloud(self.clouds[k].pcd).transform(poses[k])
+        if self._fused_upto < len(self.clouds):
             self._fused = self._fused.voxel_down_sample(self.params.map_voxel_m)
-            self._fused_upto = len(self._pcds)
+            self._fused_upto = len(self.clouds)
         return np.asarray(self._fused.points, dtype=np.float32)
 
     def result(self) -> MapResult:
@@ -382,21 +386,20 @@ class IncrementalMap:
             landmarks = len(self.landmarks)
             self.landmarks.merge()
             if (
-                sum(self._close_loops(i, optimised=True) for i in range(len(self._pcds)))
+                sum(self._close_loops(i, optimised=True) for i in range(len(self.clouds)))
                 or len(self.landmarks) < landmarks
             ):
                 self.optimise()
         if self.params.pose_graph and self.params.tracking.enabled and self.params.wheels:
             self._hold_to_wheels()
-        fitness, rmse, used, degenerate = (np.array(col) for col in zip(*self._facts))
-        poses = self.poses
+        poses, clouds = self.poses, self.clouds
         return MapResult(
             poses,
-            fuse_map(self._pcds, poses, self.params.map_voxel_m),
-            fitness.astype(float),
-            rmse.astype(float),
-            used.astype(bool),
-            degenerate.astype(int),
+            fuse_map([c.pcd for c in clouds], poses, self.params.map_voxel_m),
+            np.array([c.fitness for c in clouds], float),
+            np.array([c.rmse for c in clouds], float),
+            np.array([c.used_odometry for c in clouds], bool),
+            np.array([c.degenerate_dims for c in clouds], int),
             self.loop_closures,
             self.pruned_edges,
             self.odometry_error_scale(),

@@ -77,22 +77,21 @@ class LoopParams:
     min_gap: int = 12  # ... at least this many clouds back ...
     max_view_angle_deg: float = 45.0  # ... whose optical axes are this close
     per_cloud: int = 2
+    # coarse correspondence distances tried before a loop's ICP
     search_m: tuple[float, ...] = (
         0.3,
         0.15,
-    )  # coarse correspondence distances tried before a loop's ICP
+    )
     max_correction_m: float = 0.3  # a loop closure may correct this much accumulated drift ...
     max_correction_deg: float = 15.0  # ... and this much heading
     min_fitness: float = 0.5  # it is kept when this share of its points matched ...
     min_structure_fitness: float = 0.8  # ... and this share of its structure (not the plate)
     min_structure_points: int = 50
-    min_overlap: float = (
-        0.6  # ... and this share of each cloud lies within loop_overlap_m of the other (both ways)
-    )
+    # ... and this share of each cloud lies within loop_overlap_m of the other (both ways)
+    min_overlap: float = 0.6
     overlap_m: float = 0.02
-    prefilter_m: float = (
-        0.05  # from optimised poses a candidate must overlap this well before it is searched
-    )
+    # from optimised poses a candidate must overlap this well before it is searched
+    prefilter_m: float = 0.05
     preference: float = 1.0  # Open3D's line process: lower prunes disagreeing loop closures sooner
 
 
@@ -111,9 +110,8 @@ class OdometryParams:
 class PlaneParams:
     """Plane landmarks: association of a cloud's planes to landmarks and their weight."""
 
-    enabled: bool = (
-        True  # large planes (deck plate, web, stiffener faces) as landmarks of the pose graph
-    )
+    # large planes (deck plate, web, stiffener faces) as landmarks of the pose graph
+    enabled: bool = True
     max_angle_deg: float = 5.0  # a cloud's plane is a landmark's when this close in angle ...
     max_offset_m: float = 0.03  # ... and in distance (current estimate)
     sigma_m: float = 0.06  # effective error of one inlier's distance to its landmark
@@ -134,7 +132,6 @@ class MapParams:
     pose_graph: bool = True
     # tracked steps tied to the robot's wheel model fitted to them (processing.mapping.wheels)
     wheels: bool = True
-    refine: bool = (
-        True  # False: the initial poses are better than ICP can do (visual odometry); only fuse
-    )
+    # False: the initial poses are better than ICP can do (visual odometry); only fuse
+    refine: bool = True
     map_voxel_m: float = 0.01

@@ -91,9 +91,8 @@ def extract_planes(
     rng = np.random.default_rng(0)
     remaining = np.arange(len(points))
     planes: list[Plane] = []
-    for _ in range(
-        max_planes * 2
-    ):  # a plane refused for its shape is removed too: a few more tries
+    # a plane refused for its shape is removed too: a few more tries
+    for _ in range(max_planes * 2):
         if len(planes) == max_planes or len(remaining) < max(min_points, 3):
             break
         pts = points[remaining]

@@ -39,9 +39,8 @@ def filter_organised(
         scale = np.where(good, med / z, np.float32(1))
     out = pts * scale[..., None]
     out[~valid] = np.nan
-    if (
-        stride > 1
-    ):  # stride x stride blocks averaged (the voxels average them anyway): fewer points, less noise
+    # stride x stride blocks averaged (the voxels average them anyway): fewer points, less noise
+    if stride > 1:
         hb, wb = h // stride, w // stride
         ok = valid & good
         masked = np.where(ok[..., None], out, np.float32(0))

@@ -181,9 +181,8 @@ def _correct_vignetting(
     photo = solve_photometry(len(frames.source), samples)
     if photo is None:
         return False
-    falls_off = (
-        float(photo.flat_field((w, h), step=8).min()) < 1.0 - params.flat_field_min_falloff
-    )  # the whole field only if so
+    # the whole field only if so
+    falls_off = float(photo.flat_field((w, h), step=8).min()) < 1.0 - params.flat_field_min_falloff
     new = (
         (1.0 / np.maximum(photo.flat_field((w, h)), 0.2)).astype(np.float32) if falls_off else None
     )

@@ -85,9 +85,8 @@ def _nearest_measured(
     """Indices of the ``count`` measured entries nearest to entry k (the one before first
     when two are as near)."""
     found: list[int] = []
-    for step in range(
-        1, len(measurements)
-    ):  # outwards from k: no scan of a whole long session per pair
+    # outwards from k: no scan of a whole long session per pair
+    for step in range(1, len(measurements)):
         for j in (k - step, k + step):
             if 0 <= j < len(measurements) and measurements[j] is not None:
                 found.append(j)
@@ -96,9 +95,8 @@ def _nearest_measured(
     return found
 
 
-BLIND_ANGLES = tuple(
-    np.radians([-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0])
-)  # turns searched when there is no odometry (climbed from 0)
+# turns searched when there is no odometry (climbed from 0)
+BLIND_ANGLES = tuple(np.radians([-8.0, -6.0, -4.0, -2.0, 0.0, 2.0, 4.0, 6.0, 8.0]))
 # a verified guess this good ends the search (true matches ≥ 0.98, false ones ≤ 0.88, measured)
 SURE_MATCH = 0.9
 

@@ -115,9 +115,8 @@ def render_bands(
 
     def render(y0: int) -> Band:
         if params.blend == "feather" and getattr(scratch, "acc", None) is None:
-            scratch.acc = np.zeros(
-                (rows, layout.width, layout.channels + 1), np.float32
-            )  # zeroed again as read
+            # zeroed again as read
+            scratch.acc = np.zeros((rows, layout.width, layout.channels + 1), np.float32)
         return paint(y0, y0 + rows, scratch.acc if params.blend == "feather" else None)
 
     with ThreadPoolExecutor(workers) as pool:

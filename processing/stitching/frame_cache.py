@@ -124,9 +124,8 @@ class FrameCache:
     def image(self, k: int) -> NDArray[np.uint8]:
         """Frame k, flat-fielded."""
         img = self.raw(k)
-        return (
-            _times(img, self.inv_flat) if self.inv_flat is not None else img
-        )  # flat-field correction
+        # flat-field correction
+        return _times(img, self.inv_flat) if self.inv_flat is not None else img
 
     def level(self, k: int) -> Level:
         """Frame k's grey levels for registration (flat-fielded)."""

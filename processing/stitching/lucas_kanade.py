@@ -46,9 +46,8 @@ class Smoothed:
     @classmethod
     def of(cls, gray: Gray, sigma: float) -> Smoothed:
         """Smooth by a Gaussian of ``sigma``."""
-        return cls(
-            cv2.GaussianBlur(gray, (5, 5), sigma)
-        )  # truncated at 2σ: cheaper, as good for registration
+        # truncated at 2σ: cheaper, as good for registration
+        return cls(cv2.GaussianBlur(gray, (5, 5), sigma))
 
     def crop(self, x0: int, y0: int, x1: int, y1: int) -> Smoothed:
         """A rectangle of it."""
@@ -78,9 +77,8 @@ def refine_euclidean(
     c = np.array([(w - 1) / 2, (h - 1) / 2])
     X, Y = xs - c[0], ys - c[1]
     Gx, Gy = gx[ys, xs].astype(np.float64), gy[ys, xs].astype(np.float64)
-    SD = np.column_stack(
-        [Gx * -Y + Gy * X, Gx, Gy]
-    )  # steepest-descent images (θ about the centre, tx, ty)
+    # steepest-descent images (θ about the centre, tx, ty)
+    SD = np.column_stack([Gx * -Y + Gy * X, Gx, Gy])
     H_inv = np.linalg.inv(SD.T @ SD)
     Tv = template.image[ys, xs].astype(np.float64)
     Tc = Tv - Tv.mean()

@@ -19,12 +19,13 @@ from processing.poses import wrap_angle
 
 Gray = NDArray[np.float32]
 
+# cv2.rotate codes, k quarter turns
 QUARTER_TURNS = (
     None,
     cv2.ROTATE_90_CLOCKWISE,
     cv2.ROTATE_180,
     cv2.ROTATE_90_COUNTERCLOCKWISE,
-)  # cv2.rotate codes, k quarter turns
+)
 
 
 def _tukey(n: int, taper: float) -> NDArray[np.float32]:
@@ -79,10 +80,11 @@ def _correlation(a: Gray, b: Gray) -> float:
     return float(covariance / max(std_a[0, 0] * std_b[0, 0], 1e-12))
 
 
+# phase correlation at a quarter of the resolution, at half where that places nothing
 PHASE_SCALES = (
     4,
     2,
-)  # phase correlation at a quarter of the resolution, at half where that places nothing
+)
 
 
 @dataclass(frozen=True)
@@ -106,9 +108,8 @@ class PhaseView:
         return cls(small, cv2.GaussianBlur(small, (0, 0), 4.0 / scale), _spectrum(small), scale)
 
 
-PHASE_TILTS = tuple(
-    np.radians([0.0, 6.0, -6.0])
-)  # small turns tried where frame b, as it is, finds nothing sure
+# small turns tried where frame b, as it is, finds nothing sure
+PHASE_TILTS = tuple(np.radians([0.0, 6.0, -6.0]))
 # a candidate ends the search only if its overlap is this share of the frame (tiny ones correlate by
 # chance)
 SURE_OVERLAP = 0.15

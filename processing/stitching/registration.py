@@ -32,9 +32,8 @@ class RegistrationParams:
     max_refine_px: float = 6.0  # the refinement may move the overlap this far from the coarse match
     max_refine_rad: float = 0.05  # ... and turn it this far
     points: int = 3000  # pixels used by the sub-pixel refinement
-    half_stage_below: float = (
-        0.9  # refine at half resolution first when the coarse correlation is weaker
-    )
+    # refine at half resolution first when the coarse correlation is weaker
+    half_stage_below: float = 0.9
     iterations: int = 30
     lever_px: float = 200.0  # weight of a heading residual: radians times this, as pixels
     prior_weight: float = 0.01  # odometry steps, relative to image measurements
@@ -84,9 +83,8 @@ def overlap_rect(
 
 
 FIRST_SEARCH_PX = 12  # the coarse search's first radius (full-resolution pixels)
-EARLY_OVERLAP = (
-    0.9  # pairs guessed to overlap less than this share of ``min_overlap`` are not searched
-)
+# pairs guessed to overlap less than this share of ``min_overlap`` are not searched
+EARLY_OVERLAP = 0.9
 SIGMA = 1.0  # smoothing of both images before Lucas-Kanade (its convergence basin)
 
 
@@ -190,9 +188,8 @@ def register_pair(
     tw, th = x1 - x0, y1 - y0
     pad = 6 + int(params.max_refine_px + params.max_refine_rad * max(tw, th) / 2)
     full0 = W0
-    if (
-        coarse < params.half_stage_below or len(angles) > 1
-    ):  # a weak or uncertain coarse match: widen the basin first
+    # a weak or uncertain coarse match: widen the basin first
+    if coarse < params.half_stage_below or len(angles) > 1:
         half0 = _scale_warp(W0, 0.5)
         crop, cW = _crop_for(j_half, half0, tw // 2, th // 2, pad)
         hW, _, _, _ = refine_euclidean(
@@ -257,9 +254,8 @@ def _coarse_search(
         return M, 0.0, False
     hs = s // 2
     centre = np.array([(rect[0] + rect[2]) / 2, (rect[1] + rect[3]) / 2])
-    origin = np.array(
-        [[1, 0, 2 * (hx0 - hs)], [0, 1, 2 * (hy0 - hs)], [0, 0, 1.0]]
-    )  # the searched window, full-resolution px
+    # the searched window, full-resolution px
+    origin = np.array([[1, 0, 2 * (hx0 - hs)], [0, 1, 2 * (hy0 - hs)], [0, 0, 1.0]])
     window = (hx1 - hx0 + 2 * hs, hy1 - hy0 + 2 * hs)
 
     def at_angle(

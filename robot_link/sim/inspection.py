@@ -66,12 +66,10 @@ class SimResult:
     telemetry_sent: int = 0
     edge_events: int = 0
     frame_poses_true: list[list[float]] = field(default_factory=list)  # camera x, y, yaw
-    cloud_poses_true: dict[int, NDArray[np.float64]] = field(
-        default_factory=dict
-    )  # seq -> T_world_tof
-    cloud_poses_odom: dict[int, NDArray[np.float64]] = field(
-        default_factory=dict
-    )  # what odometry said
+    # seq -> T_world_tof
+    cloud_poses_true: dict[int, NDArray[np.float64]] = field(default_factory=dict)
+    # what odometry said
+    cloud_poses_odom: dict[int, NDArray[np.float64]] = field(default_factory=dict)
     structure: SteelStructure | None = None
     frame_size: tuple[int, int] = (640, 480)  # (w, h) of the camera frames
 

@@ -154,9 +154,8 @@ def girder_geometry(
     mesh += _box(x0, x1, plate_h, plate_h + 0.012, -0.5, 0.0)  # girder web
     mesh += _box(x0, x1, plate_h - 0.09, plate_h + 0.1, -0.512, -0.5)  # top flange
     first = 0.55 - stiffener_spacing_m * np.floor((0.55 - x0) / stiffener_spacing_m)
-    for sx in np.arange(
-        first, x1 - 0.006, stiffener_spacing_m
-    ):  # transverse stiffeners welded to the web
+    # transverse stiffeners welded to the web
+    for sx in np.arange(first, x1 - 0.006, stiffener_spacing_m):
         mesh += _box(sx - 0.006, sx + 0.006, plate_h - 0.12, plate_h, -0.45, 0.0)
     mesh += _box(0, plate_w, -0.01, 0.0, -0.08, 0.0)  # edge angle along y = 0
     for bx in np.arange(x0 + 0.08, x1, 0.16):  # bolt heads on the web

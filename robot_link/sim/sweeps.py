@@ -136,9 +136,8 @@ def render_frame(
     R = cfg.scale * np.array([[c, -s], [s, c]])
     centre = cfg.scale * np.asarray(pose[:2]) + _margin(cfg)
     M = np.hstack([R, (centre - R @ half)[:, None]])  # frame pixel -> texture pixel
-    img = warp_affine_exact(
-        texture, M, (w, h)
-    )  # not cv2.warpAffine: it rounds positions to 1/32 px
+    # not cv2.warpAffine: it rounds positions to 1/32 px
+    img = warp_affine_exact(texture, M, (w, h))
     gain = rng.uniform(*cfg.gain) if gain is None else gain
     img = img * np.float32(gain) + rng.normal(0, cfg.noise_sigma, img.shape).astype(np.float32)
     ok, buf = cv2.imencode(

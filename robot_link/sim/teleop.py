@@ -22,9 +22,8 @@ from robot_link.sim.inspection import InspectionSim, SimConfig
 from robot_link.sim.robot import IR_NAMES, edge_avoidance
 
 FRONT, REAR = {0, 1}, {2, 3}  # IR sensor indices (IR_NAMES order)
-TELEOP_SIM = SimConfig(
-    time_scale=1.0, dt_s=0.02, telemetry_hz=10.0
-)  # real time, 50 Hz control loop
+# real time, 50 Hz control loop
+TELEOP_SIM = SimConfig(time_scale=1.0, dt_s=0.02, telemetry_hz=10.0)
 
 
 @dataclass(frozen=True)
@@ -44,12 +43,10 @@ class TeleopConfig:
 class TeleopLog:
     """What the robot measured of its operator: for the teleop benchmark and tests."""
 
-    command_latency_ms: list[float] = field(
-        default_factory=list
-    )  # sent (operator clock) -> received
-    key_latency_ms: list[float] = field(
-        default_factory=list
-    )  # key pressed in the browser -> its drive command received
+    # sent (operator clock) -> received
+    command_latency_ms: list[float] = field(default_factory=list)
+    # key pressed in the browser -> its drive command received
+    key_latency_ms: list[float] = field(default_factory=list)
     deadman_stops_ms: list[float] = field(default_factory=list)  # last drive received -> standstill
     drive_commands: int = 0
     video_sent: int = 0
@@ -76,9 +73,8 @@ class TeleopSim(InspectionSim):
         self.auto_capture = teleop.auto_capture
         self.end_requested = False
         self.log = TeleopLog()
-        self.video_rng = np.random.default_rng(
-            config.seed + 99
-        )  # the video renders in its own thread
+        # the video renders in its own thread
+        self.video_rng = np.random.default_rng(config.seed + 99)
         link.on_link_change = self._on_link_change
 
     def _on_link_change(self, up: bool) -> None:
@@ -210,9 +206,8 @@ class TeleopSim(InspectionSim):
         period = 1.0 / self.teleop.video_fps
         while not self.end_requested:
             t0 = time.monotonic()
-            captured = (
-                time.time()
-            )  # the exposure: latency is measured from here, rendering included
+            # the exposure: latency is measured from here, rendering included
+            captured = time.time()
             cam = self.camera.pose_in_world(self.robot.pose.copy())
             image = await asyncio.to_thread(self.camera.render, self.structure, cam, self.video_rng)
             ok, buf = cv2.imencode(

@@ -30,16 +30,13 @@ class TofSweepConfig:
     step_m: float = 0.04
     revisit: bool = True  # turn back to the start at the end
     noise_sigma_m: float = 0.01
-    odometry_distance_sigma: float = (
-        0.03  # relative error of the distance of a step_m step (a random walk in distance)
-    )
-    odometry_yaw_sigma_deg: float = (
-        0.6  # heading error per step_m driven (a random walk in distance)
-    )
+    # relative error of the distance of a step_m step (a random walk in distance)
+    odometry_distance_sigma: float = 0.03
+    # heading error per step_m driven (a random walk in distance)
+    odometry_yaw_sigma_deg: float = 0.6
     girder_overhang_m: float = 1.6  # the girder beyond the plate's ends (0: it ends with the plate)
-    turn_step_deg: float = (
-        5.0  # in turns, a cloud every this many degrees of heading too (0: by distance only)
-    )
+    # in turns, a cloud every this many degrees of heading too (0: by distance only)
+    turn_step_deg: float = 5.0
     seed: int = 0
 
 

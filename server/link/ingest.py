@@ -110,12 +110,8 @@ class Ingest:
                             results.append(self._stage(conn, message, robot_id, batch))
                         except (IngestError, OSError) as exc:
                             results.append(exc)
-                    for (
-                        table,
-                        rows,
-                    ) in (
-                        batch.rows.items()
-                    ):  # the hot rows as plain executemany: no statement compiling
+                    # the hot rows as plain executemany: no statement compiling
+                    for table, rows in batch.rows.items():
                         if rows:
                             self._inserts[table].execute(conn, rows)
             except (IntegrityError, self._dbapi_integrity_error):
@@ -193,14 +189,12 @@ class Ingest:
         costs as much as the inserts)."""
         if self._conn is None or self._conn.closed:
             self._conn = self.engine.connect()
-            if is_sqlite(
-                self.engine
-            ):  # the checkpointer's thread does them, not this one's commits
+            # the checkpointer's thread does them, not this one's commits
+            if is_sqlite(self.engine):
                 raw = self._conn.connection.driver_connection
                 raw.execute("PRAGMA wal_autocheckpoint=0")
-                raw.execute(
-                    f"PRAGMA journal_size_limit={WAL_SIZE_LIMIT}"
-                )  # the log's file is cut back to this after a checkpoint
+                # the log's file is cut back to this after a checkpoint
+                raw.execute(f"PRAGMA journal_size_limit={WAL_SIZE_LIMIT}")
                 if self._checkpointer is None:
                     self._checkpointer = WalCheckpointer(self.engine)
         return self._conn
@@ -345,10 +339,8 @@ class Ingest:
         pose = meta.get("pose") or {}
         mtype = message.type
         rel, offset = None, None
-        if mtype in (
-            MessageType.FRAME,
-            MessageType.CLOUD,
-        ):  # the payload before the row: a failed write adds nothing
+        # the payload before the row: a failed write adds nothing
+        if mtype in (MessageType.FRAME, MessageType.CLOUD):
             rel, offset = self.files.append(
                 sid, "frames" if mtype is MessageType.FRAME else "clouds", message.payload
             )

@@ -70,9 +70,8 @@ class Scene3D:
 
     def __init__(self, port: int = 0) -> None:
         banner = io.StringIO()
-        with contextlib.redirect_stdout(
-            banner
-        ):  # viser prints a banner whatever ``verbose`` says; stdout is the CLI's
+        # viser prints a banner whatever ``verbose`` says; stdout is the CLI's
+        with contextlib.redirect_stdout(banner):
             self.server = viser.ViserServer(
                 host="127.0.0.1", port=port, label="steelscan 3D", verbose=False
             )

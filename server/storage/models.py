@@ -127,9 +127,8 @@ class Frame(_PoseColumns, Base):
     height: Mapped[int]
     path: Mapped[str] = mapped_column(String(500))
     size_bytes: Mapped[int]
-    data_offset: Mapped[int | None] = mapped_column(
-        BigInteger
-    )  # where in a segment file; None: the whole file
+    # where in a segment file; None: the whole file
+    data_offset: Mapped[int | None] = mapped_column(BigInteger)
 
 
 class Cloud(_PoseColumns, Base):
@@ -147,9 +146,8 @@ class Cloud(_PoseColumns, Base):
     intrinsics: Mapped[dict[str, Any]] = mapped_column(default=dict)
     path: Mapped[str] = mapped_column(String(500))
     size_bytes: Mapped[int]
-    data_offset: Mapped[int | None] = mapped_column(
-        BigInteger
-    )  # where in a segment file; None: the whole file
+    # where in a segment file; None: the whole file
+    data_offset: Mapped[int | None] = mapped_column(BigInteger)
 
 
 class TelemetrySample(Base):

@@ -53,9 +53,8 @@ def test_transfer_correction_carries_a_better_estimate_to_other_instants() -> No
     got = transfer_correction(times, odo, truth, query_t, query_odo)
     assert got[0] == pytest.approx(apply(0.0, query_odo[0]), abs=1e-9)
     assert got[1] == pytest.approx(apply(1.5, query_odo[1]), abs=1e-9)  # interpolated (linear here)
-    assert got[3] == pytest.approx(
-        apply(3.0, query_odo[3]), abs=1e-9
-    )  # held beyond the last reference
+    # held beyond the last reference
+    assert got[3] == pytest.approx(apply(3.0, query_odo[3]), abs=1e-9)
 
 
 def test_se3_exp_and_log_are_rodrigues_and_its_inverse_at_every_angle() -> None:

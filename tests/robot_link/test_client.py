@@ -69,9 +69,8 @@ def test_the_robot_stops_the_moment_its_link_drops_and_drives_again_only_when_to
             while sim.v != 0.0 and time.monotonic() - t0 < 2:
                 await asyncio.sleep(0.002)
             stopped_after = time.monotonic() - t0
-            while (
-                changes[-1] is not True and time.monotonic() - t0 < 10
-            ):  # it reconnects by itself ...
+            # it reconnects by itself ...
+            while changes[-1] is not True and time.monotonic() - t0 < 10:
                 await asyncio.sleep(0.01)
             assert sim.v == 0.0 and sim.w == 0.0  # ... and stays stopped until commanded
         finally:

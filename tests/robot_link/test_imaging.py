@@ -46,9 +46,8 @@ def test_integer_shifts_copy_pixels_and_reflect_at_the_edges() -> None:
 def test_beyond_the_edges_a_constant_border_reads_its_value() -> None:
     texture = np.full((20, 30), 200, np.uint8)
     out = warp_affine_exact(texture, _rotation(0.0, -10.0, 0.0), (30, 20), border=25.0)
-    assert np.allclose(out[:, :8], 25.0) and np.allclose(
-        out[:, 12:], 200.0
-    )  # within 2 px of the edge: blended
+    # within 2 px of the edge: blended
+    assert np.allclose(out[:, :8], 25.0) and np.allclose(out[:, 12:], 200.0)
     want = cv2.warpAffine(
         texture,
         _rotation(0.0, -10.0, 0.0),
@@ -57,9 +56,8 @@ def test_beyond_the_edges_a_constant_border_reads_its_value() -> None:
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=25,
     )
-    assert np.array_equal(
-        out, want.astype(np.float32)
-    )  # an integer shift: taps land on pixels, no blending
+    # an integer shift: taps land on pixels, no blending
+    assert np.array_equal(out, want.astype(np.float32))
 
 
 def test_colour_channels_are_warped_alike() -> None:

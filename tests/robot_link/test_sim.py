@@ -107,13 +107,11 @@ def test_the_girder_runs_on_beyond_the_plate_with_repeating_stiffeners(structure
     )
     world = rays @ T[:3, :3].T + T[:3, 3]
     beyond = world[world[:, 0] > structure.plate_size_m[0] + 0.05]
-    assert (
-        len(beyond) > 500 and (beyond[:, 1] > structure.plate_size_m[1] - 0.125).all()
-    )  # no plate there: girder only
+    # no plate there: girder only
+    assert len(beyond) > 500 and (beyond[:, 1] > structure.plate_size_m[1] - 0.125).all()
     stiffener_faces = beyond[np.abs(beyond[:, 1] - (structure.plate_size_m[1] - 0.06)) < 0.05]
-    assert (
-        len(np.unique(np.round(stiffener_faces[:, 0] / 0.5))) >= 2
-    )  # more than one stiffener ahead
+    # more than one stiffener ahead
+    assert len(np.unique(np.round(stiffener_faces[:, 0] / 0.5))) >= 2
     bare = make_structure(3, girder_overhang_m=0.0)
     assert bare.mesh.get_axis_aligned_bounding_box().get_max_bound()[0] == pytest.approx(
         structure.plate_size_m[0]

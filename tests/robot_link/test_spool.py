@@ -59,9 +59,8 @@ def test_a_restarted_robot_resends_what_was_never_acknowledged(
     sid = asyncio.run(before_crash())
     link = asyncio.run(after_restart())
     assert link.session_id == sid  # the same session resumes
-    assert (
-        session_json(live_server, sid)["frames"] == 6
-    )  # 5 from before the restart, 1 after, none twice
+    # 5 from before the restart, 1 after, none twice
+    assert session_json(live_server, sid)["frames"] == 6
     assert link.spool is not None and len(link.spool) == 0 and link.stats.spool_bytes == 0
 
 

@@ -77,9 +77,8 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
         shot(page, "sessions")
         page.click("#sessions tbody tr:first-child")
         page.wait_for_selector("#defects tr[data-defect]", timeout=20000)
-        page.wait_for_selector(
-            "#mosaic-viewer[data-ready]", timeout=20000
-        )  # OpenSeadragon over the tile pyramid
+        # OpenSeadragon over the tile pyramid
+        page.wait_for_selector("#mosaic-viewer[data-ready]", timeout=20000)
         assert (
             page.locator(".defect-box").count() == page.locator("#defects tr[data-defect]").count()
         )
@@ -321,11 +320,12 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
 
     with sync_playwright() as pw:
         browser, page = open_dashboard(pw, url, errors, foreign)
+        # live video
         wait_js(
             page,
             "Number(document.querySelector('#camera').dataset.frames || 0) >= 10",
             timeout=60000,
-        )  # live video
+        )
         x0 = latest_telemetry(url, sid)["pose"]["x"]
         # a held key drives the robot and the telemetry shows it
         page.keyboard.down("ArrowUp")
@@ -442,9 +442,8 @@ def test_a_gamepad_drives_and_its_b_button_stops(
             3,
             "the gamepad to turn",
         )
-        page.evaluate(
-            "window.fakePad.buttons[1].pressed = true"
-        )  # B: stop, whatever the stick says
+        # B: stop, whatever the stick says
+        page.evaluate("window.fakePad.buttons[1].pressed = true")
         wait_until(
             lambda: latest_telemetry(url, sid)["drive"]["angular_radps"] == 0.0,
             2,

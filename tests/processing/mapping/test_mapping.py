@@ -68,9 +68,8 @@ def test_without_odometry_the_motion_comes_from_the_geometry() -> None:
 def test_a_flat_plate_does_not_slide_ICP_along_itself() -> None:
     rng = np.random.default_rng(2)
     xs, ys = np.meshgrid(np.linspace(-0.4, 0.4, 80), np.linspace(-0.3, 0.3, 60))
-    plate = np.column_stack(
-        [xs.ravel(), ys.ravel(), np.full(xs.size, 0.5)]
-    )  # a plane in front of the sensor
+    # a plane in front of the sensor
+    plate = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.5)])
     truth = np.repeat(np.eye(4)[None], 4, axis=0)
     truth[:, 0, 3] = [0, 0.05, 0.1, 0.15]
     clouds = [
@@ -80,9 +79,8 @@ def test_a_flat_plate_does_not_slide_ICP_along_itself() -> None:
     guess[1:, 0, 3] += 0.01  # odometry's own (unobservable) error along the plate
     result = register_clouds(clouds, guess)
     assert (result.degenerate_dims[1:] >= 3).all()  # reported, not hidden
-    assert np.allclose(
-        result.poses[:, 0, 3], guess[:, 0, 3], atol=2e-3
-    )  # odometry holds where geometry cannot
+    # odometry holds where geometry cannot
+    assert np.allclose(result.poses[:, 0, 3], guess[:, 0, 3], atol=2e-3)
 
 
 def test_clouds_without_points_fall_back_to_odometry() -> None:
@@ -130,9 +128,8 @@ def test_the_live_map_grows_with_every_cloud_and_ends_as_the_batch_map() -> None
     for cloud, guess in zip(sweep.clouds, sweep.odometry):
         live.add(cloud, guess, shape=(172, 224))
         sizes.append(len(live.points))
-    assert (
-        sizes[-1] > 4 * sizes[0] and max(sizes[:10]) < sizes[-1]
-    )  # (an optimisation may merge some points)
+    # (an optimisation may merge some points)
+    assert sizes[-1] > 4 * sizes[0] and max(sizes[:10]) < sizes[-1]
     batch = register_clouds(sweep.clouds, sweep.odometry, shape=(172, 224))
     ate_live = absolute_trajectory_error(live.poses, sweep.truth)
     ate_batch = absolute_trajectory_error(batch.poses, sweep.truth)
@@ -158,9 +155,8 @@ def test_organised_blocks_are_averaged_over_their_valid_pixels_only() -> None:
     rng = np.random.default_rng(4)
     h, w = 6, 8
     pts = rng.uniform(0.5, 2.0, (h, w, 3)).astype(np.float32)
-    pts[0, 0] = pts[3, 2] = pts[3, 3] = pts[2, 3] = pts[2, 2] = (
-        np.nan
-    )  # a block with one hole, a block all holes
+    # a block with one hole, a block all holes
+    pts[0, 0] = pts[3, 2] = pts[3, 3] = pts[2, 3] = pts[2, 2] = np.nan
     out = filter_organised(pts.reshape(-1, 3), (h, w), median_px=0, stride=2).reshape(
         h // 2, w // 2, 3
     )
@@ -291,9 +287,8 @@ def test_an_icp_edge_carries_its_information_in_the_source_frame() -> None:
     from processing.mapping import plane_information
 
     rng = np.random.default_rng(0)
-    wall = np.column_stack(
-        [rng.uniform(-0.5, 0.5, (400, 2)), np.full(400, 1.0)]
-    )  # z = 1 in the source frame
+    # z = 1 in the source frame
+    wall = np.column_stack([rng.uniform(-0.5, 0.5, (400, 2)), np.full(400, 1.0)])
     T_target_source = np.eye(4)
     T_target_source[:3, :3] = Rotation.from_euler("x", 90, degrees=True).as_matrix()
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(wall))

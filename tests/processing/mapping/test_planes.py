@@ -119,12 +119,12 @@ def test_a_plane_edge_fixes_the_planes_three_directions_in_open3d_s_pose_graph()
     them. This checks that the information is in the frame where Open3D measures an edge's
     error (its source's): in the target's frame the same edge pulls the wrong axes."""
     rng = np.random.default_rng(5)
-    landmark = Plane(
-        np.array([0.0, 0.0, 1.0]), 0.0, np.zeros((1, 3))
-    )  # z = 0 in the landmark's frame
+    # z = 0 in the landmark's frame
+    landmark = Plane(np.array([0.0, 0.0, 1.0]), 0.0, np.zeros((1, 3)))
+    # T_landmark_cloud
     truth = _transform(
         Rotation.from_euler("xz", [90, 30], degrees=True).as_matrix(), np.array([0.2, -0.1, 1.5])
-    )  # T_landmark_cloud
+    )
     on_plane = np.column_stack([rng.uniform(-1, 1, (300, 2)), np.zeros(300)])
     seen = Plane(
         np.linalg.inv(truth)[:3, :3] @ landmark.normal,

@@ -163,9 +163,8 @@ def test_password_guessing_is_throttled_and_the_right_password_still_works_later
         and int(refused.headers["retry-after"]) > 0
         and "try again" in refused.json()["detail"]
     )
-    assert (
-        httpx.post(url, data={"username": "otto", "password": "whatever"}).status_code == 401
-    )  # other users unaffected
+    # other users unaffected
+    assert httpx.post(url, data={"username": "otto", "password": "whatever"}).status_code == 401
     live_server.app.state.steelscan.logins.window_s = 0.2  # the window passes
     time.sleep(0.3)
     assert (
@@ -221,9 +220,8 @@ def test_a_browser_flooding_or_sending_huge_messages_is_refused_but_can_always_s
         flood = results(ws, 200)
         limited = [r for r in flood if "too many messages" in r.get("error", "")]
         assert 50 <= len(limited) < 200
-        ws.send(
-            json.dumps({"session_id": sid, "cmd": "estop"})
-        )  # the bucket is empty: e-stop still goes through
+        # the bucket is empty: e-stop still goes through
+        ws.send(json.dumps({"session_id": sid, "cmd": "estop"}))
         assert "too many" not in results(ws, 1)[0].get("error", "")
 
 

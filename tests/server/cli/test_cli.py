@@ -124,9 +124,8 @@ def test_stitch_folder_with_odometry_writes_mosaic_pyramid_and_poses(tmp_path: P
     frames.mkdir()
     for i, jpeg in enumerate(s.frames):
         (frames / f"f{i:03d}.jpg").write_bytes(jpeg)
-    T = np.array(
-        [se2_to_se3(p[0] / 100, p[1] / 100, p[2]) for p in s.odometry]
-    )  # metres at 100 px/m
+    # metres at 100 px/m
+    T = np.array([se2_to_se3(p[0] / 100, p[1] / 100, p[2]) for p in s.odometry])
     (tmp_path / "odo.tum").write_text(format_tum(np.arange(8, dtype=float), T))
     out = tmp_path / "out"
     proc = steelscan(
@@ -285,9 +284,8 @@ def test_bench_stitch_measures_against_baselines() -> None:
     results = {r["name"]: r for r in map(json.loads, proc.stdout.splitlines())}
     for surface in ("textured", "painted_steel"):
         mean = results[f"stitch.{surface}.lawnmower.mean_overlap_error"]
-        assert (
-            mean["value"] < 0.5 and mean["value"] < mean["baseline"]
-        )  # far better than odometry alone
+        # far better than odometry alone
+        assert mean["value"] < 0.5 and mean["value"] < mean["baseline"]
         assert (
             results[f"stitch.{surface}.lawnmower.ms_per_frame"]["baseline_is"]
             == "cv2.Stitcher SCANS"

@@ -160,9 +160,8 @@ def test_map_job_on_tof_clouds_alone_beats_the_odometry(live_server: LiveServer)
     )
     assert job["state"] == "done", job
     result = job["result"]
-    assert result["clouds"] + len(result["skipped_clouds"]) == len(
-        sweep.clouds
-    )  # those that saw nothing: skipped, listed
+    # those that saw nothing: skipped, listed
+    assert result["clouds"] + len(result["skipped_clouds"]) == len(sweep.clouds)
     assert not result["guided_by_mosaic"] and result["loop_closures"] >= 1
     assert 0 < result["clouds_with_unobservable_directions"] <= result["clouds"]  # said, not hidden
     _, poses = parse_tum(

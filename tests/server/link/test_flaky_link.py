@@ -37,7 +37,6 @@ def test_inspection_through_a_faulty_link_stores_every_frame_once(live_server: L
         .raise_for_status()
         .json()
     )
-    assert (
-        session["frames"] == summary["frames_sent"] > 0
-    )  # every frame stored, none twice (unique per seq)
+    # every frame stored, none twice (unique per seq)
+    assert session["frames"] == summary["frames_sent"] > 0
     assert session["clouds"] == summary["clouds_sent"] > 0

@@ -304,9 +304,8 @@ def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(settings)
             ),
         ):
             assert ingest.store(decode_message(raw), None).status == "stored"
-        assert (
-            ingest.store(decode_message(frame(sid, 2)), None).status == "duplicate"
-        )  # the primary key still catches resends
+        # the primary key still catches resends
+        assert ingest.store(decode_message(frame(sid, 2)), None).status == "duplicate"
     finally:
         ingest.close()
     with factory() as db:
@@ -332,9 +331,10 @@ def test_rows_stored_by_the_fast_path_read_back_as_the_orm_writes_them(settings)
     )
     assert t.data["battery_v"] == {"main": 12.2} and t.data["ir_edge"] == [True, False, False, True]
     assert [r.type for r in received] == ["SESSION_START", "FRAME", "CLOUD", "TELEMETRY"]
+    # datetimes, not strings
     assert all(
         abs((r.received_at - received[0].received_at).total_seconds()) < 60 for r in received
-    )  # datetimes, not strings
+    )
 
 
 def test_the_write_ahead_log_is_checkpointed_off_the_ingest_path(tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -359,10 +359,11 @@ def test_the_write_ahead_log_is_checkpointed_off_the_ingest_path(tmp_path) -> No
         for seq in range(2, 52):
             ingest.store(decode_message(frame(sid, seq)), None)
         conn = ingest._connection()
+        # not in its commits
         assert (
             conn.connection.driver_connection.execute("PRAGMA wal_autocheckpoint").fetchone()[0]
             == 0
-        )  # not in its commits
+        )
         deadline = time.monotonic() + 10
         while frames_in_main_file() < 50 and time.monotonic() < deadline:
             time.sleep(0.1)

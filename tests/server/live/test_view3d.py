@@ -43,9 +43,8 @@ def test_view_needs_a_token_and_then_keeps_a_cookie(live_server: LiveServer) -> 
             and "samesite=strict" in cookie.lower()
             and "path=/viser" in cookie.lower()
         )
-        assert (
-            client.get(f"{live_server.url}/viser/").status_code == 200
-        )  # the cookie is enough now
+        # the cookie is enough now
+        assert client.get(f"{live_server.url}/viser/").status_code == 200
     with pytest.raises(InvalidStatus):
         connect(view_ws(live_server), subprotocols=[f"viser-v{viser.__version__}"])  # type: ignore[list-item]
 
@@ -151,9 +150,8 @@ def test_the_map_grows_live_during_a_session(live_server: LiveServer) -> None:
     asyncio.run(run())
     scene = live_server.app.state.steelscan.scenes.live
     deadline = time.monotonic() + 60
-    while (
-        scene.live_map_points == 0 or scene.live_trajectory_poses < 2
-    ):  # with the pose graph's trajectory
+    # with the pose graph's trajectory
+    while scene.live_map_points == 0 or scene.live_trajectory_poses < 2:
         assert time.monotonic() < deadline, "the live map never showed"
         time.sleep(0.2)
     assert scene.live_map_points > 1000

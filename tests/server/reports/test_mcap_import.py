@@ -127,6 +127,5 @@ def test_import_refuses_a_file_that_is_not_an_mcap_session(tmp_path: Path) -> No
         )
         assert out.returncode != 0 and out.stderr.strip().splitlines()[-1].startswith("error: ")
         assert "Traceback" not in out.stderr
-    assert not (data / "sessions").exists() or not list(
-        (data / "sessions").glob("*")
-    )  # nothing left behind
+    # nothing left behind
+    assert not (data / "sessions").exists() or not list((data / "sessions").glob("*"))

@@ -89,9 +89,8 @@ def test_review_is_stored_and_shown_in_csv_and_pdf(inspected: tuple[LiveServer, 
     assert len(rows) == len(defects)
     row = next(r for r in rows if int(r["id"]) == first)
     assert row["condition_state"] == "CS3" and row["review_status"] == "confirmed"
-    assert (
-        row["comment"].startswith("'=HYPERLINK") and "Riß" in row["comment"]
-    )  # no formula injection, accents intact
+    # no formula injection, accents intact
+    assert row["comment"].startswith("'=HYPERLINK") and "Riß" in row["comment"]
     assert float(row["length_mm"]) > 0
 
     report = httpx.get(f"{api}/report.json").json()
