@@ -38,6 +38,8 @@ pytestmark = [
 ]
 
 
+# the review's storage (defects, reviews, reports) is tested on both databases over REST
+@pytest.mark.one_database
 def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
     live_server: LiveServer, tmp_path: Path
 ) -> None:
