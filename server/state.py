@@ -52,6 +52,8 @@ class AppState:
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
     # who is told of each stored robot message: the live views, then the jobs
     on_stored: list[OnStored] = field(default_factory=list)
+    # who is shown a robot's live-only messages (VIDEO, COMMAND_ACK)
+    on_live: list[Callable[[Message], None]] = field(default_factory=list)
     quality: QualityCache = field(default_factory=QualityCache)  # frame sharpness, exposure
     coverage_memo: dict[str, Any] = field(default_factory=dict)  # session -> (key, coverage)
     logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per client
@@ -88,6 +90,7 @@ class AppState:
             state.live_detect = LiveDetect(factory, state.hub, loop, settings.detect_method)
         relay = LiveRelay(state.hub, state.scenes, state.live_map, state.live_detect)
         state.on_stored = [relay.on_stored, JobTriggers(state.jobs, settings).on_stored]
+        state.on_live = [relay.show_live]
         state.jobs.start()
         return state
 

@@ -25,7 +25,6 @@ from server.errors import IngestError
 from server.limits import TokenBucket
 from server.link.ingest import StoreResult
 from server.link.robots import authenticate_robot, hash_token
-from server.live.events import CommandAck, FrameHeader
 from server.storage.space import is_disk_full
 
 log = logging.getLogger(__name__)
@@ -176,9 +175,12 @@ class RobotConnection:
             )
             return None
         if message.type in (MessageType.VIDEO, MessageType.COMMAND_ACK):
-            # another robot's live channel is never relayed
-            if await self.owns(str(message.session_id)):
-                self.relay_live(message, within_rate)
+            # live only, never stored: to the browsers (a live preview over the rate is
+            # dropped; another robot's live channel is never relayed)
+            owned = await self.owns(str(message.session_id))
+            if owned and (within_rate or message.type is MessageType.COMMAND_ACK):
+                for show in self.state.on_live:
+                    show(message)
             return None
         if not within_rate:
             await self.send_error(
@@ -189,17 +191,6 @@ class RobotConnection:
             )
             return None
         return message
-
-    def relay_live(self, message: Message, within_rate: bool) -> None:
-        """A live preview frame (VIDEO, dropped over the rate) or a command's answer to the
-        browsers."""
-        sid = str(message.session_id)
-        if message.type is MessageType.VIDEO and within_rate:
-            header = FrameHeader(session_id=sid, seq=message.seq, t=message.timestamp, video=True)
-            self.state.hub.publish_frame(header, message.payload)
-        elif message.type is MessageType.COMMAND_ACK:
-            fields = {k: v for k, v in message.meta.items() if k not in ("type", "seq")}
-            self.state.hub.publish(CommandAck(**fields, session_id=sid, seq=message.seq))
 
     async def store(self, message: Message) -> StoreResult | None:
         """Store the message; None when it was refused, the robot told why and whether to

@@ -1,12 +1,12 @@
-"""What a stored robot message shows live: its frame and telemetry to the watching
+"""What a robot message shows live: a stored one's frame and telemetry to the watching
 browsers, the robot's pose in the live 3D view, its cloud to the live map and its frame to
-live detection."""
+live detection; a live-only one (a preview frame, a command's answer) to the browsers."""
 
 from __future__ import annotations
 
 from robot_link.protocol import Message, MessageType
 from server.link.ingest import StoreResult
-from server.live.events import FrameHeader, Session, Telemetry
+from server.live.events import CommandAck, FrameHeader, Session, Telemetry
 from server.live.hub import LiveHub
 from server.live.live_detect import LiveDetect
 from server.live.live_map import LiveMap
@@ -35,6 +35,17 @@ class LiveRelay:
             self.live_map.offer(sid, message.payload, message.meta, message.timestamp)
         if self.live_detect is not None and message.type is MessageType.FRAME and new:
             self.live_detect.offer(sid, message.seq, message.payload, message.meta)
+
+    def show_live(self, message: Message) -> None:
+        """A message that is live only, never stored: a VIDEO preview frame, or a robot's
+        answer to a command (COMMAND_ACK)."""
+        sid = str(message.session_id)
+        if message.type is MessageType.VIDEO:
+            header = FrameHeader(session_id=sid, seq=message.seq, t=message.timestamp, video=True)
+            self.hub.publish_frame(header, message.payload)
+        elif message.type is MessageType.COMMAND_ACK:
+            fields = {k: v for k, v in message.meta.items() if k not in ("type", "seq")}
+            self.hub.publish(CommandAck(**fields, session_id=sid, seq=message.seq))
 
     def show(self, robot: str, message: Message) -> None:
         """Show the message to watching browsers (and the robot's pose in the 3D view)."""
