@@ -14,15 +14,21 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from robot_link.protocol import Message, MessageType
 from server.errors import IngestError
+from server.link.rows import (
+    CLOUDS,
+    FRAMES,
+    RECEIVED,
+    SESSIONS,
+    TELEMETRY,
+    RawInsert,
+    data_row,
+    end_session,
+    start_session,
+)
 from server.storage.db import WalCheckpointer, is_sqlite
 from server.storage.files import SessionFiles
 from server.storage.models import (
-    Cloud,
-    Frame,
-    InspectionSession,
-    ReceivedMessage,
     SessionStatus,
-    TelemetrySample,
     utcnow,
 )
 from server.storage.space import DiskReserve
@@ -72,7 +78,7 @@ class Ingest:
         self.reserve = reserve
         self._owners: dict[str, _Owner] = {}
         self._inserts = {
-            table: _RawInsert(table, self.engine.dialect)
+            table: RawInsert(table, self.engine.dialect)
             for table in (RECEIVED, FRAMES, CLOUDS, TELEMETRY)
         }
         self._dbapi_integrity_error: type[Exception] = self.engine.dialect.dbapi.IntegrityError
@@ -335,130 +341,35 @@ class Ingest:
     def _add_rows(
         self, conn: Connection, message: Message, sid: str, robot_id: int | None, batch: _Batch
     ) -> None:
-        meta = message.meta
-        pose = meta.get("pose") or {}
-        mtype = message.type
+        """Write the message's payload (frames, clouds), then its rows: the session's at
+        once (a start, an end), the rest into the batch."""
         rel, offset = None, None
         # the payload before the row: a failed write adds nothing
-        if mtype in (MessageType.FRAME, MessageType.CLOUD):
-            rel, offset = self.files.append(
-                sid, "frames" if mtype is MessageType.FRAME else "clouds", message.payload
-            )
-        if mtype is MessageType.SESSION_END:  # before its row: a refused END adds none
-            # once: the row ends only where no END is recorded (and the database's trigger
-            # refuses to reopen an ended session or move its end)
-            ended = conn.execute(
-                SESSIONS.update()
-                .where(SESSIONS.c.id == sid, SESSIONS.c.end_seq.is_(None))
-                .values(
-                    status=SessionStatus.ended,
-                    end_seq=message.seq,
-                    ended_at=func.coalesce(SESSIONS.c.ended_at, utcnow()),
-                    end_reason=meta.get("reason", "completed"),
-                )
-            )
-            if ended.rowcount != 1:
-                raise IngestError(f"session {sid} has ended already: SESSION_END refused")
+        if message.type in (MessageType.FRAME, MessageType.CLOUD):
+            kind = "frames" if message.type is MessageType.FRAME else "clouds"
+            rel, offset = self.files.append(sid, kind, message.payload)
+        if message.type is MessageType.SESSION_END:  # before its row: a refused END adds none
+            end_session(conn, sid, message.seq, message.meta.get("reason", "completed"))
             self.files.close_session(sid)
-        if mtype is MessageType.SESSION_START:  # at once: the batch's other rows refer to it
-            conn.execute(
-                SESSIONS.insert().values(
-                    id=sid,
-                    robot_id=robot_id,
-                    structure=meta["structure"],
-                    operator=meta.get("operator", ""),
-                    location=meta.get("location", ""),
-                    calibration=meta.get("calibration", {}),
-                )
-            )
+        if message.type is MessageType.SESSION_START:  # at once: the batch's rows refer to it
+            start_session(conn, sid, robot_id, message.meta)
             batch.new_owners[sid] = _Owner(robot_id, None)
         batch.rows[RECEIVED].append(
-            {"session_id": sid, "seq": message.seq, "type": mtype.name, "received_at": utcnow()}
+            {
+                "session_id": sid,
+                "seq": message.seq,
+                "type": message.type.name,
+                "received_at": utcnow(),
+            }
         )
-        poses = {"pose_x": pose.get("x"), "pose_y": pose.get("y"), "pose_yaw": pose.get("yaw")}
-        if mtype is MessageType.FRAME:
-            batch.rows[FRAMES].append(
-                {
-                    "session_id": sid,
-                    "seq": message.seq,
-                    "timestamp": message.timestamp,
-                    "width": meta["width"],
-                    "height": meta["height"],
-                    "path": rel,
-                    "data_offset": offset,
-                    "size_bytes": len(message.payload),
-                    **poses,
-                }
-            )
-        elif mtype is MessageType.CLOUD:
-            intrinsics = {k: meta[k] for k in ("fx", "fy", "cx", "cy") if k in meta}
-            batch.rows[CLOUDS].append(
-                {
-                    "session_id": sid,
-                    "seq": message.seq,
-                    "timestamp": message.timestamp,
-                    "encoding": meta["encoding"],
-                    "width": meta["width"],
-                    "height": meta["height"],
-                    "intrinsics": intrinsics,
-                    "path": rel,
-                    "data_offset": offset,
-                    "size_bytes": len(message.payload),
-                    **poses,
-                }
-            )
-        elif mtype is MessageType.TELEMETRY:
-            batch.rows[TELEMETRY].append(
-                {
-                    "session_id": sid,
-                    "seq": message.seq,
-                    "timestamp": message.timestamp,
-                    "data": meta,
-                }
-            )
+        row = data_row(message, sid, rel, offset)
+        if row is not None:
+            batch.rows[row[0]].append(row[1])
 
 
-SESSIONS = InspectionSession.__table__
-RECEIVED = ReceivedMessage.__table__
-FRAMES = Frame.__table__
-CLOUDS = Cloud.__table__
-TELEMETRY = TelemetrySample.__table__
 STORED = select(RECEIVED.c.seq).where(
     RECEIVED.c.session_id == bindparam("sid"), RECEIVED.c.seq.in_(bindparam("seqs", expanding=True))
 )
-
-
-class _RawInsert:
-    """A table's INSERT of every column but the autoincrement key, for the DB-API's
-    ``executemany``: the values converted by each column's own SQLAlchemy type (JSON,
-    datetimes), so rows read back exactly as the ORM writes them, without compiling a
-    statement per transaction (~75 µs each: a third of storing a frame)."""
-
-    def __init__(self, table: Any, dialect: Any) -> None:
-        self.table = table
-        columns = [c.name for c in table.columns if c is not table.autoincrement_column]
-        marks = {"qmark": "?", "format": "%s", "pyformat": "%s"}.get(dialect.paramstyle)
-        self.sql = (
-            None
-            if marks is None
-            else f"INSERT INTO {table.name} ({', '.join(columns)}) VALUES ({', '.join([marks] * len(columns))})"
-        )
-        self._convert = [
-            (name, table.c[name].type.dialect_impl(dialect).bind_processor(dialect))
-            for name in columns
-        ]
-
-    def execute(self, conn: Connection, rows: list[dict[str, Any]]) -> None:
-        """Insert rows (dicts by column name; a missing column is NULL) in ``conn``'s
-        transaction; through SQLAlchemy Core for a driver whose parameter style it does not know."""
-        if self.sql is None:
-            conn.execute(self.table.insert(), rows)
-            return
-        values = [
-            tuple(row.get(name) if f is None else f(row.get(name)) for name, f in self._convert)
-            for row in rows
-        ]
-        conn.connection.cursor().executemany(self.sql, values)
 
 
 @dataclass
