@@ -11,6 +11,7 @@ import sys
 from collections.abc import Callable, Sequence
 from importlib.metadata import entry_points
 from pathlib import Path
+from typing import Any
 
 from server.errors import CommandError
 from server.logs import RedactSecrets, uvicorn_log_config
@@ -213,6 +214,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="log more")
     sub = p.add_subparsers(dest="command", required=True)
 
+    _add_station_commands(sub)
+    _add_processing_commands(sub)
+    _add_session_commands(sub)
+    _add_admin_commands(sub)
+    for plugin in entry_points(group="steelscan.commands"):  # the benchmarks: bench.cli
+        plugin.load()(sub)
+
+    return p
+
+
+def _add_station_commands(sub: Any) -> None:
+    """``serve``, ``worker``, ``demo`` and ``sim``: the station, its workers and a robot."""
     s = sub.add_parser("serve", help="run the ground station")
     s.add_argument("--data-dir")
     s.add_argument("--host")
@@ -282,6 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=cmd_sim)
 
+
+def _add_processing_commands(sub: Any) -> None:
+    """``detect``, ``train-detector``, ``stitch`` and ``map``: the algorithms on files."""
     s = sub.add_parser("detect", help="crack/defect segmentation of images")
     s.add_argument("images", nargs="+")
     s.add_argument("--out", required=True)
@@ -330,9 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=cmd_map, image_work=True)
 
-    for plugin in entry_points(group="steelscan.commands"):  # the benchmarks: bench.cli
-        plugin.load()(sub)
 
+def _add_session_commands(sub: Any) -> None:
+    """``import``, ``export`` and ``report``: a stored session in and out."""
     s = sub.add_parser(
         "import", help="import a session's MCAP log (as exported) into a new session"
     )
@@ -354,6 +370,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data-dir")
     s.set_defaults(func=_imported_when_run("server.cli.session_commands", "cmd_report"))
 
+
+def _add_admin_commands(sub: Any) -> None:
+    """``admin``: accounts and robots."""
     admin = sub.add_parser("admin", help="accounts and robots")
     asub = admin.add_subparsers(dest="admin_command", required=True)
     s = asub.add_parser("create-user", help="create an account; the password is read from stdin")
@@ -365,7 +384,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("name")
     s.add_argument("--data-dir")
     s.set_defaults(func=_imported_when_run("server.cli.admin_commands", "cmd_create_robot"))
-    return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
