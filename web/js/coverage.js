@@ -5,17 +5,24 @@
 // the required resolution: footprints that do not count outlined red, holes filled red.
 import { api, apiJSON, el, fmt, text } from "./api.js";
 import { selectedSession } from "./drive.js";
-import { on } from "./live.js";
 import { EVENT } from "./events.js";
+import { on } from "./live.js";
 
 const POLL_MS = 1500;
 const THUMB_W = 160;
 const state = { sid: null, camera: null, frames: [], trail: [], pose: null, cov: null, busy: false, found: [] };
-let canvas; let ctx;
+let canvas;
+let ctx;
 
 function reset(sid) {
   Object.assign(state, { sid, camera: null, frames: [], trail: [], pose: null, cov: null, found: [] });
-  if (sid) apiJSON(`/api/sessions/${sid}`).then((s) => { if (state.sid === sid) state.camera = s.calibration?.camera || null; }).catch(() => {});
+  if (sid) {
+    apiJSON(`/api/sessions/${sid}`)
+      .then((s) => {
+        if (state.sid === sid) state.camera = s.calibration?.camera || null;
+      })
+      .catch(() => {});
+  }
   draw();
 }
 
@@ -24,9 +31,12 @@ function footprintAt(pose) {
   const cam = state.camera;
   if (!cam?.px_per_m) return null;
   const [mx, my] = cam.T_robot_camera || [0, 0];
-  const c = Math.cos(pose.yaw); const s = Math.sin(pose.yaw);
-  const cx = pose.x + c * mx - s * my; const cy = pose.y + s * mx + c * my;
-  const w = cam.width / cam.px_per_m; const h = cam.height / cam.px_per_m;
+  const c = Math.cos(pose.yaw);
+  const s = Math.sin(pose.yaw);
+  const cx = pose.x + c * mx - s * my;
+  const cy = pose.y + s * mx + c * my;
+  const w = cam.width / cam.px_per_m;
+  const h = cam.height / cam.px_per_m;
   return { cx, cy, yaw: pose.yaw, w, h };
 }
 
@@ -35,12 +45,22 @@ function place(seq, at, blob) {
   if (!at || state.frames.some((f) => f.seq === seq)) return;
   const entry = { seq, ...at, bmp: null };
   state.frames.push(entry);
-  createImageBitmap(blob, { resizeWidth: THUMB_W, resizeQuality: "low" }).then((bmp) => { entry.bmp = bmp; draw(); }).catch(() => {});
+  createImageBitmap(blob, { resizeWidth: THUMB_W, resizeQuality: "low" })
+    .then((bmp) => {
+      entry.bmp = bmp;
+      draw();
+    })
+    .catch(() => {});
 }
 
 function fromFootprint([a, b, c]) {
-  return { cx: (a[0] + c[0]) / 2, cy: (a[1] + c[1]) / 2, yaw: Math.atan2(b[1] - a[1], b[0] - a[0]),
-    w: Math.hypot(b[0] - a[0], b[1] - a[1]), h: Math.hypot(c[0] - b[0], c[1] - b[1]) };
+  return {
+    cx: (a[0] + c[0]) / 2,
+    cy: (a[1] + c[1]) / 2,
+    yaw: Math.atan2(b[1] - a[1], b[0] - a[0]),
+    w: Math.hypot(b[0] - a[0], b[1] - a[1]),
+    h: Math.hypot(c[0] - b[0], c[1] - b[1]),
+  };
 }
 
 function onFrame(header, jpeg) {
@@ -57,15 +77,19 @@ async function fetchMissing(sid) {
     try {
       const res = await api(`/api/sessions/${sid}/frames/${f.seq}/image`);
       if (res.ok && sid === state.sid) place(f.seq, fromFootprint(f.footprint), await res.blob());
-    } catch { return; }
+    } catch {
+      return;
+    }
   }
 }
 
 function onEvent(ev) {
-  if (ev.type === EVENT.FRAME_DEFECTS && ev.session_id === state.sid) { // searched as it arrived
+  // searched as it arrived
+  if (ev.type === EVENT.FRAME_DEFECTS && ev.session_id === state.sid) {
     for (const d of ev.defects) state.found.push({ seq: ev.seq, ...d });
     canvas.dataset.found = String(state.found.length);
-    draw(); summary();
+    draw();
+    summary();
     return;
   }
   if (ev.type === EVENT.TELEMETRY && ev.session_id === state.sid && ev.data.pose) {
@@ -79,7 +103,10 @@ function onEvent(ev) {
 async function poll() {
   const sid = selectedSession();
   if (sid !== state.sid) reset(sid);
-  if (!sid || state.busy || document.getElementById("view-drive").hidden) { draw(); return; }
+  if (!sid || state.busy || document.getElementById("view-drive").hidden) {
+    draw();
+    return;
+  }
   state.busy = true;
   try {
     const cov = await apiJSON(`/api/sessions/${sid}/coverage`);
@@ -87,15 +114,26 @@ async function poll() {
     draw();
     summary();
     await fetchMissing(sid);
-  } catch { /* the next poll tries again */ } finally { state.busy = false; }
+  } catch {
+    // the next poll tries again
+  } finally {
+    state.busy = false;
+  }
   draw();
 }
 
 function bounds() {
-  const xs = []; const ys = [];
-  const add = (x, y) => { xs.push(x); ys.push(y); };
+  const xs = [];
+  const ys = [];
+  const add = (x, y) => {
+    xs.push(x);
+    ys.push(y);
+  };
   for (const f of state.cov?.frames || []) for (const [x, y] of f.footprint) add(x, y);
-  for (const f of state.frames) { add(f.cx - f.w / 2, f.cy - f.w / 2); add(f.cx + f.w / 2, f.cy + f.w / 2); }
+  for (const f of state.frames) {
+    add(f.cx - f.w / 2, f.cy - f.w / 2);
+    add(f.cx + f.w / 2, f.cy + f.w / 2);
+  }
   for (const p of state.trail) add(p.x, p.y);
   if (!xs.length) return null;
   const pad = 0.1;
@@ -104,12 +142,20 @@ function bounds() {
 
 function draw() {
   if (!ctx) return;
-  const W = canvas.width; const H = canvas.height;
+  const W = canvas.width;
+  const H = canvas.height;
   ctx.setTransform(1, 0, 0, 1, 0, 0);
-  ctx.fillStyle = "#0d1014"; ctx.fillRect(0, 0, W, H);
+  ctx.fillStyle = "#0d1014";
+  ctx.fillRect(0, 0, W, H);
   const b = bounds();
   canvas.dataset.frames = String(state.cov?.frames.length ?? 0);
-  if (!b) { ctx.fillStyle = "#8b96a0"; ctx.font = "14px system-ui"; ctx.textAlign = "center"; ctx.fillText(state.sid ? "waiting for frames" : "no robot connected", W / 2, H / 2); return; }
+  if (!b) {
+    ctx.fillStyle = "#8b96a0";
+    ctx.font = "14px system-ui";
+    ctx.textAlign = "center";
+    ctx.fillText(state.sid ? "waiting for frames" : "no robot connected", W / 2, H / 2);
+    return;
+  }
   const k = Math.min(W / (b.x1 - b.x0), H / (b.y1 - b.y0));
   ctx.setTransform(k, 0, 0, k, (W - k * (b.x1 + b.x0)) / 2, (H - k * (b.y1 + b.y0)) / 2);
   const px = 1 / k;
@@ -120,17 +166,27 @@ function draw() {
   for (const f of state.frames) {
     if (!f.bmp) continue;
     const at = placed.has(f.seq) ? fromFootprint(placed.get(f.seq)) : f;
-    ctx.save(); ctx.translate(at.cx, at.cy); ctx.rotate(at.yaw);
+    ctx.save();
+    ctx.translate(at.cx, at.cy);
+    ctx.rotate(at.yaw);
     ctx.drawImage(f.bmp, -at.w / 2, -at.h / 2, at.w, at.h);
     ctx.restore();
   }
   if (grid) {
     ctx.fillStyle = "rgba(217, 68, 60, 0.75)";
     grid.holes_rle.forEach((runs, r) => {
-      for (let i = 0; i < runs.length; i += 2) ctx.fillRect(grid.origin_m[0] + runs[i] * grid.cell_m, grid.origin_m[1] + r * grid.cell_m, runs[i + 1] * grid.cell_m, grid.cell_m);
+      for (let i = 0; i < runs.length; i += 2) {
+        ctx.fillRect(
+          grid.origin_m[0] + runs[i] * grid.cell_m,
+          grid.origin_m[1] + r * grid.cell_m,
+          runs[i + 1] * grid.cell_m,
+          grid.cell_m,
+        );
+      }
     });
   }
-  for (const f of state.cov?.frames || []) { // footprints: green when they count, red when not
+  // footprints: green when they count, red when not
+  for (const f of state.cov?.frames || []) {
     ctx.beginPath();
     f.footprint.forEach(([x, y], i) => (i ? ctx.lineTo(x, y) : ctx.moveTo(x, y)));
     ctx.closePath();
@@ -138,21 +194,37 @@ function draw() {
     ctx.lineWidth = (f.counts ? 1 : 2.5) * px;
     ctx.stroke();
   }
-  for (const d of state.found) { // defects seen in single frames (the detect job confirms them)
+  // defects seen in single frames (the detect job confirms them)
+  for (const d of state.found) {
     const [x, y, w, h] = d.world_box;
     ctx.strokeStyle = d.defect_class === "crack" ? "#ff3b30" : "#ffcc00";
     ctx.lineWidth = 2 * px;
     ctx.strokeRect(x - 3 * px, y - 3 * px, w + 6 * px, h + 6 * px);
   }
   if (state.trail.length > 1) {
-    ctx.beginPath(); state.trail.forEach((p, i) => (i ? ctx.lineTo(p.x, p.y) : ctx.moveTo(p.x, p.y)));
-    ctx.strokeStyle = "#e0a030"; ctx.lineWidth = 2 * px; ctx.stroke();
+    ctx.beginPath();
+    state.trail.forEach((p, i) => (i ? ctx.lineTo(p.x, p.y) : ctx.moveTo(p.x, p.y)));
+    ctx.strokeStyle = "#e0a030";
+    ctx.lineWidth = 2 * px;
+    ctx.stroke();
   }
-  if (state.pose) { // the robot: a triangle pointing along its heading
-    const { x, y, yaw } = state.pose; const r = 14 * px;
-    ctx.save(); ctx.translate(x, y); ctx.rotate(yaw);
-    ctx.beginPath(); ctx.moveTo(r, 0); ctx.lineTo(-r * 0.7, r * 0.6); ctx.lineTo(-r * 0.7, -r * 0.6); ctx.closePath();
-    ctx.fillStyle = "#4a90d9"; ctx.fill(); ctx.strokeStyle = "#fff"; ctx.lineWidth = 1.5 * px; ctx.stroke();
+  // the robot: a triangle pointing along its heading
+  if (state.pose) {
+    const { x, y, yaw } = state.pose;
+    const r = 14 * px;
+    ctx.save();
+    ctx.translate(x, y);
+    ctx.rotate(yaw);
+    ctx.beginPath();
+    ctx.moveTo(r, 0);
+    ctx.lineTo(-r * 0.7, r * 0.6);
+    ctx.lineTo(-r * 0.7, -r * 0.6);
+    ctx.closePath();
+    ctx.fillStyle = "#4a90d9";
+    ctx.fill();
+    ctx.strokeStyle = "#fff";
+    ctx.lineWidth = 1.5 * px;
+    ctx.stroke();
     ctx.restore();
   }
   scaleBar(k);
@@ -161,8 +233,10 @@ function draw() {
 function scaleBar(k) {
   const m = [0.05, 0.1, 0.2, 0.5, 1, 2, 5].find((v) => v * k > 60) || 5;
   ctx.setTransform(1, 0, 0, 1, 0, 0);
-  ctx.fillStyle = "#e4e8ec"; ctx.fillRect(10, canvas.height - 14, m * k, 3);
-  ctx.font = "12px system-ui"; ctx.textAlign = "left";
+  ctx.fillStyle = "#e4e8ec";
+  ctx.fillRect(10, canvas.height - 14, m * k, 3);
+  ctx.font = "12px system-ui";
+  ctx.textAlign = "left";
   ctx.fillText(m < 1 ? `${m * 100} cm` : `${m} m`, 10, canvas.height - 20);
 }
 
@@ -170,17 +244,39 @@ function summary() {
   const cov = state.cov;
   const out = document.getElementById("coverage-summary");
   const list = document.getElementById("coverage-holes");
-  if (!cov || !cov.area_surface_m2) { text(out, "no frame placed yet"); list.replaceChildren(); return; }
+  if (!cov?.area_surface_m2) {
+    text(out, "no frame placed yet");
+    list.replaceChildren();
+    return;
+  }
   const why = {};
   for (const f of cov.frames) if (!f.counts) why[f.why_not] = (why[f.why_not] || 0) + 1;
-  const notCounted = Object.entries(why).map(([r, n]) => `${n} ${r}`).join(", ");
+  const notCounted = Object.entries(why)
+    .map(([r, n]) => `${n} ${r}`)
+    .join(", ");
   const cracks = state.found.filter((d) => d.defect_class === "crack").length;
-  const found = state.found.length ? ` · seen in frames: ${cracks} crack, ${state.found.length - cracks} corrosion` : "";
-  text(out, `imaged at ≤ ${cov.required_mm_per_px} mm/px: ${fmt(cov.area_imaged_m2, 3)} of ${fmt(cov.area_surface_m2, 3)} m² `
-    + `(${fmt(cov.fraction_imaged * 100, 1)} %) · ${cov.holes.length} hole${cov.holes.length === 1 ? "" : "s"}`
-    + `${notCounted ? ` · frames not counted: ${notCounted}` : ""}${found}`);
-  list.replaceChildren(...cov.holes.slice(0, 8).map((h, i) => el("li", {},
-    `hole ${i + 1} at x ${fmt(h.x_m, 2)} m, y ${fmt(h.y_m, 2)} m — ${fmt(h.bbox_m[2] * 100, 0)} × ${fmt(h.bbox_m[3] * 100, 0)} cm`)));
+  const found = state.found.length
+    ? ` · seen in frames: ${cracks} crack, ${state.found.length - cracks} corrosion`
+    : "";
+  text(
+    out,
+    `imaged at ≤ ${cov.required_mm_per_px} mm/px: ` +
+      `${fmt(cov.area_imaged_m2, 3)} of ${fmt(cov.area_surface_m2, 3)} m² ` +
+      `(${fmt(cov.fraction_imaged * 100, 1)} %) · ${cov.holes.length} hole${cov.holes.length === 1 ? "" : "s"}` +
+      `${notCounted ? ` · frames not counted: ${notCounted}` : ""}${found}`,
+  );
+  list.replaceChildren(
+    ...cov.holes
+      .slice(0, 8)
+      .map((h, i) =>
+        el(
+          "li",
+          {},
+          `hole ${i + 1} at x ${fmt(h.x_m, 2)} m, y ${fmt(h.y_m, 2)} m — ` +
+            `${fmt(h.bbox_m[2] * 100, 0)} × ${fmt(h.bbox_m[3] * 100, 0)} cm`,
+        ),
+      ),
+  );
 }
 
 export function initCoverage() {

@@ -3,26 +3,44 @@
 // cancel it; the page reloads the session when the job is done.
 import { api, apiJSON, el, text } from "./api.js";
 
-const STAGES = [["stitch", "mosaic"], ["map", "3D map"], ["detect", "defect detection"], ["export", "MCAP export"]];
+const STAGES = [
+  ["stitch", "mosaic"],
+  ["map", "3D map"],
+  ["detect", "defect detection"],
+  ["export", "MCAP export"],
+];
 
 const said = new Map(); // session id -> the bar's last message (kept across the page's reload)
 const watching = new Set(); // ids of jobs a bar is following
 
 export function jobsBar(s, reload) {
   const out = el("span", { id: "job-status", class: "small", role: "status" }, said.get(s.id) || "");
-  const say = (message) => { said.set(s.id, message); text(out, message); };
+  const say = (message) => {
+    said.set(s.id, message);
+    text(out, message);
+  };
   const latest = (kind) => s.jobs.filter((j) => j.kind === kind).pop();
   const buttons = STAGES.map(([kind, label]) => {
     const j = latest(kind);
     const state = j ? `${j.state}${j.error ? `: ${j.error}` : ""}` : "not run";
-    return el("button", { dataset: { job: kind }, title: `${label}: ${state}`, onclick: () => run(kind, label) },
-      `${j?.state === "done" ? "Re-run" : "Run"} ${label}`);
+    return el(
+      "button",
+      { dataset: { job: kind }, title: `${label}: ${state}`, onclick: () => run(kind, label) },
+      `${j?.state === "done" ? "Re-run" : "Run"} ${label}`,
+    );
   });
   const cancel = el("button", { id: "job-cancel", hidden: true }, "Cancel");
   const labelOf = (kind) => (STAGES.find(([k]) => k === kind) || [kind, kind])[1];
   async function run(kind, label) {
-    const res = await api(`/api/sessions/${s.id}/jobs`, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ kind }) });
-    if (!res.ok) { say(`${label}: not started (HTTP ${res.status}: ${(await res.json().catch(() => ({}))).detail || ""})`); return; }
+    const res = await api(`/api/sessions/${s.id}/jobs`, {
+      method: "POST",
+      headers: { "Content-Type": "application/json" },
+      body: JSON.stringify({ kind }),
+    });
+    if (!res.ok) {
+      say(`${label}: not started (HTTP ${res.status}: ${(await res.json().catch(() => ({}))).detail || ""})`);
+      return;
+    }
     await watch(await res.json(), label);
   }
   async function watch(job, label) {
@@ -34,7 +52,10 @@ export function jobsBar(s, reload) {
     text(cancel, `Cancel ${label}`);
     while (job.state === "queued" || job.state === "running") {
       const where = job.worker ? ` on ${job.worker}` : "";
-      say(`${label}: ${job.state}${where} ${Math.round((job.progress || 0) * 100)} %${job.message ? ` (${job.message})` : ""}`);
+      say(
+        `${label}: ${job.state}${where} ${Math.round((job.progress || 0) * 100)} %` +
+          `${job.message ? ` (${job.message})` : ""}`,
+      );
       await new Promise((r) => setTimeout(r, 1000));
       job = await apiJSON(`/api/jobs/${job.id}`);
     }
@@ -48,5 +69,12 @@ export function jobsBar(s, reload) {
     watching.add(active.id);
     watch(active, labelOf(active.kind)).finally(() => watching.delete(active.id));
   }
-  return el("div", { class: "exports", id: "jobs-bar" }, el("span", { class: "muted" }, "Processing:"), ...buttons, cancel, out);
+  return el(
+    "div",
+    { class: "exports", id: "jobs-bar" },
+    el("span", { class: "muted" }, "Processing:"),
+    ...buttons,
+    cancel,
+    out,
+  );
 }

@@ -6,7 +6,9 @@ const handlers = { event: [], frame: [] };
 let socket = null;
 export const link = { watcherId: null, open: false };
 
-export function on(kind, fn) { handlers[kind].push(fn); }
+export function on(kind, fn) {
+  handlers[kind].push(fn);
+}
 
 export function connect() {
   const proto = location.protocol === "https:" ? "wss" : "ws";
@@ -14,10 +16,15 @@ export function connect() {
   socket = new WebSocket(`${proto}://${location.host}/ws/live${query}`);
   socket.binaryType = "arraybuffer";
   const state = document.getElementById("link-state");
-  socket.onopen = () => { link.open = true; text(state, "live link up"); state.classList.add("ok"); };
+  socket.onopen = () => {
+    link.open = true;
+    text(state, "live link up");
+    state.classList.add("ok");
+  };
   socket.onclose = () => {
     link.open = false;
-    text(state, "reconnecting…"); state.classList.remove("ok");
+    text(state, "reconnecting…");
+    state.classList.remove("ok");
     handlers.event.forEach((fn) => fn({ type: "link", open: false }));
     setTimeout(connect, 1000);
   };
