@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -144,7 +145,7 @@ def coverage_map(
     if surface_outline is not None:
         outline = cells(np.asarray(surface_outline, dtype=np.float64))
     else:  # the hull of the footprints' own corner cells: its edges rasterise as theirs do
-        outline = cv2.convexHull(np.vstack([cells(p) for p in polys]))
+        outline = cast(NDArray[np.int32], cv2.convexHull(np.vstack([cells(p) for p in polys])))
     cv2.fillPoly(surface, [outline], 1)
     result = Coverage((float(lo[0]), float(lo[1])), cell, imaged.astype(bool), surface.astype(bool))
     result.holes = find_holes(result, min_cells=params.cells_per_footprint // 4)

@@ -444,7 +444,7 @@ class RobotLink:
                 delay,
             )
             asyncio.get_running_loop().call_later(
-                delay, lambda seq=message.seq: asyncio.ensure_future(self._retry(seq))
+                delay, lambda seq: asyncio.ensure_future(self._retry(seq)), message.seq
             )
         elif message.type is MessageType.ERROR:
             self.stats.errors += 1

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -69,7 +71,7 @@ def decode_xyz(payload: bytes, count: int) -> NDArray[np.float32]:
     return np.frombuffer(payload, dtype="<f4").reshape(count, 3).astype(np.float32)
 
 
-def decode_cloud(payload: bytes, meta: dict) -> NDArray[np.float32]:
+def decode_cloud(payload: bytes, meta: dict[str, Any]) -> NDArray[np.float32]:
     """Decode a CLOUD message's payload to an (N, 3) float32 array (NaN rows = no return)."""
     if meta["encoding"] == "png16_depth_mm":
         depth = decode_depth_png(payload, meta["width"], meta["height"])

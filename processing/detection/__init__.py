@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from functools import partial
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import cv2
 import numpy as np
@@ -62,15 +62,16 @@ def to_gray(image: NDArray[np.generic]) -> NDArray[np.uint8]:
     """8-bit grayscale of an 8/16-bit gray or BGR(A) image; raise ValueError otherwise."""
     if image.ndim == 3 and image.shape[2] in (3, 4):
         image = cv2.cvtColor(
-            image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+            image,  # type: ignore[arg-type]  # any dtype: OpenCV refuses those it cannot convert
+            cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY,
         )
     if image.ndim != 2:
         raise ValueError(f"image must be (H, W) or (H, W, 3), got shape {image.shape}")
     if image.dtype == np.uint16:
-        image = (image / 257.0).round().astype(np.uint8)
+        image = (cast(NDArray[np.uint16], image) / 257.0).round().astype(np.uint8)
     elif image.dtype != np.uint8:
         raise ValueError(f"image must be uint8 or uint16, got {image.dtype}")
-    return image
+    return cast(NDArray[np.uint8], image)  # its dtype checked above
 
 
 def detect_cracks(
@@ -183,7 +184,7 @@ def defect_masks(
         rows, cols, cr, cc = tile
         part = image[rows, cols]
         core = tile_core(*tile)
-        gray = cv2.cvtColor(part, cv2.COLOR_BGR2GRAY)
+        gray = cast(NDArray[np.uint8], cv2.cvtColor(part, cv2.COLOR_BGR2GRAY))
         if min(gray.shape) >= 3 and learned is not None:
             smooth, background = estimate_background(
                 gray, crack_params.background_px, crack_params.light_sigma
@@ -197,7 +198,9 @@ def defect_masks(
 
     # the network runs once over the image (its own tiles, all cores to each)
     learned = (
-        learned_cracks(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), learned_params)
+        learned_cracks(
+            cast(NDArray[np.uint8], cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)), learned_params
+        )
         if crack_method == "learned" and min(shape) >= 3
         else None
     )
@@ -275,7 +278,7 @@ def _off_lines(
 ) -> NDArray[np.bool_]:
     """Per component: not lying mostly (> ``max_fraction``) within ``band_px`` of ``lines``."""
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1,) * 2)
-    near = cv2.dilate(lines.astype(np.uint8), k)
+    near = cast(NDArray[np.uint8], cv2.dilate(lines.astype(np.uint8), k))
     near &= (comps.labels > 0).view(np.uint8)
     on = np.bincount(comps.labels[near > 0], minlength=len(comps.keep))
     keep = on <= max_fraction * np.maximum(comps.stats[:, cv2.CC_STAT_AREA], 1)

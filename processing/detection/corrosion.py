@@ -4,6 +4,7 @@ separates from grey paint."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -46,9 +47,13 @@ def corrosion_candidates(
     sat = rust_saturation(image, params) if saturation is None else saturation
     hsv = cv2.cvtColor(cv2.GaussianBlur(image, (5, 5), 0), cv2.COLOR_BGR2HSV)
     low = int(np.floor(sat)) + 1
-    mask = cv2.inRange(hsv, (0, low, 0), (params.hue_max, 255, 255))
-    mask |= cv2.inRange(hsv, (params.hue_wrap_from, low, 0), (180, 255, 255))
-    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
+    mask = cast(NDArray[np.uint8], cv2.inRange(hsv, (0, low, 0), (params.hue_max, 255, 255)))
+    mask |= cast(
+        NDArray[np.uint8], cv2.inRange(hsv, (params.hue_wrap_from, low, 0), (180, 255, 255))
+    )
+    mask = cast(
+        NDArray[np.uint8], cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((5, 5), np.uint8))
+    )
     return cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((9, 9), np.uint8)) > 0
 
 
@@ -58,4 +63,5 @@ def detect_corrosion(
     """Boolean (H, W) mask of rust-coloured areas (needs a BGR image; gray gives none)."""
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         return np.zeros(image.shape[:2], bool)
-    return remove_small(corrosion_candidates(image, params), params.min_area_px)
+    bgr = cast(NDArray[np.uint8], image)  # its dtype checked above
+    return remove_small(corrosion_candidates(bgr, params), params.min_area_px)

@@ -5,6 +5,7 @@ own spread of line response and brightness (:class:`SurfaceStats`)."""
 from __future__ import annotations
 
 from dataclasses import astuple, dataclass, replace
+from typing import cast
 
 import cv2
 import numpy as np
@@ -57,12 +58,14 @@ def estimate_background(
     """Lightly smoothed image and its background (a grey closing, which erases dark thin
     structures, then smoothed), both float32."""
     k = max(3, background_px | 1)
-    smooth = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), light_sigma)
+    smooth = cast(
+        NDArray[np.float32], cv2.GaussianBlur(gray.astype(np.float32), (0, 0), light_sigma)
+    )
     # a square element: OpenCV separates it into two 1-D passes (an ellipse costs ~10x more)
     background = cv2.morphologyEx(
         smooth, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
     )
-    return smooth, cv2.GaussianBlur(background, (0, 0), k / 4)
+    return smooth, cast(NDArray[np.float32], cv2.GaussianBlur(background, (0, 0), k / 4))
 
 
 @dataclass(frozen=True)
@@ -89,9 +92,9 @@ class SurfaceStats:
     @classmethod
     def pooled(cls, many: list[SurfaceStats]) -> SurfaceStats:
         """The median of each statistic over several images (a mosaic's frames)."""
-        crack = np.median([astuple(s)[:4] for s in many], axis=0).tolist()
+        lm, ls, bm, bs = np.median([astuple(s)[:4] for s in many], axis=0).tolist()
         rust = [s.rust_saturation for s in many if s.rust_saturation is not None]
-        return cls(*crack, rust_saturation=float(np.median(rust)) if rust else None)
+        return cls(lm, ls, bm, bs, rust_saturation=float(np.median(rust)) if rust else None)
 
 
 def _median_spread(values: NDArray[np.float32]) -> tuple[float, float]:
@@ -106,7 +109,8 @@ def _line_and_light(
     """Line response R (eq. (14), scale-normalised) of the illumination-normalised image,
     that image (brightness / background) and the darkness below background (grey levels)."""
     smooth, background = estimate_background(gray, params.background_px, params.light_sigma)
-    norm = cv2.divide(smooth, cv2.max(background, 1.0))
+    floor = cv2.max(background, 1.0)  # type: ignore[call-overload]  # OpenCV's stubs lack the scalar form
+    norm = cast(NDArray[np.float32], cv2.divide(smooth, floor))
     R = line_emphasis(
         norm,
         sigma1=params.sigma1,
@@ -116,13 +120,17 @@ def _line_and_light(
         normalise=True,
         half_resolution_from=params.half_resolution_from,
     )
-    return R, norm, cv2.subtract(background, smooth)
+    return R, norm, cast(NDArray[np.float32], cv2.subtract(background, smooth))
 
 
 def measure_surface(image: NDArray[np.uint8], params: CrackParams = CrackParams()) -> SurfaceStats:
     """The :class:`SurfaceStats` of an (H, W) grey or (H, W, 3) BGR uint8 image (the rust
     saturation only for colour)."""
-    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    gray = (
+        cast(NDArray[np.uint8], cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+        if image.ndim == 3
+        else image
+    )
     R, norm, _ = _line_and_light(gray, params)
     stats = SurfaceStats.of(R, norm)
     if image.ndim == 3:
@@ -199,4 +207,4 @@ def select_cracks(
         length**2 >= params.elongation * area
     )
     keep[0] = False
-    return select_components(labels, stats, keep)
+    return select_components(cast(NDArray[np.int32], labels), cast(NDArray[np.int32], stats), keep)

@@ -7,6 +7,7 @@ orientation, and the same in millimetres when the image scale is known.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import cast
 
 import cv2
 import numpy as np
@@ -47,7 +48,8 @@ class Components:
     @classmethod
     def of(cls, mask: NDArray[np.bool_]) -> Components:
         """Every component of ``mask``: OpenCV's labelling, statistics in one compiled pass."""
-        n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+        n, found = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+        labels = cast(NDArray[np.int32], found)
         stats, centroids = component_stats(labels, n)
         keep = np.ones(n, bool)
         keep[0] = False
@@ -77,7 +79,7 @@ def measure_defects(
         raise ValueError(f"contrast {contrast.shape} and mask {mask.shape} differ in shape")
     comps = components if components is not None else Components.of(mask)
     labels, stats, centroids = comps.labels, comps.stats, comps.centroids
-    defects = []
+    defects: list[Defect] = []
     for i in np.flatnonzero(comps.keep).tolist():
         x, y, w, h, area = (int(v) for v in stats[i])
         comp = labels[y : y + h, x : x + w] == i

@@ -13,6 +13,7 @@ import threading
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,7 +51,7 @@ class CrackModel:
         options.inter_op_num_threads = 1
         self._session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         meta = self._session.get_modelmeta().custom_metadata_map
-        self.record: dict = json.loads(meta.get("steelscan", "{}"))
+        self.record: dict[str, Any] = json.loads(meta.get("steelscan", "{}"))
         self.threshold = float(self.record.get("threshold", 0.5))
         self._input = self._session.get_inputs()[0].name
         self._lock = threading.Lock()
@@ -62,7 +63,7 @@ class CrackModel:
         x = gray.astype(np.float32) * np.float32(1 / 255)
         ph, pw = -h % _MULTIPLE, -w % _MULTIPLE
         if ph or pw:
-            mode = "reflect" if h > ph and w > pw else "edge"
+            mode: Literal["reflect", "edge"] = "reflect" if h > ph and w > pw else "edge"
             x = np.pad(x, ((0, ph), (0, pw)), mode=mode)
         with self._lock:  # one run at a time: each already uses every thread it was given
             (logits,) = self._session.run(None, {self._input: x[None, None]})

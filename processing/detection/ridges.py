@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import cv2
 import numba
 import numpy as np
 from numpy.typing import NDArray
+
+F32 = NDArray[np.float32]
 
 
 def _hessian(
@@ -23,7 +26,7 @@ def _hessian(
     ixx = cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3, scale=0.125)
     iyy = cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3, scale=0.125)
     ixy = cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3, scale=0.25)
-    return cv2.add(ixx, iyy), cv2.subtract(ixx, iyy), ixy
+    return cast(F32, cv2.add(ixx, iyy)), cast(F32, cv2.subtract(ixx, iyy)), cast(F32, ixy)
 
 
 def hessian_eigenvalues(
@@ -32,7 +35,7 @@ def hessian_eigenvalues(
     """Eigenvalues λ1 ≥ λ2 of the Gaussian-smoothed Hessian (eqs. (10), 11, 13), each (M, N)."""
     half_trace, half_diff, ixy = _hessian(np.asarray(image, dtype=np.float32), sigma)
     root = cv2.magnitude(half_diff, ixy)
-    return cv2.add(half_trace, root), cv2.subtract(half_trace, root)
+    return cast(F32, cv2.add(half_trace, root)), cast(F32, cv2.subtract(half_trace, root))
 
 
 def line_measure(
@@ -70,7 +73,7 @@ def _accumulate_line_response(
     ksize = int(2 * round(3 * sigma) + 1)
     smooth = cv2.GaussianBlur(image, (ksize, ksize), sigma, borderType=cv2.BORDER_REFLECT)
     padded = cv2.copyMakeBorder(smooth, 1, 1, 1, 1, cv2.BORDER_REFLECT_101)  # as cv2.Sobel's border
-    _max_line_response(padded, out, np.float32(weight), np.float32(mu))
+    _max_line_response(cast(F32, padded), out, np.float32(weight), np.float32(mu))
 
 
 @numba.njit(nogil=True, cache=True)
@@ -107,7 +110,7 @@ def _max_line_response(
 
 
 def line_emphasis(
-    image: NDArray[np.floating],
+    image: NDArray[np.integer | np.floating],
     *,
     sigma1: float = 1.0,
     scale_factor: float = 2**0.5,
@@ -132,11 +135,11 @@ def line_emphasis(
         raise ValueError("n_scales must be >= 1 and sigma1, scale_factor positive")
     img = np.asarray(image, dtype=np.float32)
     if dark_lines:
-        img = cv2.multiply(img, -1.0)
+        img = cv2.multiply(img, -1.0)  # type: ignore[call-overload]  # OpenCV's stubs lack the scalar form
     h, w = img.shape
     half = None
     if half_resolution_from is not None and min(img.shape) >= 32:
-        half = cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+        half = cast(F32, cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA))
     out = np.zeros((h, w), np.float32)
     coarse = np.zeros(half.shape, np.float32) if half is not None else None
     for sigma in sigmas(sigma1, scale_factor, n_scales):

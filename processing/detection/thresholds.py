@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -42,7 +44,8 @@ def select_components(
 
 def remove_small(mask: NDArray[np.bool_], min_area_px: int) -> NDArray[np.bool_]:
     """Drop connected components smaller than ``min_area_px`` pixels."""
-    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    n, found = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    labels = cast(NDArray[np.int32], found)
     area, _, _ = component_flags(labels, n)
     keep = area >= min_area_px
     keep[0] = False

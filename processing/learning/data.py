@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -38,7 +39,7 @@ def load_dataset(root: Path, limit: int | None = None) -> list[Sample]:
         mask = cv2.imread(str(root / "masks" / f"{p.stem}.png"), cv2.IMREAD_GRAYSCALE)
         if gray is None or mask is None or gray.shape != mask.shape:
             continue
-        out.append(Sample(p.name, gray, mask > 127))
+        out.append(Sample(p.name, cast(NDArray[np.uint8], gray), mask > 127))
     return out
 
 
@@ -93,13 +94,16 @@ def random_crop(
         cx += rng.uniform(-0.3, 0.3) * n / s
     else:
         cy, cx = rng.uniform(0, h), rng.uniform(0, w)
-    m = cv2.getRotationMatrix2D((cx, cy), angle, s)
+    m = cast(NDArray[np.float64], cv2.getRotationMatrix2D((cx, cy), angle, s))
     m[:, 2] += (n / 2 - cx, n / 2 - cy)
     if rng.random() < 0.5:
         m[0] = -m[0]
         m[0, 2] += n - 1
     interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
-    gray = cv2.warpAffine(sample.gray, m, (n, n), flags=interp, borderMode=cv2.BORDER_REFLECT_101)
+    gray = cast(
+        NDArray[np.uint8],
+        cv2.warpAffine(sample.gray, m, (n, n), flags=interp, borderMode=cv2.BORDER_REFLECT_101),
+    )
     truth = cv2.warpAffine(
         sample.truth.astype(np.float32),
         m,
@@ -140,11 +144,13 @@ def photometric(
         q = int(rng.integers(*params.jpeg_quality))
         ok, buf = cv2.imencode(".jpg", gray, [cv2.IMWRITE_JPEG_QUALITY, q])
         if ok:
-            gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+            decoded = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+            assert decoded is not None  # a JPEG just encoded
+            gray = cast(NDArray[np.uint8], decoded)
     x = gray.astype(np.float32) / 255.0
     sigma = rng.uniform(*params.blur_sigma)
     if sigma > 0.3:
-        x = cv2.GaussianBlur(x, (0, 0), sigma)
+        x = cast(NDArray[np.float32], cv2.GaussianBlur(x, (0, 0), sigma))
     x = np.clip(x, 0, 1) ** rng.uniform(*params.gamma)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
     a = rng.uniform(0, 2 * np.pi)

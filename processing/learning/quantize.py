@@ -21,7 +21,7 @@ def calibration_crops(
 ) -> list[NDArray[np.float32]]:
     """(1, 1, crop, crop) float inputs cut from the centres of ``images`` (smaller images
     whole, cut to a multiple of 32)."""
-    crops = []
+    crops: list[NDArray[np.float32]] = []
     for gray in images:
         h, w = gray.shape
         ch, cw = min(crop_px, h - h % 32), min(crop_px, w - w % 32)
@@ -29,7 +29,8 @@ def calibration_crops(
             continue
         y, x = (h - ch) // 2, (w - cw) // 2
         for _ in range(per_image):
-            crops.append((gray[y : y + ch, x : x + cw].astype(np.float32) / 255)[None, None])
+            crop = gray[y : y + ch, x : x + cw].astype(np.float32) / 255
+            crops.append(crop[None, None])  # type: ignore[arg-type]  # float32 / int is float32 (NumPy's stubs: float64)
     return crops
 
 

@@ -16,6 +16,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -99,7 +100,7 @@ def choose_threshold(
 
 def train(
     datasets: dict[str, list[Sample]], params: TrainParams = TrainParams()
-) -> tuple[CrackNet, dict]:
+) -> tuple[CrackNet, dict[str, Any]]:
     """Train a :class:`CrackNet` on ``datasets`` (name → samples); returns the model (in
     eval mode) and its training record (sets, sizes, threshold, loss, time)."""
     torch.manual_seed(params.seed)
@@ -121,7 +122,8 @@ def train(
         opt, max_lr=params.learning_rate, total_steps=max(params.iterations, 1), pct_start=0.1
     )
     sets = list(fit.values())
-    t0, recent = time.perf_counter(), []
+    t0 = time.perf_counter()
+    recent: list[float] = []
     model.train()
     for it in range(params.iterations):
         x, y = balanced_batch(sets, params.batch, rng, params.augment)
@@ -166,7 +168,7 @@ def _jsonable(value: object) -> object:
     return value
 
 
-def export_onnx(model: CrackNet, record: dict, path: Path) -> None:
+def export_onnx(model: CrackNet, record: dict[str, Any], path: Path) -> None:
     """Write ``model`` as ONNX (opset 17, any even height and width) with ``record`` as
     JSON in the metadata key ``steelscan``."""
     import onnx
@@ -177,7 +179,7 @@ def export_onnx(model: CrackNet, record: dict, path: Path) -> None:
         warnings.simplefilter("ignore")
         torch.onnx.export(
             model.eval(),
-            torch.zeros(1, 1, 64, 64),
+            (torch.zeros(1, 1, 64, 64),),
             str(tmp),
             input_names=["image"],
             output_names=["logits"],
@@ -193,7 +195,11 @@ def export_onnx(model: CrackNet, record: dict, path: Path) -> None:
 
 
 def export_model(
-    model: CrackNet, record: dict, path: Path, datasets: dict[str, list[Sample]], int8: bool
+    model: CrackNet,
+    record: dict[str, Any],
+    path: Path,
+    datasets: dict[str, list[Sample]],
+    int8: bool,
 ) -> None:
     """Export as ONNX; with ``int8``, quantized (calibrated on crops of up to eight images
     of each dataset) — what the station ships."""
@@ -215,7 +221,7 @@ def train_from_folders(
     params: TrainParams = TrainParams(),
     limit: int | None = None,
     int8: bool = True,
-) -> dict:
+) -> dict[str, Any]:
     """Load each dataset folder, train, export to ``out`` (int8 unless not ``int8``);
     returns the training record."""
     datasets = {r.name: load_dataset(r, limit) for r in roots}
@@ -230,7 +236,7 @@ def leave_one_out(
     params: TrainParams = TrainParams(),
     limit: int | None = None,
     int8: bool = True,
-) -> dict[str, dict]:
+) -> dict[str, dict[str, Any]]:
     """One model per dataset, trained on all the others: ``out_dir/<left-out name>.onnx``
     (for scoring each set with a model that never saw it). Returns the records by name."""
     if len(roots) < 2:

@@ -131,22 +131,23 @@ def register_clouds(
     n = len(clouds)
     if n == 0:
         raise ValueError("clouds must not be empty")
+    guesses: NDArray[np.float64] | None = None
     if initial_poses is not None:
-        initial_poses = np.asarray(initial_poses, dtype=np.float64)
-        if initial_poses.shape != (n, 4, 4):
+        guesses = np.asarray(initial_poses, dtype=np.float64)
+        if guesses.shape != (n, 4, 4):
             raise ValueError(
-                f"initial_poses must be ({n}, 4, 4), one per cloud, got {initial_poses.shape}"
+                f"initial_poses must be ({n}, 4, 4), one per cloud, got {guesses.shape}"
             )
-        if not np.isfinite(initial_poses).all():
+        if not np.isfinite(guesses).all():
             raise ValueError("initial_poses contain NaN or infinite values")
     if not params.refine:
-        if initial_poses is None:
+        if guesses is None:
             raise ValueError("refine=False needs initial poses")
         pcds = [select(c, params.select, shape) for c in clouds]
         zeros = np.zeros(n)
         return MapResult(
-            initial_poses.copy(),
-            fuse_map(pcds, initial_poses, params.map_voxel_m),
+            guesses.copy(),
+            fuse_map(pcds, guesses, params.map_voxel_m),
             zeros,
             zeros,
             np.ones(n, bool),
@@ -154,7 +155,7 @@ def register_clouds(
         )
     graph_map = IncrementalMap(params)
     for i, cloud in enumerate(clouds):
-        graph_map.add(cloud, None if initial_poses is None else initial_poses[i], shape)
+        graph_map.add(cloud, None if guesses is None else guesses[i], shape)
     return _finished(graph_map)
 
 

@@ -175,7 +175,8 @@ class _Pattern:
         """The matrix's stored values for the edges' ``block`` (E, 6, 6): +ss, +tt, -st, -ts."""
         flat = block.ravel()
         values = np.concatenate([flat, flat, -flat, -flat, np.zeros(self.size)])
-        return np.bincount(self.slot, weights=values, minlength=len(self.indices))
+        sums = np.bincount(self.slot, weights=values, minlength=len(self.indices))
+        return sums  # type: ignore[return-value]  # weighted: float64; NumPy's stubs say integer
 
     def csc(self, data: NDArray[np.float64], lam: float) -> sp.csc_matrix:
         """The matrix of stored values ``data`` with ``lam`` added to its diagonal."""

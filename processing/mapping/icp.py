@@ -26,9 +26,8 @@ def within_bounds(init: NDArray[np.float64], T: NDArray[np.float64], params: Icp
 
 
 def _fpfh(pcd: o3d.geometry.PointCloud, params: IcpParams) -> reg.Feature:
-    return reg.compute_fpfh_feature(
-        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=params.fpfh_radius_m, max_nn=100)
-    )
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=params.fpfh_radius_m, max_nn=100)
+    return reg.compute_fpfh_feature(pcd, search)  # type: ignore[call-arg]  # Open3D's stubs lack indices' default
 
 
 def match(
@@ -42,7 +41,8 @@ def match(
     refinement stays within bounds."""
     if not params.use_fpfh or len(source.points) < 30 or len(target.points) < 30:
         return init
-    moved = o3d.geometry.PointCloud(source).transform(init)
+    moved = o3d.geometry.PointCloud(source)
+    moved.transform(init)
     option = reg.FastGlobalRegistrationOption(
         maximum_correspondence_distance=params.max_correspondence_m
     )

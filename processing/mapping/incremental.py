@@ -104,21 +104,21 @@ class IncrementalMap:
         shape: tuple[int, int] | None = None,
     ) -> NDArray[np.float64]:
         """Place one cloud (sensor frame) given its odometry pose ``guess``; its pose."""
-        guess = None if guess is None else np.asarray(guess, dtype=np.float64)
+        pose_guess = None if guess is None else np.asarray(guess, dtype=np.float64)
         # 1. selection: filter, downsample, normals
         pcd = select(points, self.params.select, shape)
         i = len(self.clouds)
         # 2. tracking, where enabled: the tracked pose is the graph's odometry
         tracked_information = None
         if self.params.tracking.enabled:
-            guess = self.tracker.track(pcd, guess)
+            pose_guess = self.tracker.track(pcd, pose_guess)
             tracked_information = self.tracker.information()
         # 3. the step from the previous cloud: odometry (or the last step), corrected by ICP
         step = None
         if i > 0:
             previous = self.clouds[i - 1].guess
-            if guess is not None and previous is not None:
-                odometry = np.linalg.inv(previous) @ guess
+            if pose_guess is not None and previous is not None:
+                odometry = np.linalg.inv(previous) @ pose_guess
             else:
                 odometry = self._last_step()
             tracked = self._tracked_facts(len(pcd.points)) if self.params.tracking.enabled else None
@@ -126,7 +126,7 @@ class IncrementalMap:
                 pcd,
                 self.clouds[i - 1].pcd,
                 odometry,
-                guess is not None,
+                pose_guess is not None,
                 i,
                 self.params.icp,
                 tracked,
@@ -149,7 +149,7 @@ class IncrementalMap:
         )
         # 6. into the graph: node, odometry and ICP edges, landmarks, loop closures
         return self._attach(
-            MapCloud(pcd, guess, tracked_information=tracked_information), planes, step, edges
+            MapCloud(pcd, pose_guess, tracked_information=tracked_information), planes, step, edges
         )
 
     def _last_step(self) -> NDArray[np.float64]:
@@ -163,8 +163,8 @@ class IncrementalMap:
         measure_run`) given its odometry pose ``guess``; its pose. Clouds attached in order
         give the graph :meth:`add` gives from the same clouds and odometry, edges to earlier
         clouds measured from the odometry's chain rather than the graph's current poses."""
-        guess = None if guess is None else np.asarray(guess, dtype=np.float64)
-        cloud = MapCloud(measured.cloud(), guess)
+        pose_guess = None if guess is None else np.asarray(guess, dtype=np.float64)
+        cloud = MapCloud(measured.cloud(), pose_guess)
         return self._attach(cloud, measured.planes, measured.step, measured.edges)
 
     def _attach(
@@ -370,7 +370,9 @@ class IncrementalMap:
         if self._fused_upto == 0:
             self._fused = o3d.geometry.PointCloud()
         for k in range(self._fused_upto, len(self.clouds)):
-            self._fused += o3d.geometry.PointCloud(self.clouds[k].pcd).transform(poses[k])
+            moved = o3d.geometry.PointCloud(self.clouds[k].pcd)
+            moved.transform(poses[k])
+            self._fused += moved
         if self._fused_upto < len(self.clouds):
             self._fused = self._fused.voxel_down_sample(self.params.map_voxel_m)
             self._fused_upto = len(self.clouds)

@@ -155,7 +155,7 @@ def measure_run(
             seeds.append(step.seed)
         if k < context:
             continue
-        edges = []
+        edges: list[PairEdge] = []
         if params.pose_graph:
             relative = np.eye(4) if step is None else step.seed.copy()
             for back in range(2, params.neighbours + 1):

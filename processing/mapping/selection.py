@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import cv2
 import numpy as np
@@ -47,8 +48,14 @@ def filter_organised(
         crop = (slice(0, hb * stride), slice(0, wb * stride))
         # block means by OpenCV's area resampling (exact for a whole factor), of the
         # values with holes as 0 and of the valid mask: their ratio averages valid pixels only
-        mean = cv2.resize(masked[crop], (wb, hb), interpolation=cv2.INTER_AREA)
-        count = cv2.resize(ok[crop].astype(np.float32), (wb, hb), interpolation=cv2.INTER_AREA)
+        mean = cast(
+            NDArray[np.float32],
+            cv2.resize(masked[crop], (wb, hb), interpolation=cv2.INTER_AREA),
+        )
+        count = cast(
+            NDArray[np.float32],
+            cv2.resize(ok[crop].astype(np.float32), (wb, hb), interpolation=cv2.INTER_AREA),
+        )
         with np.errstate(invalid="ignore", divide="ignore"):
             out = mean / count[..., None]
         out[count == 0] = np.nan
@@ -105,7 +112,8 @@ def with_normals(pcd: o3d.geometry.PointCloud, voxel_m: float) -> o3d.geometry.P
     )
     product = minors - least * total
     middle = (total - np.sqrt(np.maximum(total**2 - 4 * product, 0))) / 2
-    out = pcd.select_by_index(np.flatnonzero(middle > (voxel_m / 4) ** 2))
+    kept = np.flatnonzero(middle > (voxel_m / 4) ** 2)
+    out = pcd.select_by_index(kept)  # type: ignore[arg-type]  # Open3D takes an array; its stubs want a Sequence
     if len(out.points):  # a cloud of lone rows keeps nothing
         out.orient_normals_towards_camera_location(np.zeros(3))
     out.covariances = o3d.utility.Matrix3dVector()  # not carried into the map
@@ -118,6 +126,8 @@ def fuse_map(
     """All clouds in the world frame, voxel-filtered, as (M, 3) float32."""
     fused = o3d.geometry.PointCloud()
     for pcd, T in zip(pcds, poses):
-        fused += o3d.geometry.PointCloud(pcd).transform(T)
+        moved = o3d.geometry.PointCloud(pcd)
+        moved.transform(T)
+        fused += moved
     fused = fused.voxel_down_sample(voxel_m)
     return np.asarray(fused.points, dtype=np.float32)

@@ -257,7 +257,7 @@ class Tracker:
                 if found is not None and found.matched >= self.params.min_points:
                     pose, self.last = found.pose, found
                     c = se3_log(np.linalg.inv(prediction) @ pose)
-                    self._corrections.append((c[:3] @ c[:3] / 3, c[3:] @ c[3:] / 3))
+                    self._corrections.append((float(c[:3] @ c[:3] / 3), float(c[3:] @ c[3:] / 3)))
         self._poses.append(pose)
         self._guesses.append(guess)
         self.map.add(points @ pose[:3, :3].T + pose[:3, 3], normals @ pose[:3, :3].T)

@@ -18,10 +18,10 @@ def voxel_keys(points: NDArray[np.float64], voxel_m: float) -> NDArray[np.int64]
 
 def _sum_per_key(
     keys: NDArray[np.int64], values: NDArray[np.float64]
-) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.intp]]:
     """Sorted unique keys (U,), the rows of ``values`` (K, C) summed per key (U, C), counts (U,)."""
     unique, inverse, count = np.unique(keys, return_inverse=True, return_counts=True)
-    sums = np.column_stack(
+    sums: NDArray[np.float64] = np.column_stack(
         [np.bincount(inverse, weights=values[:, c], minlength=len(unique)) for c in range(6)]
     )
     return unique, sums, count

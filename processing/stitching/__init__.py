@@ -79,22 +79,25 @@ def plan_mosaic(
     n = len(source)
     if px_per_m <= 0:
         raise ValueError(f"px_per_m must be positive, got {px_per_m}")
+    known: NDArray[np.float64] | None = None
     if poses is not None:
-        poses = np.asarray(poses, dtype=np.float64)
-        if poses.shape != (n, 3):
-            raise ValueError(f"poses must be ({n}, 3), one per frame, got {poses.shape}")
-        if not np.isfinite(poses).all():
+        known = np.asarray(poses, dtype=np.float64)
+        if known.shape != (n, 3):
+            raise ValueError(f"poses must be ({n}, 3), one per frame, got {known.shape}")
+        if not np.isfinite(known).all():
             raise ValueError("poses contain NaN or infinite values")
     frames = prepare_frames(source, params)
-    h, w = frames.shape[:2]  # type: ignore[index]
+    shape = frames.shape
+    assert shape is not None  # taken from the first frame
+    h, w = shape[:2]
     if n == 1:
-        est_poses = (poses if poses is not None else np.zeros((1, 3))).copy()
+        est_poses = (known if known is not None else np.zeros((1, 3))).copy()
         confident, measurements, rejected = np.ones(1, bool), [], 0
     else:
         est = estimate_poses(
             frames.level,
             n,
-            poses,
+            known,
             params.registration,
             _scaled(progress, 0.0, 0.5),
             spread(frames) if spread is not None else None,
@@ -121,9 +124,9 @@ def plan_mosaic(
         0,
         0,
         (w, h),
-        1 if len(frames.shape) == 2 else frames.shape[2],
+        1 if len(shape) == 2 else shape[2],
         px_per_m,
-        (0.0, 0.0),  # type: ignore[arg-type]
+        (0.0, 0.0),
         est_poses,
         confident,
         gains,
@@ -152,7 +155,8 @@ def _correct_vignetting(
     differs from the one in use. True when frames must be registered again."""
     if not measurements:
         return False
-    h, w = frames.shape[:2]  # type: ignore[index]
+    assert frames.shape is not None  # taken from the first frame
+    h, w = frames.shape[:2]
     picks = np.unique(
         np.linspace(0, len(measurements) - 1, min(len(measurements), params.vignetting_pairs))
         .round()

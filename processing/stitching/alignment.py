@@ -198,14 +198,16 @@ def _consecutive_from_images(
     for k in [k for k, m in enumerate(consecutive) if m is None]:
         near = _nearest_measured(consecutive, k)
         for j in near:
-            found = reg.measure_blind_guess((k, k + 1), consecutive[j].delta)  # type: ignore[union-attr]
+            placed = consecutive[j]
+            assert placed is not None  # the nearest measured pairs
+            found = reg.measure_blind_guess((k, k + 1), placed.delta)
             if found is not None:
                 consecutive[k] = found
                 break
         if near:
-            steps[k] = (
-                consecutive[k].delta if consecutive[k] is not None else consecutive[near[0]].delta
-            )  # type: ignore[union-attr]
+            placed = consecutive[k] if consecutive[k] is not None else consecutive[near[0]]
+            assert placed is not None
+            steps[k] = placed.delta
     return consecutive, np.array(steps).reshape(-1, 3)
 
 

@@ -7,6 +7,7 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from threading import local
+from typing import cast
 
 import cv2
 import numba
@@ -80,10 +81,10 @@ class BandPainter:
         weight = np.maximum(np.round(255 * feather_weight(layout.frame_size)), 1).astype(np.uint8)
         weight[[0, -1], :] = weight[:, [0, -1]] = 0
         self.weight = weight
-        self.flat_c = None
+        self.flat_c: NDArray[np.float32] | None = None
         if frames.inv_flat is not None:
             self.flat_c = (
-                cv2.merge([frames.inv_flat] * layout.channels)
+                cast(NDArray[np.float32], cv2.merge([frames.inv_flat] * layout.channels))
                 if layout.channels > 1
                 else frames.inv_flat
             )
@@ -195,17 +196,18 @@ def _render_band(
     for k, gain, A, src, region, size in _band_pieces(layout, y0, y1, hits):
         img = frames.image(k)[src]
         src8 = img if gain == 1.0 else cv2.convertScaleAbs(img, alpha=gain)
-        warped = cv2.warpAffine(
-            src8, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+        warped = cast(
+            NDArray[np.uint8],
+            cv2.warpAffine(src8, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
         )
-        inside = cv2.warpAffine(
+        footprint = cv2.warpAffine(
             np.full(src8.shape[:2], 255, np.uint8),
             A,
             size,
             flags=cv2.INTER_NEAREST,
             borderMode=cv2.BORDER_CONSTANT,
         )
-        inside = cv2.erode(inside, np.ones((3, 3), np.uint8)) > 0
+        inside = cv2.erode(footprint, np.ones((3, 3), np.uint8)) > 0
         if params.blend == "paper":
             take = (
                 paper_blend_mask(out[region], warped, covered[region], params.tau, params.median_px)
@@ -238,14 +240,17 @@ def _feather_band(
     for k, gain, A, src, region, size in _band_pieces(layout, y0, y1, hits):
         img = frames.raw(k)[src]
         if flat_c is not None:  # exposure gain and flat field, rounded and saturated to 8 bits
-            img = cv2.multiply(img, flat_c[src], scale=gain, dtype=cv2.CV_8U)
+            img = cast(
+                NDArray[np.uint8], cv2.multiply(img, flat_c[src], scale=gain, dtype=cv2.CV_8U)
+            )
         elif gain != 1.0:
-            img = cv2.convertScaleAbs(img, alpha=gain)
+            img = cast(NDArray[np.uint8], cv2.convertScaleAbs(img, alpha=gain))
         with_w = cv2.cvtColor(img, cv2.COLOR_BGR2BGRA if C == 3 else cv2.COLOR_GRAY2BGRA)
         with_w = with_w if C == 3 else np.ascontiguousarray(with_w[..., :2])
         with_w[..., C] = weight[src]
-        warped = cv2.warpAffine(
-            with_w, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+        warped = cast(
+            NDArray[np.uint8],
+            cv2.warpAffine(with_w, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT),
         )
         _accumulate(warped, acc[region])  # a view of the band, row stride and all
     out = np.empty((H, W, C), np.uint8)

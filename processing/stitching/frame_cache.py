@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Sequence
 from threading import Event, Lock
+from typing import cast
 
 import cv2
 import numpy as np
@@ -16,7 +17,7 @@ from processing.stitching.registration import Level
 
 
 def gray_of(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
-    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+    return cast(NDArray[np.uint8], cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)) if img.ndim == 3 else img
 
 
 def estimate_flat_field(
@@ -50,7 +51,7 @@ def estimate_flat_field(
 def _times(frame: NDArray[np.uint8], factor: NDArray[np.float32]) -> NDArray[np.uint8]:
     """A frame multiplied pixel by pixel by a one-channel factor, rounded and saturated."""
     f = factor if frame.ndim == 2 else cv2.merge([factor] * frame.shape[2])
-    return cv2.multiply(frame, f.astype(np.float32), dtype=cv2.CV_8U)
+    return cast(NDArray[np.uint8], cv2.multiply(frame, f.astype(np.float32), dtype=cv2.CV_8U))
 
 
 class FrameCache:

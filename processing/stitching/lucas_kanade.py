@@ -7,6 +7,7 @@ are refined on several threads at once.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numba
@@ -47,7 +48,7 @@ class Smoothed:
     def of(cls, gray: Gray, sigma: float) -> Smoothed:
         """Smooth by a Gaussian of ``sigma``."""
         # truncated at 2σ: cheaper, as good for registration
-        return cls(cv2.GaussianBlur(gray, (5, 5), sigma))
+        return cls(cast(Gray, cv2.GaussianBlur(gray, (5, 5), sigma)))
 
     def crop(self, x0: int, y0: int, x1: int, y1: int) -> Smoothed:
         """A rectangle of it."""
@@ -70,7 +71,7 @@ def refine_euclidean(
     and in the image."""
     gx = cv2.Sobel(template.image, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
     gy = cv2.Sobel(template.image, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    mag = cv2.magnitude(gx, gy)
+    mag = cast(NDArray[np.float32], cv2.magnitude(gx, gy))
     mag[:2], mag[-2:], mag[:, :2], mag[:, -2:] = 0, 0, 0, 0
     xs, ys = _strong_points(mag, points)
     h, w = mag.shape

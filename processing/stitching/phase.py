@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import cast
 
 import cv2
 import numpy as np
@@ -26,6 +27,13 @@ QUARTER_TURNS = (
     cv2.ROTATE_180,
     cv2.ROTATE_90_COUNTERCLOCKWISE,
 )
+
+
+def quarter_turned(image: Gray, k: int) -> Gray:
+    """``image`` turned by k (0 to 3) quarter turns clockwise on screen, exactly (no
+    interpolation)."""
+    code = QUARTER_TURNS[k]
+    return image if code is None else cast(Gray, cv2.rotate(image, code))
 
 
 def _tukey(n: int, taper: float) -> NDArray[np.float32]:
@@ -50,8 +58,10 @@ def _spectrum(image: Gray) -> NDArray[np.float32]:
     """Fourier transform (OpenCV's two-channel complex layout) of the windowed image, its
     mean removed: one side of a phase correlation."""
     image = np.asarray(image, np.float32)
-    windowed = cv2.multiply(cv2.subtract(image, float(cv2.mean(image)[0])), _window(*image.shape))
-    return cv2.dft(windowed, flags=cv2.DFT_COMPLEX_OUTPUT)
+    mean = float(cv2.mean(image)[0])
+    centred = cv2.subtract(image, mean)  # type: ignore[call-overload]  # OpenCV's stubs lack the scalar form
+    windowed = cv2.multiply(centred, _window(*image.shape))
+    return cast(NDArray[np.float32], cv2.dft(windowed, flags=cv2.DFT_COMPLEX_OUTPUT))
 
 
 def _correlation_peaks(
@@ -59,7 +69,7 @@ def _correlation_peaks(
 ) -> list[tuple[float, float]]:
     """The ``count`` strongest peaks (shift of b's content relative to a's, modulo the image
     size) of the phase correlation surface of two :func:`_spectrum`, by non-maximum suppression."""
-    cross = cv2.mulSpectrums(Fa, Fb, 0, conjB=True)
+    cross = cast(NDArray[np.float32], cv2.mulSpectrums(Fa, Fb, 0, conjB=True))
     magnitude = cv2.magnitude(cross[..., 0], cross[..., 1])
     np.maximum(magnitude, 1e-9, out=magnitude)
     cross /= magnitude[..., None]
@@ -104,8 +114,9 @@ class PhaseView:
         at 1/``scale`` of full resolution (both powers of two)."""
         small = np.asarray(gray, np.float32)
         while reduced < scale:
-            small, reduced = cv2.pyrDown(small), 2 * reduced
-        return cls(small, cv2.GaussianBlur(small, (0, 0), 4.0 / scale), _spectrum(small), scale)
+            small, reduced = cast(Gray, cv2.pyrDown(small)), 2 * reduced
+        smooth = cast(Gray, cv2.GaussianBlur(small, (0, 0), 4.0 / scale))
+        return cls(small, smooth, _spectrum(small), scale)
 
 
 # small turns tried where frame b, as it is, finds nothing sure
@@ -151,14 +162,7 @@ def phase_candidates(
         if k == 0 and tilt == 0.0:
             Fb, b_s = vb.spectrum, vb.smooth
         else:  # turning commutes with the (isotropic, mirror-bordered) smoothing
-            small, b_s = (
-                (vb.small, vb.smooth)
-                if k == 0
-                else (
-                    cv2.rotate(vb.small, QUARTER_TURNS[k]),
-                    cv2.rotate(vb.smooth, QUARTER_TURNS[k]),
-                )
-            )
+            small, b_s = quarter_turned(vb.small, k), quarter_turned(vb.smooth, k)
             if tilt != 0.0:
                 small, b_s = _tilted(small, tilt), _tilted(b_s, tilt)
             Fb = _spectrum(small)
@@ -174,7 +178,10 @@ def _tilted(image: Gray, angle: float) -> Gray:
     screen; borders mirrored): what a frame turned by -``angle`` relative to it sees."""
     h, w = image.shape
     R = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), float(np.degrees(angle)), 1.0)
-    return cv2.warpAffine(image, R, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    return cast(
+        Gray,
+        cv2.warpAffine(image, R, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT),
+    )
 
 
 def _score_peaks(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -17,7 +18,7 @@ from numpy.typing import NDArray
 
 from processing.poses import delta_of_map, frame_i_to_j, rot2, wrap_angle
 from processing.stitching.lucas_kanade import Smoothed, refine_euclidean
-from processing.stitching.phase import QUARTER_TURNS, Gray
+from processing.stitching.phase import Gray, quarter_turned
 
 
 @dataclass(frozen=True)
@@ -99,12 +100,12 @@ class Level:
     def of(cls, gray: Gray) -> Level:
         """Prepare a full-resolution grey image."""
         gray = np.ascontiguousarray(gray, dtype=np.float32)
-        return cls(Smoothed.of(gray, SIGMA), Smoothed.of(cv2.pyrDown(gray), SIGMA))
+        return cls(Smoothed.of(gray, SIGMA), Smoothed.of(cast(Gray, cv2.pyrDown(gray)), SIGMA))
 
     @property
     def shape(self) -> tuple[int, int]:
         """(h, w) at full resolution."""
-        return self.full.image.shape  # type: ignore[return-value]
+        return self.full.image.shape
 
     @property
     def nbytes(self) -> int:
@@ -159,8 +160,8 @@ def register_pair(
     if overlap_rect(M, size, params.margin_px, EARLY_OVERLAP * params.min_overlap) is None:
         return None  # too little overlap even allowing for the guess's error: not worth a search
     k = int(np.round(float(wrap_angle(guess[2])) / (np.pi / 2))) % 4
-    j_full = lj.full.image if k == 0 else cv2.rotate(lj.full.image, QUARTER_TURNS[k])
-    j_half = lj.half.image if k == 0 else cv2.rotate(lj.half.image, QUARTER_TURNS[k])
+    j_full = quarter_turned(lj.full.image, k)
+    j_half = quarter_turned(lj.half.image, k)
     Q = _quarter_turn(k, size)
     # coarse: a small search first (the guess is usually good); the full radius when its
     # peak is weak or on the search window's edge
@@ -271,7 +272,7 @@ def _coarse_search(
             size_f,
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
         )
-        res = cv2.matchTemplate(seen, tmpl, cv2.TM_CCOEFF_NORMED)
+        res = cast(NDArray[np.float32], cv2.matchTemplate(seen, tmpl, cv2.TM_CCOEFF_NORMED))
         at = _parabola_peak(res)
         shift = f * at - 2 * hs
         edge = bool(min(at[0], at[1]) < 1 or at[0] > res.shape[1] - 2 or at[1] > res.shape[0] - 2)
@@ -286,9 +287,9 @@ def _coarse_search(
         return M_best, peak, edge
     # several angles: climbed at a quarter of the resolution (4x cheaper) when the overlap
     # leaves a template there, then searched at half at the best one
-    small = cv2.pyrDown(template)
+    small = cast(Gray, cv2.pyrDown(template))
     if min(small.shape) > 8:
-        j_quarter = cv2.pyrDown(j_half)
+        j_quarter = cast(Gray, cv2.pyrDown(j_half))
         best = _climb(sorted(angles), lambda a: at_angle(a, 4, j_quarter, small)[0])
     else:
         best = _climb(sorted(angles), lambda a: at_angle(a)[0])

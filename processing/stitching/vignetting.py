@@ -46,7 +46,9 @@ class Photometry:
 
 
 def radius2(
-    x: NDArray[np.floating], y: NDArray[np.floating], size: tuple[int, int]
+    x: NDArray[np.integer | np.floating],
+    y: NDArray[np.integer | np.floating],
+    size: tuple[int, int],
 ) -> NDArray[np.float64]:
     """Squared normalised distance of pixels (x, y) from the centre of a (w, h) frame."""
     w, h = size

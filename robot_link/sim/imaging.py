@@ -26,13 +26,13 @@ def warp_affine_exact(
     reflected, or reads ``border`` when given (``cv2.BORDER_CONSTANT``); float32, with the
     texture's channels (an (h, w) image for a one-channel texture)."""
     src = texture if texture.ndim == 3 else texture[..., None]
-    M = np.asarray(M, dtype=np.float64)
-    if M.shape != (2, 3):
-        raise ValueError(f"M must be 2x3, got {M.shape}")
+    A = np.asarray(M, dtype=np.float64)
+    if A.shape != (2, 3):
+        raise ValueError(f"M must be 2x3, got {A.shape}")
     out = np.empty((size[1], size[0], src.shape[2]), np.float32)
     _warp(
         np.ascontiguousarray(src),
-        M,
+        A,
         out,
         border is not None,
         0.0 if border is None else float(border),

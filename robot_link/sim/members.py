@@ -22,15 +22,18 @@ def box(x0: float, x1: float, y0: float, y1: float, z0: float, z1: float) -> Mes
     y0, y1 = sorted((y0, y1))
     z0, z1 = sorted((z0, z1))
     mesh = Mesh.create_box(x1 - x0, y1 - y0, z1 - z0)
-    return mesh.translate((x0, y0, z0))
+    mesh.translate((x0, y0, z0))
+    return mesh
 
 
 def oriented_box(centre: ArrayLike, axes: NDArray[np.float64], size: ArrayLike) -> Mesh:
     """A box of ``size`` (3,) along the columns of ``axes`` (3, 3, orthonormal) about ``centre``."""
     size = np.asarray(size, float)
-    mesh = Mesh.create_box(*size).translate(-size / 2)
+    mesh = Mesh.create_box(*size)
+    mesh.translate(-size / 2)
     mesh.rotate(np.asarray(axes, float), center=(0, 0, 0))
-    return mesh.translate(np.asarray(centre, float))
+    mesh.translate(np.asarray(centre, float))
+    return mesh
 
 
 def _frame(axis: NDArray[np.float64], up: ArrayLike) -> NDArray[np.float64]:
@@ -106,7 +109,8 @@ def bolts(
     for c in centres:
         head = Mesh.create_cylinder(radius=radius, height=height, resolution=6)
         head.translate((0, 0, height / 2)).rotate(R, center=(0, 0, 0))
-        mesh += head.translate(np.asarray(c, float))
+        head.translate(np.asarray(c, float))
+        mesh += head
     return mesh
 
 

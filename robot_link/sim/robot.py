@@ -4,6 +4,7 @@ sensors with the paper's edge avoidance (Algorithm 1), batteries and adhesion (e
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -133,7 +134,9 @@ class SimRobot:
         self.distance_m += abs(d_true)
         self.batteries.drain(dt, moving=bool(v or w))
 
-    def ir_ranges(self, on_plate) -> NDArray[np.float64]:  # type: ignore[no-untyped-def]
+    def ir_ranges(
+        self, on_plate: Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.bool_]]
+    ) -> NDArray[np.float64]:
         """Range (m) each corner IR sensor reads: calibrated over steel, max over an edge."""
         x, y, yaw = self.pose
         c, s = np.cos(yaw), np.sin(yaw)

@@ -106,15 +106,15 @@ def scene_sweep(cfg: SceneSweepConfig = SceneSweepConfig()) -> TofSweep:
     gap = abs(lanes[1] - lanes[0])
     step = (2 * (x1 - x0) + np.pi * gap) / cfg.clouds
     robot = route(TofSweepConfig(lanes_y_m=lanes, x_range_m=(x0, x1), step_m=step, turn_step_deg=0))
-    truth = []
+    poses = []
     for x, y, yaw in robot[: cfg.clouds]:
         rock = np.eye(4)
         rock[:3, :3] = Rotation.from_euler(
             "xy", rng.uniform(-cfg.attitude_deg, cfg.attitude_deg, 2), degrees=True
         ).as_matrix()
         rock[2, 3] = -rng.uniform(0, cfg.bump_m)
-        truth.append(se2_to_se3(x, y, yaw) @ rock @ tof.T_robot_tof)
-    truth = np.array(truth)
+        poses.append(se2_to_se3(x, y, yaw) @ rock @ tof.T_robot_tof)
+    truth = np.array(poses)
     odometry = drifting_odometry(truth, cfg, rng)
     clouds = [
         depth_to_points(tof.render(T, rng), tof.fx, tof.fy, tof.cx, tof.cy).astype(np.float32)
@@ -137,7 +137,7 @@ def write_sweep(sweep: TofSweep, folder: Path) -> Path:
     clouds.mkdir(parents=True, exist_ok=True)
     for i, c in enumerate(sweep.clouds):
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c.astype(np.float64)))
-        if not o3d.io.write_point_cloud(str(clouds / f"c{i:04d}.ply"), pcd):
+        if not o3d.io.write_point_cloud(clouds / f"c{i:04d}.ply", pcd):
             raise OSError(f"could not write {clouds / f'c{i:04d}.ply'}")
     (clouds / "sensor.json").write_text(
         json.dumps(

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, cast
 
 import cv2
 import numpy as np
@@ -64,16 +64,20 @@ class DownwardCamera:
         A = np.array([[c, -s], [s, c]]) * k
         t = np.array([x, y]) / structure.m_per_px - A @ (cx, cy)
         M = np.hstack([A, t[:, None]])
+        img: NDArray[np.float32] | NDArray[np.uint8]
         if exact:
             img = warp_affine_exact(structure.texture, M, (self.width, self.height), border=25.0)
         else:
-            img = cv2.warpAffine(
-                structure.texture,
-                M,
-                (self.width, self.height),
-                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=(25, 25, 25),
+            img = cast(
+                NDArray[np.uint8],
+                cv2.warpAffine(
+                    structure.texture,
+                    M,
+                    (self.width, self.height),
+                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=(25, 25, 25),
+                ),
             )
         gain = rng.uniform(*self.gain_range)
         yy, xx = np.mgrid[0 : self.height, 0 : self.width].astype(np.float32)
@@ -172,10 +176,11 @@ class TofCamera:
         R, t = T_world_tof[:3, :3], T_world_tof[:3, 3]
         dirs = self._dirs @ R.T
         rays = np.hstack([np.broadcast_to(t, dirs.shape), dirs]).astype(np.float32)
-        cast = self._scene.cast_rays(o3d.core.Tensor(rays))
-        hit = cast["t_hit"].numpy().astype(np.float64)
+        tensor = o3d.core.Tensor(rays)  # type: ignore[call-overload]  # Open3D's stubs lack dtype/device defaults
+        hits = self._scene.cast_rays(tensor)
+        hit = hits["t_hit"].numpy().astype(np.float64)
         ok = np.isfinite(hit) & (hit <= self.max_range_m)
-        normals = cast["primitive_normals"].numpy()[ok].astype(np.float64)
+        normals = hits["primitive_normals"].numpy()[ok].astype(np.float64)
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         return t + dirs[ok] * hit[ok, None], normals, dirs[ok]
 
@@ -186,7 +191,8 @@ class TofCamera:
         R, t = T_world_tof[:3, :3], T_world_tof[:3, 3]
         dirs = self._dirs @ R.T
         rays = np.hstack([np.broadcast_to(t, dirs.shape), dirs]).astype(np.float32)
-        hit = self._scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        tensor = o3d.core.Tensor(rays)  # type: ignore[call-overload]  # Open3D's stubs lack dtype/device defaults
+        hit = self._scene.cast_rays(tensor)["t_hit"].numpy()
         noise = rng.normal(0, self.noise_sigma_m, hit.shape)
         if self.noise_along_ray:
             z = (

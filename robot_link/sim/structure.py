@@ -12,6 +12,7 @@ stiffeners repeating along it: the forward-looking ToF camera sees that structur
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -52,7 +53,10 @@ def _noise(rng: np.random.Generator, shape: tuple[int, int], cell: int) -> NDArr
     small = rng.standard_normal((max(2, shape[0] // cell), max(2, shape[1] // cell))).astype(
         np.float32
     )
-    return cv2.resize(small, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+    return cast(
+        NDArray[np.float32],
+        cv2.resize(small, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC),
+    )
 
 
 def paint_texture(rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.float32]:
@@ -140,7 +144,8 @@ def _box(
     x0: float, x1: float, y0: float, y1: float, z0: float, z1: float
 ) -> o3d.geometry.TriangleMesh:
     box = o3d.geometry.TriangleMesh.create_box(x1 - x0, y1 - y0, z1 - z0)
-    return box.translate((x0, y0, z0))
+    box.translate((x0, y0, z0))
+    return box
 
 
 def girder_geometry(
@@ -166,7 +171,8 @@ def girder_geometry(
             bolt.rotate(
                 o3d.geometry.get_rotation_matrix_from_xyz((np.pi / 2, 0, 0)), center=(0, 0, 0)
             )
-            mesh += bolt.translate((bx, plate_h - 0.01, bz))
+            bolt.translate((bx, plate_h - 0.01, bz))
+            mesh += bolt
     mesh.compute_vertex_normals()
     return mesh
 
@@ -243,6 +249,5 @@ def _true_defect(
         (xs.max() - xs.min() + 1) * m_per_px,
         (ys.max() - ys.min() + 1) * m_per_px,
     )
-    return TrueDefect(
-        i, cls, tuple(round(float(v), 5) for v in bbox), round(length, 4), round(width, 5)
-    )  # type: ignore[arg-type]
+    x, y, w, h = (round(float(v), 5) for v in bbox)
+    return TrueDefect(i, cls, (x, y, w, h), round(length, 4), round(width, 5))

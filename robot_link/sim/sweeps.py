@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import cv2
 import numpy as np
@@ -67,7 +67,9 @@ def texture_from_images(
     rows = -(-len(images) // columns)
     out = np.zeros((rows * cell[1], columns * cell[0], 3), np.uint8)
     for k, img in enumerate(images):
-        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img
+        img = (
+            cast(NDArray[np.uint8], cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)) if img.ndim == 2 else img
+        )
         r, c = divmod(k, columns)
         out[r * cell[1] : (r + 1) * cell[1], c * cell[0] : (c + 1) * cell[0]] = cv2.resize(
             img, cell, interpolation=cv2.INTER_AREA
@@ -244,4 +246,6 @@ class LazySweep:
         )
         rng = np.random.default_rng([cfg.seed, k])
         jpeg = render_frame(patch, pose, cfg, rng)
-        return cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        frame = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        assert frame is not None  # a JPEG just encoded
+        return cast(NDArray[np.uint8], frame)

@@ -124,11 +124,11 @@ def tof_sweep(
     odo = drifting_odometry(robot, cfg, rng)  # drawn for the whole route: the same noise after
     robot, odo = robot[:clouds], odo[:clouds]
     truth = np.array([tof.T_world_tof(p) for p in robot])
-    clouds = [
+    recorded = [
         depth_to_points(tof.render(T, rng), tof.fx, tof.fy, tof.cx, tof.cy).astype(np.float32)
         for T in truth
     ]
     length = float(np.sum(np.linalg.norm(np.diff(robot[:, :2], axis=0), axis=1)))
     return TofSweep(
-        clouds, truth, np.array([tof.T_world_tof(p) for p in odo]), length, tof.intrinsics()
+        recorded, truth, np.array([tof.T_world_tof(p) for p in odo]), length, tof.intrinsics()
     )
