@@ -209,35 +209,19 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
     Zoom pyramid, overview and world mapping with bounded memory."""
     calib = ctx.session().calibration.get("camera", {})
     px_per_m = float(calib.get("px_per_m", 0)) or None
-    T_rc = calib.get("T_robot_camera", [0.0, 0.0, 0.0])
     with ctx.factory() as db:
         frames = list(db.scalars(ctx.rows(Frame)))
-    if not frames:
-        raise ValueError("the session has no camera frames")
-    # frames of another size than most, whose file is gone or whose image data is corrupt
-    # are skipped and reported
-    sizes = Counter((f.width, f.height) for f in frames)
-    size = sizes.most_common(1)[0][0]
-    use, skipped = [], []
-    for f in frames:
-        try:  # a frame that cannot be read is skipped, not fatal
-            data = ctx.files.payload(f)
-            w, h, _ = image_header(data, f"frame {f.seq}")
-            ok = (w, h) == size and decodes(data)
-        except (ValueError, OSError):
-            ok = False
-        (use if ok else skipped).append(f)
-    if not use:
-        raise ValueError(f"none of the session's {len(frames)} frames could be read as an image")
+    use, skipped = _readable_frames(ctx, frames)
     with_pose = all(f.pose_x is not None for f in use) and px_per_m is not None
     guess = None
     if with_pose and px_per_m is not None:
         robot = np.array([[f.pose_x, f.pose_y, f.pose_yaw] for f in use], dtype=np.float64)
-        guess = camera_poses(robot, T_rc, px_per_m)
+        guess = camera_poses(robot, calib.get("T_robot_camera", [0.0, 0.0, 0.0]), px_per_m)
     source = StoredImages(lambda k: ctx.files.payload(use[k]), len(use))
     params = StitchParams()
     params = replace(params, registration=replace(params.registration, workers=ctx.threads))
     where = [(f.path, f.data_offset, f.size_bytes) for f in use]
+    spread = ctx.fanout is not None
     banded: list[float] = []
     registered: list[float] = []
     t0 = time.perf_counter()
@@ -248,7 +232,7 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
             px_per_m=px_per_m if with_pose and px_per_m else 1.0,
             params=params,
             progress=lambda f, m: ctx.progress(0.7 * f, m),
-            spread=spread_pairs(ctx, where, registered) if ctx.fanout is not None else None,
+            spread=spread_pairs(ctx, where, registered) if spread else None,
         )
         t_pairs = time.perf_counter() - t0
         world = {
@@ -256,18 +240,19 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
             "frames": frame_records(layout, [f.seq for f in use]),
             "skipped_frames": [f.seq for f in skipped],
         }
-        if ctx.fanout is not None:
+        if spread:
             ctx.progress(0.75, "rendering the mosaic's bands on the workers")
+            bands: Any = _timed(fill_over_workers(ctx, where, layout, loaded, params), banded)
+        else:
+            bands = render_bands(
+                layout, loaded, params, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)
+            )
         files = write_mosaic(
             ctx.output_dir(),
             layout,
-            _timed(fill_over_workers(ctx, where, layout, loaded, params), banded)
-            if ctx.fanout is not None
-            else render_bands(
-                layout, loaded, params, progress=lambda f, m: ctx.progress(0.7 + 0.25 * f, m)
-            ),
+            bands,
             world=world,
-            save_map=ctx.map if ctx.fanout is not None else None,
+            save_map=ctx.map if spread else None,
             data_dir=ctx.files.data_dir,
         )
     finally:
@@ -280,7 +265,42 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         seconds["registrations"] = round(sum(registered), 3)
     if banded:  # of which the bands (and the PNG's segments), on a job queue
         seconds["bands"] = round(banded[0], 3)
-    results = ctx.results_dir()  # where the files are once the job is done
+    return _result(ctx, files, layout, with_pose, use, skipped, seconds, params)
+
+
+def _readable_frames(ctx: JobContext, frames: list[Frame]) -> tuple[list[Frame], list[Frame]]:
+    """The frames to stitch, and those skipped: of another size than most, whose file is
+    gone, or whose image data is corrupt."""
+    if not frames:
+        raise ValueError("the session has no camera frames")
+    size = Counter((f.width, f.height) for f in frames).most_common(1)[0][0]
+    use, skipped = [], []
+    for f in frames:
+        try:  # a frame that cannot be read is skipped, not fatal
+            data = ctx.files.payload(f)
+            w, h, _ = image_header(data, f"frame {f.seq}")
+            ok = (w, h) == size and decodes(data)
+        except (ValueError, OSError):
+            ok = False
+        (use if ok else skipped).append(f)
+    if not use:
+        raise ValueError(f"none of the session's {len(frames)} frames could be read as an image")
+    return use, skipped
+
+
+def _result(
+    ctx: JobContext,
+    files: Any,
+    layout: Any,
+    with_pose: bool,
+    use: list[Frame],
+    skipped: list[Frame],
+    seconds: dict[str, float],
+    params: StitchParams,
+) -> dict[str, Any]:
+    """The stitch job's result record: where its files are once the job is done, the
+    mosaic's size and placement, what was used and skipped, the time per stage."""
+    results = ctx.results_dir()
     return {
         "mosaic_path": str(results / files.mosaic.name),
         "overview_path": str(results / files.overview.name),
