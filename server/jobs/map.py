@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, overload
 
 import numpy as np
@@ -75,6 +76,19 @@ def measure_run_part(
     return measure_run(clouds, run.guesses[start:end], first, first - start, run.params, run.shape)
 
 
+@dataclass
+class _ReadableClouds:
+    """The session's clouds that decode to at least one finite point: where each is stored
+    (read again where it is registered: a long session's clouds are not all held in this
+    worker's memory at once), its time, seq and odometry pose; and those skipped."""
+
+    where: list[tuple[str, int | None, int, dict[str, Any]]] = field(default_factory=list)
+    stamps: list[float] = field(default_factory=list)
+    seqs: list[int] = field(default_factory=list)
+    guesses: list[NDArray[np.float64]] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)
+
+
 def run_map(ctx: JobContext) -> dict[str, Any]:
     """3D map from the session's ToF clouds: odometry-seeded point-to-plane ICP."""
     calib = ctx.session().calibration.get("tof", {})
@@ -83,37 +97,17 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         rows = list(db.scalars(ctx.rows(Cloud)))
     if not rows:
         raise ValueError("the session has no ToF clouds")
-    # the clouds are checked here and read again where they are registered: a long session's
-    # clouds are not all held in this worker's memory at once
-    guesses, stamps, seqs, skipped, where = [], [], [], [], []
     shapes = {(c.height, c.width) for c in rows}
     shape = shapes.pop() if len(shapes) == 1 else None  # organised depth images: filtered as images
     if shape is not None and min(shape) < 2:
         shape = None
-    for i, c in enumerate(rows):
-        meta = {"encoding": c.encoding, "width": c.width, "height": c.height, **c.intrinsics}
-        try:
-            pts = decode_cloud(ctx.files.payload(c), meta)
-        except (OSError, ValueError):
-            skipped.append(c.seq)
-            continue
-        if not np.isfinite(pts).all(axis=1).any():
-            skipped.append(c.seq)
-            continue
-        where.append((c.path, c.data_offset, c.size_bytes, meta))
-        stamps.append(c.timestamp)
-        seqs.append(c.seq)
-        if c.pose_x is not None:
-            guesses.append(se2_to_se3(c.pose_x, c.pose_y, c.pose_yaw) @ T_rt)
-        if i % 10 == 0:
-            ctx.progress(0.3 * i / len(rows), f"decoded {i}/{len(rows)} clouds")
-    if not where:
-        raise ValueError("no readable ToF cloud in the session")
-    usable = len(where)
+    clouds = _readable_clouds(ctx, rows, T_rt)
+    usable = len(clouds.where)
+    guesses = clouds.guesses
     # the station's own sessions: dense clouds and wheel odometry good to millimetres, which
     # the pairwise graph uses best (tracking is for sparse sequences with poor odometry)
     params = MapParams(tracking=TrackingParams(enabled=False))
-    robot = _visual_robot_poses(ctx, rows, seqs) if len(guesses) == usable else None
+    robot = _visual_robot_poses(ctx, rows, clouds.seqs) if len(guesses) == usable else None
     if robot is not None:
         # the mosaic's sub-pixel camera motion, carried over to the clouds, places them far
         # better than ICP on a mostly flat view can (0.03 mm against 3-5 mm on the simulator)
@@ -124,7 +118,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     if params.refine and len(guesses) == usable:
         # each run of clouds registered to the clouds before it wherever the queue runs it,
         # then joined into one graph, its loops closed and optimised here
-        run = CloudRun(where, np.array(guesses), params, shape)
+        run = CloudRun(clouds.where, np.array(guesses), params, shape)
         spans = [(a, min(a + RUN_CLOUDS, usable)) for a in range(0, usable, RUN_CLOUDS)]
         measured = [m for part in ctx.map(measure_run_part, run, spans) for m in part]
         t_pairs = time.perf_counter() - t0
@@ -132,7 +126,7 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         result = register_measured(measured, run.guesses, params=params)
     else:
         result = register_clouds(
-            StoredClouds(ctx.files, where),
+            StoredClouds(ctx.files, clouds.where),
             np.array(guesses) if len(guesses) == usable else None,
             params=params,
             shape=shape,
@@ -142,22 +136,62 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         "pairs": round(t_pairs, 3),
         "graph": round(time.perf_counter() - t0 - t_pairs, 3),
     }
-    out = ctx.output_dir()
+    _write_map(ctx.output_dir(), result, clouds.stamps)
+    return {
+        "map_path": str(ctx.results_dir() / "map.ply"),
+        "trajectory_path": str(ctx.results_dir() / "trajectory.tum"),
+        "points": len(result.points),
+        "guided_by_mosaic": robot is not None,
+        "clouds": usable,
+        "skipped_clouds": clouds.skipped,
+        "cloud_seqs": clouds.seqs,
+        **_registration_facts(result),
+        "seconds": seconds,
+        "params": params_record(params),
+    }
+
+
+def _readable_clouds(
+    ctx: JobContext, rows: list[Cloud], T_rt: NDArray[np.float64]
+) -> _ReadableClouds:
+    """The clouds that can be registered (:class:`_ReadableClouds`); none is an error."""
+    out = _ReadableClouds()
+    for i, c in enumerate(rows):
+        meta = {"encoding": c.encoding, "width": c.width, "height": c.height, **c.intrinsics}
+        try:
+            pts = decode_cloud(ctx.files.payload(c), meta)
+        except (OSError, ValueError):
+            out.skipped.append(c.seq)
+            continue
+        if not np.isfinite(pts).all(axis=1).any():
+            out.skipped.append(c.seq)
+            continue
+        out.where.append((c.path, c.data_offset, c.size_bytes, meta))
+        out.stamps.append(c.timestamp)
+        out.seqs.append(c.seq)
+        if c.pose_x is not None:
+            out.guesses.append(se2_to_se3(c.pose_x, c.pose_y, c.pose_yaw) @ T_rt)
+        if i % 10 == 0:
+            ctx.progress(0.3 * i / len(rows), f"decoded {i}/{len(rows)} clouds")
+    if not out.where:
+        raise ValueError("no readable ToF cloud in the session")
+    return out
+
+
+def _write_map(out: Path, result: Any, stamps: list[float]) -> None:
+    """The fused map as PLY and the trajectory as TUM, each written whole or not at all."""
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
     tmp = out / ".map.tmp.ply"
     if not o3d.io.write_point_cloud(str(tmp), pcd):
         raise OSError("could not write map.ply")
     tmp.replace(out / "map.ply")
     write_atomic(out / "trajectory.tum", format_tum(np.array(stamps), result.poses).encode())
+
+
+def _registration_facts(result: Any) -> dict[str, Any]:
+    """What the registration did, for the job's result."""
     return {
-        "map_path": str(ctx.results_dir() / "map.ply"),
-        "trajectory_path": str(ctx.results_dir() / "trajectory.tum"),
-        "points": len(result.points),
-        "guided_by_mosaic": robot is not None,
         "loop_closures": result.loop_closures,
-        "clouds": usable,
-        "skipped_clouds": skipped,
-        "cloud_seqs": seqs,
         "odometry_fallbacks": int(result.used_odometry.sum()),
         # clouds whose view left some directions to the odometry (a flat plate: sliding along it)
         "clouds_with_unobservable_directions": int((result.degenerate_dims > 0).sum()),
@@ -167,8 +201,6 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         # large planes (deck plate, web) tying the clouds that see them
         "plane_landmarks": result.plane_landmarks,
         "mean_fitness": float(result.fitness.mean()),
-        "seconds": seconds,
-        "params": params_record(params),
     }
 
 
