@@ -134,23 +134,13 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     if not (source / "mosaic.png").is_file() or not (source / "mosaic.json").is_file():
         raise ValueError("no mosaic to run detection on: run the stitch job first")
     world = json.loads((source / "mosaic.json").read_text())
-    px_per_m, (ox, oy) = world["px_per_m"], world["origin_m"]
-    referenced = bool(world.get("world_referenced"))
-    mm_per_px = 1000.0 / px_per_m if referenced else None
+    mm_per_px = 1000.0 / world["px_per_m"] if world.get("world_referenced") else None
     ctx.progress(0.6, "mosaic")
     surface = _frame_surface(ctx)
     out = ctx.output_dir()
     # in bands whose grid depends on the mosaic alone: the same defects whatever searches it
     found = _detect_mosaic_banded(ctx, source, out, mm_per_px, surface)
-    mosaic_rows: list[Defect] = []
-    for d in found:
-        x, y, w, h = d.bbox
-        placed = (
-            (ox + x / px_per_m, oy + y / px_per_m, w / px_per_m, h / px_per_m)
-            if referenced
-            else None
-        )
-        mosaic_rows.append(_defect_row(ctx, d, "mosaic", referenced, placed))
+    mosaic_rows = [_mosaic_row(ctx, d, world) for d in found]
     by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
     result = {
         "defects": len(found),
@@ -170,24 +160,44 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     }
 
     def store(db: Session) -> None:
-        """The session's defects replaced by these, in the transaction that ends the job."""
-        ours = (Defect.session_id == ctx.session_id) & Defect.drawn_by.is_(None)
-        reviewed = list(db.scalars(select(Defect).where(ours, Defect.reviewed_by.is_not(None))))
-        result["reviews_carried_over"] = carry_reviews(reviewed, frame_rows + mosaic_rows)
-        db.execute(delete(Defect).where(ours))  # defects drawn by hand stay
-        drawn = list(
-            db.scalars(
-                select(Defect).where(
-                    Defect.session_id == ctx.session_id, Defect.drawn_by.is_not(None)
-                )
-            )
+        result["reviews_carried_over"] = _replace_defects(
+            db, ctx.session_id, frame_rows, mosaic_rows
         )
-        number_defects(frame_rows)
-        number_defects(mosaic_rows + drawn)
-        db.add_all(frame_rows + mosaic_rows)
 
     ctx.on_finish(store)
     return result
+
+
+def _mosaic_row(ctx: JobContext, d: Defect_, world: dict[str, Any]) -> Defect:
+    """A defect found on the mosaic as a row, placed on the structure when the mosaic is."""
+    px_per_m, (ox, oy) = world["px_per_m"], world["origin_m"]
+    referenced = bool(world.get("world_referenced"))
+    x, y, w, h = d.bbox
+    placed = (
+        (ox + x / px_per_m, oy + y / px_per_m, w / px_per_m, h / px_per_m) if referenced else None
+    )
+    return _defect_row(ctx, d, "mosaic", referenced, placed)
+
+
+def _replace_defects(
+    db: Session, session_id: str, frame_rows: list[Defect], mosaic_rows: list[Defect]
+) -> int:
+    """The session's defects replaced by these, in the transaction that ends the job:
+    reviews carried over to the defects found again (how many), defects drawn by hand kept,
+    every defect numbered."""
+    ours = (Defect.session_id == session_id) & Defect.drawn_by.is_(None)
+    reviewed = list(db.scalars(select(Defect).where(ours, Defect.reviewed_by.is_not(None))))
+    carried = carry_reviews(reviewed, frame_rows + mosaic_rows)
+    db.execute(delete(Defect).where(ours))  # defects drawn by hand stay
+    drawn = list(
+        db.scalars(
+            select(Defect).where(Defect.session_id == session_id, Defect.drawn_by.is_not(None))
+        )
+    )
+    number_defects(frame_rows)
+    number_defects(mosaic_rows + drawn)
+    db.add_all(frame_rows + mosaic_rows)
+    return carried
 
 
 def _frame_surface(ctx: JobContext, n: int = 9) -> SurfaceStats | None:
