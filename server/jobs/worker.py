@@ -98,22 +98,30 @@ def run_job(
             except Exception as exc:  # a job's failure is recorded, never raised into the runner
                 log.error("job %d (%s) failed:\n%s", job_id, kind, traceback.format_exc())
                 return _failed(factory, job_id, attempt, exc)
-        try:  # its database writes and files become the session's with the job's end
-            held = leases.finish(
-                factory,
-                job_id,
-                attempt,
-                JobState.done,
-                result=result,
-                then=ctx.store,
-                publish=lambda: outputs.publish(staging, results),
-            )
-        except Exception as exc:  # its results could not be stored (disk, database)
-            log.error("job %d (%s) not stored:\n%s", job_id, kind, traceback.format_exc())
-            return _failed(factory, job_id, attempt, exc)
-        return "done" if held else "lost"
+        return _finished(ctx, kind, result, lambda: outputs.publish(staging, results))
     finally:
         outputs.discard(staging)  # what was not published: dropped
+
+
+def _finished(
+    ctx: JobContext, kind: str, result: dict[str, Any], publish: Callable[[], None]
+) -> Outcome:
+    """Record the job done: its database writes and files become the session's with the
+    job's end, if the attempt still holds it; failed when they cannot be stored."""
+    try:
+        held = leases.finish(
+            ctx.factory,
+            ctx.job_id,
+            ctx.attempt,
+            JobState.done,
+            result=result,
+            then=ctx.store,
+            publish=publish,
+        )
+    except Exception as exc:  # its results could not be stored (disk, database)
+        log.error("job %d (%s) not stored:\n%s", ctx.job_id, kind, traceback.format_exc())
+        return _failed(ctx.factory, ctx.job_id, ctx.attempt, exc)
+    return "done" if held else "lost"
 
 
 def _failed(factory: sessionmaker[Session], job_id: int, attempt: int, exc: Exception) -> Outcome:
