@@ -57,28 +57,9 @@ async def live_socket(websocket: WebSocket) -> None:
     try:
         while True:
             text = await websocket.receive_text()
-            size = len(text.encode())
-            if size > settings.max_browser_message_bytes:
-                await _reply(
-                    websocket,
-                    ok=False,
-                    error=f"a message of {size} bytes is refused: at most {settings.max_browser_message_bytes}",
-                )
-                continue
-            if not bucket.take() and not is_stop(text):  # stopping the robot is never rate-limited
-                await _reply(
-                    websocket,
-                    ok=False,
-                    error=f"too many messages: at most {settings.browser_messages_per_s:g} a second "
-                    "(stop and e-stop always pass)",
-                )
-                continue
-            if not has_role(user, Role.operator):
-                await _reply(
-                    websocket,
-                    ok=False,
-                    error=f"commands need the operator role; you are {user.role.value}",
-                )
+            refused = _refusal(text, user, bucket, settings)
+            if refused:
+                await _reply(websocket, ok=False, error=refused)
                 continue
             await _handle_browser_message(websocket, hub, watcher, user, text)
     except (WebSocketDisconnect, RuntimeError):
@@ -88,6 +69,22 @@ async def live_socket(websocket: WebSocket) -> None:
         for sid in hub.unwatch(watcher):  # the driver's page went away: stop its robot now
             with contextlib.suppress(KeyError, ProtocolError, RuntimeError, OSError):
                 await hub.command(sid, "stop", {"reason": "operator disconnected"})
+
+
+def _refusal(text: str, user: User, bucket: TokenBucket, settings: Any) -> str:
+    """Why a browser's message is refused before it is read ('' when it is not): too
+    large, over the browser's rate (stopping the robot never is), or from a viewer."""
+    size = len(text.encode())
+    if size > settings.max_browser_message_bytes:
+        return f"a message of {size} bytes is refused: at most {settings.max_browser_message_bytes}"
+    if not bucket.take() and not is_stop(text):
+        return (
+            f"too many messages: at most {settings.browser_messages_per_s:g} a second "
+            "(stop and e-stop always pass)"
+        )
+    if not has_role(user, Role.operator):
+        return f"commands need the operator role; you are {user.role.value}"
+    return ""
 
 
 def _browser_user(factory: Any, token: str | None) -> User | None:
