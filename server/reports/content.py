@@ -70,6 +70,55 @@ def build_report(
         or 0
         for m in (Frame, Cloud, TelemetrySample)
     }
+    notes = _notes(latest, done, listed_source == "frame" and bool(defects))
+    return {
+        "generator": GENERATOR,
+        "generated_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "cover": _cover(s),
+        "summary": _summary(db, s, counts, records, world, results_dir, done),
+        "defects": records,
+        "defect_source": listed_source,
+        "results": {k: j.result for k, j in done.items()},
+        "parameters": {k: j.result.get("params", {}) for k, j in done.items() if k in STAGES},
+        "jobs": [_job_record(j) for j in jobs],
+        "missing": [k for k in STAGES if k not in done],
+        "notes": notes,
+        "files": _files(results_dir, base_url, session_id),
+        "coverage": _coverage(db, files, session_id, coverage) if coverage else None,
+        "calibration": s.calibration,
+    }
+
+
+def _cover(s: InspectionSession) -> dict[str, Any]:
+    """The report's cover: what was inspected, where, when, by whom."""
+    return {
+        "structure": s.structure,
+        "location": s.location,
+        "date": s.started_at.date().isoformat(),
+        "started_at": _iso(s.started_at),
+        "ended_at": _iso(s.ended_at),
+        "operator": s.operator,
+        "robot": s.robot.name if s.robot else None,
+        "session_id": s.id,
+        "status": s.status.value,
+        "end_reason": s.end_reason,
+        "notes": s.notes,
+    }
+
+
+def _job_record(j: Job) -> dict[str, Any]:
+    return {
+        "id": j.id,
+        "kind": j.kind,
+        "state": j.state.value,
+        "error": j.error,
+        "finished_at": _iso(j.finished_at),
+    }
+
+
+def _notes(latest: dict[str, Job], done: dict[str, Job], per_frame: bool) -> list[str]:
+    """What the report's reader must know: stages with no result and why, frames and
+    clouds left out, defects listed per frame (``per_frame``: no mosaic)."""
     notes = [
         f"No {label}: {_why_missing(latest.get(kind))}"
         for kind, label in STAGES.items()
@@ -87,47 +136,12 @@ def build_report(
         if seqs:
             shown = ", ".join(str(q) for q in seqs[:20]) + (", …" if len(seqs) > 20 else "")
             notes.append(f"{what[0].upper()}{what[1:]}: {len(seqs)} (seq {shown}).")
-    if listed_source == "frame" and defects:
+    if per_frame:
         notes.append(
-            "Defects are listed per camera frame (no mosaic): one defect seen in overlapping frames appears more than once."
+            "Defects are listed per camera frame (no mosaic): one defect seen in overlapping "
+            "frames appears more than once."
         )
-    return {
-        "generator": GENERATOR,
-        "generated_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "cover": {
-            "structure": s.structure,
-            "location": s.location,
-            "date": s.started_at.date().isoformat(),
-            "started_at": _iso(s.started_at),
-            "ended_at": _iso(s.ended_at),
-            "operator": s.operator,
-            "robot": s.robot.name if s.robot else None,
-            "session_id": s.id,
-            "status": s.status.value,
-            "end_reason": s.end_reason,
-            "notes": s.notes,
-        },
-        "summary": _summary(db, s, counts, records, world, results_dir, done),
-        "defects": records,
-        "defect_source": listed_source,
-        "results": {k: j.result for k, j in done.items()},
-        "parameters": {k: j.result.get("params", {}) for k, j in done.items() if k in STAGES},
-        "jobs": [
-            {
-                "id": j.id,
-                "kind": j.kind,
-                "state": j.state.value,
-                "error": j.error,
-                "finished_at": _iso(j.finished_at),
-            }
-            for j in jobs
-        ],
-        "missing": [k for k in STAGES if k not in done],
-        "notes": notes,
-        "files": _files(results_dir, base_url, session_id),
-        "coverage": _coverage(db, files, session_id, coverage) if coverage else None,
-        "calibration": s.calibration,
-    }
+    return notes
 
 
 def _coverage(
