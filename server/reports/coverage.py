@@ -92,17 +92,10 @@ def session_coverage(
     mm_per_px = 1000.0 / px_per_m if px_per_m else None
     verdicts = frame_verdicts([cache.get(files, f) for f in frames], mm_per_px, params)
     polys, placed_by = [], []
-    mosaic = _mosaic_cameras(files, session_id)
     if px_per_m:
+        mosaic = _mosaic_cameras(files, session_id)
         for f in frames:
-            robot = np.array([f.pose_x, f.pose_y, f.pose_yaw or 0.0])
-            if f.seq in mosaic:
-                cam, by = mosaic[f.seq], "mosaic"
-            elif corrections is not None and len(corrections):
-                k = int(np.abs(corrections[:, 0] - f.timestamp).argmin())
-                cam, by = compose_se2(compose_se2(corrections[k, 1:], robot), T_rc), "live map"
-            else:
-                cam, by = compose_se2(robot, T_rc), "odometry"
+            cam, by = _camera_pose(f, mosaic, corrections, T_rc)
             polys.append(footprint(cam, px_per_m, (f.width, f.height)))
             placed_by.append(by)
     cov = coverage_map(polys, [not v for v in verdicts], params)
@@ -129,14 +122,36 @@ def session_coverage(
         ],
     }
     if with_grid:
-        out["grid"] = {
-            "origin_m": list(cov.origin_m),
-            "cell_m": cov.cell_m,
-            "rows": int(cov.surface.shape[0]),
-            "cols": int(cov.surface.shape[1]) if cov.surface.ndim == 2 else 0,
-            "holes_rle": [_runs(row) for row in hole_mask(cov)],
-        }
+        out["grid"] = _grid(cov)
     return out
+
+
+def _grid(cov: Any) -> dict[str, Any]:
+    """The coverage grid for drawing: its placement, and the holes as run-length rows."""
+    return {
+        "origin_m": list(cov.origin_m),
+        "cell_m": cov.cell_m,
+        "rows": int(cov.surface.shape[0]),
+        "cols": int(cov.surface.shape[1]) if cov.surface.ndim == 2 else 0,
+        "holes_rle": [_runs(row) for row in hole_mask(cov)],
+    }
+
+
+def _camera_pose(
+    f: Frame,
+    mosaic: dict[int, np.ndarray],
+    corrections: NDArray[np.float64] | None,
+    T_rc: NDArray[np.float64],
+) -> tuple[np.ndarray, str]:
+    """Where a frame's camera was (x, y, yaw), by the best registration there is, and which
+    that was: the mosaic's, the live map's correction nearest in time, or the odometry."""
+    robot = np.array([f.pose_x, f.pose_y, f.pose_yaw or 0.0])
+    if f.seq in mosaic:
+        return mosaic[f.seq], "mosaic"
+    if corrections is not None and len(corrections):
+        k = int(np.abs(corrections[:, 0] - f.timestamp).argmin())
+        return compose_se2(compose_se2(corrections[k, 1:], robot), T_rc), "live map"
+    return compose_se2(robot, T_rc), "odometry"
 
 
 def _mosaic_cameras(files: SessionFiles, session_id: str) -> dict[int, np.ndarray]:
