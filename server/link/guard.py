@@ -11,6 +11,7 @@ import asyncio
 import logging
 import resource
 from collections import OrderedDict, defaultdict
+from dataclasses import dataclass, field
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
@@ -48,6 +49,113 @@ def connection_budget(max_connections: int) -> int:
     return max(64, soft - FD_RESERVE)
 
 
+@dataclass
+class ConnectionLimits:
+    """One server's limits and the connections it counts (websockets included: an upgraded
+    connection keeps its transport)."""
+
+    max_per_client: int
+    head_timeout_s: float
+    new_per_s: float = NEW_PER_S
+    new_burst: float = NEW_BURST
+    max_connections: int = 0
+    max_pending: int = 256
+    open_by_client: dict[str, set[asyncio.BaseTransport]] = field(
+        default_factory=lambda: defaultdict(set)
+    )
+    arrivals: dict[str, TokenBucket] = field(default_factory=dict)
+    # connections sending a request head, oldest first
+    pending: OrderedDict[GuardedHttp, None] = field(default_factory=OrderedDict)
+    every: set[asyncio.BaseTransport] = field(default_factory=set)
+
+    def admit(self, transport: asyncio.Transport, host: str) -> bool:
+        """Whether a new connection from ``host`` may stay: within the address's arrival
+        rate and open connections, and the station's; a full station lets the
+        longest-pending connection go for it."""
+        if len(self.arrivals) > MAX_ADDRESSES:
+            self.arrivals.clear()  # a flood of spoofed addresses: start counting afresh
+        if not self.arrivals.setdefault(host, TokenBucket(self.new_per_s, self.new_burst)).take():
+            return False
+        mine = self.open_by_client[host]
+        mine.difference_update([t for t in mine if t.is_closing()])
+        if len(mine) >= self.max_per_client:
+            log.warning("refused a connection: %s has %d open", host, len(mine))
+            return False
+        budget = connection_budget(self.max_connections)
+        if len(self.every) >= budget:
+            self.every.difference_update([t for t in self.every if t.is_closing()])
+        if len(self.every) >= budget or len(self.pending) >= self.max_pending:
+            if not self.pending:
+                log.warning("refused a connection: %d open, the station's limit", len(self.every))
+                return False
+            oldest = next(iter(self.pending))
+            oldest.forget()
+            oldest.transport.close()
+        mine.add(transport)
+        self.every.add(transport)
+        return True
+
+    def lost(self, transport: asyncio.BaseTransport, host: str | None) -> None:
+        """A connection closed."""
+        self.every.discard(transport)
+        mine = self.open_by_client.get(host) if host is not None else None
+        if host is not None and mine is not None:
+            mine.discard(transport)
+            if not mine:
+                del self.open_by_client[host]
+
+
+class GuardedHttp(HttpToolsProtocol):
+    """uvicorn's HTTP protocol under its server's :class:`ConnectionLimits`, with a
+    deadline for each request head."""
+
+    limits: ConnectionLimits
+    _head_timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        if not self.limits.admit(transport, self.client[0] if self.client else "?"):
+            transport.close()
+            return
+        self._arm()
+
+    def on_message_begin(self) -> None:
+        super().on_message_begin()
+        if self._head_timer is None:  # the next request on a kept-alive connection
+            self._arm()
+
+    def on_headers_complete(self) -> None:
+        self._disarm()
+        super().on_headers_complete()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        self.forget()
+        super().connection_lost(exc)
+        self.limits.lost(self.transport, self.client[0] if self.client else None)
+
+    def forget(self) -> None:
+        """No longer counted as pending, nor as open."""
+        self.limits.pending.pop(self, None)
+        self.limits.every.discard(self.transport)
+
+    def _arm(self) -> None:
+        self._head_timer = self.loop.call_later(self.limits.head_timeout_s, self._head_late)
+        self.limits.pending[self] = None
+
+    def _disarm(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+            self._head_timer = None
+        self.limits.pending.pop(self, None)
+
+    def _head_late(self) -> None:
+        self._head_timer = None
+        self.limits.pending.pop(self, None)
+        if not self.transport.is_closing():
+            self.transport.close()
+
+
 def guarded_http(
     max_per_client: int,
     head_timeout_s: float,
@@ -58,88 +166,13 @@ def guarded_http(
     max_pending: int = 256,
 ) -> type[HttpToolsProtocol]:
     """uvicorn's HTTP protocol (``uvicorn.Config(http=...)``) with the limits; one class per
-    server, counting that server's connections (websockets included: an upgraded connection
-    keeps its transport). New connections from one address beyond ``new_per_s`` a second
-    (``new_burst`` at once) are closed as they arrive, before a byte is parsed. At most
-    ``max_pending`` connections may be sending a request head at once, station-wide: a new
-    one closes the one that has been at it longest (a real client sends its head in
-    milliseconds). At most ``max_connections`` (:func:`connection_budget`) are open in all;
-    beyond, a new one takes the place of the oldest pending one, or is closed."""
-    open_by_client: dict[str, set[asyncio.BaseTransport]] = defaultdict(set)
-    arrivals: dict[str, TokenBucket] = {}
-    pending: OrderedDict[HttpToolsProtocol, None] = OrderedDict()  # sending a head, oldest first
-    every: set[asyncio.BaseTransport] = set()  # an upgraded websocket keeps its transport
-
-    class GuardedHttp(HttpToolsProtocol):
-        _head_timer: asyncio.TimerHandle | None = None
-
-        def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-            super().connection_made(transport)
-            host = self.client[0] if self.client else "?"
-            if len(arrivals) > MAX_ADDRESSES:
-                arrivals.clear()  # a flood of spoofed addresses: start counting afresh
-            if not arrivals.setdefault(host, TokenBucket(new_per_s, new_burst)).take():
-                transport.close()
-                return
-            mine = open_by_client[host]
-            mine.difference_update([t for t in mine if t.is_closing()])
-            if len(mine) >= max_per_client:
-                log.warning("refused a connection: %s has %d open", host, len(mine))
-                transport.close()
-                return
-            budget = connection_budget(max_connections)
-            if len(every) >= budget:
-                every.difference_update([t for t in every if t.is_closing()])
-            if len(every) >= budget or len(pending) >= max_pending:
-                if not pending:
-                    log.warning("refused a connection: %d open, the station's limit", len(every))
-                    transport.close()
-                    return
-                oldest = next(iter(pending))
-                oldest._forget()
-                oldest.transport.close()
-            mine.add(transport)
-            every.add(transport)
-            self._arm()
-
-        def on_message_begin(self) -> None:
-            super().on_message_begin()
-            if self._head_timer is None:  # the next request on a kept-alive connection
-                self._arm()
-
-        def on_headers_complete(self) -> None:
-            self._disarm()
-            super().on_headers_complete()
-
-        def connection_lost(self, exc: Exception | None) -> None:
-            self._disarm()
-            self._forget()
-            super().connection_lost(exc)
-            if self.client is not None:
-                mine = open_by_client.get(self.client[0])
-                if mine is not None:
-                    mine.discard(self.transport)
-                    if not mine:
-                        del open_by_client[self.client[0]]
-
-        def _arm(self) -> None:
-            self._head_timer = self.loop.call_later(head_timeout_s, self._head_late)
-            pending[self] = None
-
-        def _disarm(self) -> None:
-            if self._head_timer is not None:
-                self._head_timer.cancel()
-                self._head_timer = None
-            pending.pop(self, None)
-
-        def _forget(self) -> None:
-            pending.pop(self, None)
-            every.discard(self.transport)
-
-        def _head_late(self) -> None:
-            self._head_timer = None
-            pending.pop(self, None)
-            if not self.transport.is_closing():
-                self.transport.close()
-
-    return GuardedHttp
+    server, counting that server's connections. New connections from one address beyond
+    ``new_per_s`` a second (``new_burst`` at once) are closed as they arrive, before a byte
+    is parsed. At most ``max_pending`` connections may be sending a request head at once,
+    station-wide: a new one closes the one that has been at it longest (a real client sends
+    its head in milliseconds). At most ``max_connections`` (:func:`connection_budget`) are
+    open in all; beyond, a new one takes the place of the oldest pending one, or is closed."""
+    limits = ConnectionLimits(
+        max_per_client, head_timeout_s, new_per_s, new_burst, max_connections, max_pending
+    )
+    return type("GuardedHttp", (GuardedHttp,), {"limits": limits})
