@@ -109,15 +109,7 @@ def run_demo(
 ) -> int:
     """Run everything; the last stdout line is the JSON summary when ``exit_when_done``."""
     console = Console(stderr=True)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    url_db = settings.resolved_database_url()
-    upgrade(url_db)
-    engine = make_engine(url_db)
-    factory = make_sessionmaker(engine)
-    token = create_robot(factory, f"sim-{int(time.time() * 1000)}")
-    operator, password = f"operator-{secrets.token_hex(2)}", secrets.token_urlsafe(12)
-    create_user(factory, operator, password, Role.operator)
-    engine.dispose()
+    token, operator, password = _accounts(settings)
     server = BackgroundServer(settings, port or free_port())
     server.start()
     print(f"Dashboard: {server.url}/   (API docs: {server.url}/docs)", flush=True)
@@ -163,7 +155,29 @@ def run_demo(
     if exit_when_done and not keep_serving:
         server.stop()
         return 0
-    # a second robot the user drives from the dashboard's Drive page (live video, dead-man stop)
+    _serve_with_a_robot_to_drive(server, token, seed, console)
+    return 0
+
+
+def _accounts(settings: Settings) -> tuple[str, str, str]:
+    """A new robot's token and an operator's name and password, in the station's database."""
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    url_db = settings.resolved_database_url()
+    upgrade(url_db)
+    engine = make_engine(url_db)
+    factory = make_sessionmaker(engine)
+    token = create_robot(factory, f"sim-{int(time.time() * 1000)}")
+    operator, password = f"operator-{secrets.token_hex(2)}", secrets.token_urlsafe(12)
+    create_user(factory, operator, password, Role.operator)
+    engine.dispose()
+    return token, operator, password
+
+
+def _serve_with_a_robot_to_drive(
+    server: BackgroundServer, token: str, seed: int, console: Console
+) -> None:
+    """Keep serving, with a second robot the user drives from the dashboard's Drive page
+    (live video, dead-man stop), until Ctrl-C."""
     from robot_link.sim.teleop import start_teleop_robot
 
     teleop = start_teleop_robot(server.url, token, seed=seed)
@@ -179,7 +193,6 @@ def run_demo(
     teleop.sim.end_requested = True
     teleop.thread.join(timeout=10)
     server.stop()
-    return 0
 
 
 async def _run_sim(url: str, token: str, config: SimConfig, progress: Any) -> SimResult:
