@@ -145,6 +145,29 @@ def _summary(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]
     return story
 
 
+def _defect_row(
+    d: dict[str, Any], st: dict[str, ParagraphStyle], thumbnail: Thumbnail
+) -> list[Any]:
+    """One defect's row of the table: number (a link to it), thumbnail, class, sizes,
+    position, review, condition state, comment."""
+    thumb = thumbnail(d)
+    cell = picture(thumb, 24 * mm, 24 * mm) if thumb is not None else "—"
+    pos = f"{d['world_x_m']:.3f},\n{d['world_y_m']:.3f}" if d["world_x_m"] is not None else "—"
+    review = d["review_status"] + (f"\nby {d['reviewed_by']}" if d.get("reviewed_by") else "")
+    return [
+        _number_link(d, st),
+        cell,
+        d["defect_class"],
+        fmt_num(d["length_mm"]),
+        fmt_num(d["max_width_mm"], "{:.2f}"),
+        fmt_num(d["area_mm2"], "{:.0f}"),
+        pos,
+        para(review, st["cell"]),
+        d["condition_state"] or "—",
+        para(_clip(d["comment"]), st["cell"]),
+    ]
+
+
 def _defect_table(
     report: dict[str, Any], st: dict[str, ParagraphStyle], thumbnail: Thumbnail
 ) -> list[Any]:
@@ -183,25 +206,7 @@ def _defect_table(
             "Comment",
         ]
     ]
-    for d in listed:
-        thumb = thumbnail(d)
-        cell = picture(thumb, 24 * mm, 24 * mm) if thumb is not None else "—"
-        pos = f"{d['world_x_m']:.3f},\n{d['world_y_m']:.3f}" if d["world_x_m"] is not None else "—"
-        review = d["review_status"] + (f"\nby {d['reviewed_by']}" if d.get("reviewed_by") else "")
-        rows.append(
-            [
-                _number_link(d, st),
-                cell,
-                d["defect_class"],
-                fmt_num(d["length_mm"]),
-                fmt_num(d["max_width_mm"], "{:.2f}"),
-                fmt_num(d["area_mm2"], "{:.0f}"),
-                pos,
-                para(review, st["cell"]),
-                d["condition_state"] or "—",
-                para(_clip(d["comment"]), st["cell"]),
-            ]
-        )
+    rows += [_defect_row(d, st, thumbnail) for d in listed]
     widths = [8 * mm, 26 * mm, 16 * mm, 13 * mm, 13 * mm, 13 * mm, 18 * mm, 30 * mm, 9 * mm]
     widths.append(BODY_W - sum(widths))
     story.append(grid_table(rows, widths, font_size=8))
@@ -263,6 +268,39 @@ def _footer(structure: str) -> Callable[[Any, Any], None]:
     return draw
 
 
+def _mosaic_page(report: dict[str, Any], st: Any, marked: np.ndarray | None) -> list[Any]:
+    """The mosaic with the listed defects marked, or why there is none."""
+    story: list[Any] = [para("Mosaic of the inspected surface", st["h1"])]
+    if marked is None:
+        return story + [para(_missing(report, "No mosaic"), st["body"])]
+    return story + [
+        para(
+            "The downward camera's frames stitched in world coordinates; red boxes and numbers "
+            "mark the listed defects (grey: rejected in review).",
+            st["body"],
+        ),
+        Spacer(1, 3 * mm),
+        picture(marked, BODY_W, PAGE_H - 2 * MARGIN - 40 * mm),
+    ]
+
+
+def _map_page(report: dict[str, Any], st: Any, snapshot: np.ndarray | None) -> list[Any]:
+    """The 3D map's picture, or why there is none."""
+    story: list[Any] = [para("3D map of the structure", st["h1"])]
+    if snapshot is None:
+        return story + [para(_missing(report, "No 3D map"), st["body"])]
+    pts = report["summary"].get("map_points")
+    return story + [
+        para(
+            f"Registered ToF point clouds ({pts or '?'} points after voxel filtering), coloured "
+            "by height; the black line is the robot's trajectory.",
+            st["body"],
+        ),
+        Spacer(1, 3 * mm),
+        KeepTogether(picture(snapshot, BODY_W, 150 * mm)),
+    ]
+
+
 def write_report_pdf(
     report: dict[str, Any],
     path: Path,
@@ -283,36 +321,11 @@ def write_report_pdf(
     story = _cover(report, st)
     story += _summary(report, st)
     story.append(PageBreak())
-    story.append(para("Mosaic of the inspected surface", st["h1"]))
-    if marked is not None:
-        story += [
-            para(
-                "The downward camera's frames stitched in world coordinates; red boxes and numbers mark the listed "
-                "defects (grey: rejected in review).",
-                st["body"],
-            ),
-            Spacer(1, 3 * mm),
-            picture(marked, BODY_W, PAGE_H - 2 * MARGIN - 40 * mm),
-        ]
-    else:
-        story.append(para(_missing(report, "No mosaic"), st["body"]))
+    story += _mosaic_page(report, st, marked)
     story.append(PageBreak())
     story += _defect_table(report, st, thumbnail)
     story.append(PageBreak())
-    story.append(para("3D map of the structure", st["h1"]))
-    if map_snapshot is not None:
-        pts = report["summary"].get("map_points")
-        story += [
-            para(
-                f"Registered ToF point clouds ({pts or '?'} points after voxel filtering), coloured by height; the black line is the "
-                "robot's trajectory.",
-                st["body"],
-            ),
-            Spacer(1, 3 * mm),
-            KeepTogether(picture(map_snapshot, BODY_W, 150 * mm)),
-        ]
-    else:
-        story.append(para(_missing(report, "No 3D map"), st["body"]))
+    story += _map_page(report, st, map_snapshot)
     story += [PageBreak()] + parameters_appendix(report, st)
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     footer = _footer(report["cover"]["structure"])
