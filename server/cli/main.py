@@ -262,6 +262,11 @@ def _add_station_commands(sub: Any) -> None:
     s.add_argument("--seed", type=int, default=7)
     s.set_defaults(func=cmd_demo)
 
+    _add_sim_command(sub)
+
+
+def _add_sim_command(sub: Any) -> None:
+    """``sim``: the simulated robot alone, against a station."""
     s = sub.add_parser("sim", help="the simulated robot alone")
     s.add_argument("--server", required=True, help="ground station base URL, http://host:port")
     s.add_argument("--token")
