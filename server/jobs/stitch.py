@@ -257,15 +257,22 @@ def run_stitch(ctx: JobContext) -> dict[str, Any]:
         )
     finally:
         _forget_prepared(ctx)
-    seconds = {  # per stage, both spread over workers on a job queue
-        "pairs": round(t_pairs, 3),  # with the pose graph, solved on the job's worker
-        "render": round(time.perf_counter() - t0 - t_pairs, 3),  # the files written here
-    }
-    if registered:  # of the pairs' stage, the registrations themselves, on a job queue
-        seconds["registrations"] = round(sum(registered), 3)
-    if banded:  # of which the bands (and the PNG's segments), on a job queue
-        seconds["bands"] = round(banded[0], 3)
+    seconds = _seconds(t_pairs, time.perf_counter() - t0 - t_pairs, registered, banded)
     return _result(ctx, files, layout, with_pose, use, skipped, seconds, params)
+
+
+def _seconds(
+    pairs: float, render: float, registered: list[float], banded: list[float]
+) -> dict[str, float]:
+    """The job's time per stage: the pairs with the pose graph (solved on the job's
+    worker) and the files written here, both spread over workers on a job queue; there,
+    also the registrations themselves and the bands (with the PNG's segments)."""
+    seconds = {"pairs": round(pairs, 3), "render": round(render, 3)}
+    if registered:
+        seconds["registrations"] = round(sum(registered), 3)
+    if banded:
+        seconds["bands"] = round(banded[0], 3)
+    return seconds
 
 
 def _readable_frames(ctx: JobContext, frames: list[Frame]) -> tuple[list[Frame], list[Frame]]:
