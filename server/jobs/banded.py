@@ -261,30 +261,38 @@ def detect_banded(
         cores = [(y, min(y + rows, height)) for y in range(0, height, rows)]
         map_bands(band_masks, plan, list(enumerate(cores)))
         progress(0.8, f"{len(cores)} bands searched")
-        maps = {
-            n: RowFiles([scratch / f"band{k}.{n}" for k in range(len(cores))], cores, width)
-            for n in ("crack", "corrosion", "contrast")
-        }
-        parts = {c: _Parts() for c in CLASSES}
-        for band, (y0, _) in enumerate(cores):
-            for name in CLASSES:
-                _join(parts[name], scratch / f"band{band}.{name}.parts", band, y0)
-        progress(0.9, "bands joined")
-        for name in CLASSES:
-            join_segments(scratch / f"{name}.png.d", out / f"{name}_mask.png", width, height, 1)
-        found: list[Defect] = []
-        for name in CLASSES:
-            found += _measure(
-                parts[name],
-                maps[name],
-                maps["contrast"] if name == "crack" else None,
-                name,
-                mm_per_px,
-                len(found) + 1,
-            )
-        return found
+        return _joined(scratch, out, cores, width, height, mm_per_px, progress)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _joined(
+    scratch: Path,
+    out: Path,
+    cores: list[tuple[int, int]],
+    width: int,
+    height: int,
+    mm_per_px: float | None,
+    progress: Callable[[float, str], None],
+) -> list[Defect]:
+    """The bands' components joined across their edges, in order, and measured; the mask
+    PNGs joined from the bands' segments into ``out``."""
+    maps = {
+        n: RowFiles([scratch / f"band{k}.{n}" for k in range(len(cores))], cores, width)
+        for n in ("crack", "corrosion", "contrast")
+    }
+    parts = {c: _Parts() for c in CLASSES}
+    for band, (y0, _) in enumerate(cores):
+        for name in CLASSES:
+            _join(parts[name], scratch / f"band{band}.{name}.parts", band, y0)
+    progress(0.9, "bands joined")
+    for name in CLASSES:
+        join_segments(scratch / f"{name}.png.d", out / f"{name}_mask.png", width, height, 1)
+    found: list[Defect] = []
+    for name in CLASSES:
+        contrast = maps["contrast"] if name == "crack" else None
+        found += _measure(parts[name], maps[name], contrast, name, mm_per_px, len(found) + 1)
+    return found
 
 
 class RowFiles:
