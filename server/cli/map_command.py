@@ -80,6 +80,36 @@ def _check_units(clouds: list[np.ndarray], units: Units, folder: Path) -> list[n
     return clouds
 
 
+def _unusable(
+    files: list[Path], clouds: list[np.ndarray], folder: Path, *, by_odometry: bool
+) -> dict[str, str]:
+    """The clouds with no finite point, by file name, and why (logged: they are placed by
+    the odometry, or the previous motion); an error when none is left."""
+    skipped = {
+        p.name: ("no points" if len(c) == 0 else "every point is NaN or infinite")
+        for p, c in zip(files, clouds)
+        if not np.isfinite(c).all(axis=1).any()
+    }
+    if len(skipped) == len(clouds):
+        raise CommandError(f"{folder}: no cloud has a finite point")
+    for name, why in skipped.items():
+        placed = "odometry" if by_odometry else "the previous motion"
+        log.warning("%s: %s; skipped (placed by %s)", name, why, placed)
+    return skipped
+
+
+def _write_map(out: Path, points: np.ndarray) -> None:
+    """``map.ply``, written whole or not at all."""
+    import open3d as o3d
+
+    out.mkdir(parents=True, exist_ok=True)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    tmp = out / ".map.tmp.ply"
+    if not o3d.io.write_point_cloud(str(tmp), pcd):
+        raise CommandError(f"could not write {out / 'map.ply'}")
+    tmp.replace(out / "map.ply")
+
+
 def map_folder(
     clouds_dir: Path, out: Path, *, odometry: Path | None, units: Units = "auto"
 ) -> None:
@@ -91,33 +121,13 @@ def map_folder(
     sensor = _read_sensor(clouds_dir)
     init = read_odometry(odometry, len(files), "clouds") if odometry else None
     clouds = _check_units([_read_cloud(p, sensor) for p in files], units, clouds_dir)
-    skipped = {
-        p.name: ("no points" if len(c) == 0 else "every point is NaN or infinite")
-        for p, c in zip(files, clouds)
-        if not np.isfinite(c).all(axis=1).any()
-    }
-    if len(skipped) == len(clouds):
-        raise CommandError(f"{clouds_dir}: no cloud has a finite point")
-    for name, why in skipped.items():
-        log.warning(
-            "%s: %s; skipped (placed by %s)",
-            name,
-            why,
-            "odometry" if init is not None else "the previous motion",
-        )
+    skipped = _unusable(files, clouds, clouds_dir, by_odometry=init is not None)
     shape = (int(sensor["height"]), int(sensor["width"])) if sensor else None
     try:
         result = register_clouds(clouds, init, shape=shape)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
-    out.mkdir(parents=True, exist_ok=True)
-    import open3d as o3d
-
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(result.points.astype(np.float64)))
-    tmp = out / ".map.tmp.ply"
-    if not o3d.io.write_point_cloud(str(tmp), pcd):
-        raise CommandError(f"could not write {out / 'map.ply'}")
-    tmp.replace(out / "map.ply")
+    _write_map(out, result.points)
     write_atomic(
         out / "poses.tum", format_tum(np.arange(len(clouds), dtype=float), result.poses).encode()
     )
