@@ -79,17 +79,10 @@ def plan_mosaic(
     n = len(source)
     if px_per_m <= 0:
         raise ValueError(f"px_per_m must be positive, got {px_per_m}")
-    known: NDArray[np.float64] | None = None
-    if poses is not None:
-        known = np.asarray(poses, dtype=np.float64)
-        if known.shape != (n, 3):
-            raise ValueError(f"poses must be ({n}, 3), one per frame, got {known.shape}")
-        if not np.isfinite(known).all():
-            raise ValueError("poses contain NaN or infinite values")
+    known = _checked_poses(poses, n)
     frames = prepare_frames(source, params)
     shape = frames.shape
     assert shape is not None  # taken from the first frame
-    h, w = shape[:2]
     if n == 1:
         est_poses = (known if known is not None else np.zeros((1, 3))).copy()
         confident, measurements, rejected = np.ones(1, bool), [], 0
@@ -113,18 +106,15 @@ def plan_mosaic(
                 _scaled(progress, 0.5, 1.0),
                 spread(frames) if spread is not None else None,
             )
-        est_poses, confident, measurements, rejected = (
-            est.poses,
-            est.confident,
-            est.measurements,
-            est.rejected,
-        )
+        est_poses, confident = est.poses, est.confident
+        measurements, rejected = est.measurements, est.rejected
     gains = _gains(n, measurements) if params.gain_compensation else np.ones(n)
+    channels = 1 if len(shape) == 2 else shape[2]
     layout = MosaicLayout(
         0,
         0,
-        (w, h),
-        1 if len(shape) == 2 else shape[2],
+        (shape[1], shape[0]),
+        channels,
         px_per_m,
         (0.0, 0.0),
         est_poses,
@@ -133,12 +123,29 @@ def plan_mosaic(
         len(measurements),
         rejected,
     )
-    boxes = np.array([layout.footprint(k) for k in range(n)])
+    _fit_extent(layout, est_poses)
+    return layout, frames
+
+
+def _checked_poses(poses: NDArray[np.floating] | None, n: int) -> NDArray[np.float64] | None:
+    """The camera poses as float64 (N, 3), refused unless one finite pose per frame."""
+    if poses is None:
+        return None
+    known = np.asarray(poses, dtype=np.float64)
+    if known.shape != (n, 3):
+        raise ValueError(f"poses must be ({n}, 3), one per frame, got {known.shape}")
+    if not np.isfinite(known).all():
+        raise ValueError("poses contain NaN or infinite values")
+    return known
+
+
+def _fit_extent(layout: MosaicLayout, est_poses: NDArray[np.float64]) -> None:
+    """Move the mosaic's origin to the frames' top-left corner and size it to hold them all."""
+    boxes = np.array([layout.footprint(k) for k in range(len(est_poses))])
     x0, y0 = boxes[:, 0].min(), boxes[:, 1].min()
     layout.poses_px = est_poses - (x0, y0, 0)
     layout.width, layout.height = int(boxes[:, 2].max() - x0), int(boxes[:, 3].max() - y0)
-    layout.origin_m = (float(x0) / px_per_m, float(y0) / px_per_m)
-    return layout, frames
+    layout.origin_m = (float(x0) / layout.px_per_m, float(y0) / layout.px_per_m)
 
 
 def _scaled(progress: Progress | None, lo: float, hi: float) -> Progress | None:
