@@ -168,8 +168,9 @@ def defect_masks(
     learned_params: LearnedParams = LearnedParams(),
 ) -> DefectMasks:
     """Crack (``crack_method``, the network's settings in ``learned_params``) and rust masks
-    of a BGR image of any size, tile by tile on ``workers`` threads; only ``valid`` pixels count; components lying along ``seams``
-    (exposure steps where mosaic frames meet: straight dark edges) are not cracks, nor
+    of a BGR image of any size, tile by tile on ``workers`` threads; only ``valid`` pixels
+    count; components lying along ``seams`` (exposure steps where mosaic frames meet:
+    straight dark edges) are not cracks, nor
     are cracks on a rust patch's rim (counted as corrosion). ``proposed`` measures its
     thresholds in ``surface`` (sampled from the image when not given), the same in every
     tile."""
@@ -213,6 +214,19 @@ def defect_masks(
         else rust_saturation(image, corrosion_params)
     )
     _each(run, tiles, workers)
+    return _kept(cracks, rust, contrast, valid, seams, corrosion_params)
+
+
+def _kept(
+    cracks: NDArray[np.bool_],
+    rust: NDArray[np.bool_],
+    contrast: NDArray[np.float32],
+    valid: NDArray[np.bool_] | None,
+    seams: NDArray[np.bool_] | None,
+    corrosion_params: CorrosionParams,
+) -> DefectMasks:
+    """The candidates that count: on ``valid`` pixels, rust patches large enough, cracks
+    neither on a rust patch's rim nor lying along ``seams``; with their components."""
     if valid is not None:
         rust &= valid
     rc = Components.of(rust)
