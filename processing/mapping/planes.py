@@ -96,31 +96,11 @@ def extract_planes(
         if len(planes) == max_planes or len(remaining) < max(min_points, 3):
             break
         pts = points[remaining]
-        a, b, c = (pts[rng.integers(0, len(pts), hypotheses)] for _ in range(3))
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n, axis=1)
-        good = norm > 1e-9
-        n, a = n[good] / norm[good, None], a[good]
-        if not len(n):
-            break
         own = None if normals is None else np.asarray(normals)[remaining]
-        stride = max(1, len(pts) // score_points)
-        scores = _support(
-            pts[::stride], None if own is None else own[::stride], n, a, distance_m, cos_max
-        ).sum(axis=0)
-        best = int(np.argmax(scores))
-        normal = n[best]
-        inliers = _support(pts, own, n[best : best + 1], a[best : best + 1], distance_m, cos_max)[
-            :, 0
-        ]
-        offset = 0.0
-        for _ in range(2):
-            if inliers.sum() < 3:
-                break
-            normal, offset = _fit(pts[inliers])
-            inliers = _support(pts, own, normal[None], -offset * normal[None], distance_m, cos_max)[
-                :, 0
-            ]
+        found = _ransac(pts, own, rng, hypotheses, score_points, distance_m, cos_max)
+        if found is None:
+            break
+        normal, offset, inliers = found
         taken = remaining[inliers]
         remaining = remaining[~inliers]
         if len(taken) < min_points:  # the best of the rest is too small: nothing bigger is left
@@ -136,6 +116,43 @@ def extract_planes(
         ):
             planes.append(plane)
     return planes
+
+
+def _ransac(
+    pts: NDArray[np.float64],
+    own: NDArray[np.float64] | None,
+    rng: np.random.Generator,
+    hypotheses: int,
+    score_points: int,
+    distance_m: float,
+    cos_max: float,
+) -> tuple[NDArray[np.float64], float, NDArray[np.bool_]] | None:
+    """The plane with most support among ``hypotheses`` through three of ``pts`` (scored
+    on ~``score_points`` of them), refitted by least squares twice: its unit normal,
+    offset and inliers; None when no three points span a plane."""
+    a, b, c = (pts[rng.integers(0, len(pts), hypotheses)] for _ in range(3))
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1)
+    good = norm > 1e-9
+    n, a = n[good] / norm[good, None], a[good]
+    if not len(n):
+        return None
+    stride = max(1, len(pts) // score_points)
+    scores = _support(
+        pts[::stride], None if own is None else own[::stride], n, a, distance_m, cos_max
+    ).sum(axis=0)
+    best = int(np.argmax(scores))
+    normal = n[best]
+    inliers = _support(pts, own, n[best : best + 1], a[best : best + 1], distance_m, cos_max)[:, 0]
+    offset = 0.0
+    for _ in range(2):
+        if inliers.sum() < 3:
+            break
+        normal, offset = _fit(pts[inliers])
+        inliers = _support(pts, own, normal[None], -offset * normal[None], distance_m, cos_max)[
+            :, 0
+        ]
+    return normal, offset, inliers
 
 
 def _support(
