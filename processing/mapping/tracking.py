@@ -118,18 +118,8 @@ def register_to_map(
             if matched < params.min_points:
                 return Registration(prediction.copy(), matched, 6, prior_information)
             r = np.einsum("ij,ij->i", world[ok] - map_points[nearest[ok]], n)
-            w = stride * (scale**2 / (scale**2 + r**2)) ** 2 / scale**2  # as if every point
-            n_sensor = n @ R
-            q = pts[ok]
-            J = np.empty((matched, 6))
-            J[:, 0] = q[:, 1] * n_sensor[:, 2] - q[:, 2] * n_sensor[:, 1]  # q × n
-            J[:, 1] = q[:, 2] * n_sensor[:, 0] - q[:, 0] * n_sensor[:, 2]
-            J[:, 2] = q[:, 0] * n_sensor[:, 1] - q[:, 1] * n_sensor[:, 0]
-            J[:, 3:] = n_sensor
-            Jw = J.T * w
-            H_data, g_data, degenerate = observable_part(
-                Jw @ J, Jw @ r, reach_m, params.degenerate_ratio
-            )
+            JwJ, Jwr = _normal_equations(pts[ok], n @ R, r, scale, stride)
+            H_data, g_data, degenerate = observable_part(JwJ, Jwr, reach_m, params.degenerate_ratio)
             e = se3_log(P_inv @ T)
             H = H_data + prior_information
             g = g_data + prior_information @ e
@@ -140,6 +130,27 @@ def register_to_map(
             if np.abs(step).max() < tolerance:
                 break
     return Registration(T, matched, degenerate, information)
+
+
+def _normal_equations(
+    q: NDArray[np.float64],
+    n_sensor: NDArray[np.float64],
+    r: NDArray[np.float64],
+    scale: float,
+    stride: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Jᵀ W J and Jᵀ W r of the point-to-plane residuals ``r`` of the matched points ``q``
+    (sensor frame) with their map normals ``n_sensor`` (in the sensor frame): J = [q × n, n],
+    W the Geman-McClure weights of ``scale``, each point counting for the ``stride`` it
+    stands for."""
+    w = stride * (scale**2 / (scale**2 + r**2)) ** 2 / scale**2  # as if every point
+    J = np.empty((len(q), 6))
+    J[:, 0] = q[:, 1] * n_sensor[:, 2] - q[:, 2] * n_sensor[:, 1]  # q × n
+    J[:, 1] = q[:, 2] * n_sensor[:, 0] - q[:, 0] * n_sensor[:, 2]
+    J[:, 2] = q[:, 0] * n_sensor[:, 1] - q[:, 1] * n_sensor[:, 0]
+    J[:, 3:] = n_sensor
+    Jw = J.T * w
+    return Jw @ J, Jw @ r
 
 
 def observable_part(
