@@ -70,28 +70,7 @@ def solve_pose_graph(
         w = base_w * np.where(
             norm <= params.huber_px, 1.0, params.huber_px / np.maximum(norm, 1e-12)
         )
-        # Jacobian: rows 3e..3e+2 of edge e, columns of pose i and pose j
-        ne = len(edges)
-        one = np.ones(ne)
-        blocks = [  # (residual row, node, pose component, derivative)
-            (0, I, 0, -c),
-            (0, I, 1, -s),
-            (0, I, 2, -s * d[:, 0] + c * d[:, 1]),
-            (1, I, 0, s),
-            (1, I, 1, -c),
-            (1, I, 2, -c * d[:, 0] - s * d[:, 1]),
-            (2, I, 2, -L * one),
-            (0, J, 0, c),
-            (0, J, 1, s),
-            (1, J, 0, -s),
-            (1, J, 1, c),
-            (2, J, 2, L * one),
-        ]
-        e = np.arange(ne)
-        rows = np.concatenate([3 * e + r for r, _, _, _ in blocks])
-        cols = np.concatenate([3 * node + k for _, node, k, _ in blocks])
-        vals = np.concatenate([v for _, _, _, v in blocks])
-        Jm = sp.csr_matrix((vals, (rows, cols)), shape=(3 * ne, 3 * n))
+        Jm = _jacobian(I, J, c, s, d, L, n)
         Wd = sp.diags(np.repeat(w, 3))
         H = (Jm.T @ Wd @ Jm).tocsc()[3:, 3:]  # frame 0 fixed
         g = (Jm.T @ (np.repeat(w, 3) * r.ravel()))[3:]
@@ -102,6 +81,41 @@ def solve_pose_graph(
         if np.abs(step).max() < 1e-4:
             break
     return x
+
+
+def _jacobian(
+    I: NDArray[np.int_],
+    J: NDArray[np.int_],
+    c: NDArray[np.float64],
+    s: NDArray[np.float64],
+    d: NDArray[np.float64],
+    L: float,
+    n: int,
+) -> sp.csr_matrix:
+    """The residuals' Jacobian (3E, 3N): rows 3e..3e+2 of edge e (from pose ``I[e]`` to
+    pose ``J[e]``, cos and sin of pose i's heading ``c``, ``s``, their offset ``d``, the
+    heading's lever ``L``), columns of pose i and pose j."""
+    ne = len(I)
+    one = np.ones(ne)
+    blocks = [  # (residual row, node, pose component, derivative)
+        (0, I, 0, -c),
+        (0, I, 1, -s),
+        (0, I, 2, -s * d[:, 0] + c * d[:, 1]),
+        (1, I, 0, s),
+        (1, I, 1, -c),
+        (1, I, 2, -c * d[:, 0] - s * d[:, 1]),
+        (2, I, 2, -L * one),
+        (0, J, 0, c),
+        (0, J, 1, s),
+        (1, J, 0, -s),
+        (1, J, 1, c),
+        (2, J, 2, L * one),
+    ]
+    e = np.arange(ne)
+    rows = np.concatenate([3 * e + r for r, _, _, _ in blocks])
+    cols = np.concatenate([3 * node + k for _, node, k, _ in blocks])
+    vals = np.concatenate([v for _, _, _, v in blocks])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(3 * ne, 3 * n))
 
 
 def measurement_residuals(
