@@ -163,17 +163,7 @@ def register_pair(
     j_full = quarter_turned(lj.full.image, k)
     j_half = quarter_turned(lj.half.image, k)
     Q = _quarter_turn(k, size)
-    # coarse: a small search first (the guess is usually good); the full radius when its
-    # peak is weak or on the search window's edge
-    coarse, edge = 0.0, True
-    if len(angles) == 1 and params.search_px > FIRST_SEARCH_PX:
-        M_try, coarse, edge = _coarse_search(
-            li, j_half, M, Q, size, FIRST_SEARCH_PX, params, angles
-        )
-        if not edge and coarse >= params.half_stage_below:
-            M = M_try
-    if edge or coarse < params.half_stage_below:
-        M, coarse, _ = _coarse_search(li, j_half, M, Q, size, params.search_px, params, angles)
+    M, coarse = _coarse_match(li, j_half, M, Q, size, params, angles)
     # fine: the overlap as the coarse match places it
     rect = overlap_rect(M, size, params.margin_px, params.min_overlap)
     if rect is None:
@@ -182,26 +172,15 @@ def register_pair(
     template = li.full.crop(x0, y0, x1, y1)
     if _std(template.image[::2, ::2]) < params.min_texture:
         return None
-    W0 = (Q @ M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[
-        :2
-    ]  # template pixel -> turned-j pixel
+    # template pixel -> turned-j pixel
+    W0 = (Q @ M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2]
     # Lucas-Kanade on the half- and then the full-resolution image: wide basin, then precision
     tw, th = x1 - x0, y1 - y0
     pad = 6 + int(params.max_refine_px + params.max_refine_rad * max(tw, th) / 2)
     full0 = W0
     # a weak or uncertain coarse match: widen the basin first
     if coarse < params.half_stage_below or len(angles) > 1:
-        half0 = _scale_warp(W0, 0.5)
-        crop, cW = _crop_for(j_half, half0, tw // 2, th // 2, pad)
-        hW, _, _, _ = refine_euclidean(
-            li.half.crop(x0 // 2, y0 // 2, x1 // 2, y1 // 2),
-            crop,
-            _shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),
-            points=params.points // 4,
-            iterations=params.iterations,
-        )
-        hW = _uncrop(_shift_origin(hW, -(x0 % 2) / 2, -(y0 % 2) / 2), cW, half0)
-        full0 = _scale_warp(hW, 2.0)
+        full0 = _half_stage(li, j_half, W0, rect, pad, params)
     crop, cW = _crop_for(j_full, full0, tw, th, pad)
     W, score, mean_i, mean_j = refine_euclidean(
         template, crop, cW, points=params.points, iterations=params.iterations
@@ -222,6 +201,55 @@ def register_pair(
         @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
     )
     return delta_of_map(M_ij, size), score, mean_i, mean_j
+
+
+def _coarse_match(
+    li: Level,
+    j_half: Gray,
+    M: NDArray[np.float64],
+    Q: NDArray[np.float64],
+    size: tuple[int, int],
+    params: RegistrationParams,
+    angles: Sequence[float],
+) -> tuple[NDArray[np.float64], float]:
+    """The coarse match: a small search first (the guess is usually good); the full radius
+    when its peak is weak or on the search window's edge. The map it places j by, and its
+    score."""
+    coarse, edge = 0.0, True
+    if len(angles) == 1 and params.search_px > FIRST_SEARCH_PX:
+        M_try, coarse, edge = _coarse_search(
+            li, j_half, M, Q, size, FIRST_SEARCH_PX, params, angles
+        )
+        if not edge and coarse >= params.half_stage_below:
+            M = M_try
+    if edge or coarse < params.half_stage_below:
+        M, coarse, _ = _coarse_search(li, j_half, M, Q, size, params.search_px, params, angles)
+    return M, coarse
+
+
+def _half_stage(
+    li: Level,
+    j_half: Gray,
+    W0: NDArray[np.float64],
+    rect: tuple[int, int, int, int],
+    pad: int,
+    params: RegistrationParams,
+) -> NDArray[np.float64]:
+    """Lucas-Kanade at half resolution from the coarse warp ``W0`` (template pixel ->
+    turned-j pixel, full resolution): the full-resolution warp to start from."""
+    x0, y0, x1, y1 = rect
+    tw, th = x1 - x0, y1 - y0
+    half0 = _scale_warp(W0, 0.5)
+    crop, cW = _crop_for(j_half, half0, tw // 2, th // 2, pad)
+    hW, _, _, _ = refine_euclidean(
+        li.half.crop(x0 // 2, y0 // 2, x1 // 2, y1 // 2),
+        crop,
+        _shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),
+        points=params.points // 4,
+        iterations=params.iterations,
+    )
+    hW = _uncrop(_shift_origin(hW, -(x0 % 2) / 2, -(y0 % 2) / 2), cW, half0)
+    return _scale_warp(hW, 2.0)
 
 
 def _coarse_search(
