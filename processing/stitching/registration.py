@@ -252,6 +252,21 @@ def _half_stage(
     return _scale_warp(hW, 2.0)
 
 
+def _search_window(
+    M: NDArray[np.float64], size: tuple[int, int], search_px: int, params: RegistrationParams
+) -> tuple[int, tuple[int, int, int, int]] | None:
+    """The widest search radius (even, up to ``search_px``, halved while none is left)
+    that leaves a template of frame i's overlap, and that template's rectangle; None for
+    small frames or narrow overlaps where no radius does."""
+    s = search_px // 2 * 2
+    while s >= 4:
+        rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
+        if rect is not None:
+            return s, rect
+        s = s // 4 * 2
+    return None
+
+
 def _coarse_search(
     li: Level,
     j_half: Gray,
@@ -269,14 +284,10 @@ def _coarse_search(
     there are several). Returns the corrected i→j map, the peak correlation (0 when there
     is nothing to search) and whether the peak lies on the window's edge (the true match
     may be further)."""
-    s, rect = search_px // 2 * 2, None
-    while s >= 4:  # the widest search that leaves a template (small frames, narrow overlaps)
-        rect = overlap_rect(M, size, params.margin_px + s, params.min_overlap / 2)
-        if rect is not None:
-            break
-        s = s // 4 * 2
-    if rect is None:
+    found = _search_window(M, size, search_px, params)
+    if found is None:
         return M, 0.0, False
+    s, rect = found
     hx0, hy0, hx1, hy1 = (v // 2 for v in rect)
     template = li.half.image[hy0:hy1, hx0:hx1]
     if hx1 - hx0 <= 8 or hy1 - hy0 <= 8 or _std(template) < params.min_texture:
