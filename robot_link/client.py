@@ -9,22 +9,22 @@ import time
 import uuid
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from typing import Any
 
 import websockets
 from websockets.asyncio.client import ClientConnection, connect
 
+from robot_link.link_state import LinkError as LinkError
+from robot_link.link_state import LinkStats, robot_ws_url, stated_limit
 from robot_link.protocol import (
-    MAX_BYTES_HEADER,
     MAX_MESSAGE_BYTES,
-    STOP_COMMANDS,
     Message,
     MessageType,
     ProtocolError,
     decode_message,
     encode_message,
 )
+from robot_link.replays import CommandGate
 from robot_link.spool import Spool
 
 log = logging.getLogger(__name__)
@@ -33,37 +33,6 @@ RETRY_S = 0.2  # wait before sending again a message the station could not store
 # with each such answer in a row, up to ``max_backoff_s``)
 
 CommandHandler = Callable[[Message], Awaitable[None] | None]
-
-
-class LinkError(RuntimeError):
-    """The link to the ground station failed in a way resending cannot fix."""
-
-
-@dataclass
-class LinkStats:
-    """Counters the client keeps about its link."""
-
-    sent: int = 0
-    resent: int = 0
-    acked: int = 0
-    duplicates: int = 0
-    reconnects: int = 0
-    errors: int = 0
-    last_ack_latency_s: float = 0.0
-    spool_bytes: int = 0
-    video_dropped: int = 0
-
-
-def robot_ws_url(server_url: str) -> str:
-    """Websocket address of the robot endpoint from the ground station's base URL."""
-    base = server_url.rstrip("/")
-    if base.startswith("https://"):
-        base = "wss://" + base[len("https://") :]
-    elif base.startswith("http://"):
-        base = "ws://" + base[len("http://") :]
-    elif not base.startswith(("ws://", "wss://")):
-        raise ValueError(f"server_url must start with http:// or https://, got {server_url!r}")
-    return base + "/ws/robot"
 
 
 class RobotLink:
@@ -117,7 +86,7 @@ class RobotLink:
         self._task: asyncio.Task[None] | None = None
         self._fatal: LinkError | None = None
         self.spool = spool
-        self._last_command_seq = 0
+        self._commands = CommandGate()  # stale commands (replays) refused
         self._reserved = 0
         self._warned_full = False
         self._retry_streak = 0  # "retry later" answers since the last ACK
@@ -310,15 +279,10 @@ class RobotLink:
 
     def _learn_limit(self, ws: ClientConnection) -> None:
         """Take the station's message size limit from its handshake's answer."""
-        value = ws.response.headers.get(MAX_BYTES_HEADER) if ws.response is not None else None
-        try:
-            limit = int(value) if value is not None else MAX_MESSAGE_BYTES
-        except ValueError:
-            log.warning("link: the station's %s is not a number: %r", MAX_BYTES_HEADER, value)
-            return
-        if limit != self.max_message_bytes:
+        limit = stated_limit(ws.response.headers if ws.response is not None else {})
+        if limit is not None and limit != self.max_message_bytes:
             log.info("link: the ground station takes messages of up to %d bytes", limit)
-        self.max_message_bytes = limit
+            self.max_message_bytes = limit
 
     async def _over_limit(self, seq: int, data: bytes) -> bool:
         """Drop a queued message the station would refuse for its size (its limit came down
@@ -454,21 +418,12 @@ class RobotLink:
             # A rejected message will never be accepted: drop it so flush() can finish.
             await self._drop(message.seq)
         elif message.type is MessageType.COMMAND and self.on_command is not None:
-            cmd = message.meta.get("cmd")
-            if message.seq <= self._last_command_seq and cmd not in STOP_COMMANDS:
-                # an old command delivered again (a replay): never act on it twice; stopping is
-                # always safe
-                log.warning(
-                    "link: ignoring command %r with stale seq %d (last %d)",
-                    cmd,
-                    message.seq,
-                    self._last_command_seq,
-                )
+            if not self._commands.admit(message):  # a replay: refused, never acted on twice
+                cmd = str(message.meta.get("cmd"))
                 await self.notify(
-                    MessageType.COMMAND_ACK, {"cmd": str(cmd), "accepted": False}, seq=message.seq
+                    MessageType.COMMAND_ACK, {"cmd": cmd, "accepted": False}, seq=message.seq
                 )
                 return
-            self._last_command_seq = max(self._last_command_seq, message.seq)
             result = self.on_command(message)
             if asyncio.iscoroutine(result):
                 await result
