@@ -68,66 +68,6 @@ def cmd_worker(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_sim(args: argparse.Namespace) -> int:
-    """Run the simulated robot against a ground station."""
-    import asyncio
-
-    from robot_link.client import LinkError, RobotLink
-    from robot_link.sim.inspection import InspectionSim, SimConfig
-
-    token = args.token or os.environ.get("STEELSCAN_ROBOT_TOKEN")
-    if not token:
-        raise CommandError(
-            "a robot token is needed: --token or STEELSCAN_ROBOT_TOKEN (make one with 'steelscan admin create-robot NAME')"
-        )
-    config = SimConfig(
-        seed=args.seed,
-        lanes=args.lanes,
-        time_scale=args.time_scale,
-        flush_timeout_s=args.flush_timeout,
-    )
-
-    async def main() -> dict:
-        from robot_link.spool import Spool
-
-        spool = (
-            Spool(Path(args.spool), max_bytes=int(args.spool_max_mb * 2**20))
-            if args.spool
-            else None
-        )
-        link = RobotLink(args.server, token, spool=spool, ca_file=args.ca_file)
-        await link.start()
-        if args.teleop:
-            from robot_link.sim.teleop import TeleopConfig, TeleopSim
-
-            sim: InspectionSim = TeleopSim(
-                link,
-                SimConfig(seed=args.seed, time_scale=1.0, dt_s=0.02, telemetry_hz=10.0),
-                TeleopConfig(duration_s=args.duration),
-            )
-        else:
-            sim = InspectionSim(
-                link,
-                config,
-                progress=lambda f, m: logging.getLogger("sim").info("%3.0f%% %s", f * 100, m),
-            )
-        try:
-            result = await sim.run()
-            if not args.exit_when_done:
-                print(json.dumps(result.summary()), flush=True)
-                await asyncio.Event().wait()  # stay connected for commands until interrupted
-        finally:
-            await link.close()
-        return result.summary()
-
-    try:
-        summary = asyncio.run(main())
-    except (LinkError, ValueError, OSError) as exc:
-        raise CommandError(str(exc)) from None
-    print(json.dumps(summary), flush=True)
-    return 0
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
     """Run the ground station, the simulated robot and the jobs; print the summary."""
     from server.cli.demo import run_demo
@@ -298,7 +238,7 @@ def _add_sim_command(sub: Any) -> None:
         type=float,
         help="with --teleop: end the session after this many seconds (default: on the operator's end_session)",
     )
-    s.set_defaults(func=cmd_sim)
+    s.set_defaults(func=_imported_when_run("server.cli.sim_command", "cmd_sim"))
 
 
 def _add_processing_commands(sub: Any) -> None:
