@@ -199,9 +199,7 @@ def defect_masks(
 
     # the network runs once over the image (its own tiles, all cores to each)
     learned = (
-        learned_cracks(
-            cast(NDArray[np.uint8], cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)), learned_params
-        )
+        learned_cracks(to_gray(image), learned_params)
         if crack_method == "learned" and min(shape) >= 3
         else None
     )

@@ -82,13 +82,7 @@ def session_coverage(
     camera = (s.calibration or {}).get("camera", {}) if s is not None else {}
     px_per_m = float(camera.get("px_per_m") or 0) or None
     T_rc = np.asarray(camera.get("T_robot_camera", [0.0, 0.0, 0.0]), dtype=np.float64)
-    frames = list(
-        db.scalars(
-            select(Frame)
-            .where(Frame.session_id == session_id, Frame.pose_x.is_not(None))
-            .order_by(Frame.seq)
-        )
-    )
+    frames = _placed_frames(db, session_id)
     mm_per_px = 1000.0 / px_per_m if px_per_m else None
     verdicts = frame_verdicts([cache.get(files, f) for f in frames], mm_per_px, params)
     polys, placed_by = [], []
@@ -135,6 +129,17 @@ def _grid(cov: Any) -> dict[str, Any]:
         "cols": int(cov.surface.shape[1]) if cov.surface.ndim == 2 else 0,
         "holes_rle": [_runs(row) for row in hole_mask(cov)],
     }
+
+
+def _placed_frames(db: Session, session_id: str) -> list[Frame]:
+    """The session's frames that carry an odometry pose, in seq order."""
+    return list(
+        db.scalars(
+            select(Frame)
+            .where(Frame.session_id == session_id, Frame.pose_x.is_not(None))
+            .order_by(Frame.seq)
+        )
+    )
 
 
 def _camera_pose(
