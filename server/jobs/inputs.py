@@ -47,17 +47,21 @@ def rows_of(model: Any, session_id: str, inputs: dict[str, int] | None) -> Selec
     )
 
 
-def latest_inputs(db: Session, session_id: str) -> dict[str, int] | None:
-    """The inputs of the session's newest processing (its newest stitch job), or None."""
-    job = db.scalars(
+def latest_processing(db: Session, session_id: str) -> Job | None:
+    """The session's newest processing: its newest stitch job, if any."""
+    return db.scalars(
         select(Job)
         .where(Job.session_id == session_id, Job.kind == "stitch")
         .order_by(Job.id.desc())
         .limit(1)
     ).first()
-    if job is None:
-        return None
-    return (job.params or {}).get("inputs")
+
+
+def latest_inputs(db: Session, session_id: str) -> dict[str, int] | None:
+    """The inputs of the session's newest processing; None when it was never processed, or
+    processed before a job recorded its inputs."""
+    job = latest_processing(db, session_id)
+    return None if job is None else (job.params or {}).get("inputs")
 
 
 def is_current(inputs: dict[str, int] | None, now: dict[str, int]) -> bool:

@@ -18,7 +18,7 @@ from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.jobs import leases
-from server.jobs.inputs import is_current, latest_inputs, stored_inputs
+from server.jobs.inputs import is_current, latest_inputs, latest_processing, stored_inputs
 from server.jobs.worker import JOB_KINDS, PIPELINE, run_job
 from server.process.orphans import init_worker
 from server.storage.models import InspectionSession, Job, JobState, SessionStatus, utcnow
@@ -166,6 +166,9 @@ class JobRunner:
         """Queue the pipeline again if the session holds data its newest processing does
         not cover (stored after its inputs were fixed); the new jobs' ids, or none."""
         with self.factory() as db:
+            job = latest_processing(db, session_id)
+            if job is not None and "inputs" not in (job.params or {}):
+                return []  # processed before jobs recorded their inputs: left as it is
             if is_current(latest_inputs(db, session_id), stored_inputs(db, session_id)):
                 return []
         log.info("session %s: data stored after its processing; processing it again", session_id)

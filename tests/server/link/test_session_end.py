@@ -120,3 +120,31 @@ def test_a_re_run_lost_with_a_stop_is_caught_up_at_the_next_start(settings) -> N
         assert cover["frames"] == 2
     finally:
         server.stop()
+
+
+def test_a_session_processed_before_inputs_were_recorded_is_left_as_it_is(settings) -> None:  # type: ignore[no-untyped-def]
+    """The next start looks at every ended session, but does not process again one whose
+    processing recorded no inputs (it cannot tell what that covered)."""
+    from server.jobs.runner import JobRunner
+    from server.storage.db import make_sessionmaker
+    from server.storage.models import InspectionSession, Job, JobState, SessionStatus
+    from tests.conftest import make_token
+
+    make_token(settings)  # the database
+    engine = make_engine(settings.resolved_database_url())
+    factory = make_sessionmaker(engine)
+    sid = str(uuid.uuid4())
+    with factory() as db:
+        db.add(InspectionSession(id=sid, structure="old", status=SessionStatus.ended))
+        db.flush()
+        db.add(Job(session_id=sid, kind="stitch", state=JobState.done, params={}))
+        db.commit()
+    runner = JobRunner(factory, settings.resolved_database_url(), str(settings.data_dir), 1)
+    assert runner.refresh(sid) == []
+    with factory() as db:  # a processing with recorded inputs is compared with the data
+        db.add(Job(session_id=sid, kind="stitch", state=JobState.done, params={"inputs": {
+            "frames": 0, "frames_upto": 0, "clouds": 0, "clouds_upto": 0, "telemetry": 0,
+            "telemetry_upto": 0}}))  # fmt: skip
+        db.commit()
+    assert runner.refresh(sid) == []  # it covers what the session holds: nothing
+    engine.dispose()
