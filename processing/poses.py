@@ -53,6 +53,14 @@ def relative_se2(a: NDArray[np.floating], b: NDArray[np.floating]) -> NDArray[np
     return np.array([d[0], d[1], float(wrap_angle(b[2] - a[2]))])
 
 
+def integrate_arc(pose: NDArray[np.floating], d: float, dth: float) -> NDArray[np.float64]:
+    """Pose (x, y, θ) after a planar move of ``d`` metres while turning ``dth`` radians
+    (midpoint integration, as a wheel odometer steps)."""
+    x, y, th = (float(v) for v in pose)
+    mid = th + dth / 2
+    return np.array([x + d * np.cos(mid), y + d * np.sin(mid), float(wrap_angle(th + dth))])
+
+
 def se2_of_matrix(M: NDArray[np.floating]) -> NDArray[np.float64]:
     """(x, y, θ) of a 3×3 planar (or 4×4, rotated about z) homogeneous matrix."""
     n = M.shape[0] - 1

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.poses import integrate_arc
+
 G = 9.81
 
 
@@ -126,11 +128,11 @@ class SimRobot:
         # odometry: what the wheels say
         d_odo = (measured[[0, 2]].mean() + measured[[1, 3]].mean()) / 2
         th_odo = (measured[[1, 3]].mean() - measured[[0, 2]].mean()) / self.spec.track_m
-        self.odom = _integrate(self.odom, d_odo, th_odo)
+        self.odom = integrate_arc(self.odom, d_odo, th_odo)
         # truth: the body slips a little against the wheels
         d_true = (left + right) / 2 * dt * (1 - abs(self.rng.normal(0, self.spec.slip_sigma)))
         th_true = w * dt * (1 + self.rng.normal(0, self.spec.turn_slip_sigma))
-        self.pose = _integrate(self.pose, d_true, th_true)
+        self.pose = integrate_arc(self.pose, d_true, th_true)
         self.distance_m += abs(d_true)
         self.batteries.drain(dt, moving=bool(v or w))
 
@@ -146,12 +148,3 @@ class SimRobot:
         over = on_plate(wx, wy)
         noise = self.rng.normal(0, self.spec.ir_noise_m, 4)
         return np.where(over, self.spec.ir_calibrated_m + noise, self.spec.ir_max_m)
-
-
-def _integrate(pose: NDArray[np.float64], d: float, dth: float) -> NDArray[np.float64]:
-    """Midpoint integration of a planar move of ``d`` metres while turning ``dth`` rad."""
-    x, y, th = pose
-    mid = th + dth / 2
-    return np.array(
-        [x + d * np.cos(mid), y + d * np.sin(mid), (th + dth + np.pi) % (2 * np.pi) - np.pi]
-    )

@@ -13,6 +13,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
+from server.cli.robot_commands import add_robot_commands
 from server.errors import CommandError
 from server.logs import RedactSecrets, uvicorn_log_config
 from server.process.allocator import keep_arrays_on_heap
@@ -158,6 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_processing_commands(sub)
     _add_session_commands(sub)
     _add_admin_commands(sub)
+    add_robot_commands(sub)
     for plugin in entry_points(group="steelscan.commands"):  # the benchmarks: bench.cli
         plugin.load()(sub)
 
