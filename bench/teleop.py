@@ -19,11 +19,17 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from bench.common import Result
-from robot_link.sim.teleop import start_teleop_robot
+from robot_link.sim.teleop import TeleopRobot, TeleopSim, start_teleop_robot
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Page
+
+    from server.loopback import BackgroundServer
 
 TARGETS_MS = {"video_p99": 150.0, "command_p99": 20.0, "deadman_max": 300.0}
 PATTERN = [
@@ -43,15 +49,128 @@ def _pct(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if values else float("nan")
 
 
-def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
-    """Drive the simulated robot from the browser for a minute; latencies p50/p99 and the dead-man stop."""
-    from playwright.sync_api import sync_playwright
-
+def _start_station(seconds: float) -> tuple[Path, BackgroundServer, TeleopRobot]:
+    """A station in a scratch folder on loopback with one robot account, and the teleoperated
+    simulator connected to it for the drive, the dead-man trials and a margin."""
     from server.config import Settings
     from server.link.robots import create_robot
     from server.loopback import BackgroundServer, free_port
     from server.storage.db import make_engine, make_sessionmaker, upgrade
 
+    scratch = Path(tempfile.mkdtemp(prefix="steelscan-bench-teleop-"))
+    settings = Settings(data_dir=scratch, auto_process=False, view3d=False, job_workers=1)
+    upgrade(settings.resolved_database_url())
+    engine = make_engine(settings.resolved_database_url())
+    token = create_robot(make_sessionmaker(engine), "bench-teleop")
+    engine.dispose()
+    server = BackgroundServer(settings, free_port())
+    server.start()
+    robot = start_teleop_robot(server.url, token, duration_s=seconds + 30 + DEADMAN_TRIALS * 2)
+    return scratch, server, robot
+
+
+def _drive(page: Page, seconds: float) -> None:
+    """Press and release the keys of ``PATTERN`` in turn for ``seconds``."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        for key, hold in PATTERN:
+            if key:
+                page.keyboard.down(key)
+            time.sleep(hold)
+            if key:
+                page.keyboard.up(key)
+
+
+def _deadman_trials(page: Page) -> None:
+    """``DEADMAN_TRIALS`` times: the page stops sending while a key is held (the robot must
+    stop by itself), then sends again and drives back."""
+    for _ in range(DEADMAN_TRIALS):
+        page.keyboard.down("ArrowUp")
+        time.sleep(0.5)
+        page.evaluate("window.steelscanStats.mute = true")
+        time.sleep(0.6)
+        page.keyboard.up("ArrowUp")
+        page.evaluate("window.steelscanStats.mute = false")
+        page.keyboard.down("ArrowDown")
+        time.sleep(0.5)
+        page.keyboard.up("ArrowDown")
+        time.sleep(0.3)
+
+
+def _drive_in_browser(chromium: str, url: str, sim: TeleopSim, seconds: float) -> list[float]:
+    """Open the dashboard at ``url`` in headless ``chromium``, drive for ``seconds`` then run
+    the dead-man trials; the video latencies of the drive (ms, one per frame drawn). The
+    robot's log ``sim.log`` holds the command, key and dead-man latencies of the drive."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(
+            executable_path=chromium,
+            headless=True,
+            args=[
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-background-networking",
+                "--disable-sync",
+            ],
+        )
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        page.goto(url + "/")
+        page.wait_for_function(
+            "Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000
+        )
+        page.evaluate("window.steelscanStats.video.length = 0")
+        sim.log.command_latency_ms.clear()
+        sim.log.key_latency_ms.clear()
+        _drive(page, seconds)
+        video = list(page.evaluate("window.steelscanStats.video"))
+        sim.log.deadman_stops_ms.clear()
+        _deadman_trials(page)
+        browser.close()
+    return video
+
+
+def _latency_results(
+    name: str, values: list[float], target: float, base: dict[str, float]
+) -> Iterator[Result]:
+    """The p50 and the p99 (against ``target``) of the latencies ``values`` (ms)."""
+    p99 = _pct(values, 99)
+    yield {
+        "name": f"{name}_p50",
+        "value": round(_pct(values, 50), 2),
+        "unit": "ms",
+        "samples": len(values),
+        **base,
+    }
+    yield {
+        "name": f"{name}_p99",
+        "value": round(p99, 2),
+        "unit": "ms",
+        "baseline": target,
+        "baseline_is": "target",
+        "ratio": round(p99 / target, 3),
+        "samples": len(values),
+        **base,
+    }
+
+
+def _deadman_result(deadman: list[float]) -> Result:
+    """The slowest dead-man stop (ms) against its target, and the median."""
+    worst = max(deadman) if deadman else float("nan")
+    return {
+        "name": "teleop_deadman_stop_max",
+        "value": round(worst, 1),
+        "unit": "ms",
+        "baseline": TARGETS_MS["deadman_max"],
+        "baseline_is": "target",
+        "ratio": round(worst / TARGETS_MS["deadman_max"], 3),
+        "trials": len(deadman),
+        "p50": round(_pct(deadman, 50), 1),
+    }
+
+
+def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
+    """Drive the simulated robot from the browser for a minute; latencies p50/p99 and the dead-man stop."""
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         yield {
@@ -62,60 +181,10 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
         }
         return
     seconds = float(limit or 60)
-    scratch = Path(tempfile.mkdtemp(prefix="steelscan-bench-teleop-"))
-    settings = Settings(data_dir=scratch, auto_process=False, view3d=False, job_workers=1)
-    upgrade(settings.resolved_database_url())
-    engine = make_engine(settings.resolved_database_url())
-    token = create_robot(make_sessionmaker(engine), "bench-teleop")
-    engine.dispose()
-    server = BackgroundServer(settings, free_port())
-    server.start()
-    robot = start_teleop_robot(server.url, token, duration_s=seconds + 30 + DEADMAN_TRIALS * 2)
+    scratch, server, robot = _start_station(seconds)
     try:
-        with sync_playwright() as pw:
-            browser = pw.chromium.launch(
-                executable_path=chromium,
-                headless=True,
-                args=[
-                    "--no-sandbox",
-                    "--disable-gpu",
-                    "--disable-background-networking",
-                    "--disable-sync",
-                ],
-            )
-            page = browser.new_page(viewport={"width": 1280, "height": 900})
-            page.goto(server.url + "/")
-            page.wait_for_function(
-                "Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000
-            )
-            page.evaluate("window.steelscanStats.video.length = 0")
-            sim = robot.sim
-            sim.log.command_latency_ms.clear()
-            sim.log.key_latency_ms.clear()
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
-                for key, hold in PATTERN:
-                    if key:
-                        page.keyboard.down(key)
-                    time.sleep(hold)
-                    if key:
-                        page.keyboard.up(key)
-            video = list(page.evaluate("window.steelscanStats.video"))
-            frames = len(video)
-            # dead-man: the page stops sending while a key is held, the robot must stop by itself
-            sim.log.deadman_stops_ms.clear()
-            for _ in range(DEADMAN_TRIALS):
-                page.keyboard.down("ArrowUp")
-                time.sleep(0.5)
-                page.evaluate("window.steelscanStats.mute = true")
-                time.sleep(0.6)
-                page.keyboard.up("ArrowUp")
-                page.evaluate("window.steelscanStats.mute = false")
-                page.keyboard.down("ArrowDown")
-                time.sleep(0.5)
-                page.keyboard.up("ArrowDown")
-                time.sleep(0.3)
-            browser.close()
+        sim = robot.sim
+        video = _drive_in_browser(chromium, server.url, sim, seconds)
         commands, keys, deadman = (
             list(sim.log.command_latency_ms),
             list(sim.log.key_latency_ms),
@@ -131,38 +200,11 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
         ("teleop_key_to_robot_latency", keys, TARGETS_MS["command_p99"]),
         ("teleop_command_latency", commands, TARGETS_MS["command_p99"]),
     ):
-        p99 = _pct(values, 99)
-        yield {
-            "name": f"{name}_p50",
-            "value": round(_pct(values, 50), 2),
-            "unit": "ms",
-            "samples": len(values),
-            **base,
-        }
-        yield {
-            "name": f"{name}_p99",
-            "value": round(p99, 2),
-            "unit": "ms",
-            "baseline": target,
-            "baseline_is": "target",
-            "ratio": round(p99 / target, 3),
-            "samples": len(values),
-            **base,
-        }
+        yield from _latency_results(name, values, target, base)
     yield {
         "name": "teleop_video_fps",
-        "value": round(frames / seconds, 1),
+        "value": round(len(video) / seconds, 1),
         "unit": "frames/s",
         **base,
     }
-    worst = max(deadman) if deadman else float("nan")
-    yield {
-        "name": "teleop_deadman_stop_max",
-        "value": round(worst, 1),
-        "unit": "ms",
-        "baseline": TARGETS_MS["deadman_max"],
-        "baseline_is": "target",
-        "ratio": round(worst / TARGETS_MS["deadman_max"], 3),
-        "trials": len(deadman),
-        "p50": round(_pct(deadman, 50), 1),
-    }
+    yield _deadman_result(deadman)
