@@ -28,7 +28,9 @@ import tempfile
 import time
 import uuid
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import httpx
@@ -40,6 +42,9 @@ from websockets.asyncio.server import serve
 from bench.common import Result
 from bench.ingest_attack import LOGINS_PER_S, SLOW_SOCKETS, under_attack
 from robot_link.protocol import Message, MessageType, decode_message, encode_message
+
+if TYPE_CHECKING:
+    from server.config import Settings
 
 FRAME_BYTES = 68 * 1024
 ROBOTS = 4
@@ -169,123 +174,165 @@ def drive_robots(
     return results, latencies, time.perf_counter() - t0
 
 
+Run = tuple[list[tuple[str, int]], list[float], float]
+
+
+@dataclass
+class _Loads:
+    """What the three loads measured: each one's (session, frames acknowledged), every ACK
+    latency (s) and the wall time (s); what the attackers saw; the frames the station
+    stored per session."""
+
+    flood: Run
+    field: Run
+    attacked: Run
+    attackers: dict[str, Any]
+    stored: dict[str, int]
+
+
+def _station(root: Path) -> tuple[Settings, str, str]:
+    """A station's settings on a scratch data directory under ``root``, its database made,
+    and the tokens of two robot accounts: the bench's and the attacker's."""
+    from server.config import Settings
+    from server.link.robots import create_robot
+    from server.storage.db import make_engine, make_sessionmaker, upgrade
+
+    settings = Settings(data_dir=root / "data")
+    upgrade(settings.resolved_database_url())
+    engine = make_engine(settings.resolved_database_url())
+    token = create_robot(make_sessionmaker(engine), "bench")
+    attacker = create_robot(make_sessionmaker(engine), "attacker")
+    engine.dispose()
+    return settings, token, attacker
+
+
+def _run_loads(port: int, token: str, attacker: str, field_seconds: float) -> _Loads:
+    """The flood, the field load and the field load under attack against the station on
+    ``port``, then the frames it stored of every session."""
+    flood = drive_robots(port, token, ROBOTS, min(10.0, field_seconds), None)
+    # the flood leaves a gigabyte or more of dirty pages; written back now, or the
+    # field phase would measure the kernel's writeback of the flood
+    os.sync()
+    field = drive_robots(port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS)
+    os.sync()
+    attacked: list[Run] = []
+    attackers = under_attack(
+        port,
+        attacker,
+        lambda: attacked.append(drive_robots(port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS)),
+    )
+    stored = {
+        sid: httpx.get(f"http://127.0.0.1:{port}/api/sessions/{sid}", timeout=30).json()["frames"]
+        for sid, _ in flood[0] + field[0] + attacked[0][0]
+    }
+    return _Loads(flood, field, attacked[0], attackers, stored)
+
+
+def _flood_result(flood: Run, ceiling: float) -> Result:
+    """The flood's stored frames per second against the echo ``ceiling``."""
+    robots, latencies, seconds = flood
+    rate = sum(a for _, a in robots) / seconds
+    return {
+        "name": "ingest.frames_per_second",
+        "value": round(rate, 1),
+        "unit": "frames/s",
+        "target": 2000,
+        "baseline": round(ceiling, 1),
+        "ratio": round(rate / ceiling, 3),
+        "baseline_is": "bare websockets echo on loopback",
+        "robots": ROBOTS,
+        "window": WINDOW,
+        "frame_kb": FRAME_BYTES // 1024,
+        "seconds": round(seconds, 1),
+        "ack_latency_p50_ms": round(float(np.percentile(np.array(latencies) * 1000, 50)), 2),
+    }
+
+
+def _field_results(field: Run) -> Iterator[Result]:
+    """The field load's sustained rate and its ACK latency p50 and p99."""
+    robots, latencies, seconds = field
+    lat = np.array(latencies) * 1000
+    yield {
+        "name": "ingest.field_frames_per_second",
+        "value": round(sum(a for _, a in robots) / seconds, 1),
+        "unit": "frames/s",
+        "offered": FIELD_ROBOTS * FIELD_FPS,
+        "robots": FIELD_ROBOTS,
+        "fps_per_robot": FIELD_FPS,
+        "seconds": round(seconds, 1),
+    }
+    yield {
+        "name": "ingest.ack_latency_p50",
+        "value": round(float(np.percentile(lat, 50)), 2),
+        "unit": "ms",
+        "load": "field",
+    }
+    yield {
+        "name": "ingest.ack_latency_p99",
+        "value": round(float(np.percentile(lat, 99)), 2),
+        "unit": "ms",
+        "target": 2.0,
+        "load": "field",
+    }
+
+
+def _attack_result(loads: _Loads) -> Result:
+    """The field load's ACK p99 under attack against the quiet field's, and the attacks."""
+    quiet_p99 = float(np.percentile(np.array(loads.field[1]) * 1000, 99))
+    attacked_p99 = float(np.percentile(np.array(loads.attacked[1]) * 1000, 99))
+    return {
+        "name": "ingest.ack_latency_p99_under_attack",
+        "value": round(attacked_p99, 2),
+        "unit": "ms",
+        "baseline": round(quiet_p99, 2),
+        "baseline_is": "the same field load without attackers",
+        "ratio": round(attacked_p99 / max(quiet_p99, 1e-9), 3),
+        "target_ratio": 2.0,
+        "attacks": {
+            "poison_robot": loads.attackers.get("poison_robot"),
+            "slow_sockets": SLOW_SOCKETS,
+            "slow_sockets_closed_by_station": loads.attackers.get("slow_sockets_closed"),
+            "logins_per_s": LOGINS_PER_S,
+            "login_answers": loads.attackers.get("login_answers"),
+        },
+        "acked": sum(a for _, a in loads.attacked[0]),
+    }
+
+
+def _lost_result(loads: _Loads) -> Result:
+    """Frames acknowledged to the robots that the station did not store (none may be)."""
+    all_acked = {sid: a for sid, a in loads.flood[0] + loads.field[0] + loads.attacked[0]}
+    return {
+        "name": "ingest.lost",
+        "value": sum(all_acked.values()) - sum(loads.stored.values()),
+        "unit": "frames",
+        "acked": sum(all_acked.values()),
+        "stored": sum(loads.stored.values()),
+    }
+
+
 def bench_ingest(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
     """Most frames per second stored durably (flood) against the echo ceiling, then the
     sustained rate, ACK latency and losses of several robots at a camera's 30 frames/s."""
-    from server.config import Settings
-    from server.link.robots import create_robot
     from server.loopback import free_port, serve_process
-    from server.storage.db import make_engine, make_sessionmaker, upgrade
 
     field_seconds = float(limit or 60)
     root = Path(tempfile.mkdtemp(prefix="steelscan-ingest-"))
     try:
-        settings = Settings(data_dir=root / "data")
-        upgrade(settings.resolved_database_url())
-        engine = make_engine(settings.resolved_database_url())
-        token = create_robot(make_sessionmaker(engine), "bench")
-        attacker = create_robot(make_sessionmaker(engine), "attacker")
-        engine.dispose()
+        settings, token, attacker = _station(root)
         port = free_port()
         proc = serve_process(
             settings.data_dir, port, STEELSCAN_AUTO_PROCESS="false", STEELSCAN_VIEW3D="false"
         )
         try:
-            flood, flood_lat, flood_s = drive_robots(
-                port, token, ROBOTS, min(10.0, field_seconds), None
-            )
-            # the flood leaves a gigabyte or more of dirty pages; written back now, or the
-            # field phase would measure the kernel's writeback of the flood
-            os.sync()
-            field, field_lat, field_s = drive_robots(
-                port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS
-            )
-            os.sync()
-            attacked: list[tuple[list[tuple[str, int]], list[float], float]] = []
-            attackers = under_attack(
-                port,
-                attacker,
-                lambda: attacked.append(
-                    drive_robots(port, token, FIELD_ROBOTS, field_seconds, FIELD_FPS)
-                ),
-            )
-            field_attacked, attacked_lat, _ = attacked[0]
-            stored = {
-                sid: httpx.get(f"http://127.0.0.1:{port}/api/sessions/{sid}", timeout=30).json()[
-                    "frames"
-                ]
-                for sid, _ in flood + field + field_attacked
-            }
+            loads = _run_loads(port, token, attacker, field_seconds)
         finally:
             proc.terminate()
             proc.wait(timeout=30)
         ceiling = asyncio.run(_echo_ceiling(min(5.0, field_seconds)))
-        acked = sum(a for _, a in flood)
-        rate = acked / flood_s
-        yield {
-            "name": "ingest.frames_per_second",
-            "value": round(rate, 1),
-            "unit": "frames/s",
-            "target": 2000,
-            "baseline": round(ceiling, 1),
-            "ratio": round(rate / ceiling, 3),
-            "baseline_is": "bare websockets echo on loopback",
-            "robots": ROBOTS,
-            "window": WINDOW,
-            "frame_kb": FRAME_BYTES // 1024,
-            "seconds": round(flood_s, 1),
-            "ack_latency_p50_ms": round(float(np.percentile(np.array(flood_lat) * 1000, 50)), 2),
-        }
-        lat = np.array(field_lat) * 1000
-        field_acked = sum(a for _, a in field)
-        yield {
-            "name": "ingest.field_frames_per_second",
-            "value": round(field_acked / field_s, 1),
-            "unit": "frames/s",
-            "offered": FIELD_ROBOTS * FIELD_FPS,
-            "robots": FIELD_ROBOTS,
-            "fps_per_robot": FIELD_FPS,
-            "seconds": round(field_s, 1),
-        }
-        yield {
-            "name": "ingest.ack_latency_p50",
-            "value": round(float(np.percentile(lat, 50)), 2),
-            "unit": "ms",
-            "load": "field",
-        }
-        yield {
-            "name": "ingest.ack_latency_p99",
-            "value": round(float(np.percentile(lat, 99)), 2),
-            "unit": "ms",
-            "target": 2.0,
-            "load": "field",
-        }
-        quiet_p99 = float(np.percentile(lat, 99))
-        attacked_p99 = float(np.percentile(np.array(attacked_lat) * 1000, 99))
-        yield {
-            "name": "ingest.ack_latency_p99_under_attack",
-            "value": round(attacked_p99, 2),
-            "unit": "ms",
-            "baseline": round(quiet_p99, 2),
-            "baseline_is": "the same field load without attackers",
-            "ratio": round(attacked_p99 / max(quiet_p99, 1e-9), 3),
-            "target_ratio": 2.0,
-            "attacks": {
-                "poison_robot": attackers.get("poison_robot"),
-                "slow_sockets": SLOW_SOCKETS,
-                "slow_sockets_closed_by_station": attackers.get("slow_sockets_closed"),
-                "logins_per_s": LOGINS_PER_S,
-                "login_answers": attackers.get("login_answers"),
-            },
-            "acked": sum(a for _, a in field_attacked),
-        }
-        all_acked = {sid: a for sid, a in flood + field + field_attacked}
-        yield {
-            "name": "ingest.lost",
-            "value": sum(all_acked.values()) - sum(stored.values()),
-            "unit": "frames",
-            "acked": sum(all_acked.values()),
-            "stored": sum(stored.values()),
-        }
+        yield _flood_result(loads.flood, ceiling)
+        yield from _field_results(loads.field)
+        yield _attack_result(loads)
+        yield _lost_result(loads)
     finally:
         shutil.rmtree(root, ignore_errors=True)
