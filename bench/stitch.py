@@ -20,12 +20,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from bench.common import Result, rigid_align_2d, similarity_align_2d
+from bench.common import Result
 from bench.detect import DATASETS_ROOT
+from bench.stitch_opencv import Jpegs, centre_errors, ecc_steps, opencv_baseline
 from processing.metrics import mosaic_overlap_errors
-from processing.poses import chain_se2, delta_of_map, frame_i_to_j, relative_se2
+from processing.poses import chain_se2
 from processing.stitching import plan_mosaic, render_bands
-from processing.stitching.registration import overlap_rect
 from robot_link.sim.sweeps import (
     Sweep,
     SweepConfig,
@@ -38,19 +38,6 @@ from robot_link.sim.sweeps import (
 SEEDS = (101, 202)
 # straight runs for the end drift's spread (photographs and painted steel in turn)
 DRIFT_SEEDS = tuple(range(301, 309))
-
-
-class _Jpegs:
-    """A sweep's frames decoded on demand (decoding is part of the measured cost)."""
-
-    def __init__(self, frames: list[bytes]) -> None:
-        self.frames = frames
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def __getitem__(self, k: int) -> NDArray[np.uint8]:
-        return cv2.imdecode(np.frombuffer(self.frames[k], np.uint8), cv2.IMREAD_COLOR)
 
 
 def real_texture(need: tuple[int, int], dataset: Path | None) -> tuple[NDArray[np.uint8], str]:
@@ -73,14 +60,6 @@ def real_texture(need: tuple[int, int], dataset: Path | None) -> tuple[NDArray[n
     return texture_from_images(images, cols, cell), "scikit-image texture photographs"
 
 
-def centre_errors(
-    est_xy: NDArray[np.float64], truth_xy: NDArray[np.float64], *, with_scale: bool = False
-) -> NDArray[np.float64]:
-    """Frame-centre errors (px) after the best rigid (or similarity) fit to the truth."""
-    fit = similarity_align_2d if with_scale else rigid_align_2d
-    return np.linalg.norm(fit(est_xy, truth_xy) - truth_xy, axis=1)
-
-
 def _ours(
     sweep: Sweep, blind: bool, repeats: int = 5
 ) -> tuple[NDArray[np.float64], float, float, float, int]:
@@ -91,7 +70,7 @@ def _ours(
     walls, cpus = [], []
     for _ in range(repeats):
         c0, t0 = os.times(), time.perf_counter()
-        layout, frames = plan_mosaic(_Jpegs(sweep.frames), None if blind else sweep.odometry)
+        layout, frames = plan_mosaic(Jpegs(sweep.frames), None if blind else sweep.odometry)
         for _ in render_bands(layout, frames):
             pass
         c1 = os.times()
@@ -114,75 +93,113 @@ def _warm_up() -> None:
     _ours(make_sweep(painted_steel((need[1], need[0]), seed=0), cfg), False, repeats=1)
 
 
-def _opencv(sweep: Sweep) -> tuple[NDArray[np.float64] | None, float, str, int]:
-    """cv2.Stitcher (SCANS) on the same frames: frame centres (NaN for frames it dropped),
-    seconds, status and how many frames it kept."""
-    frames = [cv2.imdecode(np.frombuffer(j, np.uint8), cv2.IMREAD_COLOR) for j in sweep.frames]
-    stitcher = cv2.Stitcher_create(cv2.Stitcher_SCANS)
-    t0 = time.perf_counter()
-    try:
-        code, _ = stitcher.stitch(frames)
-    except cv2.error as exc:
-        return (
-            None,
-            time.perf_counter() - t0,
-            f"raised: {str(exc).strip().splitlines()[-1][:100]}",
-            0,
-        )
-    seconds = time.perf_counter() - t0
-    if code != cv2.Stitcher_OK:
-        return None, seconds, f"failed with status {code}", 0
-    h, w = frames[0].shape[:2]
-    centres = np.full((len(frames), 2), np.nan)
-    for k, cam in zip(np.asarray(stitcher.component()).ravel(), stitcher.cameras()):
-        centres[int(k)] = (np.asarray(cam.R, float) @ np.array([(w - 1) / 2, (h - 1) / 2, 1.0]))[:2]
-    return centres, seconds, "ok", int(np.isfinite(centres[:, 0]).sum())
+def _vs_odometry(value: float, odo: float | None) -> Result:
+    """``value`` against odometry alone's ``odo`` (nothing where there is no odometry)."""
+    return (
+        {}
+        if odo is None
+        else {
+            "baseline": round(odo, 3),
+            "ratio": round(value / max(odo, 1e-9), 4),
+            "baseline_is": "odometry alone",
+        }
+    )
 
 
-def _ecc_steps(sweep: Sweep, poses: NDArray[np.float64]) -> tuple[list[NDArray[np.float64]], float]:
-    """Each consecutive pair refined by OpenCV's ECC (Euclidean, every pixel of the
-    overlap, a standard dense refinement) from our own step; and seconds per pair."""
+def _overlap_results(
+    name: str,
+    pairs: NDArray[np.float64],
+    drift: float,
+    odo: tuple[NDArray[np.float64], float] | None,
+    base: Result,
+) -> Iterator[Result]:
+    """Mean and max overlap error of the ``pairs`` and the end ``drift``, each against
+    odometry alone's (``odo``: its pair errors and drift, where there is odometry)."""
+    odo_pairs, odo_drift = (None, None) if odo is None else odo
+    yield {
+        "name": f"stitch.{name}.mean_overlap_error",
+        "value": round(float(pairs.mean()), 4),
+        "unit": "px",
+        "target": 0.1,
+        **_vs_odometry(float(pairs.mean()), None if odo_pairs is None else float(odo_pairs.mean())),
+        **base,
+    }
+    yield {
+        "name": f"stitch.{name}.max_overlap_error",
+        "value": round(float(pairs.max()), 4),
+        "unit": "px",
+        "target": 2.0,
+        **_vs_odometry(float(pairs.max()), None if odo_pairs is None else float(odo_pairs.max())),
+    }
+    yield {
+        "name": f"stitch.{name}.end_drift",
+        "value": round(drift, 4),
+        "unit": "px",
+        "target": 1.0,
+        **_vs_odometry(drift, odo_drift),
+    }
+
+
+def _ecc_result(name: str, sweep: Sweep, poses: NDArray[np.float64], drift: float) -> Result:
+    """End drift of the same pairs refined by OpenCV's ECC from our steps and chained (a
+    chain of pairs only: is a pixel at the far end reachable?), beside ours (``drift``)."""
     size = sweep.config.frame_size
-    frames = _Jpegs(sweep.frames)
-    grey = [
-        cv2.cvtColor(frames[k], cv2.COLOR_BGR2GRAY).astype(np.float32) for k in range(len(frames))
-    ]
-    steps, seconds = [], 0.0
-    for k in range(len(grey) - 1):
-        start = relative_se2(poses[k], poses[k + 1])
-        M = frame_i_to_j(start, size)
-        rect = overlap_rect(M, size, 8, 0.15)
-        if rect is None:
-            steps.append(start)
-            continue
-        x0, y0, x1, y1 = rect
-        # template pixel -> frame k+1
-        W = W0 = (M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2].astype(np.float32)
-        t0 = time.perf_counter()
-        try:
-            _, W = cv2.findTransformECC(
-                grey[k][y0:y1, x0:x1],
-                grey[k + 1],
-                W0.copy(),
-                cv2.MOTION_EUCLIDEAN,
-                (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-7),
-                None,
-                5,
-            )
-        except cv2.error:  # did not converge: keep the start
-            W = W0
-        seconds += time.perf_counter() - t0
-        steps.append(
-            delta_of_map(
-                np.vstack([W, [0, 0, 1]]) @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]]), size
-            )
-        )
-    return steps, seconds / max(1, len(grey) - 1)
+    steps, ecc_seconds = ecc_steps(sweep, poses)
+    ecc_pairs, ecc_drift = mosaic_overlap_errors(
+        chain_se2(sweep.truth[0], steps), sweep.truth, size
+    )
+    return {
+        "name": f"stitch.{name}.ecc_end_drift",
+        "value": round(ecc_drift, 4),
+        "unit": "px",
+        "mean_overlap_error": round(float(ecc_pairs.mean()), 4),
+        "max_overlap_error": round(float(ecc_pairs.max()), 4),
+        "ms_per_pair": round(1000 * ecc_seconds, 1),
+        "ours_end_drift": round(drift, 4),
+        "what": "the same pairs refined by OpenCV's ECC (Euclidean, every pixel of the overlap) from our steps, chained",
+    }
+
+
+def _centre_result(
+    name: str,
+    centres: NDArray[np.float64],
+    odo_centres: NDArray[np.float64] | None,
+    weak: int,
+) -> Result:
+    """Mean and max frame-centre error against odometry alone's, and the ``weak`` frames."""
+    return {
+        "name": f"stitch.{name}.mean_centre_error",
+        "value": round(float(centres.mean()), 4),
+        "unit": "px",
+        "max": round(float(centres.max()), 4),
+        **_vs_odometry(
+            float(centres.mean()), None if odo_centres is None else float(odo_centres.mean())
+        ),
+        "low_confidence_frames": weak,
+    }
+
+
+def _speed_result(
+    name: str, n: int, seconds: float, median_seconds: float, cpu_seconds: float
+) -> Result:
+    """All-in time per frame of the fastest run of ``n`` frames, its CPU time, the median's."""
+    return {
+        "name": f"stitch.{name}.ms_per_frame",
+        "value": round(1000 * seconds / n, 2),
+        "unit": "ms",
+        "target": 10.0,
+        "frames_per_second": round(n / seconds, 1),
+        "cpu_ms_per_frame": round(1000 * cpu_seconds / n, 2),
+        "median_ms_per_frame": round(1000 * median_seconds / n, 2),
+        "all_in": "decode, register, solve, gains, blend (2 threads; fastest of 5 runs)",
+    }
 
 
 def _sequence(
     name: str, sweep: Sweep, *, blind: bool = False, opencv: bool = False
 ) -> Iterator[Result]:
+    """Overlap errors, end drift, centre errors and speed of our mosaic of ``sweep`` (from
+    images only where ``blind``), against odometry alone and, where ``opencv``, cv2.Stitcher."""
     size = sweep.config.frame_size
     n = len(sweep.frames)
     poses, seconds, median_seconds, cpu_seconds, weak = _ours(sweep, blind)
@@ -194,102 +211,17 @@ def _sequence(
         "guess": "images only" if blind else "drifting odometry",
     }
     if blind:
-        odo_pairs, odo_drift, odo_centres = None, None, None
+        odo, odo_centres = None, None
     else:
-        odo_pairs, odo_drift = mosaic_overlap_errors(sweep.odometry, sweep.truth, size)
+        odo = mosaic_overlap_errors(sweep.odometry, sweep.truth, size)
         odo_centres = centre_errors(sweep.odometry[:, :2], sweep.truth[:, :2])
-
-    def vs_odometry(value: float, odo: float | None) -> Result:
-        return (
-            {}
-            if odo is None
-            else {
-                "baseline": round(odo, 3),
-                "ratio": round(value / max(odo, 1e-9), 4),
-                "baseline_is": "odometry alone",
-            }
-        )
-
-    yield {
-        "name": f"stitch.{name}.mean_overlap_error",
-        "value": round(float(pairs.mean()), 4),
-        "unit": "px",
-        "target": 0.1,
-        **vs_odometry(float(pairs.mean()), None if odo_pairs is None else float(odo_pairs.mean())),
-        **base,
-    }
-    yield {
-        "name": f"stitch.{name}.max_overlap_error",
-        "value": round(float(pairs.max()), 4),
-        "unit": "px",
-        "target": 2.0,
-        **vs_odometry(float(pairs.max()), None if odo_pairs is None else float(odo_pairs.max())),
-    }
-    yield {
-        "name": f"stitch.{name}.end_drift",
-        "value": round(drift, 4),
-        "unit": "px",
-        "target": 1.0,
-        **vs_odometry(drift, odo_drift),
-    }
-    # a chain of pairs only: is a pixel at the far end reachable?
+    yield from _overlap_results(name, pairs, drift, odo, base)
     if sweep.config.pattern == "straight" and not blind:
-        steps, ecc_seconds = _ecc_steps(sweep, poses)
-        ecc_pairs, ecc_drift = mosaic_overlap_errors(
-            chain_se2(sweep.truth[0], steps), sweep.truth, size
-        )
-        yield {
-            "name": f"stitch.{name}.ecc_end_drift",
-            "value": round(ecc_drift, 4),
-            "unit": "px",
-            "mean_overlap_error": round(float(ecc_pairs.mean()), 4),
-            "max_overlap_error": round(float(ecc_pairs.max()), 4),
-            "ms_per_pair": round(1000 * ecc_seconds, 1),
-            "ours_end_drift": round(drift, 4),
-            "what": "the same pairs refined by OpenCV's ECC (Euclidean, every pixel of the overlap) from our steps, chained",
-        }
-    yield {
-        "name": f"stitch.{name}.mean_centre_error",
-        "value": round(float(centres.mean()), 4),
-        "unit": "px",
-        "max": round(float(centres.max()), 4),
-        **vs_odometry(
-            float(centres.mean()), None if odo_centres is None else float(odo_centres.mean())
-        ),
-        "low_confidence_frames": weak,
-    }
-    ms = 1000 * seconds / n
-    result: Result = {
-        "name": f"stitch.{name}.ms_per_frame",
-        "value": round(ms, 2),
-        "unit": "ms",
-        "target": 10.0,
-        "frames_per_second": round(n / seconds, 1),
-        "cpu_ms_per_frame": round(1000 * cpu_seconds / n, 2),
-        "median_ms_per_frame": round(1000 * median_seconds / n, 2),
-        "all_in": "decode, register, solve, gains, blend (2 threads; fastest of 5 runs)",
-    }
+        yield _ecc_result(name, sweep, poses, drift)
+    yield _centre_result(name, centres, odo_centres, weak)
+    result = _speed_result(name, n, seconds, median_seconds, cpu_seconds)
     if opencv:
-        centres_cv, cv_seconds, status, kept = _opencv(sweep)
-        cv_ms = 1000 * cv_seconds / n
-        result.update(
-            {
-                "baseline": round(cv_ms, 1),
-                "ratio": round(ms / cv_ms, 4),
-                "baseline_is": "cv2.Stitcher SCANS",
-                "baseline_status": status,
-                "baseline_frames_kept": kept,
-            }
-        )
-        if centres_cv is not None and kept >= 3:
-            ok = np.isfinite(centres_cv[:, 0])
-            e = centre_errors(centres_cv[ok], sweep.truth[ok, :2], with_scale=True)
-            result.update(
-                {
-                    "baseline_mean_centre_error_px": round(float(e.mean()), 2),
-                    "baseline_max_centre_error_px": round(float(e.max()), 2),
-                }
-            )
+        result.update(opencv_baseline(sweep, 1000 * seconds / n))
     yield result
 
 
@@ -332,9 +264,9 @@ def _straight_drifts(dataset: Path | None, frames: int) -> Result:
             else painted_steel((need[1], need[0]), seed=seed)
         )
         sweep = make_sweep(texture, cfg)
-        layout, _ = plan_mosaic(_Jpegs(sweep.frames), sweep.odometry)
+        layout, _ = plan_mosaic(Jpegs(sweep.frames), sweep.odometry)
         ours.append(mosaic_overlap_errors(layout.poses_px, sweep.truth, cfg.frame_size)[1])
-        steps, _ = _ecc_steps(sweep, layout.poses_px)
+        steps, _ = ecc_steps(sweep, layout.poses_px)
         ecc.append(
             mosaic_overlap_errors(chain_se2(sweep.truth[0], steps), sweep.truth, cfg.frame_size)[1]
         )
