@@ -6,12 +6,16 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from bench.common import Result
+
+if TYPE_CHECKING:
+    from processing.mapping import MapResult
+    from robot_link.sim.tof_sweeps import TofSweepConfig
 
 
 def relative_pose_error(
@@ -58,6 +62,101 @@ def _sweeps() -> list[tuple[str, Any]]:
     ]
 
 
+def _ate_result(
+    name: str, ate: dict[str, float], ours: MapResult, clouds: int, length: float
+) -> Result:
+    """The map's absolute trajectory error against Open3D's tutorial pipeline and odometry
+    alone's, and what the map did (loop closures, odometry fallbacks, planes)."""
+    return {
+        "name": f"{name}.ate",
+        "value": round(ate["ours"], 4),
+        "unit": "m",
+        "baseline": round(ate["tutorial"], 4),
+        "ratio": round(ate["ours"] / max(ate["tutorial"], 1e-9), 3),
+        "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
+        "odometry": round(ate["odometry"], 4),
+        "clouds": clouds,
+        "path_m": round(length, 2),
+        "loop_closures": ours.loop_closures,
+        "odometry_fallbacks": int(ours.used_odometry.sum()),
+        "odometry_error_scale": round(ours.odometry_error_scale, 2),
+        "plane_landmarks": ours.plane_landmarks,
+    }
+
+
+def _drift_result(
+    name: str, ate: dict[str, float], length: float, oracle: float, seen: NDArray[np.bool_]
+) -> Result:
+    """The map's error as a share of the path (``length``) against odometry alone's, beside
+    the ``oracle``'s (:func:`oracle_poses`) and how many clouds see structure."""
+    return {
+        "name": f"{name}.drift",
+        "value": round(100 * ate["ours"] / length, 3),
+        "unit": "% of path",
+        "target": 0.25,
+        "baseline": round(100 * ate["odometry"] / length, 3),
+        "ratio": round(ate["ours"] / max(ate["odometry"], 1e-9), 3),
+        "baseline_is": "odometry alone",
+        "oracle_drift": round(100 * oracle / length, 3),
+        "oracle_is": "exact steps between clouds that both see structure off the deck plate, odometry's elsewhere",
+        "clouds_seeing_structure": int(seen.sum()),
+    }
+
+
+def _rpe_result(name: str, rpe: dict[str, tuple[float, float]]) -> Result:
+    """The map's relative pose error and its largest step error, against odometry alone's
+    and beside Open3D's tutorial pipeline's."""
+    return {
+        "name": f"{name}.rpe",
+        "value": round(rpe["ours"][0], 4),
+        "unit": "m",
+        "max_step_error": round(rpe["ours"][1], 4),
+        "max_step_target": 0.02,
+        "baseline": round(rpe["odometry"][0], 4),
+        "baseline_is": "odometry alone",
+        "tutorial": round(rpe["tutorial"][0], 4),
+        "tutorial_max_step_error": round(rpe["tutorial"][1], 4),
+    }
+
+
+def _route(label: str, config: TofSweepConfig, limit: int | None) -> Iterator[Result]:
+    """Trajectory error (ATE, drift, RPE) and time per cloud of the map of one simulated ToF
+    sweep (the first ``limit`` clouds) against odometry alone and Open3D's tutorial pipeline."""
+    from processing.mapping import SelectParams, register_clouds, select
+    from processing.metrics import absolute_trajectory_error
+    from robot_link.sim.tof_sweeps import tof_sweep
+
+    sweep = tof_sweep(config, clouds=limit)
+    n = len(sweep.clouds)
+    clouds, truth, odo = sweep.clouds[:n], sweep.truth[:n], sweep.odometry[:n]
+    length = float(np.sum(np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)))
+    shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
+    t0 = time.perf_counter()
+    ours = register_clouds(clouds, odo, shape=shape)
+    ours_ms = 1000 * (time.perf_counter() - t0) / n
+    t0 = time.perf_counter()
+    tutorial = _open3d_tutorial_poses([select(c, SelectParams()) for c in clouds], odo)
+    base_ms = 1000 * (time.perf_counter() - t0) / n
+    name = f"map.{label}"
+    estimates = (("ours", ours.poses), ("odometry", odo), ("tutorial", tutorial))
+    ate = {k: absolute_trajectory_error(p, truth) for k, p in estimates}
+    rpe = {k: relative_pose_error(p, truth) for k, p in estimates}
+    yield _ate_result(name, ate, ours, n, length)
+    seen = sees_structure([select(c, SelectParams(), shape) for c in clouds], truth)
+    oracle = absolute_trajectory_error(oracle_poses(truth, odo, seen), truth)
+    yield _drift_result(name, ate, length, oracle, seen)
+    yield _rpe_result(name, rpe)
+    yield {
+        "name": f"{name}.ms_per_cloud",
+        "value": round(ours_ms, 1),
+        "unit": "ms",
+        "target": 25.0,
+        "baseline": round(base_ms, 1),
+        "ratio": round(ours_ms / base_ms, 3),
+        "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
+    }
+
+
 def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
     """Per structure type (:mod:`bench.map_structures`; with ``limit``, one held-back seed of
     ``limit`` clouds each and the whole command on the first type only), then
@@ -71,80 +170,8 @@ def bench_map(dataset: Path | None = None, limit: int | None = None) -> Iterator
     yield from (
         bench_map_structures(1, max(limit, 3), commands=1) if limit else bench_map_structures()
     )
-    from processing.mapping import SelectParams, register_clouds, select
-    from processing.metrics import absolute_trajectory_error
-    from robot_link.sim.tof_sweeps import tof_sweep
-
     for label, config in _sweeps():
-        sweep = tof_sweep(config, clouds=limit)
-        n = len(sweep.clouds)
-        clouds, truth, odo = sweep.clouds[:n], sweep.truth[:n], sweep.odometry[:n]
-        length = float(np.sum(np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1)))
-        shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
-        t0 = time.perf_counter()
-        ours = register_clouds(clouds, odo, shape=shape)
-        ours_ms = 1000 * (time.perf_counter() - t0) / n
-        t0 = time.perf_counter()
-        tutorial = _open3d_tutorial_poses([select(c, SelectParams()) for c in clouds], odo)
-        base_ms = 1000 * (time.perf_counter() - t0) / n
-        name = f"map.{label}"
-        ate = {
-            k: absolute_trajectory_error(p, truth)
-            for k, p in (("ours", ours.poses), ("odometry", odo), ("tutorial", tutorial))
-        }
-        rpe = {
-            k: relative_pose_error(p, truth)
-            for k, p in (("ours", ours.poses), ("odometry", odo), ("tutorial", tutorial))
-        }
-        yield {
-            "name": f"{name}.ate",
-            "value": round(ate["ours"], 4),
-            "unit": "m",
-            "baseline": round(ate["tutorial"], 4),
-            "ratio": round(ate["ours"] / max(ate["tutorial"], 1e-9), 3),
-            "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
-            "odometry": round(ate["odometry"], 4),
-            "clouds": n,
-            "path_m": round(length, 2),
-            "loop_closures": ours.loop_closures,
-            "odometry_fallbacks": int(ours.used_odometry.sum()),
-            "odometry_error_scale": round(ours.odometry_error_scale, 2),
-            "plane_landmarks": ours.plane_landmarks,
-        }
-        seen = sees_structure([select(c, SelectParams(), shape) for c in clouds], truth)
-        oracle = absolute_trajectory_error(oracle_poses(truth, odo, seen), truth)
-        yield {
-            "name": f"{name}.drift",
-            "value": round(100 * ate["ours"] / length, 3),
-            "unit": "% of path",
-            "target": 0.25,
-            "baseline": round(100 * ate["odometry"] / length, 3),
-            "ratio": round(ate["ours"] / max(ate["odometry"], 1e-9), 3),
-            "baseline_is": "odometry alone",
-            "oracle_drift": round(100 * oracle / length, 3),
-            "oracle_is": "exact steps between clouds that both see structure off the deck plate, odometry's elsewhere",
-            "clouds_seeing_structure": int(seen.sum()),
-        }
-        yield {
-            "name": f"{name}.rpe",
-            "value": round(rpe["ours"][0], 4),
-            "unit": "m",
-            "max_step_error": round(rpe["ours"][1], 4),
-            "max_step_target": 0.02,
-            "baseline": round(rpe["odometry"][0], 4),
-            "baseline_is": "odometry alone",
-            "tutorial": round(rpe["tutorial"][0], 4),
-            "tutorial_max_step_error": round(rpe["tutorial"][1], 4),
-        }
-        yield {
-            "name": f"{name}.ms_per_cloud",
-            "value": round(ours_ms, 1),
-            "unit": "ms",
-            "target": 25.0,
-            "baseline": round(base_ms, 1),
-            "ratio": round(ours_ms / base_ms, 3),
-            "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP",
-        }
+        yield from _route(label, config, limit)
     from bench.map_graph import bench_map_graph
 
     yield from bench_map_graph(limit)
