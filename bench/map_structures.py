@@ -63,22 +63,82 @@ def registration_floor(
     return np.array(poses)
 
 
+def _measure_seed(
+    kind: str,
+    seed: int,
+    clouds: int,
+    drift: dict[str, list[float]],
+    ms: dict[str, list[float]],
+) -> None:
+    """Map one held-back ``seed`` of structure ``kind`` (``clouds`` clouds): add each
+    estimate's ATE (% of path: ours, odometry, the tutorial's, the floor's, the bound) to
+    ``drift`` and ours and the tutorial's ms per cloud to ``ms``."""
+    from bench.map import _open3d_tutorial_poses
+    from bench.map_bound import trajectory_bound
+    from processing.mapping import SelectParams, register_clouds, select
+    from processing.metrics import absolute_trajectory_error
+    from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_camera, scene_sweep
+
+    config = SceneSweepConfig(kind=kind, seed=seed, clouds=clouds)
+    sweep = scene_sweep(config)
+    shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
+    n = len(sweep.clouds)
+    t0 = time.perf_counter()
+    ours = register_clouds(sweep.clouds, sweep.odometry, shape=shape).poses
+    ms["ours"].append(1000 * (time.perf_counter() - t0) / n)
+    t0 = time.perf_counter()
+    pcds = [select(c, SelectParams()) for c in sweep.clouds]
+    tutorial = _open3d_tutorial_poses(pcds, sweep.odometry)
+    ms["tutorial"].append(1000 * (time.perf_counter() - t0) / n)
+    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+    floor = registration_floor(sweep.clouds, sweep.truth, sweep.odometry, shape, sigmas)
+    bound = trajectory_bound(scene_camera(config), sweep.truth, sigmas)
+    drift["bound"].append(100 * bound / sweep.path_length_m)
+    for name, poses in (
+        ("ours", ours),
+        ("odometry", sweep.odometry),
+        ("tutorial", tutorial),
+        ("floor", floor),
+    ):
+        ate = absolute_trajectory_error(poses, sweep.truth)
+        drift[name].append(100 * ate / sweep.path_length_m)
+
+
+def _drift_result(name: str, drift: dict[str, list[float]]) -> Result:
+    """Mean and worst ATE (% of path) over the seeds of ours against the tutorial's, beside
+    odometry alone's, the floor's and the bound's."""
+    return {
+        "name": f"{name}.drift_mean",
+        "value": round(float(np.mean(drift["ours"])), 3),
+        "unit": "% of path",
+        "target": TARGET_MEAN,
+        "worst": round(float(np.max(drift["ours"])), 3),
+        "worst_target": TARGET_WORST,
+        "baseline": round(float(np.mean(drift["tutorial"])), 3),
+        "ratio": round(float(np.mean(drift["ours"]) / max(np.mean(drift["tutorial"]), 1e-9)), 3),
+        "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP, cloud to cloud",
+        "baseline_worst": round(float(np.max(drift["tutorial"])), 3),
+        "odometry_mean": round(float(np.mean(drift["odometry"])), 3),
+        "odometry_worst": round(float(np.max(drift["odometry"])), 3),
+        # each cloud registered to the earlier ones at their true poses (nothing drifted)
+        "floor_mean": round(float(np.mean(drift["floor"])), 3),
+        "floor_worst": round(float(np.max(drift["floor"])), 3),
+        # the least any map could reach, knowing the structure (Cramér–Rao)
+        "bound_mean": round(float(np.mean(drift["bound"])), 3),
+        "bound_worst": round(float(np.max(drift["bound"])), 3),
+        "per_seed_bound": [round(v, 3) for v in drift["bound"]],
+        "seeds": len(drift["ours"]),
+        "per_seed": [round(v, 3) for v in drift["ours"]],
+    }
+
+
 def bench_map_structures(
     seeds: int | None = None, clouds: int = 40, *, commands: int | None = None
 ) -> Iterator[Result]:
     """Per structure type: ATE (% of path) of ours, odometry and the tutorial pipeline over
     ``seeds`` held-back seeds (10 unless given) of ``clouds`` clouds, ms per cloud, and the
     whole command's time (on the first ``commands`` types; every type unless given)."""
-    from bench.map import _open3d_tutorial_poses
-    from bench.map_bound import trajectory_bound
-    from processing.mapping import SelectParams, register_clouds, select
-    from processing.metrics import absolute_trajectory_error
-    from robot_link.sim.scene_sweeps import (
-        SceneSweepConfig,
-        scene_camera,
-        scene_sweep,
-        write_sweep,
-    )
+    from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_sweep, write_sweep
     from robot_link.sim.scenes import SCENES
 
     for number, kind in enumerate(SCENES):
@@ -87,55 +147,9 @@ def bench_map_structures(
         }
         ms: dict[str, list[float]] = {"ours": [], "tutorial": []}
         for seed in list(HELD_BACK_SEEDS)[: seeds or None]:
-            config = SceneSweepConfig(kind=kind, seed=seed, clouds=clouds)
-            sweep = scene_sweep(config)
-            shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
-            n = len(sweep.clouds)
-            t0 = time.perf_counter()
-            ours = register_clouds(sweep.clouds, sweep.odometry, shape=shape).poses
-            ms["ours"].append(1000 * (time.perf_counter() - t0) / n)
-            t0 = time.perf_counter()
-            pcds = [select(c, SelectParams()) for c in sweep.clouds]
-            tutorial = _open3d_tutorial_poses(pcds, sweep.odometry)
-            ms["tutorial"].append(1000 * (time.perf_counter() - t0) / n)
-            sigmas = (np.radians(config.odometry_deg), config.odometry_m)
-            floor = registration_floor(sweep.clouds, sweep.truth, sweep.odometry, shape, sigmas)
-            bound = trajectory_bound(scene_camera(config), sweep.truth, sigmas)
-            drift["bound"].append(100 * bound / sweep.path_length_m)
-            for name, poses in (
-                ("ours", ours),
-                ("odometry", sweep.odometry),
-                ("tutorial", tutorial),
-                ("floor", floor),
-            ):
-                ate = absolute_trajectory_error(poses, sweep.truth)
-                drift[name].append(100 * ate / sweep.path_length_m)
+            _measure_seed(kind, seed, clouds, drift, ms)
         name = f"map.structure.{kind}"
-        yield {
-            "name": f"{name}.drift_mean",
-            "value": round(float(np.mean(drift["ours"])), 3),
-            "unit": "% of path",
-            "target": TARGET_MEAN,
-            "worst": round(float(np.max(drift["ours"])), 3),
-            "worst_target": TARGET_WORST,
-            "baseline": round(float(np.mean(drift["tutorial"])), 3),
-            "ratio": round(
-                float(np.mean(drift["ours"]) / max(np.mean(drift["tutorial"]), 1e-9)), 3
-            ),
-            "baseline_is": "Open3D tutorial FPFH+RANSAC+ICP, cloud to cloud",
-            "baseline_worst": round(float(np.max(drift["tutorial"])), 3),
-            "odometry_mean": round(float(np.mean(drift["odometry"])), 3),
-            "odometry_worst": round(float(np.max(drift["odometry"])), 3),
-            # each cloud registered to the earlier ones at their true poses (nothing drifted)
-            "floor_mean": round(float(np.mean(drift["floor"])), 3),
-            "floor_worst": round(float(np.max(drift["floor"])), 3),
-            # the least any map could reach, knowing the structure (Cramér–Rao)
-            "bound_mean": round(float(np.mean(drift["bound"])), 3),
-            "bound_worst": round(float(np.max(drift["bound"])), 3),
-            "per_seed_bound": [round(v, 3) for v in drift["bound"]],
-            "seeds": len(drift["ours"]),
-            "per_seed": [round(v, 3) for v in drift["ours"]],
-        }
+        yield _drift_result(name, drift)
         yield {
             "name": f"{name}.ms_per_cloud",
             "value": round(float(np.mean(ms["ours"])), 1),
