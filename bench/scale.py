@@ -305,6 +305,77 @@ def _station(
     return proc, port, token
 
 
+def _on_workers(
+    root: Path, pg: Postgres, redis: Redis, frames: int, limit: int | None
+) -> Iterator[Result]:
+    """A station on PostgreSQL with Celery workers under ``root``: a long session's and a
+    ToF session's jobs on one worker against two, then the live link with and without a
+    big job on the workers."""
+    queue_env = {"STEELSCAN_JOB_BACKEND": "celery", "STEELSCAN_BROKER_URL": redis.url}
+    data = root / "data"
+    db_url = pg.new_database()
+    station, port, token = _station(
+        data, db_url, {**queue_env, "STEELSCAN_REALTIME_PRIORITY": str(STATION_REALTIME)}
+    )
+    url = f"http://127.0.0.1:{port}"
+    workers = _Workers(
+        {
+            **os.environ,
+            **queue_env,
+            "STEELSCAN_DATA_DIR": str(data),
+            "STEELSCAN_DATABASE_URL": db_url,
+        },
+        root,
+        redis.url,
+    )
+    try:
+        sid = _record(port, token, frames)
+        tof_sid = record_clouds(port, token, limit)
+        best = interleaved(
+            lambda kind, session: _job(url, session, kind),
+            workers.scale_to,
+            [("stitch", sid), ("detect", sid), ("map", tof_sid)],
+        )
+        (stitch, stitch_s), (one, one_s), (map1, map1_s) = best[1].values()
+        (stitch2, stitch2_s), (two, two_s), (map2, map2_s) = best[2].values()
+        yield from map_results(map1, map1_s, map2, map2_s, TARGET)
+        yield from _detect_results(one, one_s, two, two_s, frames)
+        yield from _stitch_results(stitch, stitch_s, stitch2, stitch2_s, frames)
+        workers.scale_to(2)
+        realtime = {"station": _realtime(station.pid), "postgresql": pg.realtime}
+        for result in live_results(
+            port, token, url, sid, LIVE_ROBOTS, LIVE_FPS, [w.pid for w in workers.procs]
+        ):
+            yield {**result, "realtime_priority": realtime}
+    finally:
+        workers.stop()
+        station.terminate()
+        station.wait(timeout=30)
+
+
+def _flood_rates(root: Path) -> dict[str, float]:
+    """Frames per second a station under ``root`` stores of the ingest flood, on a
+    PostgreSQL at normal priority (as the SQLite station is) and on SQLite."""
+    rates = {}
+    flood_pg = Postgres()
+    try:
+        for name, url_db in (
+            ("postgresql", flood_pg.new_database()),
+            ("sqlite", f"sqlite:///{root / 'flood' / 'steelscan.db'}"),
+        ):
+            flood_dir = root / f"flood-{name}"
+            proc, fport, ftoken = _station(flood_dir, url_db, {})
+            try:
+                done, _, secs = drive_robots(fport, ftoken, ROBOTS, FLOOD_S, None)
+                rates[name] = sum(a for _, a in done) / secs
+            finally:
+                proc.terminate()
+                proc.wait(timeout=30)
+    finally:
+        flood_pg.stop()
+    return rates
+
+
 def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterator[Result]:
     """Two Celery workers against one on a long session's parallel stage; the live link
     with and without a big job on the workers; ingest on PostgreSQL against SQLite."""
@@ -312,63 +383,8 @@ def bench_scale(dataset: Path | None = None, limit: int | None = None) -> Iterat
     root = Path(tempfile.mkdtemp(prefix="steelscan-scale-"))
     pg, redis = Postgres(realtime=POSTGRES_REALTIME), Redis()
     try:
-        queue_env = {"STEELSCAN_JOB_BACKEND": "celery", "STEELSCAN_BROKER_URL": redis.url}
-        data = root / "data"
-        db_url = pg.new_database()
-        station, port, token = _station(
-            data, db_url, {**queue_env, "STEELSCAN_REALTIME_PRIORITY": str(STATION_REALTIME)}
-        )
-        url = f"http://127.0.0.1:{port}"
-        workers = _Workers(
-            {
-                **os.environ,
-                **queue_env,
-                "STEELSCAN_DATA_DIR": str(data),
-                "STEELSCAN_DATABASE_URL": db_url,
-            },
-            root,
-            redis.url,
-        )
-        try:
-            sid = _record(port, token, frames)
-            tof_sid = record_clouds(port, token, limit)
-            best = interleaved(
-                lambda kind, session: _job(url, session, kind),
-                workers.scale_to,
-                [("stitch", sid), ("detect", sid), ("map", tof_sid)],
-            )
-            (stitch, stitch_s), (one, one_s), (map1, map1_s) = best[1].values()
-            (stitch2, stitch2_s), (two, two_s), (map2, map2_s) = best[2].values()
-            yield from map_results(map1, map1_s, map2, map2_s, TARGET)
-            yield from _detect_results(one, one_s, two, two_s, frames)
-            yield from _stitch_results(stitch, stitch_s, stitch2, stitch2_s, frames)
-            workers.scale_to(2)
-            realtime = {"station": _realtime(station.pid), "postgresql": pg.realtime}
-            for result in live_results(
-                port, token, url, sid, LIVE_ROBOTS, LIVE_FPS, [w.pid for w in workers.procs]
-            ):
-                yield {**result, "realtime_priority": realtime}
-        finally:
-            workers.stop()
-            station.terminate()
-            station.wait(timeout=30)
-        rates = {}
-        flood_pg = Postgres()  # at normal priority, as the SQLite station is
-        try:
-            for name, url_db in (
-                ("postgresql", flood_pg.new_database()),
-                ("sqlite", f"sqlite:///{root / 'flood' / 'steelscan.db'}"),
-            ):
-                flood_dir = root / f"flood-{name}"
-                proc, fport, ftoken = _station(flood_dir, url_db, {})
-                try:
-                    done, _, secs = drive_robots(fport, ftoken, ROBOTS, FLOOD_S, None)
-                    rates[name] = sum(a for _, a in done) / secs
-                finally:
-                    proc.terminate()
-                    proc.wait(timeout=30)
-        finally:
-            flood_pg.stop()
+        yield from _on_workers(root, pg, redis, frames, limit)
+        rates = _flood_rates(root)
         yield {
             "name": "scale.ingest_flood_postgresql",
             "value": round(rates["postgresql"], 1),
