@@ -83,31 +83,14 @@ def plan_mosaic(
     frames = prepare_frames(source, params)
     shape = frames.shape
     assert shape is not None  # taken from the first frame
+    measurements: list[PairMeasurement]
     if n == 1:
         est_poses = (known if known is not None else np.zeros((1, 3))).copy()
         confident, measurements, rejected = np.ones(1, bool), [], 0
     else:
-        est = estimate_poses(
-            frames.level,
-            n,
-            known,
-            params.registration,
-            _scaled(progress, 0.0, 0.5),
-            spread(frames) if spread is not None else None,
+        est_poses, confident, measurements, rejected = _register(
+            frames, n, known, params, progress, spread
         )
-        if params.vignetting and _correct_vignetting(frames, est.measurements, params):
-            # registration sees the surface evenly lit now: register again from the solution
-            again = replace(params.registration, search_px=8)  # the first solution is close
-            est = estimate_poses(
-                frames.level,
-                n,
-                est.poses,
-                again,
-                _scaled(progress, 0.5, 1.0),
-                spread(frames) if spread is not None else None,
-            )
-        est_poses, confident = est.poses, est.confident
-        measurements, rejected = est.measurements, est.rejected
     gains = _gains(n, measurements) if params.gain_compensation else np.ones(n)
     channels = 1 if len(shape) == 2 else shape[2]
     layout = MosaicLayout(
@@ -125,6 +108,40 @@ def plan_mosaic(
     )
     _fit_extent(layout, est_poses)
     return layout, frames
+
+
+def _register(
+    frames: FrameCache,
+    n: int,
+    known: NDArray[np.float64] | None,
+    params: StitchParams,
+    progress: Progress | None,
+    spread: Callable[[FrameCache], PairSpread] | None,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], list[PairMeasurement], int]:
+    """The ``n`` frames' poses registered and solved globally from the ``known`` poses (or
+    from the images alone), registered again once the vignetting is corrected where
+    ``params`` correct it: the poses, which are confident, the pair measurements and how
+    many pairs were rejected."""
+    est = estimate_poses(
+        frames.level,
+        n,
+        known,
+        params.registration,
+        _scaled(progress, 0.0, 0.5),
+        spread(frames) if spread is not None else None,
+    )
+    if params.vignetting and _correct_vignetting(frames, est.measurements, params):
+        # registration sees the surface evenly lit now: register again from the solution
+        again = replace(params.registration, search_px=8)  # the first solution is close
+        est = estimate_poses(
+            frames.level,
+            n,
+            est.poses,
+            again,
+            _scaled(progress, 0.5, 1.0),
+            spread(frames) if spread is not None else None,
+        )
+    return est.poses, est.confident, est.measurements, est.rejected
 
 
 def _checked_poses(poses: NDArray[np.floating] | None, n: int) -> NDArray[np.float64] | None:

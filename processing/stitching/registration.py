@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from processing.poses import delta_of_map, frame_i_to_j, rot2, wrap_angle
 from processing.stitching.lucas_kanade import Smoothed, refine_euclidean
 from processing.stitching.phase import Gray, quarter_turned
+from processing.stitching.warps import crop_for, scale_warp, shift_origin, uncrop
 
 
 @dataclass(frozen=True)
@@ -113,27 +114,6 @@ class Level:
         return self.full.image.nbytes + self.half.image.nbytes
 
 
-def _crop_for(
-    image: Gray, W: NDArray[np.float64], tw: int, th: int, pad: int
-) -> tuple[Gray, NDArray[np.float64]]:
-    """The part of ``image`` that a (tw x th) template reaches through warp ``W`` (plus
-    ``pad``), and the warp into that part."""
-    corners = W[:2] @ np.array([[0, 0, 1], [tw, 0, 1], [0, th, 1], [tw, th, 1]], float).T
-    x0, y0 = (max(0, int(np.floor(v)) - pad) for v in corners.min(axis=1))
-    x1, y1 = (int(np.ceil(v)) + pad for v in corners.max(axis=1))
-    out = W[:2].copy()
-    out[:, 2] -= (x0, y0)
-    return image[y0 : min(y1, image.shape[0]), x0 : min(x1, image.shape[1])], out
-
-
-def _uncrop(
-    W: NDArray[np.float64], crop_W: NDArray[np.float64], crop_W0: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    out = W.copy()
-    out[:, 2] += crop_W0[:, 2] - crop_W[:, 2]
-    return out
-
-
 def register_pair(
     frame_i: Level | Gray,
     frame_j: Level | Gray,
@@ -174,26 +154,12 @@ def register_pair(
         return None
     # template pixel -> turned-j pixel
     W0 = (Q @ M @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]]))[:2]
-    # Lucas-Kanade on the half- and then the full-resolution image: wide basin, then precision
-    tw, th = x1 - x0, y1 - y0
-    pad = 6 + int(params.max_refine_px + params.max_refine_rad * max(tw, th) / 2)
-    full0 = W0
     # a weak or uncertain coarse match: widen the basin first
-    if coarse < params.half_stage_below or len(angles) > 1:
-        full0 = _half_stage(li, j_half, W0, rect, pad, params)
-    crop, cW = _crop_for(j_full, full0, tw, th, pad)
-    W, score, mean_i, mean_j = refine_euclidean(
-        template, crop, cW, points=params.points, iterations=params.iterations
-    )
-    W = _uncrop(W, cW, full0)
+    wide = coarse < params.half_stage_below or len(angles) > 1
+    W, score, mean_i, mean_j = _fine_stage(li, template, j_full, j_half, W0, rect, wide, params)
     if not np.isfinite(W).all() or score < params.min_score:
         return None
-    centre = np.array([tw / 2, th / 2, 1.0])
-    turned_by = abs(np.arctan2(W[1, 0], W[0, 0]) - np.arctan2(W0[1, 0], W0[0, 0]))
-    if (
-        np.abs(W @ centre - W0 @ centre).max() > params.max_refine_px
-        or turned_by > params.max_refine_rad
-    ):
+    if _ran_away(W, W0, x1 - x0, y1 - y0, params):
         return None  # the refinement ran away from the coarse match
     M_ij = (
         np.linalg.inv(Q)
@@ -201,6 +167,44 @@ def register_pair(
         @ np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]])
     )
     return delta_of_map(M_ij, size), score, mean_i, mean_j
+
+
+def _fine_stage(
+    li: Level,
+    template: Smoothed,
+    j_full: Gray,
+    j_half: Gray,
+    W0: NDArray[np.float64],
+    rect: tuple[int, int, int, int],
+    wide: bool,
+    params: RegistrationParams,
+) -> tuple[NDArray[np.float64], float, float, float]:
+    """Lucas-Kanade of frame i's overlap ``template`` (at ``rect``) on the turned frame j
+    from the coarse warp ``W0`` (template pixel -> turned-j pixel): on the half-resolution
+    image first where ``wide`` (a wide basin), then on the full-resolution one (precision).
+    The refined warp, its score and the two frames' mean levels over the overlap."""
+    x0, y0, x1, y1 = rect
+    tw, th = x1 - x0, y1 - y0
+    pad = 6 + int(params.max_refine_px + params.max_refine_rad * max(tw, th) / 2)
+    full0 = _half_stage(li, j_half, W0, rect, pad, params) if wide else W0
+    crop, cW = crop_for(j_full, full0, tw, th, pad)
+    W, score, mean_i, mean_j = refine_euclidean(
+        template, crop, cW, points=params.points, iterations=params.iterations
+    )
+    return uncrop(W, cW, full0), score, mean_i, mean_j
+
+
+def _ran_away(
+    W: NDArray[np.float64], W0: NDArray[np.float64], tw: int, th: int, params: RegistrationParams
+) -> bool:
+    """Whether the refined warp ``W`` moved the (``tw`` x ``th``) template's centre or turned
+    it further from the coarse warp ``W0`` than ``params`` allow."""
+    centre = np.array([tw / 2, th / 2, 1.0])
+    turned_by = abs(np.arctan2(W[1, 0], W[0, 0]) - np.arctan2(W0[1, 0], W0[0, 0]))
+    return bool(
+        np.abs(W @ centre - W0 @ centre).max() > params.max_refine_px
+        or turned_by > params.max_refine_rad
+    )
 
 
 def _coarse_match(
@@ -239,17 +243,17 @@ def _half_stage(
     turned-j pixel, full resolution): the full-resolution warp to start from."""
     x0, y0, x1, y1 = rect
     tw, th = x1 - x0, y1 - y0
-    half0 = _scale_warp(W0, 0.5)
-    crop, cW = _crop_for(j_half, half0, tw // 2, th // 2, pad)
+    half0 = scale_warp(W0, 0.5)
+    crop, cW = crop_for(j_half, half0, tw // 2, th // 2, pad)
     hW, _, _, _ = refine_euclidean(
         li.half.crop(x0 // 2, y0 // 2, x1 // 2, y1 // 2),
         crop,
-        _shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),
+        shift_origin(cW, x0 % 2 / 2, y0 % 2 / 2),
         points=params.points // 4,
         iterations=params.iterations,
     )
-    hW = _uncrop(_shift_origin(hW, -(x0 % 2) / 2, -(y0 % 2) / 2), cW, half0)
-    return _scale_warp(hW, 2.0)
+    hW = uncrop(shift_origin(hW, -(x0 % 2) / 2, -(y0 % 2) / 2), cW, half0)
+    return scale_warp(hW, 2.0)
 
 
 def _search_window(
@@ -304,22 +308,8 @@ def _coarse_search(
         # the guess turned by ``angle`` about the overlap's centre, searched at 1/f resolution
         R = rot2(angle)
         Ma = M @ np.vstack([np.hstack([R, (centre - R @ centre)[:, None]]), [0, 0, 1]])
-        size_f = (-(-window[0] * 2 // f), -(-window[1] * 2 // f))
-        seen = cv2.warpAffine(
-            j_img,
-            _scale_warp((Q @ Ma @ origin)[:2], 1 / f),
-            size_f,
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-        )
-        res = cast(NDArray[np.float32], cv2.matchTemplate(seen, tmpl, cv2.TM_CCOEFF_NORMED))
-        at = _parabola_peak(res)
-        shift = f * at - 2 * hs
-        edge = bool(min(at[0], at[1]) < 1 or at[0] > res.shape[1] - 2 or at[1] > res.shape[0] - 2)
-        return (
-            float(res.max()),
-            Ma @ np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]]),
-            edge,
-        )
+        peak, shift, edge = _correlate(j_img, tmpl, Q @ Ma @ origin, window, f, hs)
+        return peak, Ma @ np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1.0]]), edge
 
     if len(angles) == 1:
         peak, M_best, edge = at_angle(angles[0])
@@ -334,6 +324,33 @@ def _coarse_search(
         best = _climb(sorted(angles), lambda a: at_angle(a)[0])
     peak, M_best, edge = at_angle(best)
     return M_best, peak, edge
+
+
+def _correlate(
+    j_img: Gray,
+    tmpl: Gray,
+    A: NDArray[np.float64],
+    window: tuple[int, int],
+    f: int,
+    hs: int,
+) -> tuple[float, NDArray[np.float64], bool]:
+    """Normalised cross-correlation of ``tmpl`` over the ``window`` (half-resolution px,
+    searched ±``hs``) of the turned frame j (``j_img``, at 1/``f`` resolution) that warp
+    ``A`` (window pixel -> turned-j pixel, full resolution) samples. The peak correlation,
+    the shift of the window it gives (full-resolution px, sub-pixel; 0 where the guess is)
+    and whether the peak lies on the window's edge."""
+    size_f = (-(-window[0] * 2 // f), -(-window[1] * 2 // f))
+    seen = cv2.warpAffine(
+        j_img,
+        scale_warp(A[:2], 1 / f),
+        size_f,
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+    )
+    res = cast(NDArray[np.float32], cv2.matchTemplate(seen, tmpl, cv2.TM_CCOEFF_NORMED))
+    at = _parabola_peak(res)
+    shift = f * at - 2 * hs
+    edge = bool(min(at[0], at[1]) < 1 or at[0] > res.shape[1] - 2 or at[1] > res.shape[0] - 2)
+    return float(res.max()), shift, edge
 
 
 def _climb(angles: Sequence[float], score: Callable[[float], float]) -> float:
@@ -362,11 +379,6 @@ def _std(image: Gray) -> float:
     return float(cv2.meanStdDev(image)[1][0, 0])
 
 
-def _shift_origin(W: NDArray[np.float64], dx: float, dy: float) -> NDArray[np.float64]:
-    """A warp for a template whose pixel (0, 0) sits at (dx, dy) of the original's."""
-    return W[:2] @ np.array([[1, 0, dx], [0, 1, dy], [0, 0, 1.0]])
-
-
 def _parabola_peak(res: NDArray[np.float32]) -> NDArray[np.float64]:
     """Sub-pixel (x, y) of a correlation surface's maximum (a parabola through the peak)."""
     _, _, _, (px, py) = cv2.minMaxLoc(res)
@@ -378,11 +390,3 @@ def _parabola_peak(res: NDArray[np.float32]) -> NDArray[np.float64]:
         a, b, c = res[py - 1, px], res[py, px], res[py + 1, px]
         fy += 0.5 * (a - c) / (a - 2 * b + c) if a - 2 * b + c != 0 else 0.0
     return np.array([fx, fy])
-
-
-def _scale_warp(W: NDArray[np.float64], f: float) -> NDArray[np.float64]:
-    """The same Euclidean warp between images scaled by ``f`` (pyramid levels, pixel centres
-    at integer coordinates as in ``cv2.pyrDown``)."""
-    out = W.copy()
-    out[:, 2] = W[:, 2] * f
-    return out
