@@ -108,16 +108,11 @@ def register_to_map(
         for _ in range(params.max_iterations):
             R = T[:3, :3]
             world = pts @ R.T + T[:3, 3]
-            # one thread: a cloud is a few thousand points, and starting threads costs more
-            gap, nearest = tree.query(world, distance_upper_bound=distance)
-            ok = np.flatnonzero(np.isfinite(gap))
-            n = map_normals[nearest[ok]]
-            agree = np.abs(np.einsum("ij,ij->i", n, nrm[ok] @ R.T)) > params.min_normal_cos
-            ok, n = ok[agree], n[agree]
+            ok, nearest, n = _matches(tree, map_normals, world, nrm, R, distance, params)
             matched = len(ok)
             if matched < params.min_points:
                 return Registration(prediction.copy(), matched, 6, prior_information)
-            r = np.einsum("ij,ij->i", world[ok] - map_points[nearest[ok]], n)
+            r = np.einsum("ij,ij->i", world[ok] - map_points[nearest], n)
             JwJ, Jwr = _normal_equations(pts[ok], n @ R, r, scale, stride)
             H_data, g_data, degenerate = observable_part(JwJ, Jwr, reach_m, params.degenerate_ratio)
             e = se3_log(P_inv @ T)
@@ -130,6 +125,28 @@ def register_to_map(
             if np.abs(step).max() < tolerance:
                 break
     return Registration(T, matched, degenerate, information)
+
+
+def _matches(
+    tree: cKDTree,
+    map_normals: NDArray[np.float64],
+    world: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    R: NDArray[np.float64],
+    distance: float,
+    params: TrackingParams,
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+    """The points (``world``: placed in the world; ``normals``: sensor frame, turned by
+    ``R``) with a map point (``tree`` of them) within ``distance`` whose normal agrees with
+    theirs (``min_normal_cos``): their indices, those map points' and those map points'
+    normals."""
+    # one thread: a cloud is a few thousand points, and starting threads costs more
+    gap, nearest = tree.query(world, distance_upper_bound=distance)
+    ok = np.flatnonzero(np.isfinite(gap))
+    n = map_normals[nearest[ok]]
+    agree = np.abs(np.einsum("ij,ij->i", n, normals[ok] @ R.T)) > params.min_normal_cos
+    ok, n = ok[agree], n[agree]
+    return ok, nearest[ok], n
 
 
 def _normal_equations(
