@@ -12,12 +12,17 @@ from processing.mapping.graph_optimiser import GraphOptions, optimise_pose_graph
 from processing.mapping.icp import plane_information
 from processing.mapping.landmarks import PlaneLandmarks
 from processing.mapping.loops import close_loop, loop_candidates
+from processing.mapping.odometry_edges import (
+    odometry_error_scale,
+    odometry_information,
+    odometry_sigma,
+)
 from processing.mapping.pairwise import CloudMeasurement, PairEdge, Step, edge_of, measure_step
 from processing.mapping.params import MapParams
 from processing.mapping.planes import Plane, extract_planes
 from processing.mapping.result import MapResult
 from processing.mapping.selection import fuse_map, select
-from processing.mapping.tracking import Tracker, axis_information
+from processing.mapping.tracking import Tracker
 from processing.mapping.wheels import WheelModel, fit_wheel_model, wheel_edge
 
 reg = o3d.pipelines.registration
@@ -180,7 +185,8 @@ class IncrementalMap:
             return pose
         if step.heading_gap is not None:
             up = np.asarray(self.graph.nodes[i - 1].pose)[2, :3]  # the world's z in cloud i-1
-            cloud.heading_gap = float(step.heading_gap @ up) / self._odometry_sigma(step.step)[0]
+            sigma = odometry_sigma(step.step, self.params.odometry)
+            cloud.heading_gap = float(step.heading_gap @ up) / sigma[0]
         cloud.step = step.step if cloud.guess is not None else step.seed
         cloud.fitness, cloud.rmse, cloud.used_odometry, cloud.degenerate_dims = step.facts
         pose = np.asarray(self.graph.nodes[i - 1].pose) @ step.seed
@@ -219,27 +225,15 @@ class IncrementalMap:
         """Odometry edge into cloud i: holds what the geometry cannot; its error grows with the step."""
         step = self.clouds[i].step
         assert step is not None
-        self.clouds[i].odometry_sigma = self._odometry_sigma(step)
+        self.clouds[i].odometry_sigma = odometry_sigma(step, self.params.odometry)
         info = self._odometry_information(i, 1.0)
         self.graph.edges.append(reg.PoseGraphEdge(i, i - 1, step, info, uncertain=False))
 
-    def _odometry_sigma(self, step: NDArray[np.float64]) -> tuple[float, float]:
-        """Configured error of an odometry step: rotation (rad) and translation (m)."""
-        p = self.params
-        d = float(np.linalg.norm(step[:3, 3]))
-        return float(np.radians(p.odometry.sigma_deg_per_m * d + 0.2)), max(
-            p.odometry.sigma_frac * d, p.odometry.sigma_floor_m
-        )
-
     def odometry_error_scale(self) -> float:
-        """How much larger the odometry's heading error is than configured (>= 1): the robust
-        spread (1.4826 MAD) of its heading steps against ICP's, where the structure fixes
-        them, each over its configured error; 1 until 10 such steps were seen. ICP's own
-        error is in the spread, so odometry as good as configured stays at 1."""
+        """How much larger the odometry's heading error is than configured (>= 1), from the
+        clouds' heading gaps so far (:func:`.odometry_edges.odometry_error_scale`)."""
         gaps = [c.heading_gap for c in self.clouds if c.heading_gap is not None]
-        if not self.params.odometry.calibrate or len(gaps) < 10:
-            return 1.0
-        return max(1.0, 1.4826 * float(np.median(np.abs(gaps))))
+        return odometry_error_scale(gaps, self.params.odometry)
 
     def _calibrate_odometry_edges(self) -> None:
         """Set every odometry edge's information for :meth:`odometry_error_scale` (each cloud's
@@ -254,15 +248,10 @@ class IncrementalMap:
             edge.information = self._odometry_information(s, scale)
 
     def _odometry_information(self, i: int, scale: float) -> NDArray[np.float64]:
-        """Information of cloud i's odometry edge: once the wheel model holds the steps, its
-        tracked pose's (the geometry's where it observes, the prediction's elsewhere:
-        :meth:`Tracker.information`), else the configured odometry errors times ``scale``."""
+        """Information of cloud i's odometry edge (its configured errors times ``scale``)."""
         cloud = self.clouds[i]
-        if self.wheel_model is not None and cloud.tracked_information is not None:
-            return cloud.tracked_information
-        assert cloud.odometry_sigma is not None
-        sigma_r, sigma_t = cloud.odometry_sigma
-        return axis_information(scale * sigma_r, scale * sigma_t)
+        wheels = self.wheel_model is not None
+        return odometry_information(cloud.odometry_sigma, cloud.tracked_information, wheels, scale)
 
     def _add_edge(
         self, s: int, t: int, result: reg.RegistrationResult | None, *, uncertain: bool
