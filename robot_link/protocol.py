@@ -136,10 +136,19 @@ DRIVE_HOLD_S = 0.2  # a drive command holds this long; the robot stops unless a 
 class CommandMeta(_Meta):
     """An operator's command. ``drive`` args: ``linear_mps``, ``angular_radps`` (held for
     DRIVE_HOLD_S); ``lift``: ``axle`` front|rear, ``up`` bool; ``auto_capture``: ``on`` bool,
-    ``spacing_m``; any command may carry ``sent_ms`` (the operator's clock, ms since the epoch)."""
+    ``spacing_m``; ``sweep``: ``action`` start|pause|resume|stop (the on-board coverage
+    sweep); any command may carry ``sent_ms`` (the operator's clock, ms since the epoch)."""
 
     cmd: Literal[
-        "drive", "stop", "estop", "resume", "capture", "lift", "auto_capture", "end_session"
+        "drive",
+        "stop",
+        "estop",
+        "resume",
+        "capture",
+        "lift",
+        "auto_capture",
+        "sweep",
+        "end_session",
     ]
     args: dict[str, Any] = Field(default_factory=dict)
 

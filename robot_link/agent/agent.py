@@ -121,6 +121,8 @@ class RobotAgent:
             turn_radps=min(s.turn_radps, self.cfg.safety.max_turn_radps),
             lane_width_m=self.camera_geometry.footprint_m[1] * (1 - s.lane_overlap),
             first_turn=-1 if s.first_turn == "left" else 1,
+            # one Hall edge on each side turns the robot this much: no finer heading is seen
+            heading_tolerance=self.spec.metres_per_tick / self.spec.track_m,
         )
 
     def calibration(self) -> dict[str, Any]:

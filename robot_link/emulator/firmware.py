@@ -4,7 +4,7 @@ The MCU stops the wheels by itself, whatever the host says: a drive command hold
 most ``deadman_s`` (the dead-man), an e-stop latches until reset, no wheel turns forward
 while a front IR sensor sees no surface (nor backward at the rear; the paper's Algorithm 1
 guard), and it refuses to drive on a low battery or when the adhesion margin of eq. (1)
-falls below its limit. Wheel speeds ramp at ``accel_mps2``.
+falls below its limit. Wheel speeds ramp up at ``accel_mps2`` and down at ``brake_mps2``.
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ class FirmwareParams:
     deadman_s: float = 0.2
     max_wheel_mps: float = 0.25
     accel_mps2: float = 1.5
+    brake_mps2: float = 3.0  # slowing down: the motors brake harder than they accelerate
     ir_eps_m: float = 0.02
     min_battery_v: float = 10.8
     min_adhesion: float = 1.5
@@ -164,7 +165,8 @@ class Firmware:
         self.flags, self.faults = flags, faults
 
     def _ramp(self, now: float, target: float, dt: float) -> float:
-        step = self.params.accel_mps2 * dt
+        slowing = abs(target) < abs(now) or target * now < 0
+        step = (self.params.brake_mps2 if slowing else self.params.accel_mps2) * dt
         return float(now + np.clip(target - now, -step, step))
 
     def _edge_guard(self, left: float, right: float) -> tuple[float, float, Flag]:

@@ -366,6 +366,9 @@ export function initDrive() {
       });
     }
   });
+  document
+    .querySelectorAll("button[data-sweep]")
+    .forEach((b) => b.addEventListener("click", () => command("sweep", { action: b.dataset.sweep })));
   document.querySelectorAll("button[data-lift]").forEach((b) =>
     b.addEventListener("click", () => {
       command("lift", { axle: b.dataset.lift, up: b.getAttribute("aria-pressed") !== "true" });

@@ -93,6 +93,24 @@ function render(d) {
         ? `${d.auto_capture.on ? "on" : "off"}, every ${fmt(d.auto_capture.spacing_m * 100, 0)} cm`
         : "route",
     ),
+    ...(d.sweep
+      ? row(
+          "coverage sweep",
+          `${d.sweep.state}: ${d.sweep.phase} · ${d.sweep.lanes_done} lanes done`,
+          d.sweep.state === "paused",
+        )
+      : []),
+    ...(d.mcu ? row("MCU line", d.mcu.error || `ok · ${d.mcu.bad_frames} damaged frames`, Boolean(d.mcu.error)) : []),
+    ...(d.safety?.length ? row("on-board safety", d.safety.join("; "), true) : []),
+    ...(d.onboard
+      ? row(
+          "on-board computer",
+          `CPU ${fmt(d.onboard.cpu_percent, 0)} % · ${d.onboard.temperature_c ?? "–"} °C · ` +
+            `camera ${fmt(d.onboard.camera_hz, 1)} Hz` +
+            (d.onboard.camera_error ? ` — ${d.onboard.camera_error}` : ""),
+          Boolean(d.onboard.camera_error),
+        )
+      : []),
     ...row(
       "link: ACK latency",
       `${fmt(link.ack_latency_ms, 1)} ms · command ${cmd === null ? "–" : `${cmd.toFixed(1)} ms`}`,
