@@ -7,7 +7,6 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import escape
 
 import cv2
 import numpy as np
@@ -18,7 +17,6 @@ from reportlab.lib.units import mm
 from reportlab.platypus import (
     KeepTogether,
     PageBreak,
-    Paragraph,
     SimpleDocTemplate,
     Spacer,
 )
@@ -31,6 +29,7 @@ from processing.snapshot import render_points
 from server.errors import NotFound
 from server.reports.content import build_report, read_json
 from server.reports.fields import CONDITION_MEANING, CONDITION_STATES
+from server.reports.pdf_defects import Thumbnail, defect_table
 from server.reports.pdf_sections import coverage_section, parameters_appendix
 from server.reports.pdf_style import (
     BODY_W,
@@ -48,8 +47,6 @@ from server.storage.files import SessionFiles
 from server.storage.models import Defect
 from server.storage.ply import read_ply_points
 from server.storage.thumbnails import defect_image
-
-Thumbnail = Callable[[dict[str, Any]], np.ndarray | None]
 
 
 def overview_with_markers(
@@ -145,89 +142,6 @@ def _summary(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]
     return story
 
 
-def _defect_row(
-    d: dict[str, Any], st: dict[str, ParagraphStyle], thumbnail: Thumbnail
-) -> list[Any]:
-    """One defect's row of the table: number (a link to it), thumbnail, class, sizes,
-    position, review, condition state, comment."""
-    thumb = thumbnail(d)
-    cell = picture(thumb, 24 * mm, 24 * mm) if thumb is not None else "—"
-    pos = f"{d['world_x_m']:.3f},\n{d['world_y_m']:.3f}" if d["world_x_m"] is not None else "—"
-    review = d["review_status"] + (f"\nby {d['reviewed_by']}" if d.get("reviewed_by") else "")
-    return [
-        _number_link(d, st),
-        cell,
-        d["defect_class"],
-        fmt_num(d["length_mm"]),
-        fmt_num(d["max_width_mm"], "{:.2f}"),
-        fmt_num(d["area_mm2"], "{:.0f}"),
-        pos,
-        para(review, st["cell"]),
-        d["condition_state"] or "—",
-        para(_clip(d["comment"]), st["cell"]),
-    ]
-
-
-def _defect_table(
-    report: dict[str, Any], st: dict[str, ParagraphStyle], thumbnail: Thumbnail
-) -> list[Any]:
-    listed = [d for d in report["defects"] if d["review_status"] != "rejected"]
-    story: list[Any] = [para("Defects", st["h1"])]
-    if not report["defects"]:
-        done = "detect" not in report["missing"]
-        return story + [
-            para(
-                "No defect was found."
-                if done
-                else "Defect detection has not run for this session.",
-                st["body"],
-            )
-        ]
-    rejected = len(report["defects"]) - len(listed)
-    intro = (
-        f"{len(listed)} defects, ordered along the structure; numbers match the markers on the mosaic. "
-        "Position is the defect box's corner on the structure (metres, world frame); sizes from the camera scale."
-    )
-    if rejected:
-        intro += f" {rejected} defects rejected in review are not listed (they are in defects.csv)."
-    story.append(para(intro, st["body"]))
-    story.append(Spacer(1, 2 * mm))
-    rows: list[list[Any]] = [
-        [
-            "#",
-            "Image",
-            "Class",
-            "Length\nmm",
-            "Max w.\nmm",
-            "Area\nmm²",
-            "Position\nx, y (m)",
-            "Review",
-            "CS",
-            "Comment",
-        ]
-    ]
-    rows += [_defect_row(d, st, thumbnail) for d in listed]
-    widths = [8 * mm, 26 * mm, 16 * mm, 13 * mm, 13 * mm, 13 * mm, 18 * mm, 30 * mm, 9 * mm]
-    widths.append(BODY_W - sum(widths))
-    story.append(grid_table(rows, widths, font_size=8))
-    long = [d for d in listed if d["comment"] and _clip(d["comment"]) != d["comment"]]
-    if long:  # in full as running text, which may break across pages (a table row cannot)
-        story += [Spacer(1, 3 * mm), para("Comments in full", st["h2"])]
-        story += [para(f"#{d['number']}: {d['comment']}", st["body"]) for d in long]
-    return story
-
-
-def _number_link(d: dict[str, Any], st: dict[str, ParagraphStyle]) -> Any:
-    """The defect's number, linked to the dashboard on that defect when the report knows
-    the station's address."""
-    url = d.get("dashboard_url", "")
-    if not url.startswith(("http://", "https://")):
-        return str(d["number"])
-    return Paragraph(
-        f'<a href="{escape(url)}" color="#1f3a5f"><u>{d["number"]}</u></a>', st["cell"]
-    )
-
-
 def duration_text(seconds: float | None) -> str:
     """A duration as an inspector says it: "12 min 05 s", "1 h 02 min"."""
     if seconds is None:
@@ -241,19 +155,6 @@ def duration_text(seconds: float | None) -> str:
 def _missing(report: dict[str, Any], what: str) -> str:
     """The report's note on why a result is missing (it starts with ``what``)."""
     return next((n for n in report["notes"] if n.startswith(what)), f"{what}: not available.")
-
-
-def _clip(text: str | None, chars: int = 200, lines: int = 6) -> str | None:
-    """A comment short enough for a table cell; longer ones end in "…" and follow the
-    table in full."""
-    if not text:
-        return text
-    rows = text.splitlines()
-    short = "\n".join(rows[:lines])[:chars]
-    words = short.split()
-    if any(len(w) > 30 for w in words):  # one long "word" would fill the cell letter by letter
-        short = " ".join(w[:30] for w in words)
-    return text if short == text else short.rstrip() + " … (in full below)"
 
 
 def _footer(structure: str) -> Callable[[Any, Any], None]:
@@ -323,7 +224,7 @@ def write_report_pdf(
     story.append(PageBreak())
     story += _mosaic_page(report, st, marked)
     story.append(PageBreak())
-    story += _defect_table(report, st, thumbnail)
+    story += defect_table(report, st, thumbnail)
     story.append(PageBreak())
     story += _map_page(report, st, map_snapshot)
     story += [PageBreak()] + parameters_appendix(report, st)
