@@ -76,7 +76,7 @@ class RobotAgent:
         self.sweep: CoverageSweep | None = None
         self._since_capture = 0.0
         self._capture_lock = asyncio.Lock()
-        self._capture_task: asyncio.Task[None] | None = None
+        self._capture_task: asyncio.Task[bool] | None = None
         self.auto_capture = True
         self.capture_requested = False
 
@@ -197,7 +197,8 @@ class RobotAgent:
         await self._send(
             MessageType.SESSION_END,
             {
-                "reason": "sweep completed" if self.sweep and self.sweep.progress.finished
+                "reason": "sweep completed"
+                if self.sweep and self.sweep.progress.finished
                 else "operator ended the session",
                 "frames": self.frames_sent,
                 "clouds": self.clouds_sent,
@@ -242,7 +243,9 @@ class RobotAgent:
     def _distance(self, moved: float) -> None:
         self._since_capture += moved
         due = self.auto_capture and self._since_capture >= self.spacing_m()
-        if (due or self.capture_requested) and (self._capture_task is None or self._capture_task.done()):
+        if (due or self.capture_requested) and (
+            self._capture_task is None or self._capture_task.done()
+        ):
             self.capture_requested = False
             self._capture_task = asyncio.create_task(self.capture())
 
@@ -316,12 +319,16 @@ class RobotAgent:
             if not self._capture_lock.locked():
                 with contextlib.suppress(CameraError):
                     grab = await self.camera.grab(exact=False)
-                    small = cv2.resize(grab.image, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+                    small = cv2.resize(
+                        grab.image, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA
+                    )
                     ok, jpeg = cv2.imencode(
                         ".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, self.cfg.camera.preview_quality]
                     )
                     meta = {"encoding": "jpeg", "width": small.shape[1], "height": small.shape[0]}
-                    if ok and await self.link.send_video(meta, jpeg.tobytes(), timestamp=time.time()):
+                    if ok and await self.link.send_video(
+                        meta, jpeg.tobytes(), timestamp=time.time()
+                    ):
                         self.health.count("preview")
             await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
 
@@ -332,7 +339,12 @@ class RobotAgent:
             await asyncio.sleep(period)
 
     async def _send(
-        self, mtype: MessageType, meta: dict[str, Any], payload: bytes = b"", *, timestamp: float | None = None
+        self,
+        mtype: MessageType,
+        meta: dict[str, Any],
+        payload: bytes = b"",
+        *,
+        timestamp: float | None = None,
     ) -> int:
         assert self.link is not None
         return await self.link.send(mtype, meta, payload, timestamp=timestamp or time.time())
@@ -395,5 +407,7 @@ def camera_geometry(config: RobotConfig, emulator: dict[str, Any]) -> CameraGeom
     c = config.camera
     if c.source == "emulator" and "camera" in emulator:
         e = emulator["camera"]
-        return CameraGeometry(int(e["width"]), int(e["height"]), float(e["px_per_m"]), float(e["mount_x_m"]))
+        return CameraGeometry(
+            int(e["width"]), int(e["height"]), float(e["px_per_m"]), float(e["mount_x_m"])
+        )
     return CameraGeometry(c.width, c.height, c.px_per_m, c.mount_x_m)

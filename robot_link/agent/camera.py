@@ -55,7 +55,7 @@ class OpenCVCamera:
         self.config = config
         self.name = f"camera {config.source}"
         self._cap: cv2.VideoCapture | None = None
-        self._maps: tuple[NDArray, NDArray] | None = None
+        self._maps: tuple[NDArray[np.int16], NDArray[np.uint16]] | None = None
         self._file = isinstance(config.source, str) and Path(config.source).is_file()
 
     async def open(self) -> None:
@@ -97,7 +97,7 @@ class OpenCVCamera:
         if not ok or image is None:
             await self.close()
             raise CameraError(f"{self.name} gave no frame (unplugged?)")
-        return Grab(undistort(image, self.config, self), t)
+        return Grab(undistort(np.asarray(image, np.uint8), self.config, self), t)
 
     async def close(self) -> None:
         """Release the device."""
@@ -132,7 +132,7 @@ class FolderCamera:
         image = await asyncio.to_thread(cv2.imread, str(path), cv2.IMREAD_COLOR)
         if image is None:
             raise CameraError(f"cannot read the image {path}")
-        return Grab(image, t)
+        return Grab(np.asarray(image, np.uint8), t)
 
     async def close(self) -> None:
         """Nothing to release."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,7 +55,8 @@ class Controller:
         self.log = DriveLog()
         self._moving = False
         self._sample = asyncio.Event()
-        self.on_distance: list = []  # callbacks(distance moved), for auto-capture
+        # called with the distance moved at each sample (auto-capture)
+        self.on_distance: list[Callable[[float], None]] = []
 
     # the MCU's sensor stream
     def on_sensors(self, packet: Sensors) -> None:

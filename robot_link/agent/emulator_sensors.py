@@ -19,7 +19,9 @@ class EmulatorSensors:
         self._streams: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
         self._lock = asyncio.Lock()
 
-    async def request(self, sensor: str, *, exact: bool = True) -> tuple[NDArray, float]:
+    async def request(
+        self, sensor: str, *, exact: bool = True
+    ) -> tuple[NDArray[np.generic], float]:
         """The sensor's image now and the emulator's clock at its exposure."""
         async with self._lock:
             try:
@@ -28,7 +30,7 @@ class EmulatorSensors:
                 await self.close()
                 raise OSError(f"the emulator's {sensor} at {self.path}: {exc}") from None
 
-    async def _request(self, sensor: str, exact: bool) -> tuple[NDArray, float]:
+    async def _request(self, sensor: str, exact: bool) -> tuple[NDArray[np.generic], float]:
         if self._streams is None:
             self._streams = await asyncio.open_unix_connection(self.path, limit=2**20)
         reader, writer = self._streams

@@ -27,7 +27,9 @@ class AgentHealth:
     camera_error: str | None = None
     tof_error: str | None = None
     events: dict[str, deque[float]] = field(default_factory=dict)
-    _cpu: tuple[float, float] = field(default_factory=lambda: (time.monotonic(), time.process_time()))
+    _cpu: tuple[float, float] = field(
+        default_factory=lambda: (time.monotonic(), time.process_time())
+    )
 
     def count(self, what: str) -> None:
         """Note one ``what`` (frames, clouds, preview) now."""
@@ -66,7 +68,9 @@ def telemetry_meta(agent: RobotAgent) -> dict[str, Any]:
             "linear_mps": round(v, 4),
             "angular_radps": round(w, 4),
             "commanded_linear_mps": round(c.commanded()[0], 4),
-            "blocked_by": [IR_NAMES[i] for i in c.safety.ir_out] if "edge" in " ".join(c.verdict.reasons) else [],
+            "blocked_by": [IR_NAMES[i] for i in c.safety.ir_out]
+            if "edge" in " ".join(c.verdict.reasons)
+            else [],
             "hold_ms": agent.cfg.safety.deadman_s * 1000,
         },
         "safety": list(c.verdict.reasons),

@@ -139,7 +139,7 @@ class ReplayTof:
     def _depth(self, path: Path) -> NDArray[np.float32]:
         import open3d as o3d
 
-        pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+        pcd = o3d.io.read_point_cloud(path, remove_nan_points=False, remove_infinite_points=False)
         pts = np.asarray(pcd.points, np.float32)
         w, h = int(self.intrinsics["width"]), int(self.intrinsics["height"])
         if len(pts) != w * h:

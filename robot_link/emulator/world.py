@@ -78,7 +78,9 @@ def make_world(seed: int, plate_size_m: tuple[float, float] | None = None) -> Wo
         plate_size_m = (round(rng.uniform(1.0, 1.8), 2), round(rng.uniform(0.6, 1.1), 2))
     w, h = plate_size_m
     if w < 0.6 or h < 0.5:
-        raise ValueError(f"a plate of {w} x {h} m is too small for the robot (0.6 x 0.5 m at least)")
+        raise ValueError(
+            f"a plate of {w} x {h} m is too small for the robot (0.6 x 0.5 m at least)"
+        )
     area = w * h
     structure = make_structure(
         seed,

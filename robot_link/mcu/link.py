@@ -141,7 +141,9 @@ class McuLink:
         try:
             return await asyncio.wait_for(future, timeout_s)
         except TimeoutError:
-            raise McuError(f"the MCU did not acknowledge {ptype.name} within {timeout_s} s") from None
+            raise McuError(
+                f"the MCU did not acknowledge {ptype.name} within {timeout_s} s"
+            ) from None
         finally:
             self._acks.pop(seq, None)
 

@@ -138,9 +138,10 @@ class HelloReply:
 
     def pack(self) -> bytes:
         """The HELLO_REPLY body."""
-        return _HELLO_REPLY.pack(self.version, self.sensor_hz) + json.dumps(
-            self.info, separators=(",", ":")
-        ).encode()
+        return (
+            _HELLO_REPLY.pack(self.version, self.sensor_hz)
+            + json.dumps(self.info, separators=(",", ":")).encode()
+        )
 
     @classmethod
     def unpack(cls, body: bytes) -> HelloReply:

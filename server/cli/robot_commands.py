@@ -68,7 +68,9 @@ def cmd_mcu_emulator(args: argparse.Namespace) -> int:
         try:
             w, h = (float(v) for v in args.plate.lower().split("x"))
         except ValueError:
-            raise CommandError(f"--plate {args.plate!r}: give WxH in metres, e.g. 1.2x0.8") from None
+            raise CommandError(
+                f"--plate {args.plate!r}: give WxH in metres, e.g. 1.2x0.8"
+            ) from None
         plate = (w, h)
     try:
         world = make_world(args.seed, plate)

@@ -6,7 +6,6 @@ operator's take-over, e-stop and resume mid-sweep; a bad config or a silent MCU 
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -76,9 +75,9 @@ def test_a_sweep_covers_the_plate_without_crossing_an_edge(
     # every frame is stored, each within the capture spacing of Hall distance of the last
     session = httpx.get(f"{live_server.url}/api/sessions/{summary['session_id']}").json()
     assert session["frames"] == summary["frames_sent"] and session["clouds"] >= 1
-    frames = httpx.get(
-        f"{live_server.url}/api/sessions/{summary['session_id']}/coverage"
-    ).json()["frames"]
+    frames = httpx.get(f"{live_server.url}/api/sessions/{summary['session_id']}/coverage").json()[
+        "frames"
+    ]
     assert len(frames) == summary["frames_sent"]
     centres = np.array([np.mean(f["footprint"], axis=0) for f in frames])
     spacing = emu.header["camera_footprint"]["height"] * (1 - 0.3)
@@ -92,8 +91,16 @@ def test_the_robot_is_at_rest_within_half_a_second_when_the_station_dies(
     token = make_token(settings)
     port = free_port()
     station = subprocess.Popen(
-        [sys.executable, "-m", "server.cli", "serve", "--data-dir", str(tmp_path / "data"),
-         "--port", str(port)],
+        [
+            sys.executable,
+            "-m",
+            "server.cli",
+            "serve",
+            "--data-dir",
+            str(tmp_path / "data"),
+            "--port",
+            str(port),
+        ],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -106,7 +113,9 @@ def test_the_robot_is_at_rest_within_half_a_second_when_the_station_dies(
                 break
             except httpx.HTTPError:
                 time.sleep(0.2)
-        robot = run_robot(write_config(tmp_path / "robot.toml", url, token, emu_dev(emulator)), "--sweep")
+        robot = run_robot(
+            write_config(tmp_path / "robot.toml", url, token, emu_dev(emulator)), "--sweep"
+        )
         emulator.wait_for(lambda s: abs(s["speed"]) > 0.1, 30)
         station.kill()
         killed = time.monotonic()
@@ -126,3 +135,82 @@ def test_the_robot_is_at_rest_within_half_a_second_when_the_station_dies(
 
 def emu_dev(emulator: EmulatorProcess) -> str:
     return emulator.device
+
+
+def _browser_command(ws, sid: str, cmd: str, **args: object) -> None:  # type: ignore[no-untyped-def]
+    ws.send(
+        json.dumps({"session_id": sid, "cmd": cmd, "args": {**args, "sent_ms": time.time() * 1000}})
+    )
+
+
+def test_an_operator_takes_over_stops_and_resumes_a_sweep(
+    live_server: LiveServer, emulator: EmulatorProcess, tmp_path: Path
+) -> None:
+    from websockets.sync.client import connect
+
+    config = write_config(
+        tmp_path / "robot.toml", live_server.url, live_server.token, emulator.device
+    )
+    robot = run_robot(config, "--sweep")
+    try:
+        with connect(live_server.url.replace("http", "ws") + "/ws/live", max_size=2**22) as ws:
+            sid = None
+            deadline = time.monotonic() + 30
+            while sid is None and time.monotonic() < deadline:
+                e = ws.recv(timeout=5)
+                if (
+                    isinstance(e, str)
+                    and (m := json.loads(e)).get("type") == "robot"
+                    and m["connected"]
+                ):
+                    sid = m["session_id"]
+            assert sid is not None
+            emulator.wait_for(lambda s: s["speed"] > 0.05, 30)
+            # take-over: the operator reverses; the sweep pauses, the dead-man then stops it
+            for _ in range(10):
+                _browser_command(ws, sid, "drive", linear_mps=-0.05, angular_radps=0.0)
+                time.sleep(0.05)
+            emulator.wait_for(lambda s: s["speed"] < 0, 2)
+            emulator.wait_for(lambda s: s["speed"] == 0.0, 2)
+            time.sleep(1.0)
+            assert all(s["speed"] == 0.0 for t, s in emulator.states[-5:])
+            # resume the sweep; then the e-stop stops it and refuses driving until resumed
+            _browser_command(ws, sid, "sweep", action="resume")
+            emulator.wait_for(lambda s: s["speed"] != 0.0, 5)
+            _browser_command(ws, sid, "estop")
+            stopped = emulator.wait_for(lambda s: s["speed"] == 0.0 and s["estop"], 1)
+            _browser_command(ws, sid, "drive", linear_mps=0.1, angular_radps=0.0)
+            time.sleep(0.5)
+            assert all(s["speed"] == 0.0 for _, s in emulator.states[-3:])
+            _browser_command(ws, sid, "resume")
+            _browser_command(ws, sid, "sweep", action="start")
+            emulator.wait_for(lambda s: s["speed"] != 0.0 and s["t"] > stopped["t"], 5)
+            _browser_command(ws, sid, "sweep", action="stop")
+            emulator.wait_for(lambda s: s["speed"] == 0.0, 2)
+            _browser_command(ws, sid, "end_session")
+        out, err = robot.communicate(timeout=60)
+        assert robot.returncode == 0, err
+        assert all(s["on_plate"] for _, s in emulator.states)
+    finally:
+        if robot.poll() is None:
+            robot.kill()
+
+
+def test_a_bad_config_or_a_silent_mcu_exits_with_one_error_line(
+    emulator: EmulatorProcess, tmp_path: Path
+) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[station]\nurl = 1\n")
+    robot = run_robot(bad)
+    _, err = robot.communicate(timeout=60)
+    assert (
+        robot.returncode != 0
+        and err.strip().startswith("error:")
+        and len(err.strip().splitlines()) == 1
+    )
+    emulator.signal(signal.SIGUSR1)
+    robot = run_robot(
+        write_config(tmp_path / "robot.toml", "http://127.0.0.1:9", "t", emulator.device)
+    )
+    _, err = robot.communicate(timeout=60)
+    assert robot.returncode != 0 and "did not answer" in err and "Traceback" not in err

@@ -21,10 +21,16 @@ def test_the_documented_example_loads() -> None:
 @pytest.mark.parametrize(
     "text,words",
     [
-        ("[station]\nurl='http://x'\ntoken='t'\n[mcu]\ndevice='/dev/x'\n[camera]\nsource=0\n"
-         "[tof]\nsource='emulator'\n[safety]\ndeadman='0.2'\n", "safety.deadman"),
-        ("[station]\nurl='http://x'\n[mcu]\ndevice='/dev/x'\n[camera]\nsource=0\n"
-         "[tof]\nsource='emulator'\n", "station.token"),
+        (
+            "[station]\nurl='http://x'\ntoken='t'\n[mcu]\ndevice='/dev/x'\n[camera]\nsource=0\n"
+            "[tof]\nsource='emulator'\n[safety]\ndeadman='0.2'\n",
+            "safety.deadman",
+        ),
+        (
+            "[station]\nurl='http://x'\n[mcu]\ndevice='/dev/x'\n[camera]\nsource=0\n"
+            "[tof]\nsource='emulator'\n",
+            "station.token",
+        ),
         ("[station\n", "not valid TOML"),
     ],
 )

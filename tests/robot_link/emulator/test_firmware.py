@@ -10,7 +10,7 @@ import numpy as np
 
 from robot_link.emulator.firmware import Firmware
 from robot_link.emulator.world import make_world
-from robot_link.mcu.packets import AckStatus, Ack, Drive, PacketType, Fault
+from robot_link.mcu.packets import Ack, AckStatus, Drive, Fault, PacketType
 
 TICK = 0.01
 

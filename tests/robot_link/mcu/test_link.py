@@ -54,9 +54,7 @@ def test_the_mcu_stops_by_itself_when_drive_commands_stop(emulator: EmulatorProc
     assert stopped["t"] - last_drive <= 0.2 + 0.1 + 0.1  # hold, ramp down, state period
 
 
-@pytest.mark.parametrize(
-    "sig,words", [(signal.SIGUSR1, "silent"), (signal.SIGUSR2, "garbled")]
-)
+@pytest.mark.parametrize("sig,words", [(signal.SIGUSR1, "silent"), (signal.SIGUSR2, "garbled")])
 def test_a_silent_or_garbled_line_is_a_fault_until_it_recovers(
     emulator: EmulatorProcess, sig: int, words: str
 ) -> None:
