@@ -160,6 +160,19 @@ class Settings(BaseSettings):
         default=True,
         description="grow the 3D map during a session (ICP in a worker process) and show it",
     )
+    foxglove_port: int | None = Field(
+        default=None,
+        ge=0,
+        le=65535,
+        description="port of the live Foxglove server (foxglove-sdk) that clients reach "
+        "through the station's authenticated /foxglove websocket; None: off, 0: any free one",
+    )
+    foxglove_host: str = Field(
+        default="127.0.0.1",
+        description="where the live Foxglove server listens: loopback, so that every client "
+        "comes through /foxglove with a token; on any other address it takes clients "
+        "without one",
+    )
     live_detect: bool = Field(
         default=True,
         description="search each frame for defects as it arrives (a worker process) and show "

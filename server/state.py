@@ -19,6 +19,7 @@ from server.jobs.triggers import JobTriggers
 from server.limits import LoginThrottle, MalformedGuard, PasswordBudget
 from server.link.group_commit import GroupCommit
 from server.link.ingest import Ingest, StoreResult
+from server.live.foxglove import FoxgloveRelay
 from server.live.hub import LiveHub
 from server.live.live_detect import LiveDetect
 from server.live.live_map import LiveMap
@@ -50,6 +51,7 @@ class AppState:
     scenes: Scenes | None = None  # the 3D views (live and per session), when switched on
     live_detect: LiveDetect | None = None  # defects of each frame as it arrives, shown live
     live_map: LiveMap | None = None  # the map growing during a session, shown in the 3D view
+    foxglove: FoxgloveRelay | None = None  # the live robots in Foxglove, when switched on
     # who is told of each stored robot message: the live views, then the jobs
     on_stored: list[OnStored] = field(default_factory=list)
     # who is shown a robot's live-only messages (VIDEO, COMMAND_ACK)
@@ -91,6 +93,10 @@ class AppState:
         relay = LiveRelay(state.hub, state.scenes, state.live_map, state.live_detect)
         state.on_stored = [relay.on_stored, JobTriggers(state.jobs, settings).on_stored]
         state.on_live = [relay.show_live]
+        if settings.foxglove_port is not None:
+            state.foxglove = FoxgloveRelay(settings.foxglove_host, settings.foxglove_port)
+            state.on_stored.insert(1, state.foxglove.on_stored)
+            state.on_live.append(state.foxglove.show_live)
         state.jobs.start()
         return state
 
@@ -99,7 +105,7 @@ class AppState:
         self.passwords.executor.shutdown(wait=False)
         self.jobs.stop()
         self.writer.close()
-        for service in (self.live_map, self.live_detect, self.scenes):
+        for service in (self.foxglove, self.live_map, self.live_detect, self.scenes):
             if service is not None:
                 service.close()
         self.engine.dispose()

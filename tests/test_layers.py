@@ -21,7 +21,7 @@ ALLOWED = {
         "server.reports",
         "server.link",
     },
-    "server.live": {"server.link", "server.storage", "server.process"},
+    "server.live": {"server.link", "server.storage", "server.process", "server.reports"},
     "server.limits": set(),
 }
 STAGES = {"server.storage", "server.link", "server.jobs", "server.live", "server.reports"}

@@ -33,12 +33,6 @@ from datetime import datetime, timezone
 from typing import Any, BinaryIO
 
 import numpy as np
-from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
-from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
-from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
-from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.writer import CompressionType, Writer
@@ -46,8 +40,19 @@ from mcap_protobuf.schema import register_schema
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from robot_link.clouds import decode_cloud
 from server.reports.fields import GENERATOR, defect_record
+from server.reports.foxglove_messages import (
+    Pose,
+    Record,
+    cloud_records,
+    frame_records,
+    matrix_quaternion,
+    mount_records,
+    ns,
+    set_pose,
+    telemetry_records,
+    xyz_cloud,
+)
 from server.reports.mcap_common import JSON_SCHEMA, METADATA, Progress
 from server.storage.files import SessionFiles
 from server.storage.models import (
@@ -57,39 +62,6 @@ from server.storage.models import (
     InspectionSession,
     TelemetrySample,
 )
-
-
-def _ns(t: float) -> int:
-    return max(0, int(round(t * 1e9)))
-
-
-def _yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
-    return 0.0, 0.0, float(np.sin(yaw / 2)), float(np.cos(yaw / 2))
-
-
-def _matrix_quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return float(x), float(y), float(z), float(w)
-
-
-def _set_pose(
-    pose: Any, xyz: tuple[float, float, float], q: tuple[float, float, float, float]
-) -> None:
-    pose.position.x, pose.position.y, pose.position.z = xyz
-    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = q
-
-
-def _xyz_cloud(points: np.ndarray, frame_id: str, t: float) -> PointCloud:
-    msg = PointCloud(
-        frame_id=frame_id, point_stride=12, data=np.ascontiguousarray(points, dtype="<f4").tobytes()
-    )
-    msg.timestamp.FromNanoseconds(_ns(t))
-    msg.pose.orientation.w = 1.0
-    for i, name in enumerate("xyz"):
-        msg.fields.add(name=name, offset=4 * i, type=PackedElementField.FLOAT32)
-    return msg
 
 
 class _Channels:
@@ -121,7 +93,7 @@ class _Channels:
             else message.SerializeToString()
         )
         self.writer.add_message(
-            self.ids[topic], log_time=_ns(t), publish_time=_ns(t), data=data, sequence=seq % 2**32
+            self.ids[topic], log_time=ns(t), publish_time=ns(t), data=data, sequence=seq % 2**32
         )
 
 
@@ -211,89 +183,37 @@ def _session_metadata(s: InspectionSession) -> dict[str, str]:
 
 
 def _write_mounts(ch: _Channels, calibration: dict[str, Any], t: float) -> None:
-    cam = calibration.get("camera", {}).get("T_robot_camera")
-    if cam is not None:
-        tf = FrameTransform(parent_frame_id="base_link", child_frame_id="camera")
-        tf.timestamp.FromNanoseconds(_ns(t))
-        tf.translation.x, tf.translation.y = float(cam[0]), float(cam[1])
-        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = _yaw_quaternion(float(cam[2]))
-        ch.write("/tf", tf, t)
-    tof = calibration.get("tof", {}).get("T_robot_tof")
-    if tof is not None:
-        T = np.asarray(tof, dtype=np.float64)
-        tf = FrameTransform(parent_frame_id="base_link", child_frame_id="tof")
-        tf.timestamp.FromNanoseconds(_ns(t))
-        tf.translation.x, tf.translation.y, tf.translation.z = (float(v) for v in T[:3, 3])
-        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = _matrix_quaternion(T[:3, :3])
-        ch.write("/tf", tf, t)
+    _write_records(ch, mount_records(calibration, t), t)
 
 
-def _write_pose(ch: _Channels, topic: str, row: Frame | Cloud) -> None:
+def _write_records(ch: _Channels, records: list[Record], t: float, seq: int = 0) -> None:
+    for topic, message in records:
+        ch.write(topic, message, t, seq)
+
+
+def _pose(row: Frame | Cloud) -> Pose | None:
     if row.pose_x is None:
-        return
-    msg = PoseInFrame(frame_id="world")
-    msg.timestamp.FromNanoseconds(_ns(row.timestamp))
-    _set_pose(msg.pose, (row.pose_x, row.pose_y or 0.0, 0.0), _yaw_quaternion(row.pose_yaw or 0.0))
-    ch.write(topic, msg, row.timestamp, row.seq)
+        return None
+    return row.pose_x, row.pose_y or 0.0, row.pose_yaw or 0.0
 
 
 def _write_frame(ch: _Channels, files: SessionFiles, f: Frame) -> None:
-    _write_pose(ch, "/camera/odometry", f)
-    msg = CompressedImage(frame_id="camera", format="jpeg", data=files.payload(f))
-    msg.timestamp.FromNanoseconds(_ns(f.timestamp))
-    ch.write("/camera/image", msg, f.timestamp, f.seq)
+    _write_records(ch, frame_records(files.payload(f), _pose(f), f.timestamp), f.timestamp, f.seq)
 
 
 def _write_cloud(ch: _Channels, files: SessionFiles, c: Cloud) -> bool:
     """Write a cloud's pose, calibration, depth image and points; False when its payload
     cannot be read as a cloud (everything but the points is written)."""
-    _write_pose(ch, "/tof/odometry", c)
-    payload = files.payload(c)
-    k = c.intrinsics
-    # always written: it carries the cloud's organised width × height (K is zero when unknown)
-    fx, fy, cx, cy = (float(k.get(n, 0.0)) for n in ("fx", "fy", "cx", "cy"))
-    cal = CameraCalibration(
-        frame_id="tof",
-        width=c.width,
-        height=c.height,
-        distortion_model="plumb_bob",
-        D=[0.0] * 5,
-        K=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
-        R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        P=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+    records, readable = cloud_records(
+        files.payload(c), c.encoding, c.width, c.height, c.intrinsics, _pose(c), c.timestamp
     )
-    cal.timestamp.FromNanoseconds(_ns(c.timestamp))
-    ch.write("/tof/calibration", cal, c.timestamp, c.seq)
-    if c.encoding == "png16_depth_mm":
-        depth = CompressedImage(frame_id="tof", format="png", data=payload)
-        depth.timestamp.FromNanoseconds(_ns(c.timestamp))
-        ch.write("/tof/depth", depth, c.timestamp, c.seq)
-    try:
-        points = decode_cloud(
-            payload, {"encoding": c.encoding, "width": c.width, "height": c.height, **k}
-        )
-    except ValueError:  # stored as received, but not a readable cloud: no points for it
-        return False
-    ch.write("/tof/points", _xyz_cloud(points, "tof", c.timestamp), c.timestamp, c.seq)
-    return True
+    _write_records(ch, records, c.timestamp, c.seq)
+    return readable
 
 
 def _write_telemetry(ch: _Channels, sample: TelemetrySample) -> None:
-    pose = sample.data.get("pose") if isinstance(sample.data, dict) else None
-    if isinstance(pose, dict) and {"x", "y", "yaw"} <= pose.keys():
-        tf = FrameTransform(parent_frame_id="world", child_frame_id="base_link")
-        tf.timestamp.FromNanoseconds(_ns(sample.timestamp))
-        tf.translation.x, tf.translation.y = float(pose["x"]), float(pose["y"])
-        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = _yaw_quaternion(
-            float(pose["yaw"])
-        )
-        ch.write("/tf", tf, sample.timestamp, sample.seq)
-    ch.write(
-        "/robot/telemetry",
-        {"timestamp": sample.timestamp, **sample.data},
-        sample.timestamp,
-        sample.seq,
-    )
+    records = telemetry_records(sample.data, sample.timestamp)
+    _write_records(ch, records, sample.timestamp, sample.seq)
 
 
 def _write_results(
@@ -304,7 +224,7 @@ def _write_results(
 
     results = files.results_dir(session_id)
     try:
-        ch.write("/map/points", _xyz_cloud(read_ply_points(results / "map.ply"), "world", t), t)
+        ch.write("/map/points", xyz_cloud(read_ply_points(results / "map.ply"), "world", t), t)
     except (OSError, ValueError):
         pass
     try:
@@ -313,10 +233,10 @@ def _write_results(
         poses = np.empty((0, 4, 4))
     if len(poses):
         traj = PosesInFrame(frame_id="world")
-        traj.timestamp.FromNanoseconds(_ns(t))
+        traj.timestamp.FromNanoseconds(ns(t))
         for T in poses:
-            _set_pose(
-                traj.poses.add(), tuple(float(v) for v in T[:3, 3]), _matrix_quaternion(T[:3, :3])
+            set_pose(
+                traj.poses.add(), tuple(float(v) for v in T[:3, 3]), matrix_quaternion(T[:3, :3])
             )  # type: ignore[arg-type]
         ch.write("/map/trajectory", traj, t)
     defects = list(
@@ -334,11 +254,11 @@ def _defect_markers(defects: list[Defect], t: float) -> SceneUpdate:
     update = SceneUpdate()
     for d in defects:
         entity = update.entities.add(frame_id="world", id=f"defect-{d.id}")
-        entity.timestamp.FromNanoseconds(_ns(t))
+        entity.timestamp.FromNanoseconds(ns(t))
         red, green = (1.0, 0.23) if d.defect_class == "crack" else (1.0, 0.8)
         w, h = max(d.world_w_m or 0.0, 0.005), max(d.world_h_m or 0.0, 0.005)
         cube = entity.cubes.add()
-        _set_pose(cube.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.0), (0.0, 0.0, 0.0, 1.0))
+        set_pose(cube.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.0), (0.0, 0.0, 0.0, 1.0))
         cube.size.x, cube.size.y, cube.size.z = w, h, 0.004
         cube.color.r, cube.color.g, cube.color.b, cube.color.a = red, green, 0.2, 0.6
         label = entity.texts.add(
@@ -347,9 +267,7 @@ def _defect_markers(defects: list[Defect], t: float) -> SceneUpdate:
             scale_invariant=True,
             text=f"#{d.number or d.id} {d.defect_class} {d.length_mm or 0:.0f} mm {d.condition_state or ''}".strip(),
         )
-        _set_pose(
-            label.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.02), (0.0, 0.0, 0.0, 1.0)
-        )
+        set_pose(label.pose, (d.world_x_m + w / 2, d.world_y_m + h / 2, 0.02), (0.0, 0.0, 0.0, 1.0))
         label.color.r = label.color.g = label.color.b = label.color.a = 1.0
     return update
 

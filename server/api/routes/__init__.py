@@ -5,6 +5,7 @@ from server.api.routes import (
     clouds,
     coverage,
     defects,
+    foxglove,
     frames,
     jobs,
     live,
@@ -34,5 +35,6 @@ ROUTERS = [
         robots,
         live,
         view3d,
+        foxglove,
     )
 ]

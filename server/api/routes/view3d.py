@@ -11,23 +11,21 @@ cookie scoped to ``/viser`` that the page's own requests and websocket then carr
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 from typing import Any
 
 import anyio
 import httpx
 import numpy as np
-from fastapi import APIRouter, Depends, Request, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Depends, Request, WebSocket
 from fastapi.responses import Response
 from sqlalchemy import select
-from starlette.websockets import WebSocketState
 from websockets.asyncio.client import connect
-from websockets.exceptions import ConnectionClosed
 
 from server.api.accounts import accounts_exist, user_for_token
 from server.api.deps import SessionDep, StateDep, get_current_user, same_origin
 from server.api.queries import get_session_or_404
+from server.api.wsproxy import offered_subprotocols, pass_through
 from server.errors import NotFound
 from server.live.events import DefectSelected
 from server.live.scene3d import DefectMarker, Scene3D
@@ -123,11 +121,7 @@ async def _socket(websocket: WebSocket, key: str) -> None:
     if not await anyio.to_thread.run_sync(_allowed, state, token):
         await websocket.close(code=1008, reason="a valid token is required")
         return
-    protocols = [
-        p.strip()
-        for p in websocket.headers.get("sec-websocket-protocol", "").split(",")
-        if p.strip()
-    ]
+    protocols = offered_subprotocols(websocket)
     async with connect(
         f"ws://127.0.0.1:{scene.port}/",
         subprotocols=protocols or None,  # type: ignore[arg-type]
@@ -135,36 +129,7 @@ async def _socket(websocket: WebSocket, key: str) -> None:
         compression=None,
     ) as upstream:
         await websocket.accept(subprotocol=upstream.subprotocol)
-
-        async def down() -> None:
-            async for message in upstream:
-                if isinstance(message, bytes):
-                    await websocket.send_bytes(message)
-                else:
-                    await websocket.send_text(message)
-
-        async def up() -> None:
-            while True:
-                message = await websocket.receive()
-                if message["type"] == "websocket.disconnect":
-                    return
-                await upstream.send(
-                    message["bytes"]
-                    if message.get("bytes") is not None
-                    else message.get("text", "")
-                )
-
-        tasks = [asyncio.create_task(down()), asyncio.create_task(up())]
-        try:
-            await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            for t in tasks:
-                t.cancel()
-            # a side that went away ends its task with an error: expected, not worth a log
-            await asyncio.gather(*tasks, return_exceptions=True)
-    if websocket.client_state == WebSocketState.CONNECTED:
-        with contextlib.suppress(RuntimeError, OSError, WebSocketDisconnect, ConnectionClosed):
-            await websocket.close()
+        await pass_through(websocket, upstream)
 
 
 def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
