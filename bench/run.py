@@ -11,6 +11,7 @@ from bench.common import Result
 from bench.detect import bench_detect
 from bench.ingest import bench_ingest
 from bench.map import bench_map
+from bench.robot import bench_robot
 from bench.scale import bench_scale
 from bench.stitch import bench_stitch
 from bench.stitch_scale import bench_stitch_scale
@@ -25,6 +26,7 @@ BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {
     "stitch-scale": bench_stitch_scale,
     "teleop": bench_teleop,
     "scale": bench_scale,
+    "robot": bench_robot,
 }
 DEFAULT = [
     "detect",
@@ -32,7 +34,7 @@ DEFAULT = [
     "map",
     "ingest",
     "teleop",
-]  # stitch-scale and scale take many minutes: run them by name
+]  # stitch-scale, scale and robot (sweeps in real time) take many minutes: run them by name
 
 
 def run_benchmarks(

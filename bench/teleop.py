@@ -18,6 +18,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -69,7 +70,7 @@ def _start_station(seconds: float) -> tuple[Path, BackgroundServer, TeleopRobot]
     return scratch, server, robot
 
 
-def _drive(page: Page, seconds: float) -> None:
+def drive_keys(page: Page, seconds: float) -> None:
     """Press and release the keys of ``PATTERN`` in turn for ``seconds``."""
     end = time.monotonic() + seconds
     while time.monotonic() < end:
@@ -97,10 +98,9 @@ def _deadman_trials(page: Page) -> None:
         time.sleep(0.3)
 
 
-def _drive_in_browser(chromium: str, url: str, sim: TeleopSim, seconds: float) -> list[float]:
-    """Open the dashboard at ``url`` in headless ``chromium``, drive for ``seconds`` then run
-    the dead-man trials; the video latencies of the drive (ms, one per frame drawn). The
-    robot's log ``sim.log`` holds the command, key and dead-man latencies of the drive."""
+@contextmanager
+def open_dashboard(chromium: str, url: str) -> Iterator[Page]:
+    """The dashboard at ``url`` in headless ``chromium``, once it has drawn 10 video frames."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:
@@ -116,21 +116,36 @@ def _drive_in_browser(chromium: str, url: str, sim: TeleopSim, seconds: float) -
         )
         page = browser.new_page(viewport={"width": 1280, "height": 900})
         page.goto(url + "/")
-        page.wait_for_function(
-            "Number(document.querySelector('#camera').dataset.frames || 0) >= 10", timeout=60000
-        )
+        # polled from outside: the page's content security policy forbids wait_for_function
+        deadline = time.monotonic() + 60
+        while not page.evaluate(
+            "Number(document.querySelector('#camera').dataset.frames || 0) >= 10"
+        ):
+            if time.monotonic() > deadline:
+                raise RuntimeError("the dashboard drew no live video within 60 s")
+            page.wait_for_timeout(100)
+        try:
+            yield page
+        finally:
+            browser.close()
+
+
+def _drive_in_browser(chromium: str, url: str, sim: TeleopSim, seconds: float) -> list[float]:
+    """Drive the simulated robot from the dashboard for ``seconds``, then run the dead-man
+    trials; the video latencies of the drive (ms, one per frame drawn). The robot's log
+    ``sim.log`` holds the command, key and dead-man latencies of the drive."""
+    with open_dashboard(chromium, url) as page:
         page.evaluate("window.steelscanStats.video.length = 0")
         sim.log.command_latency_ms.clear()
         sim.log.key_latency_ms.clear()
-        _drive(page, seconds)
+        drive_keys(page, seconds)
         video = list(page.evaluate("window.steelscanStats.video"))
         sim.log.deadman_stops_ms.clear()
         _deadman_trials(page)
-        browser.close()
     return video
 
 
-def _latency_results(
+def latency_results(
     name: str, values: list[float], target: float, base: dict[str, float]
 ) -> Iterator[Result]:
     """The p50 and the p99 (against ``target``) of the latencies ``values`` (ms)."""
@@ -200,7 +215,7 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
         ("teleop_key_to_robot_latency", keys, TARGETS_MS["command_p99"]),
         ("teleop_command_latency", commands, TARGETS_MS["command_p99"]),
     ):
-        yield from _latency_results(name, values, target, base)
+        yield from latency_results(name, values, target, base)
     yield {
         "name": "teleop_video_fps",
         "value": round(len(video) / seconds, 1),
@@ -208,3 +223,6 @@ def bench_teleop(*, dataset: Path | None = None, limit: int | None = None) -> It
         **base,
     }
     yield _deadman_result(deadman)
+    from bench.robot import key_to_mcu
+
+    yield from key_to_mcu(chromium, min(seconds, 30.0))

@@ -12,17 +12,18 @@ import asyncio
 import contextlib
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from processing.coverage import footprint
 from robot_link.agent.camera import CameraError, CameraSource, camera_source
 from robot_link.agent.config import RobotConfig
 from robot_link.agent.control import Controller
 from robot_link.agent.emulator_sensors import EmulatorSensors
+from robot_link.agent.geometry import camera_geometry, robot_spec
 from robot_link.agent.health import AgentHealth, telemetry_meta
 from robot_link.agent.odometry import HallOdometry
 from robot_link.agent.sweep import CoverageSweep, SweepParams, SweepStopped
@@ -31,26 +32,10 @@ from robot_link.client import RobotLink
 from robot_link.clouds import encode_depth_png
 from robot_link.mcu.link import McuLink
 from robot_link.protocol import Message, MessageType
-from robot_link.sim.robot import RobotSpec
 from robot_link.sim.sensors import tof_mount
 from robot_link.spool import Spool
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class CameraGeometry:
-    """The inspection camera as the station needs it."""
-
-    width: int
-    height: int
-    px_per_m: float
-    mount_x_m: float
-
-    @property
-    def footprint_m(self) -> tuple[float, float]:
-        """Surface seen (along the heading, across it), image x along the heading."""
-        return self.width / self.px_per_m, self.height / self.px_per_m
 
 
 class RobotAgent:
@@ -78,6 +63,7 @@ class RobotAgent:
         self._capture_lock = asyncio.Lock()
         self._capture_task: asyncio.Task[bool] | None = None
         self.auto_capture = True
+        self.footprints: list[np.ndarray] = []  # what each frame shows, odometry frame
         self.capture_requested = False
 
     # start-up
@@ -123,6 +109,7 @@ class RobotAgent:
             first_turn=-1 if s.first_turn == "left" else 1,
             # one Hall edge on each side turns the robot this much: no finer heading is seen
             heading_tolerance=self.spec.metres_per_tick / self.spec.track_m,
+            sensor_reach_m=max(x for x, _ in self.spec.ir_corners_m),
         )
 
     def calibration(self) -> dict[str, Any]:
@@ -276,9 +263,16 @@ class RobotAgent:
                 timestamp=stamp,
             )
             self.frames_sent += 1
+            self.footprints.append(self._footprint(pose))
             if self.frames_sent % self.cfg.tof.every_frames == 0:
                 await self._cloud(pose, stamp)
             return True
+
+    def _footprint(self, pose: dict[str, float]) -> np.ndarray:
+        g = self.camera_geometry
+        x, y, yaw = pose["x"], pose["y"], pose["yaw"]
+        cam = np.array([x + g.mount_x_m * np.cos(yaw), y + g.mount_x_m * np.sin(yaw), yaw])
+        return footprint(cam, g.px_per_m, (g.width, g.height))
 
     async def capture_until_done(self) -> None:
         """Capture, holding still while the camera reconnects (the sweep leaves no hole)."""
@@ -386,28 +380,5 @@ class _SweepPilot:
     async def capture(self) -> None:
         await self.agent.capture_until_done()
 
-
-def robot_spec(info: dict[str, Any] | None, config: RobotConfig) -> RobotSpec:
-    """The robot's geometry: as its MCU reports it, else from the config."""
-    g = config.robot
-    info = info or {}
-    ir = info.get("ir_positions_m") or g.ir_positions_m
-    return RobotSpec(
-        track_m=float(info.get("track_m", g.track_m)),
-        wheelbase_m=float(info.get("wheelbase_m", 0.26)),
-        wheel_radius_m=float(info.get("wheel_radius_m", g.wheel_radius_m)),
-        magnets_per_wheel=int(info.get("edges_per_wheel_turn", g.edges_per_wheel_turn)) // 4,
-        ir_corners_m=tuple((float(x), float(y)) for x, y in ir),
-        ir_calibrated_m=float(info.get("ir_calibrated_m", g.ir_calibrated_m)),
-    )
-
-
-def camera_geometry(config: RobotConfig, emulator: dict[str, Any]) -> CameraGeometry:
-    """The camera's size and scale: the emulator's when its camera is used, else the config's."""
-    c = config.camera
-    if c.source == "emulator" and "camera" in emulator:
-        e = emulator["camera"]
-        return CameraGeometry(
-            int(e["width"]), int(e["height"]), float(e["px_per_m"]), float(e["mount_x_m"])
-        )
-    return CameraGeometry(c.width, c.height, c.px_per_m, c.mount_x_m)
+    def frame_footprints(self) -> list[np.ndarray]:
+        return list(self.agent.footprints)

@@ -22,7 +22,12 @@ def apply_command(agent: RobotAgent, cmd: str, args: dict[str, Any]) -> str:
         if not (math.isfinite(v) and math.isfinite(w)):
             return "linear_mps and angular_radps must be finite"
         sent = args.get("sent_ms")
-        c.drive(v, w, float(sent) if isinstance(sent, (int, float)) else None)
+        c.drive(
+            v,
+            w,
+            float(sent) if isinstance(sent, (int, float)) else None,
+            key_event=bool(args.get("key_event")),
+        )
     elif cmd in ("stop", "estop"):
         c.stop(estop=cmd == "estop")
     elif cmd == "resume":

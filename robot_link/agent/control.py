@@ -30,6 +30,8 @@ class DriveLog:
 
     # operator's send time -> DRIVE written to the MCU (ms), per drive command
     command_to_mcu_ms: list[float] = field(default_factory=list)
+    # a key pressed in the browser (the key event's time) -> its DRIVE written to the MCU (ms)
+    key_to_mcu_ms: list[float] = field(default_factory=list)
     drives_sent: int = 0
     stops_sent: int = 0
     deadman_stops: int = 0
@@ -90,7 +92,9 @@ class Controller:
         return margin * (4 - 2 * lifted) / 4
 
     # the operator
-    def drive(self, v: float, w: float, sent_ms: float | None = None) -> None:
+    def drive(
+        self, v: float, w: float, sent_ms: float | None = None, key_event: bool = False
+    ) -> None:
         """An operator's drive command: it holds for the dead-man time; it takes over from a
         running sweep (which pauses)."""
         self.operator = (v, w)
@@ -101,6 +105,8 @@ class Controller:
         self.apply()
         if sent_ms is not None:
             self.log.command_to_mcu_ms.append(time.time() * 1000 - sent_ms)
+            if key_event:
+                self.log.key_to_mcu_ms.append(self.log.command_to_mcu_ms[-1])
 
     def stop(self, estop: bool = False) -> None:
         """Stop (and latch the e-stop); a running sweep pauses."""

@@ -8,7 +8,9 @@ The route, in the robot's odometry frame (heading 0: the way it faces at the sta
 2. turn a quarter and drive to the side edge: the corner;
 3. drive lanes back and forth, each from edge to edge, stepping one lane width away from
    the first side edge between them, until a step meets the far side edge; the last lane
-   runs along it.
+   runs along it;
+4. visit the holes: parts of the surface in view that no frame shows (a frame the camera
+   lost, a stretch the operator drove by hand), largest first, and capture each.
 
 Each lane ends where the front IR sensors see the edge, so the camera's footprint (which
 reaches beyond the sensors) covers the band along every edge; the robot squares up to each
@@ -25,6 +27,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.coverage import coverage_map
 from processing.poses import wrap_angle
 
 FRONT = (0, 1)  # front_left, front_right (IR_NAMES order)
@@ -54,6 +57,9 @@ class Pilot(Protocol):
     async def capture(self) -> None:
         """Take an inspection frame now."""
 
+    def frame_footprints(self) -> list[NDArray[np.float64]]:
+        """The surface (4, 2) each frame taken so far shows, odometry frame."""
+
 
 @dataclass(frozen=True)
 class SweepParams:
@@ -62,11 +68,15 @@ class SweepParams:
     speed_mps: float = 0.12
     turn_radps: float = 0.6
     lane_width_m: float = 0.28  # the footprint across the heading times (1 - overlap)
-    back_off_m: float = 0.02  # from an edge before turning
+    back_off_m: float = 0.03  # from an edge before turning
+    creep_mps: float = 0.02  # onto an edge while squaring up
+    square_radps: float = 0.1  # turning while squaring up
     first_turn: int = -1  # -1: the first quarter turn is to the left, +1: to the right
     heading_tolerance: float = 0.004  # rad
     max_square_swing: float = 0.35  # rad
     max_lanes: int = 200
+    max_hole_visits: int = 20
+    sensor_reach_m: float = 0.12  # how far ahead of the robot's centre the front IR sensors sit
 
 
 @dataclass
@@ -75,7 +85,10 @@ class SweepProgress:
 
     phase: str = "starting"
     lanes_done: int = 0
-    edges_found: list[list[float]] = field(default_factory=list)  # odometry x, y at each edge
+    # odometry x, y of the edge point ahead of the robot at each edge it squared up to, and
+    # the heading it faced
+    edges_found: list[list[float]] = field(default_factory=list)
+    holes_visited: int = 0
     finished: bool = False
 
 
@@ -110,9 +123,39 @@ class CoverageSweep:
             await self.rotate_to(step_heading)
             last = await self.drive(step_heading, p.lane_width_m)
             lane_heading = float(wrap_angle(lane_heading + math.pi))
+        await self.visit_holes()
         self.progress.phase = "done"
         self.progress.finished = True
         return self.progress
+
+    async def visit_holes(self) -> None:
+        """Drive to the centre of each hole in the frames' coverage of the plate as found and
+        capture it there."""
+        visited: list[tuple[float, float]] = []
+        outline = self.plate_outline()
+        if outline is None:
+            return
+        while len(visited) < self.p.max_hole_visits:
+            footprints = self.pilot.frame_footprints()
+            cover = coverage_map(footprints, [True] * len(footprints), surface_outline=outline)
+            holes = [
+                h
+                for h in cover.holes
+                if all(math.hypot(h.x_m - vx, h.y_m - vy) > 0.02 for vx, vy in visited)
+            ]
+            if not holes:
+                return
+            hole = holes[0]
+            visited.append((hole.x_m, hole.y_m))
+            self.progress.holes_visited = len(visited)
+            self.progress.phase = (
+                f"visiting hole {len(visited)} at x {hole.x_m:.2f} m, y {hole.y_m:.2f} m"
+            )
+            x, y, _ = self.pilot.pose
+            heading = math.atan2(hole.y_m - y, hole.x_m - x)
+            await self.rotate_to(heading)
+            await self.drive(heading, float(np.hypot(hole.x_m - x, hole.y_m - y)))
+            await self.pilot.capture()
 
     async def to_edge(self, heading: float, line: NDArray[np.float64] | None = None) -> None:
         """Drive along ``heading`` (on the line through ``line``'s x, y when given) until the
@@ -122,8 +165,7 @@ class CoverageSweep:
             await self.pilot.step(self.p.speed_mps, self._steer(heading, origin))
         await self.pilot.step(0.0, 0.0)
         await self.square_up(heading)
-        x, y, _ = self.pilot.pose
-        self.progress.edges_found.append([round(float(x), 4), round(float(y), 4)])
+        self._edge_found()
         await self.pilot.capture()
         await self.back_off()
 
@@ -135,6 +177,7 @@ class CoverageSweep:
             if self._front_out():
                 await self.pilot.step(0.0, 0.0)
                 await self.square_up(heading)
+                self._edge_found()
                 await self.pilot.capture()
                 await self.back_off()
                 return True
@@ -143,23 +186,29 @@ class CoverageSweep:
         return False
 
     async def square_up(self, heading: float) -> None:
-        """Turn until both front sensors are past the edge, then back by half the swing:
-        square to the edge (the two sensors trip at mirrored angles), whose normal is
-        ``heading``; the odometry heading is reset to it."""
+        """Square up to the edge ahead, whose normal is ``heading``, and reset the odometry
+        heading to it: back until both front sensors see steel, creep up until one sees the
+        edge (the creep keeps it on the edge's line), then turn towards that sensor until
+        the other one sees the edge and back by half the swing (the two trip at mirrored
+        angles)."""
+        while self._front_out():
+            await self.pilot.step(-self.p.creep_mps, 0.0)
+        while not self._front_out():
+            await self.pilot.step(self.p.creep_mps, 0.0)
+        await self.pilot.step(0.0, 0.0)
         out = [i for i in FRONT if i in self.pilot.ir_out()]
         if len(out) == 2:
             self.pilot.set_heading(heading)
             return
-        if not out:
-            return
         # turning towards the sensor that is out brings the other one forward
         direction = 1.0 if out[0] == 1 else -1.0
+        other = FRONT[0] if out[0] == FRONT[1] else FRONT[1]
         start = float(self.pilot.pose[2])
         swing = 0.0
         while abs(swing) < self.p.max_square_swing:
-            if all(i in self.pilot.ir_out() for i in FRONT):
+            if other in self.pilot.ir_out():
                 break
-            await self.pilot.step(0.0, direction * self.p.turn_radps / 3)
+            await self.pilot.step(0.0, direction * self.p.square_radps)
             swing = float(wrap_angle(self.pilot.pose[2] - start))
         else:
             await self.rotate_to(start)  # a ragged edge: keep the heading as it was
@@ -185,6 +234,28 @@ class CoverageSweep:
             rate = self.p.turn_radps * min(1.0, max(0.12, abs(err) / 0.15))
             await self.pilot.step(0.0, math.copysign(rate, err))
         await self.pilot.step(0.0, 0.0)
+
+    def plate_outline(self) -> NDArray[np.float64] | None:
+        """The plate as found, (4, 2) corners in the odometry frame: its edges lie along the
+        axes the first edge set (the robot squares up to each), so the extreme edge points
+        met heading along each axis bound it. None before edges on all four sides."""
+        pts = np.array(self.progress.edges_found, dtype=np.float64).reshape(-1, 3)
+        axis = np.round(pts[:, 2] / (math.pi / 2)).astype(int) % 4  # 0: +x, 1: +y, 2: -x, 3: -y
+        if len(set(axis.tolist())) < 4:
+            return None
+        x0, x1 = pts[axis == 2, 0].min(), pts[axis == 0, 0].max()
+        y0, y1 = pts[axis == 3, 1].min(), pts[axis == 1, 1].max()
+        return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+
+    def _edge_found(self) -> None:
+        x, y, yaw = self.pilot.pose
+        reach = self.p.sensor_reach_m
+        point = [
+            round(float(x + reach * math.cos(yaw)), 4),
+            round(float(y + reach * math.sin(yaw)), 4),
+            round(float(yaw), 4),
+        ]
+        self.progress.edges_found.append(point)
 
     def _front_out(self) -> bool:
         return any(i in self.pilot.ir_out() for i in FRONT)

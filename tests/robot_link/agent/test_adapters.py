@@ -18,8 +18,8 @@ from robot_link.agent.camera import CameraError, FolderCamera, OpenCVCamera, cam
 from robot_link.agent.config import CameraConfig, TofConfig
 from robot_link.agent.emulator_sensors import EmulatorSensors
 from robot_link.agent.tof import ReplayTof, TofError, tof_source
+from robot_link.emulator.process import EmulatorProcess
 from robot_link.mcu.link import McuLink
-from tests.robot_link.conftest import EmulatorProcess
 
 
 def _images(folder: Path, n: int = 3) -> list[np.ndarray]:

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from robot_link.emulator.coverage import footprint_coverage
+from robot_link.emulator.process import EmulatorProcess
 from server.config import Settings
 from server.loopback import free_port
 from tests.conftest import LiveServer, make_token
-from tests.robot_link.conftest import EmulatorProcess
 
 pytestmark = pytest.mark.one_database
 

@@ -9,9 +9,9 @@ import signal
 
 import pytest
 
+from robot_link.emulator.process import EmulatorProcess
 from robot_link.mcu.link import McuError, McuLink
 from robot_link.mcu.packets import PacketType
-from tests.robot_link.conftest import EmulatorProcess
 
 
 def test_handshake_and_the_wheels_obey_drive_commands(emulator: EmulatorProcess) -> None:
