@@ -205,6 +205,7 @@ class RobotAgent:
         if self.sweep is not None:
             out["lanes"] = self.sweep.progress.lanes_done
             out["sweep_finished"] = self.sweep.progress.finished
+            out["sweep_phase"] = self.sweep.progress.phase
         return out
 
     def start_sweep(self) -> None:
@@ -219,8 +220,11 @@ class RobotAgent:
     async def _run_sweep(self, sweep: CoverageSweep) -> None:
         try:
             await sweep.run()
-        except SweepStopped:
-            log.info("sweep stopped by the operator")
+        except SweepStopped as exc:
+            sweep.progress.phase = f"stopped: {exc or 'by the operator'}"
+            log.info("sweep %s", sweep.progress.phase)
+            if str(exc) and self.sweep_requested:  # the robot cannot go on: end the session
+                self.end_requested.set()
             return
         self.control.set_sweep("done")
         if self.sweep_requested:

@@ -18,7 +18,7 @@ from robot_link.agent.odometry import HallOdometry
 from robot_link.agent.safety import SafetyInputs, Verdict, allowed_motion
 from robot_link.agent.sweep import SweepStopped
 from robot_link.mcu.link import McuError, McuLink
-from robot_link.mcu.packets import Flag, PacketType, Sensors
+from robot_link.mcu.packets import Fault, Flag, PacketType, Sensors
 from robot_link.sim.robot import RobotSpec, adhesion_margin
 
 SWEEP_STATES = ("idle", "running", "paused", "stopped", "done")
@@ -195,6 +195,10 @@ class Controller:
             if self.sweep_state == "stopped":
                 self.auto = (0.0, 0.0)
                 raise SweepStopped
+            if self.latest is not None and self.latest.faults & Fault.OFF_PLATE:
+                self.auto = (0.0, 0.0)
+                self.sweep_state = "stopped"
+                raise SweepStopped("a wheel left the plate: the MCU refuses to drive")
             self.auto = (v, w)
             if self.may_sweep():
                 break

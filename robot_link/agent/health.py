@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from robot_link.mcu.packets import Flag
 from robot_link.sim.robot import IR_NAMES
 
@@ -109,8 +111,14 @@ def telemetry_meta(agent: RobotAgent) -> dict[str, Any]:
             "state": c.sweep_state,
             "phase": p.phase,
             "lanes_done": p.lanes_done,
-            "edges_found": p.edges_found[-8:],
+            "edges_found": [e[:2] for e in p.edges_found[-40:]],
+            "lanes": p.lanes[-60:],
+            "next_lane": p.next_lane,
+            "holes_visited": p.holes_visited,
         }
+        outline = agent.sweep.plate_outline()
+        if outline is not None:
+            meta["sweep"]["plate_outline"] = np.round(outline, 4).tolist()
     if agent.link is not None:
         link = agent.link
         meta["link"] = {

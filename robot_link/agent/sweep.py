@@ -89,6 +89,9 @@ class SweepProgress:
     # the heading it faced
     edges_found: list[list[float]] = field(default_factory=list)
     holes_visited: int = 0
+    # the lanes driven, [x0, y0, x1, y1] each, and the next one as planned (odometry frame)
+    lanes: list[list[float]] = field(default_factory=list)
+    next_lane: list[float] | None = None
     finished: bool = False
 
 
@@ -115,8 +118,9 @@ class CoverageSweep:
         for _ in range(p.max_lanes):
             self.progress.phase = f"lane {self.progress.lanes_done + 1}"
             await self.rotate_to(lane_heading)
-            await self.to_edge(lane_heading, line=self.pilot.pose.copy())
-            self.progress.lanes_done += 1
+            start = self.pilot.pose.copy()
+            await self.to_edge(lane_heading, line=start)
+            self._lane_done(start, step_heading)
             if last:
                 break
             self.progress.phase = f"stepping to lane {self.progress.lanes_done + 1}"
@@ -125,6 +129,7 @@ class CoverageSweep:
             lane_heading = float(wrap_angle(lane_heading + math.pi))
         await self.visit_holes()
         self.progress.phase = "done"
+        self.progress.next_lane = None
         self.progress.finished = True
         return self.progress
 
@@ -234,6 +239,19 @@ class CoverageSweep:
             rate = self.p.turn_radps * min(1.0, max(0.12, abs(err) / 0.15))
             await self.pilot.step(0.0, math.copysign(rate, err))
         await self.pilot.step(0.0, 0.0)
+
+    def _lane_done(self, start: NDArray[np.float64], step_heading: float) -> None:
+        """Record the lane from ``start`` to here and plan the next one a lane width along
+        ``step_heading``."""
+        end = self.pilot.pose
+        lane = [round(float(v), 4) for v in (start[0], start[1], end[0], end[1])]
+        self.progress.lanes.append(lane)
+        self.progress.lanes_done += 1
+        dx = self.p.lane_width_m * math.cos(step_heading)
+        dy = self.p.lane_width_m * math.sin(step_heading)
+        self.progress.next_lane = [
+            round(v, 4) for v in (lane[2] + dx, lane[3] + dy, lane[0] + dx, lane[1] + dy)
+        ]
 
     def plate_outline(self) -> NDArray[np.float64] | None:
         """The plate as found, (4, 2) corners in the odometry frame: its edges lie along the

@@ -10,12 +10,22 @@ import { on } from "./live.js";
 
 const POLL_MS = 1500;
 const THUMB_W = 160;
-const state = { sid: null, camera: null, frames: [], trail: [], pose: null, cov: null, busy: false, found: [] };
+const state = {
+  sid: null,
+  camera: null,
+  frames: [],
+  trail: [],
+  pose: null,
+  cov: null,
+  busy: false,
+  found: [],
+  sweep: null,
+};
 let canvas;
 let ctx;
 
 function reset(sid) {
-  Object.assign(state, { sid, camera: null, frames: [], trail: [], pose: null, cov: null, found: [] });
+  Object.assign(state, { sid, camera: null, frames: [], trail: [], pose: null, cov: null, found: [], sweep: null });
   if (sid) {
     apiJSON(`/api/sessions/${sid}`)
       .then((s) => {
@@ -95,6 +105,7 @@ function onEvent(ev) {
   if (ev.type === EVENT.TELEMETRY && ev.session_id === state.sid && ev.data.pose) {
     const p = ev.data.pose;
     state.pose = p;
+    state.sweep = ev.data.sweep || null;
     const last = state.trail[state.trail.length - 1];
     if (!last || Math.hypot(p.x - last.x, p.y - last.y) > 0.005) state.trail.push({ x: p.x, y: p.y });
   }
@@ -201,6 +212,7 @@ function draw() {
     ctx.lineWidth = 2 * px;
     ctx.strokeRect(x - 3 * px, y - 3 * px, w + 6 * px, h + 6 * px);
   }
+  drawSweep(px);
   if (state.trail.length > 1) {
     ctx.beginPath();
     state.trail.forEach((p, i) => (i ? ctx.lineTo(p.x, p.y) : ctx.moveTo(p.x, p.y)));
@@ -228,6 +240,42 @@ function draw() {
     ctx.restore();
   }
   scaleBar(k);
+}
+
+// The autonomous sweep's plan and progress: the plate's outline as its edges were found,
+// the lanes driven (solid) and the next one planned (dashed), the edge points met.
+function drawSweep(px) {
+  const s = state.sweep;
+  if (!s) return;
+  ctx.save();
+  ctx.strokeStyle = "#5ac8fa";
+  ctx.lineWidth = 1.5 * px;
+  if (s.plate_outline) {
+    ctx.setLineDash([6 * px, 4 * px]);
+    ctx.beginPath();
+    s.plate_outline.forEach(([x, y], i) => (i ? ctx.lineTo(x, y) : ctx.moveTo(x, y)));
+    ctx.closePath();
+    ctx.stroke();
+  }
+  ctx.setLineDash([]);
+  for (const [x0, y0, x1, y1] of s.lanes || []) {
+    ctx.beginPath();
+    ctx.moveTo(x0, y0);
+    ctx.lineTo(x1, y1);
+    ctx.stroke();
+  }
+  if (s.next_lane) {
+    const [x0, y0, x1, y1] = s.next_lane;
+    ctx.setLineDash([4 * px, 4 * px]);
+    ctx.beginPath();
+    ctx.moveTo(x0, y0);
+    ctx.lineTo(x1, y1);
+    ctx.stroke();
+    ctx.setLineDash([]);
+  }
+  ctx.fillStyle = "#5ac8fa";
+  for (const [x, y] of s.edges_found || []) ctx.fillRect(x - 3 * px, y - 3 * px, 6 * px, 6 * px);
+  ctx.restore();
 }
 
 function scaleBar(k) {
