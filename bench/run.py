@@ -7,6 +7,7 @@ import json
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from bench.changes import bench_changes
 from bench.common import Result
 from bench.detect import bench_detect
 from bench.ingest import bench_ingest
@@ -27,6 +28,7 @@ BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {
     "teleop": bench_teleop,
     "scale": bench_scale,
     "robot": bench_robot,
+    "changes": bench_changes,
 }
 DEFAULT = [
     "detect",

@@ -84,7 +84,7 @@ def measure_defects(
         x, y, w, h, area = (int(v) for v in stats[i])
         comp = labels[y : y + h, x : x + w] == i
         skel = skeletonize(comp)
-        length = _skeleton_length(skel)
+        length = skeleton_length(skel)
         core = comp
         if contrast is not None:
             c = contrast[y : y + h, x : x + w]
@@ -122,7 +122,7 @@ def _with_mm(d: Defect, mm_per_px: float) -> Defect:
     )
 
 
-def _skeleton_length(skel: NDArray[np.bool_]) -> float:
+def skeleton_length(skel: NDArray[np.bool_]) -> float:
     """Skeleton length as a pixel path: orthogonal steps count 1, diagonal steps √2.
 
     A diagonal pair already joined through an orthogonal neighbour is not counted twice.

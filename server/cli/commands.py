@@ -31,7 +31,7 @@ TILED_ABOVE_PX = 4_000_000
 EIGHT_BIT_MODES = {"L", "P", "RGB", "RGBA", "LA", "1"}
 
 
-def _read_image(path: Path) -> np.ndarray:
+def read_image(path: Path) -> np.ndarray:
     if not path.is_file():
         raise CommandError(f"{path}: no such file")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -51,7 +51,7 @@ def detect_images(images: list[Path], out: Path, *, method: str, px_per_mm: floa
     """Write ``<stem>.png`` masks and ``defects.json`` for each image."""
     if px_per_mm is not None and px_per_mm <= 0:
         raise CommandError(f"--px-per-mm must be positive, got {px_per_mm}")
-    loaded = [(p, _read_image(p)) for p in images]  # read all first: bad input writes nothing
+    loaded = [(p, read_image(p)) for p in images]  # read all first: bad input writes nothing
     out.mkdir(parents=True, exist_ok=True)
     records = []
     for path, img in loaded:

@@ -96,6 +96,20 @@ def cmd_detect(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_changes(args: argparse.Namespace) -> int:
+    """Align two visits' images and match their defects."""
+    from server.cli.changes_command import changes
+
+    changes(
+        Path(args.before),
+        Path(args.after),
+        Path(args.out),
+        method=args.method,
+        px_per_mm=args.px_per_mm,
+    )
+    return 0
+
+
 def cmd_train_detector(args: argparse.Namespace) -> int:
     """Train the crack network on dataset folders and export it to ONNX (int8)."""
     try:
@@ -253,6 +267,18 @@ def _add_processing_commands(sub: Any) -> None:
     )
     s.add_argument("--px-per-mm", type=float)
     s.set_defaults(func=cmd_detect, image_work=True)
+
+    s = sub.add_parser(
+        "changes", help="a surface's history: two visits' images aligned, defects matched, growth"
+    )
+    s.add_argument("before", help="the earlier visit's image")
+    s.add_argument("after", help="the later visit's image")
+    s.add_argument("--out", required=True)
+    s.add_argument(
+        "--method", default="learned", choices=["proposed", "learned", "paper", "otsu", "sauvola"]
+    )
+    s.add_argument("--px-per-mm", type=float, help="AFTER's scale")
+    s.set_defaults(func=cmd_changes, image_work=True)
 
     s = sub.add_parser(
         "train-detector", help="train the crack network on dataset folders, export it as ONNX"
