@@ -59,6 +59,7 @@ class RobotAgent:
         self.frames_sent = self.clouds_sent = 0
         self.end_requested = asyncio.Event()
         self.sweep: CoverageSweep | None = None
+        self.sweep_error: str | None = None  # why the sweep could not go on
         self._since_capture = 0.0
         self._capture_lock = asyncio.Lock()
         self._capture_task: asyncio.Task[bool] | None = None
@@ -206,6 +207,8 @@ class RobotAgent:
             out["lanes"] = self.sweep.progress.lanes_done
             out["sweep_finished"] = self.sweep.progress.finished
             out["sweep_phase"] = self.sweep.progress.phase
+        if self.sweep_error:
+            out["sweep_error"] = self.sweep_error
         return out
 
     def start_sweep(self) -> None:
@@ -223,8 +226,10 @@ class RobotAgent:
         except SweepStopped as exc:
             sweep.progress.phase = f"stopped: {exc or 'by the operator'}"
             log.info("sweep %s", sweep.progress.phase)
-            if str(exc) and self.sweep_requested:  # the robot cannot go on: end the session
-                self.end_requested.set()
+            if str(exc):  # the robot cannot go on
+                self.sweep_error = str(exc)
+                if self.sweep_requested:
+                    self.end_requested.set()
             return
         self.control.set_sweep("done")
         if self.sweep_requested:

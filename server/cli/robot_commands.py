@@ -55,8 +55,8 @@ def cmd_robot(args: argparse.Namespace) -> int:
     except (McuError, CameraError, TofError, LinkError) as exc:
         raise CommandError(str(exc)) from None
     sys.stdout.write(json.dumps(summary) + "\n")
-    if args.sweep and not summary.get("sweep_finished"):
-        raise CommandError(f"the sweep did not cover the plate ({summary.get('sweep_phase')})")
+    if summary.get("sweep_error"):
+        raise CommandError(f"the sweep could not cover the plate: {summary['sweep_error']}")
     return 0
 
 
