@@ -186,6 +186,9 @@ class DefectPublic(ORM):
     world_h_m: float | None
     review_status: str
     condition_state: str | None
+    defect_code: int | None = Field(
+        default=None, description="the reviewer's AASHTO defect code (None: the class's)"
+    )
     comment: str
     reviewed_by: str | None = None
     reviewed_at: datetime | None = None
@@ -206,6 +209,11 @@ class DefectReview(BaseModel):
         default=False, description="set the condition state back to none"
     )
     comment: Text | None = Field(default=None, max_length=2000)
+    defect_code: Literal[0, 1000, 1010, 1020, 1900] | None = Field(
+        default=None,
+        description="AASHTO steel defect code (1000 corrosion, 1010 cracking, 1020 connection, "
+        "1900 distortion); 0 returns to the class's",
+    )
 
 
 class DefectCreate(BaseModel):

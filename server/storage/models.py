@@ -75,6 +75,36 @@ class AuthToken(Base):
     expires_at: Mapped[datetime]
 
 
+class Structure(Base):
+    """A structure an inspection team visits (a bridge, a span, a girder line)."""
+
+    __tablename__ = "structures"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), unique=True)
+    owner_id: Mapped[str] = mapped_column(String(100), default="", server_default="")
+    location: Mapped[str] = mapped_column(Text, default="", server_default="")
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class Element(Base):
+    """An AASHTO element of a structure: its number, quantity (m, m² or each by the element)
+    and its extent, a rectangle in the structure's frame (metres)."""
+
+    __tablename__ = "elements"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    structure_id: Mapped[int] = mapped_column(
+        ForeignKey("structures.id", ondelete="CASCADE"), index=True
+    )
+    number: Mapped[int] = mapped_column(Integer)
+    name: Mapped[str] = mapped_column(String(200), default="", server_default="")
+    quantity: Mapped[float]
+    x0: Mapped[float]
+    y0: Mapped[float]
+    x1: Mapped[float]
+    y1: Mapped[float]
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
 class InspectionSession(Base):
     __tablename__ = "inspection_sessions"
     id: Mapped[str] = mapped_column(String(36), primary_key=True)
@@ -93,6 +123,12 @@ class InspectionSession(Base):
     # session stays ended and its end never moves (a trigger of migration 0008)
     end_seq: Mapped[int | None] = mapped_column(BigInteger)
     calibration: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    # the structure it inspects, and its datum: the pose (x, y, yaw) of the session's world
+    # frame in the structure's
+    structure_id: Mapped[int | None] = mapped_column(
+        ForeignKey("structures.id", ondelete="SET NULL", name="fk_sessions_structure")
+    )
+    datum: Mapped[dict[str, Any] | None]
     robot: Mapped[Robot | None] = relationship()
 
 
@@ -217,6 +253,8 @@ class Defect(Base):
     world_h_m: Mapped[float | None]
     review_status: Mapped[str] = mapped_column(String(16), default="unreviewed")
     condition_state: Mapped[str | None] = mapped_column(String(8))
+    # the AASHTO defect code a reviewer set (None: the class's, crack 1010, corrosion 1000)
+    defect_code: Mapped[int | None] = mapped_column(Integer)
     comment: Mapped[str] = mapped_column(Text, default="")
     reviewed_by: Mapped[str | None] = mapped_column(String(200))
     reviewed_at: Mapped[datetime | None]

@@ -79,7 +79,7 @@ def review_defect(
     db: SessionDep, session_id: str, defect_id: DefectId, body: DefectReview, user: OperatorUser
 ) -> Defect:
     """Record an inspector's review of a defect: confirm or reject, condition state CS1–CS4,
-    comment (operator role). Who and when is kept for the report."""
+    AASHTO defect code, comment (operator role). Who and when is kept for the report."""
     defect = get_defect_or_404(db, session_id, defect_id)
     if body.review_status is not None:
         defect.review_status = body.review_status
@@ -89,6 +89,8 @@ def review_defect(
         defect.condition_state = None
     if body.comment is not None:
         defect.comment = body.comment
+    if body.defect_code is not None:
+        defect.defect_code = body.defect_code or None  # 0: back to the class's code
     reset = (
         defect.review_status == "unreviewed"
         and defect.condition_state is None

@@ -7,6 +7,8 @@ from server.storage.models import Base
 
 TABLES = {
     "robots",
+    "structures",
+    "elements",
     "users",
     "auth_tokens",
     "inspection_sessions",

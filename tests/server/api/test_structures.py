@@ -1,0 +1,114 @@
+"""Structures and their AASHTO elements over REST, a processed session attached to one, and
+the element condition table (JSON and CSV) against the simulator's truth: with the
+reviewer's verdicts (defects that match no true one rejected), each element's quantity in
+each condition state is what the true defects the session imaged give by the manual's rules."""
+
+from __future__ import annotations
+
+import csv
+import io
+
+import httpx
+import pytest
+
+from processing.history.condition import CodedDefect, Element, element_of, state_quantities
+from robot_link.sim.structure import make_structure
+from tests.conftest import LiveServer
+
+ELEMENTS = [  # the simulated plate girder's panel, 1.6 m x 0.9 m
+    {"number": 107, "quantity": 1.6, "box": [0.0, 0.0, 1.6, 0.45]},
+    {"number": 162, "quantity": 1.0, "box": [0.6, 0.45, 1.0, 0.9]},
+    {"number": 515, "quantity": 1.44, "box": [0.0, 0.0, 1.6, 0.9]},
+]
+
+
+def _overlap(a: list[float], b: tuple[float, float, float, float]) -> bool:
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
+
+
+def test_element_condition_matches_the_truth(inspected: tuple[LiveServer, str]) -> None:
+    live, sid = inspected
+    api = f"{live.url}/api"
+    aashto = httpx.get(f"{api}/aashto").json()
+    assert {e["number"] for e in aashto["elements"]} >= {102, 107, 113, 152, 162, 515}
+    r = httpx.post(
+        f"{api}/structures", json={"name": f"Girder G3 {sid[:8]}", "owner_id": "NBI 0042"}
+    )
+    assert r.status_code == 201, r.text
+    st = r.json()["id"]
+    assert httpx.post(f"{api}/structures", json={"name": f"Girder G3 {sid[:8]}"}).status_code == 409
+    for e in ELEMENTS:
+        assert httpx.post(f"{api}/structures/{st}/elements", json=e).status_code == 201
+    bad = {"number": 999, "quantity": 1.0, "box": [0, 0, 1, 1]}
+    assert httpx.post(f"{api}/structures/{st}/elements", json=bad).status_code == 422
+    flipped = {"number": 107, "quantity": 1.0, "box": [1, 0, 0, 1]}
+    assert httpx.post(f"{api}/structures/{st}/elements", json=flipped).status_code == 422
+    r = httpx.put(f"{api}/sessions/{sid}/structure", json={"structure_id": st})
+    assert r.status_code == 200, r.text
+    # the reviewer rejects what matches no true defect
+    truth = make_structure(11).defects
+    true_boxes = {
+        t.id: (t.bbox_m[0], t.bbox_m[1], t.bbox_m[0] + t.bbox_m[2], t.bbox_m[1] + t.bbox_m[3])
+        for t in truth
+    }
+    found = httpx.get(f"{api}/sessions/{sid}/defects", params={"source": "mosaic"}).json()["data"]
+    seen = set()  # the true defects the session imaged and found
+    for d in found:
+        box = [
+            d["world_x_m"] - d["world_w_m"] / 2,
+            d["world_y_m"] - d["world_h_m"] / 2,
+            d["world_x_m"] + d["world_w_m"] / 2,
+            d["world_y_m"] + d["world_h_m"] / 2,
+        ]
+        matches = {i for i, b in true_boxes.items() if _overlap(box, b)}
+        seen |= matches
+        if not matches:
+            httpx.patch(
+                f"{api}/sessions/{sid}/defects/{d['id']}", json={"review_status": "rejected"}
+            )
+    table = httpx.get(f"{api}/structures/{st}/condition").json()
+    assert table["session_id"] == sid and not table["unplaced_defects"]
+    # the truth by the same rules
+    elements = [
+        Element(i, e["number"], e["quantity"], tuple(e["box"])) for i, e in enumerate(ELEMENTS)
+    ]
+    coded = {i: [] for i in range(len(ELEMENTS))}
+    assert seen
+    for t in truth:
+        if t.id not in seen:
+            continue
+        box = true_boxes[t.id]
+        where = element_of(box, elements)
+        state = 3 if t.defect_class == "crack" else 2
+        coded[where].append(
+            CodedDefect(t.id, box, 1010 if t.defect_class == "crack" else 1000, state)
+        )
+    for row, e in zip(table["elements"], elements, strict=True):
+        expected = state_quantities(e, coded[e.id])
+        got = row["cs"]
+        assert sum(got.values()) == pytest.approx(e.quantity)
+        tolerance = 0.06 if row["unit"] == "m" else 0.02 if row["unit"] == "m2" else 0
+        for k in range(1, 5):
+            assert got[f"cs{k}"] == pytest.approx(expected[k], abs=tolerance), (row["number"], k)
+    # the CSV in the element/defect layout
+    text = httpx.get(f"{api}/structures/{st}/condition.csv").text
+    rows = list(csv.DictReader(io.StringIO(text)))
+    assert [r["element"] for r in rows if not r["defect"]] == ["107", "162", "515"]
+    assert {r["defect"] for r in rows if r["defect"]} <= {"1000", "1010"}
+    assert rows[0]["owner_id"] == "NBI 0042"
+
+
+def test_structures_need_an_operator_to_change(inspected: tuple[LiveServer, str]) -> None:
+    live, _ = inspected
+    assert httpx.get(f"{live.url}/api/structures/999999").status_code == 404
+    assert httpx.get(f"{live.url}/api/structures/999999/condition").status_code == 404
+
+
+def test_a_reviewer_recodes_a_defect(inspected: tuple[LiveServer, str]) -> None:
+    live, sid = inspected
+    api = f"{live.url}/api/sessions/{sid}/defects"
+    d = httpx.get(api, params={"source": "mosaic"}).json()["data"][0]
+    r = httpx.patch(f"{api}/{d['id']}", json={"defect_code": 1900})
+    assert r.status_code == 200 and r.json()["defect_code"] == 1900
+    assert httpx.patch(f"{api}/{d['id']}", json={"defect_code": 1234}).status_code == 422
+    assert httpx.patch(f"{api}/{d['id']}", json={"defect_code": 0}).json()["defect_code"] is None
