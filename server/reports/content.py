@@ -17,6 +17,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from processing.coverage import CoverageParams
+from server.reports.condition import element_condition
 from server.reports.coverage import QualityCache, session_coverage
 from server.reports.fields import CONDITION_STATES, GENERATOR
 from server.storage.files import SessionFiles
@@ -27,6 +28,7 @@ from server.storage.models import (
     InspectionSession,
     Job,
     JobState,
+    Structure,
     TelemetrySample,
 )
 from server.storage.spans import duration_s
@@ -86,6 +88,23 @@ def build_report(
         "files": _files(results_dir, base_url, session_id),
         "coverage": _coverage(db, files, session_id, coverage) if coverage else None,
         "calibration": s.calibration,
+        "element_condition": _element_condition(db, s),
+    }
+
+
+def _element_condition(db: Session, s: InspectionSession) -> dict[str, Any] | None:
+    """The AASHTO element condition table of the session's structure from this session
+    (None when it inspects no structure on record)."""
+    structure = db.get(Structure, s.structure_id) if s.structure_id is not None else None
+    if structure is None:
+        return None
+    table, unplaced = element_condition(db, structure, s)
+    return {
+        "structure_id": structure.id,
+        "structure": structure.name,
+        "owner_id": structure.owner_id,
+        "elements": [c.as_dict() for c in table],
+        "unplaced_defects": unplaced,
     }
 
 

@@ -112,3 +112,20 @@ def test_a_reviewer_recodes_a_defect(inspected: tuple[LiveServer, str]) -> None:
     assert r.status_code == 200 and r.json()["defect_code"] == 1900
     assert httpx.patch(f"{api}/{d['id']}", json={"defect_code": 1234}).status_code == 422
     assert httpx.patch(f"{api}/{d['id']}", json={"defect_code": 0}).json()["defect_code"] is None
+
+
+def test_the_report_carries_the_element_condition_table(inspected: tuple[LiveServer, str]) -> None:
+    live, sid = inspected
+    api = f"{live.url}/api"
+    st = httpx.post(f"{api}/structures", json={"name": f"Report {sid[:8]}"}).json()["id"]
+    httpx.post(f"{api}/structures/{st}/elements", json=ELEMENTS[0])
+    httpx.put(f"{api}/sessions/{sid}/structure", json={"structure_id": st})
+    report = httpx.get(f"{api}/sessions/{sid}/report.json").json()
+    table = report["element_condition"]
+    assert table["structure_id"] == st and table["elements"][0]["number"] == 107
+    pdf = httpx.get(f"{api}/sessions/{sid}/report.pdf", timeout=120)
+    assert pdf.status_code == 200 and pdf.content.startswith(b"%PDF")
+    import pypdfium2
+
+    text = "".join(p.get_textpage().get_text_range() for p in pypdfium2.PdfDocument(pdf.content))
+    assert "Element condition" in text and "Steel Open Girder/Beam" in text
