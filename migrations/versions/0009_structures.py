@@ -8,6 +8,9 @@ Create Date: 2026-11-28 12:30:00
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 import sqlalchemy as sa
 from alembic import op
 
@@ -15,6 +18,7 @@ revision = "0009"
 down_revision = "0008"
 branch_labels = None
 depends_on = None
+FK_NAME = "inspection_sessions_structure_id_fkey"  # PostgreSQL's own name for it
 
 
 def upgrade() -> None:
@@ -45,22 +49,47 @@ def upgrade() -> None:
         sa.Column("y1", sa.Double(), nullable=False),
         sa.Column("created_at", sa.DateTime(timezone=True), nullable=False),
     )
-    with op.batch_alter_table("inspection_sessions") as batch:
-        batch.add_column(sa.Column("structure_id", sa.Integer, nullable=True))
-        batch.add_column(sa.Column("datum", sa.JSON, nullable=True))
-        batch.create_foreign_key(
-            "fk_sessions_structure", "structures", ["structure_id"], ["id"], ondelete="SET NULL"
+    # plain ALTER TABLE ADD COLUMN: a batch copy of inspection_sessions on SQLite would drop
+    # the trigger of 0008 that keeps an ended session ended
+    if op.get_bind().dialect.name == "sqlite":
+        op.execute(
+            "ALTER TABLE inspection_sessions ADD COLUMN structure_id INTEGER "
+            "REFERENCES structures (id)"
         )
-    with op.batch_alter_table("defects") as batch:
-        batch.add_column(sa.Column("defect_code", sa.Integer, nullable=True))
+    else:
+        op.add_column("inspection_sessions", sa.Column("structure_id", sa.Integer, nullable=True))
+        op.create_foreign_key(
+            FK_NAME,
+            "inspection_sessions",
+            "structures",
+            ["structure_id"],
+            ["id"],
+        )
+    op.add_column("inspection_sessions", sa.Column("datum", sa.JSON, nullable=True))
+    op.add_column("defects", sa.Column("defect_code", sa.Integer, nullable=True))
 
 
 def downgrade() -> None:
-    with op.batch_alter_table("defects") as batch:
-        batch.drop_column("defect_code")
-    with op.batch_alter_table("inspection_sessions") as batch:
-        batch.drop_constraint("fk_sessions_structure", type_="foreignkey")
-        batch.drop_column("datum")
-        batch.drop_column("structure_id")
+    op.drop_column("defects", "defect_code")
+    op.drop_column("inspection_sessions", "datum")
+    if op.get_bind().dialect.name == "sqlite":
+        # SQLite drops a column under a foreign key only by copying the table, which drops
+        # its triggers: 0008's is made again
+        with op.batch_alter_table("inspection_sessions") as batch:
+            batch.drop_column("structure_id")
+        op.execute(_session_end_trigger())
+    else:
+        op.drop_constraint(FK_NAME, "inspection_sessions", type_="foreignkey")
+        op.drop_column("inspection_sessions", "structure_id")
     op.drop_table("elements")
     op.drop_table("structures")
+
+
+def _session_end_trigger() -> str:
+    """Migration 0008's SQLite trigger."""
+    path = Path(__file__).with_name("0008_session_end.py")
+    spec = importlib.util.spec_from_file_location("session_end_0008", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return str(module.SQLITE_TRIGGER)

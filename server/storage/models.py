@@ -125,9 +125,7 @@ class InspectionSession(Base):
     calibration: Mapped[dict[str, Any]] = mapped_column(default=dict)
     # the structure it inspects, and its datum: the pose (x, y, yaw) of the session's world
     # frame in the structure's
-    structure_id: Mapped[int | None] = mapped_column(
-        ForeignKey("structures.id", ondelete="SET NULL", name="fk_sessions_structure")
-    )
+    structure_id: Mapped[int | None] = mapped_column(ForeignKey("structures.id"))
     datum: Mapped[dict[str, Any] | None]
     robot: Mapped[Robot | None] = relationship()
 
