@@ -17,6 +17,7 @@ from server.api.deps import OperatorUser, SessionDep, get_current_user
 from server.api.queries import get_session_or_404
 from server.errors import Conflict, NotFound
 from server.reports.condition import condition_csv, element_condition, latest_session
+from server.reports.visits import visit_changes
 from server.storage.models import Element, InspectionSession, Structure, utcnow
 
 router = APIRouter(prefix="/api", tags=["structures"], dependencies=[Depends(get_current_user)])
@@ -218,6 +219,14 @@ def set_session_structure(
     s.datum = body.datum
     db.commit()
     return body
+
+
+@router.get("/sessions/{session_id}/changes")
+def read_changes(db: SessionDep, session_id: str) -> dict[str, Any]:
+    """What changed since the structure's previous inspection: each defect new, grown,
+    unchanged or gone, with its length, width and area change, and the elements whose
+    condition worsened."""
+    return visit_changes(db, get_session_or_404(db, session_id))
 
 
 @router.get("/structures/{structure_id}/condition")

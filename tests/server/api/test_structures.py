@@ -129,3 +129,72 @@ def test_the_report_carries_the_element_condition_table(inspected: tuple[LiveSer
 
     text = "".join(p.get_textpage().get_text_range() for p in pypdfium2.PdfDocument(pdf.content))
     assert "Element condition" in text and "Steel Open Girder/Beam" in text
+
+
+def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> None:
+    """An earlier visit of the structure on record (its defects as this session's, one crack
+    8 mm shorter, one defect not yet there, one since repaired): the changes say so."""
+    from datetime import timedelta
+
+    from server.storage.db import make_engine, make_sessionmaker
+    from server.storage.models import Defect, InspectionSession
+
+    live, sid = inspected
+    api = f"{live.url}/api"
+    st = httpx.post(f"{api}/structures", json={"name": f"Visits {sid[:8]}"}).json()["id"]
+    httpx.post(f"{api}/structures/{st}/elements", json=ELEMENTS[0])
+    assert (
+        httpx.put(f"{api}/sessions/{sid}/structure", json={"structure_id": st}).status_code == 200
+    )
+    assert httpx.get(f"{api}/sessions/{sid}/changes").json()["previous_session_id"] is None
+    engine = make_engine(live.settings.resolved_database_url())
+    try:
+        with make_sessionmaker(engine)() as db:
+            now = db.get(InspectionSession, sid)
+            assert now is not None
+            earlier = InspectionSession(
+                id=f"earlier-{sid[:20]}",
+                structure="the same girder",
+                structure_id=st,
+                datum={"x": 0.0, "y": 0.0, "yaw": 0.0},
+                started_at=now.started_at - timedelta(days=730),
+            )
+            db.add(earlier)
+            found = list(
+                db.query(Defect).filter_by(session_id=sid, source="mosaic").order_by(Defect.number)
+            )
+            found = [d for d in found if d.review_status != "rejected"]
+            cracks = [d for d in found if d.defect_class == "crack"]
+            assert cracks and len(found) >= 2
+            grown, missing = cracks[0], next(d for d in found if d is not cracks[0])
+            columns = [
+                c.key
+                for c in Defect.__table__.columns
+                if c.key not in ("id", "session_id", "job_id")
+            ]
+            for d in found:
+                if d is missing:
+                    continue
+                copy = Defect(session_id=earlier.id, **{k: getattr(d, k) for k in columns})
+                if d is grown:
+                    copy.length_mm = (d.length_mm or 0.0) - 8.0
+                db.add(copy)
+            repaired = Defect(
+                session_id=earlier.id,
+                **{k: getattr(grown, k) for k in columns},
+            )
+            repaired.world_x_m, repaired.world_y_m, repaired.number = 1.5, 0.8, 999
+            db.add(repaired)
+            db.commit()
+    finally:
+        engine.dispose()
+    result = httpx.get(f"{api}/sessions/{sid}/changes").json()
+    assert result["previous_session_id"] == f"earlier-{sid[:20]}"
+    by_status: dict[str, list] = {}
+    for c in result["changes"]:
+        by_status.setdefault(c["status"], []).append(c)
+    assert [c["after"]["defect_id"] for c in by_status["grown"]] == [grown.id]
+    assert by_status["grown"][0]["length_change_mm"] == pytest.approx(8.0)
+    assert [c["after"]["defect_id"] for c in by_status["new"]] == [missing.id]
+    assert [c["before"]["number"] for c in by_status["gone"]] == [999]
+    assert len(by_status.get("unchanged", [])) == len(found) - 2

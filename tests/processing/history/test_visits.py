@@ -1,0 +1,39 @@
+"""Two visits' defects matched in the structure's frame: a crack longer by 8 mm is grown, one
+longer by 1 mm unchanged, a rust patch 50 % larger grown, one only on the later visit new,
+one only on the earlier gone; classes never mix; visits a few millimetres apart still pair."""
+
+from __future__ import annotations
+
+from processing.history.visits import VisitDefect, match_visits
+
+
+def test_grown_unchanged_new_and_gone() -> None:
+    before = [
+        VisitDefect(1, "crack", (0.10, 0.10, 0.15, 0.12), length_mm=50.0, width_mm=0.6),
+        VisitDefect(2, "crack", (0.40, 0.10, 0.45, 0.12), length_mm=50.0),
+        VisitDefect(3, "corrosion", (0.70, 0.30, 0.75, 0.35), area_mm2=1000.0),
+        VisitDefect(4, "crack", (0.90, 0.50, 0.95, 0.52), length_mm=40.0),
+    ]
+    shift = 0.004  # the visits' frames agree to a few millimetres
+    after = [
+        VisitDefect(
+            11, "crack", (0.10 + shift, 0.10, 0.158 + shift, 0.12), length_mm=58.0, width_mm=0.8
+        ),
+        VisitDefect(12, "crack", (0.40 + shift, 0.10, 0.45 + shift, 0.12), length_mm=51.0),
+        VisitDefect(13, "corrosion", (0.69, 0.29, 0.76, 0.36), area_mm2=1500.0),
+        VisitDefect(14, "crack", (0.60, 0.60, 0.65, 0.62), length_mm=30.0),
+        VisitDefect(
+            15, "corrosion", (0.10, 0.10, 0.15, 0.12), area_mm2=200.0
+        ),  # rust where a crack is
+    ]
+    changes = {
+        (c.before.id if c.before else None, c.after.id if c.after else None): c
+        for c in match_visits(before, after)
+    }
+    assert changes[(1, 11)].status == "grown" and changes[(1, 11)].delta("length_mm") == 8.0
+    assert changes[(1, 11)].delta("width_mm") == 0.2
+    assert changes[(2, 12)].status == "unchanged"
+    assert changes[(3, 13)].status == "grown" and changes[(3, 13)].delta("area_mm2") == 500.0
+    assert changes[(None, 14)].status == "new" and changes[(None, 15)].status == "new"
+    assert changes[(4, None)].status == "gone"
+    assert len(changes) == 6
