@@ -16,6 +16,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.metrics import umeyama_alignment
+
 
 class AlignmentError(ValueError):
     """The two images show no common surface that can be aligned."""
@@ -164,3 +166,28 @@ def align_visits(
     if overlap < params.min_overlap:
         raise AlignmentError(f"only {overlap:.0%} of AFTER lies inside BEFORE: not one surface")
     return Alignment(H, _residual(H, pa, pb), overlap, len(pa))
+
+
+def world_transform(
+    after_to_before: NDArray[np.float64],
+    after_size: tuple[int, int],
+    after_origin_m: tuple[float, float],
+    after_px_per_m: float,
+    before_origin_m: tuple[float, float],
+    before_px_per_m: float,
+) -> tuple[NDArray[np.float64], float]:
+    """The planar pose (x, y, yaw) of AFTER's world frame in BEFORE's, from a homography
+    between two mosaics (pixel (u, v) at world ``origin_m + (u, v) / px_per_m``), and the
+    RMS distance (m) by which the rigid pose departs from the homography over AFTER."""
+    w, h = after_size
+    us, vs = np.meshgrid(np.linspace(0, w, 9), np.linspace(0, h, 9))
+    pa = np.stack([us.ravel(), vs.ravel()], 1)
+    pb = cv2.perspectiveTransform(pa.reshape(-1, 1, 2), after_to_before).reshape(-1, 2)
+    wa = np.asarray(after_origin_m) + pa / after_px_per_m
+    wb = np.asarray(before_origin_m) + pb / before_px_per_m
+    T = umeyama_alignment(
+        np.column_stack([wa, np.zeros(len(wa))]), np.column_stack([wb, np.zeros(len(wb))])
+    )
+    fit = wa @ T[:2, :2].T + T[:2, 3]
+    rms = float(np.sqrt(np.mean(np.sum((fit - wb) ** 2, axis=1))))
+    return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])]), rms

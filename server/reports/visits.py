@@ -4,14 +4,21 @@ matched to the previous session's by position in the structure's frame
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from processing.history.align import AlignmentError, align_visits, world_transform
 from processing.history.visits import DefectChange, VisitDefect, match_visits
+from processing.poses import compose_se2
 from server.reports.condition import element_condition, structure_box
-from server.storage.models import Defect, InspectionSession, Structure
+from server.storage.files import SessionFiles
+from server.storage.models import Defect, InspectionSession, Job, JobState, Structure
 
 
 def previous_session(db: Session, s: InspectionSession) -> InspectionSession | None:
@@ -29,7 +36,69 @@ def previous_session(db: Session, s: InspectionSession) -> InspectionSession | N
     ).first()
 
 
-def _visit_defects(db: Session, s: InspectionSession) -> list[VisitDefect]:
+@dataclass(frozen=True)
+class _Mosaic:
+    """A session's mosaic overview and where its pixels are in its world frame."""
+
+    image: np.ndarray
+    origin_m: tuple[float, float]
+    px_per_m: float  # overview pixels per metre
+
+
+def _mosaic(db: Session, files: SessionFiles, session_id: str) -> _Mosaic | None:
+    job = db.scalars(
+        select(Job)
+        .where(Job.session_id == session_id, Job.kind == "stitch", Job.state == JobState.done)
+        .order_by(Job.id.desc())
+        .limit(1)
+    ).first()
+    if job is None or not job.result.get("overview_path"):
+        return None
+    path = files.results_dir(session_id) / Path(job.result["overview_path"]).name
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        return None
+    r = job.result
+    origin = (float(r["origin_m"][0]), float(r["origin_m"][1]))
+    return _Mosaic(image, origin, float(r["px_per_m"]) * float(r.get("overview_scale", 1.0)))
+
+
+def register_visit(
+    db: Session, files: SessionFiles, before: InspectionSession, after: InspectionSession
+) -> dict[str, Any] | None:
+    """AFTER's datum refined by registering its mosaic to BEFORE's (robust to lighting and
+    new rust, :func:`processing.history.align.align_visits`): AFTER's world frame placed in
+    BEFORE's, then on the structure through BEFORE's datum. None without both mosaics or
+    when they do not align."""
+    mb, ma = _mosaic(db, files, before.id), _mosaic(db, files, after.id)
+    if mb is None or ma is None:
+        return None
+    try:
+        al = align_visits(mb.image, ma.image)
+    except AlignmentError:
+        return None
+    pose, rigid_rms = world_transform(
+        al.after_to_before,
+        (ma.image.shape[1], ma.image.shape[0]),
+        ma.origin_m,
+        ma.px_per_m,
+        mb.origin_m,
+        mb.px_per_m,
+    )
+    d = before.datum or {}
+    datum_b = np.array([d.get("x", 0.0), d.get("y", 0.0), d.get("yaw", 0.0)], float)
+    x, y, yaw = compose_se2(datum_b, pose)
+    return {
+        "datum": {"x": round(float(x), 6), "y": round(float(y), 6), "yaw": round(float(yaw), 8)},
+        "residual_mm": round(al.residual_px / mb.px_per_m * 1000, 3),
+        "rigid_rms_mm": round(rigid_rms * 1000, 3),
+        "overlap": round(al.overlap, 4),
+    }
+
+
+def _visit_defects(
+    db: Session, s: InspectionSession, datum: dict[str, Any] | None = None
+) -> list[VisitDefect]:
     rows = db.scalars(
         select(Defect)
         .where(Defect.session_id == s.id, Defect.source == "mosaic")
@@ -38,7 +107,7 @@ def _visit_defects(db: Session, s: InspectionSession) -> list[VisitDefect]:
     ).all()
     out = []
     for d in rows:
-        box = structure_box(d, s.datum)
+        box = structure_box(d, datum if datum is not None else s.datum)
         if box is not None:
             out.append(
                 VisitDefect(d.id, d.defect_class, box, d.length_mm, d.max_width_mm, d.area_mm2)
@@ -72,8 +141,10 @@ def _record(c: DefectChange, numbers: dict[int, int | None]) -> dict[str, Any]:
     }
 
 
-def visit_changes(db: Session, s: InspectionSession) -> dict[str, Any]:
-    """The changes since the structure's previous session (none when there is none)."""
+def visit_changes(db: Session, files: SessionFiles, s: InspectionSession) -> dict[str, Any]:
+    """The changes since the structure's previous session (none when there is none); the
+    session is placed on the structure by registering its mosaic to the previous one's
+    where both exist, else by its datum."""
     before = previous_session(db, s)
     out: dict[str, Any] = {
         "session_id": s.id,
@@ -82,14 +153,18 @@ def visit_changes(db: Session, s: InspectionSession) -> dict[str, Any]:
         "previous_date": before.started_at.date().isoformat() if before else None,
         "changes": [],
         "worsened_elements": [],
+        "registration": None,
     }
     if before is None:
         return out
+    registration = register_visit(db, files, before, s)
+    out["registration"] = registration
     rows = db.execute(
         select(Defect.id, Defect.number).where(Defect.session_id.in_([s.id, before.id]))
     ).all()
     numbers = {int(i): n for i, n in rows}
-    changes = match_visits(_visit_defects(db, before), _visit_defects(db, s))
+    datum = registration["datum"] if registration else None
+    changes = match_visits(_visit_defects(db, before), _visit_defects(db, s, datum))
     out["changes"] = [_record(c, numbers) for c in changes]
     structure = db.get(Structure, s.structure_id)
     assert structure is not None

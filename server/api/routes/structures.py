@@ -13,7 +13,7 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
 from processing.history.condition import defect_names, element_types
-from server.api.deps import OperatorUser, SessionDep, get_current_user
+from server.api.deps import OperatorUser, SessionDep, StateDep, get_current_user
 from server.api.queries import get_session_or_404
 from server.errors import Conflict, NotFound
 from server.reports.condition import condition_csv, element_condition, latest_session
@@ -222,11 +222,11 @@ def set_session_structure(
 
 
 @router.get("/sessions/{session_id}/changes")
-def read_changes(db: SessionDep, session_id: str) -> dict[str, Any]:
-    """What changed since the structure's previous inspection: each defect new, grown,
-    unchanged or gone, with its length, width and area change, and the elements whose
-    condition worsened."""
-    return visit_changes(db, get_session_or_404(db, session_id))
+def read_changes(db: SessionDep, state: StateDep, session_id: str) -> dict[str, Any]:
+    """What changed since the structure's previous inspection: the session registered to
+    it (its mosaic to the previous one's), each defect new, grown, unchanged or gone, with
+    its length, width and area change, and the elements whose condition worsened."""
+    return visit_changes(db, state.files, get_session_or_404(db, session_id))
 
 
 @router.get("/structures/{structure_id}/condition")

@@ -132,12 +132,18 @@ def test_the_report_carries_the_element_condition_table(inspected: tuple[LiveSer
 
 
 def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> None:
-    """An earlier visit of the structure on record (its defects as this session's, one crack
-    8 mm shorter, one defect not yet there, one since repaired): the changes say so."""
+    """An earlier visit of the structure on record, its robot started 3 cm off (its mosaic
+    and defects are this session's moved by that; one crack 8 mm shorter, one defect not yet
+    there, one since repaired): the session is registered to it by the mosaics and the
+    changes say what changed."""
     from datetime import timedelta
 
+    import cv2
+    import numpy as np
+
     from server.storage.db import make_engine, make_sessionmaker
-    from server.storage.models import Defect, InspectionSession
+    from server.storage.files import SessionFiles
+    from server.storage.models import Defect, InspectionSession, Job, JobState, SessionStatus
 
     live, sid = inspected
     api = f"{live.url}/api"
@@ -147,19 +153,42 @@ def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> 
         httpx.put(f"{api}/sessions/{sid}/structure", json={"structure_id": st}).status_code == 200
     )
     assert httpx.get(f"{api}/sessions/{sid}/changes").json()["previous_session_id"] is None
+    stitch = next(
+        j for j in httpx.get(f"{api}/sessions/{sid}/jobs").json() if j["kind"] == "stitch"
+    )["result"]
+    k = stitch["px_per_m"] * stitch["overview_scale"]  # overview pixels per metre
+    shift_px = (round(0.03 * k), round(-0.02 * k))
+    shift_m = (shift_px[0] / k, shift_px[1] / k)  # the earlier world's offset
+    files = SessionFiles(live.settings.data_dir)
+    earlier_id = f"earlier-{sid[:20]}"
+    overview = cv2.imread(str(files.results_dir(sid) / "mosaic_overview.png"))
+    assert overview is not None
+    M = np.float32([[1, 0, shift_px[0]], [0, 1, shift_px[1]]])
+    moved = cv2.warpAffine(overview, M, overview.shape[1::-1], borderMode=cv2.BORDER_REFLECT)
+    files.results_dir(earlier_id).mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(files.results_dir(earlier_id) / "mosaic_overview.png"), moved)
     engine = make_engine(live.settings.resolved_database_url())
     try:
         with make_sessionmaker(engine)() as db:
             now = db.get(InspectionSession, sid)
             assert now is not None
             earlier = InspectionSession(
-                id=f"earlier-{sid[:20]}",
+                id=earlier_id,
                 structure="the same girder",
                 structure_id=st,
                 datum={"x": 0.0, "y": 0.0, "yaw": 0.0},
+                status=SessionStatus.ended,
                 started_at=now.started_at - timedelta(days=730),
             )
             db.add(earlier)
+            db.add(
+                Job(
+                    session_id=earlier_id,
+                    kind="stitch",
+                    state=JobState.done,
+                    result={**stitch, "overview_path": "mosaic_overview.png"},
+                )
+            )
             found = list(
                 db.query(Defect).filter_by(session_id=sid, source="mosaic").order_by(Defect.number)
             )
@@ -175,7 +204,9 @@ def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> 
             for d in found:
                 if d is missing:
                     continue
-                copy = Defect(session_id=earlier.id, **{k: getattr(d, k) for k in columns})
+                copy = Defect(session_id=earlier.id, **{c: getattr(d, c) for c in columns})
+                copy.world_x_m = (d.world_x_m or 0.0) + shift_m[0]
+                copy.world_y_m = (d.world_y_m or 0.0) + shift_m[1]
                 if d is grown:
                     copy.length_mm = (d.length_mm or 0.0) - 8.0
                 db.add(copy)
@@ -189,7 +220,11 @@ def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> 
     finally:
         engine.dispose()
     result = httpx.get(f"{api}/sessions/{sid}/changes").json()
-    assert result["previous_session_id"] == f"earlier-{sid[:20]}"
+    assert result["previous_session_id"] == earlier_id
+    datum = result["registration"]["datum"]  # this session's world on the structure
+    assert datum["x"] == pytest.approx(shift_m[0], abs=0.001)
+    assert datum["y"] == pytest.approx(shift_m[1], abs=0.001)
+    assert result["registration"]["residual_mm"] < 2.0
     by_status: dict[str, list] = {}
     for c in result["changes"]:
         by_status.setdefault(c["status"], []).append(c)
