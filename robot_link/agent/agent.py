@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
@@ -63,6 +64,7 @@ class RobotAgent:
         self._since_capture = 0.0
         self._capture_lock = asyncio.Lock()
         self._capture_task: asyncio.Task[bool] | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
         self.auto_capture = True
         self.footprints: list[np.ndarray] = []  # what each frame shows, odometry frame
         self.capture_requested = False
@@ -218,7 +220,7 @@ class RobotAgent:
             return
         self.sweep = CoverageSweep(_SweepPilot(self), self.sweep_params())
         self.control.set_sweep("running")
-        asyncio.create_task(self._run_sweep(self.sweep))
+        self._background(self._run_sweep(self.sweep))
 
     async def _run_sweep(self, sweep: CoverageSweep) -> None:
         try:
@@ -235,7 +237,19 @@ class RobotAgent:
         if self.sweep_requested:
             self.end_requested.set()
 
+    def _background(self, work: Coroutine[Any, Any, None]) -> None:
+        """Run ``work`` as a task the agent holds until it ends (the loop keeps only weak
+        references to tasks)."""
+        task = asyncio.create_task(work)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
     # frames and clouds
+    def request_capture(self) -> None:
+        """Take a frame as soon as no other is being taken."""
+        self.capture_requested = True
+        self._distance(0.0)
+
     def _distance(self, moved: float) -> None:
         self._since_capture += moved
         due = self.auto_capture and self._since_capture >= self.spacing_m()
@@ -257,7 +271,7 @@ class RobotAgent:
                 grab = await self.camera.grab(exact=True)
             except CameraError as exc:
                 self.health.camera_error = str(exc)
-                asyncio.create_task(self._reopen_camera())
+                self._background(self._reopen_camera())
                 return False
             self.health.camera_error = None
             self.health.count("frames")

@@ -33,8 +33,7 @@ def apply_command(agent: RobotAgent, cmd: str, args: dict[str, Any]) -> str:
     elif cmd == "resume":
         c.resume()
     elif cmd == "capture":
-        agent.capture_requested = True
-        agent._distance(0.0)
+        agent.request_capture()
     elif cmd == "lift":
         axle = args.get("axle")
         if axle not in c.lifts:

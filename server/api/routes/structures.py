@@ -6,7 +6,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Query, status
+from fastapi import APIRouter, Depends, Path, Query, status
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from sqlalchemy import func, select
@@ -14,7 +14,7 @@ from sqlalchemy.exc import IntegrityError
 
 from processing.history.condition import defect_names, element_types
 from server.api.deps import OperatorUser, SessionDep, StateDep, get_current_user
-from server.api.queries import get_session_or_404
+from server.api.queries import MAX_INT, get_session_or_404
 from server.errors import Conflict, NotFound
 from server.reports.condition import condition_csv, element_condition, latest_session
 from server.reports.visits import visit_changes
@@ -23,6 +23,8 @@ from server.storage.models import Element, InspectionSession, Structure, utcnow
 router = APIRouter(prefix="/api", tags=["structures"], dependencies=[Depends(get_current_user)])
 
 Name = Annotated[str, Field(min_length=1, max_length=200)]
+StructureId = Annotated[int, Path(ge=1, le=MAX_INT)]
+ElementId = Annotated[int, Path(ge=1, le=MAX_INT)]
 
 
 class StructureCreate(BaseModel):
@@ -78,7 +80,7 @@ class SessionStructure(BaseModel):
     structure's marked datum)."""
 
     model_config = ConfigDict(extra="forbid")
-    structure_id: int | None
+    structure_id: int | None = Field(ge=1, le=MAX_INT)
     datum: dict[str, float] = Field(default_factory=lambda: {"x": 0.0, "y": 0.0, "yaw": 0.0})
 
     @field_validator("datum")
@@ -152,13 +154,13 @@ def create_structure(db: SessionDep, user: OperatorUser, body: StructureCreate) 
 
 
 @router.get("/structures/{structure_id}", response_model=StructurePublic)
-def read_structure(db: SessionDep, structure_id: int) -> StructurePublic:
+def read_structure(db: SessionDep, structure_id: StructureId) -> StructurePublic:
     """One structure."""
     return _public(db, _structure_or_404(db, structure_id))
 
 
 @router.get("/structures/{structure_id}/elements", response_model=list[ElementPublic])
-def read_elements(db: SessionDep, structure_id: int) -> list[ElementPublic]:
+def read_elements(db: SessionDep, structure_id: StructureId) -> list[ElementPublic]:
     """The structure's elements."""
     _structure_or_404(db, structure_id)
     rows = db.scalars(
@@ -173,7 +175,7 @@ def read_elements(db: SessionDep, structure_id: int) -> list[ElementPublic]:
     status_code=status.HTTP_201_CREATED,
 )
 def create_element(
-    db: SessionDep, user: OperatorUser, structure_id: int, body: ElementCreate
+    db: SessionDep, user: OperatorUser, structure_id: StructureId, body: ElementCreate
 ) -> ElementPublic:
     """Define an element on the structure."""
     _structure_or_404(db, structure_id)
@@ -196,7 +198,7 @@ def create_element(
 
 @router.delete("/structures/{structure_id}/elements/{element_id}", status_code=204)
 def delete_element(
-    db: SessionDep, user: OperatorUser, structure_id: int, element_id: int
+    db: SessionDep, user: OperatorUser, structure_id: StructureId, element_id: ElementId
 ) -> Response:
     """Remove an element."""
     e = db.get(Element, element_id)
@@ -232,7 +234,7 @@ def read_changes(db: SessionDep, state: StateDep, session_id: str) -> dict[str, 
 @router.get("/structures/{structure_id}/condition")
 def read_condition(
     db: SessionDep,
-    structure_id: int,
+    structure_id: StructureId,
     session_id: Annotated[str | None, Query(max_length=36)] = None,
 ) -> dict[str, Any]:
     """Each element's quantity in CS1-CS4 from a session's defects (the structure's latest
@@ -252,7 +254,7 @@ def read_condition(
 @router.get("/structures/{structure_id}/condition.csv")
 def read_condition_csv(
     db: SessionDep,
-    structure_id: int,
+    structure_id: StructureId,
     session_id: Annotated[str | None, Query(max_length=36)] = None,
 ) -> Response:
     """The condition table as CSV: element rows and element/defect rows with CS quantities."""
