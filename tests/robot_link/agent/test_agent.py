@@ -209,6 +209,7 @@ def test_a_bad_config_or_a_silent_mcu_exits_with_one_error_line(
         and len(err.strip().splitlines()) == 1
     )
     emulator.signal(signal.SIGUSR1)
+    time.sleep(0.3)  # the emulator's loop takes the signal within a tick
     robot = run_robot(
         write_config(tmp_path / "robot.toml", "http://127.0.0.1:9", "t", emulator.device)
     )

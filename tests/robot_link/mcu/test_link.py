@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import signal
+import time
 
 import pytest
 
@@ -88,5 +89,6 @@ def test_a_missing_device_or_a_silent_mcu_fails_the_start(emulator: EmulatorProc
     with pytest.raises(McuError, match="cannot open"):
         asyncio.run(open_("/dev/does-not-exist"))
     emulator.signal(signal.SIGUSR1)
+    time.sleep(0.3)  # the emulator's loop takes the signal within a tick
     with pytest.raises(McuError, match="did not answer"):
         asyncio.run(open_(emulator.device))
