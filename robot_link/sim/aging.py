@@ -1,0 +1,114 @@
+"""The same simulated structure visited again months later: cracks extended at a tip and
+widened, rust patches grown and new ones, with the true growth of each defect known."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from skimage.morphology import skeletonize
+
+from robot_link.sim.structure import SteelStructure, TrueDefect, _draw_corrosion, _true_defect
+
+
+@dataclass(frozen=True)
+class Growth:
+    """What happened to one defect between the visits (metres, m²)."""
+
+    defect_id: int
+    defect_class: str
+    length_m: float = 0.0  # added to a crack
+    area_m2: float = 0.0  # added to a rust patch
+    new: bool = False
+
+
+def _tip(skel: NDArray[np.bool_]) -> tuple[NDArray[np.float64], float] | None:
+    """An end of a crack's skeleton and the heading pointing out of it."""
+    ys, xs = np.nonzero(skel)
+    if len(xs) < 3:
+        return None
+    pts = np.stack([xs, ys], 1).astype(np.float64)
+    far = pts[np.argmax(np.linalg.norm(pts - pts.mean(0), axis=1))]  # one end
+    near = pts[np.linalg.norm(pts - far, axis=1) < 12]
+    direction = far - near.mean(0)
+    if not np.any(direction):
+        return None
+    return far, float(np.arctan2(direction[1], direction[0]))
+
+
+def _extend(
+    img: NDArray[np.float32],
+    mask: NDArray[np.uint8],
+    start: NDArray[np.float64],
+    heading: float,
+    length_px: float,
+    width_px: float,
+    rng: np.random.Generator,
+) -> NDArray[np.bool_]:
+    """Paint a crack's continuation from ``start`` along ``heading``; its pixels."""
+    pts = [start]
+    for _ in range(max(1, int(length_px / 4.0))):
+        heading += rng.normal(0, 0.15)
+        pts.append(pts[-1] + 4.0 * np.array([np.cos(heading), np.sin(heading)]))
+    layer = np.zeros(mask.shape, np.uint8)
+    poly = np.round(np.array(pts) * 16).astype(np.int32).reshape(-1, 1, 2)
+    cv2.polylines(layer, [poly], False, 255, max(1, int(round(width_px))), cv2.LINE_AA, shift=4)
+    alpha = (layer.astype(np.float32) / 255.0)[..., None] * 0.85
+    img[:] = img * (1 - alpha) + np.array([38, 36, 34], np.float32) * alpha
+    mine = layer > 127
+    mask[mine] = 255
+    return mine
+
+
+def age_structure(
+    structure: SteelStructure, seed: int, crack_growth_m: tuple[float, float] = (0.005, 0.03)
+) -> tuple[SteelStructure, list[Growth]]:
+    """The structure a visit later: each crack longer by ``crack_growth_m`` (a range) at one
+    tip, each rust patch grown, one new rust patch; and the truth of each change."""
+    rng = np.random.default_rng(seed)
+    mpp = structure.m_per_px
+    img = structure.texture.astype(np.float32)
+    crack = structure.crack_mask.astype(np.uint8) * 255
+    rust = structure.corrosion_mask.astype(np.uint8) * 255
+    defects: list[TrueDefect] = []
+    growth: list[Growth] = []
+    for d in structure.defects:
+        x, y, w, h = (int(round(v / mpp)) for v in d.bbox_m)
+        box = (slice(max(0, y - 2), y + h + 2), slice(max(0, x - 2), x + w + 2))
+        if d.defect_class == "crack":
+            mine = np.zeros(crack.shape, bool)
+            mine[box] = structure.crack_mask[box]
+            tip = _tip(skeletonize(mine))
+            if tip is None:
+                defects.append(d)
+                continue
+            added = rng.uniform(*crack_growth_m)
+            new = _extend(img, crack, tip[0], tip[1], added / mpp, d.width_m / mpp, rng)
+            both = mine | new
+            defects.append(_true_defect(d.id, "crack", both, mpp, d.length_m + added, d.width_m))
+            growth.append(Growth(d.id, "crack", length_m=added))
+        else:
+            ys, xs = np.nonzero(structure.corrosion_mask[box])
+            centre = np.array([xs.mean() + box[1].start, ys.mean() + box[0].start])
+            radius = d.width_m / 2 * rng.uniform(1.1, 1.3) / mpp
+            grown = _draw_corrosion(rng, img, rust, centre, radius)
+            before = int(structure.corrosion_mask[box].sum())
+            d2 = _true_defect(d.id, "corrosion", grown, mpp, 2 * radius * mpp, 2 * radius * mpp)
+            defects.append(d2)
+            growth.append(Growth(d.id, "corrosion", area_m2=(int(grown.sum()) - before) * mpp**2))
+    w_m, h_m = structure.plate_size_m
+    spot = np.array([rng.uniform(0.1, w_m - 0.1), rng.uniform(0.1, h_m - 0.1)]) / mpp
+    patch = _draw_corrosion(rng, img, rust, spot, rng.uniform(0.015, 0.025) / mpp)
+    new_id = max((d.id for d in defects), default=0) + 1
+    defects.append(_true_defect(new_id, "corrosion", patch, mpp, 0.0, 0.0))
+    growth.append(Growth(new_id, "corrosion", area_m2=float(patch.sum()) * mpp**2, new=True))
+    aged = replace(
+        structure,
+        texture=np.clip(img, 0, 255).astype(np.uint8),
+        crack_mask=crack > 0,
+        corrosion_mask=rust > 0,
+        defects=defects,
+    )
+    return aged, growth

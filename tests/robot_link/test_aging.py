@@ -1,0 +1,32 @@
+"""A simulated structure visited again: every crack longer at a tip by the stated amount
+(its painted pixels too), rust patches larger, one new patch, the rest of the plate as it
+was."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robot_link.sim.aging import age_structure
+from robot_link.sim.structure import make_structure
+
+
+def test_a_later_visit_grows_every_defect_by_what_it_says() -> None:
+    before = make_structure(3, plate_size_m=(0.8, 0.5), defect_region_m=(0.1, 0.1, 0.7, 0.4))
+    after, growth = age_structure(before, seed=30)
+    cracks = {g.defect_id: g for g in growth if g.defect_class == "crack"}
+    assert cracks and all(0.005 <= g.length_m <= 0.03 for g in cracks.values())
+    old = {d.id: d for d in before.defects}
+    for d in after.defects:
+        if d.id in cracks:
+            assert d.length_m == pytest.approx(old[d.id].length_m + cracks[d.id].length_m, abs=1e-4)
+            w0, h0 = old[d.id].bbox_m[2:]
+            assert max(d.bbox_m[2], d.bbox_m[3]) >= max(w0, h0) - 1e-9
+    assert after.crack_mask.sum() > before.crack_mask.sum()
+    assert after.corrosion_mask.sum() > before.corrosion_mask.sum()
+    assert [g.new for g in growth].count(True) == 1
+    # away from the defects the plate looks as it did
+    untouched = ~(after.crack_mask | after.corrosion_mask)
+    untouched[:10, :] = False
+    diff = np.abs(after.texture.astype(int) - before.texture.astype(int))[untouched]
+    assert np.percentile(diff, 99) <= 40 and np.median(diff) == 0
