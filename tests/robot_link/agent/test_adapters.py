@@ -131,3 +131,11 @@ def test_the_emulators_camera_and_tof_come_over_its_socket(emulator: EmulatorPro
     image, depth = asyncio.run(main())
     assert image.std() > 3  # painted steel, not a blank
     assert np.isfinite(depth).mean() > 0.3
+
+
+def test_the_realsense_source_says_what_it_needs() -> None:
+    """Without the RealSense library (or a camera) the ToF source fails with what to do."""
+    tof = tof_source(TofConfig(source="realsense"), None, {})
+
+    with pytest.raises(TofError, match="pyrealsense2|RealSense"):
+        asyncio.run(tof.open())
