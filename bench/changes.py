@@ -54,7 +54,7 @@ def _pairs(folder: Path, limit: int, rng: np.random.Generator) -> Iterator[objec
 
 def _score(pair: object, method: str) -> dict[str, float]:
     from processing.history.align import AlignmentError, align_visits
-    from processing.history.changes import crack_evidence, lit_like, match_defects
+    from processing.history.changes import compare_visits, crack_evidence
     from processing.history.pairs import VisitPair, corner_error_px
 
     assert isinstance(pair, VisitPair)
@@ -63,17 +63,8 @@ def _score(pair: object, method: str) -> dict[str, float]:
     except AlignmentError:
         return {"align_px": float("inf"), "found": 0.0, "false": 0.0, "changes": 0.0}
     h, w = pair.after.shape[:2]
-    before = crack_evidence(pair.before, method)
-    lit = lit_like(pair.after, pair.before)
-    after = crack_evidence(lit, method)
-    changes = match_defects(
-        before.mask,
-        after.mask,
-        al.after_to_before,
-        al.residual_px,
-        before_weak=before.weak,
-        after_weak=after.weak,
-        images=(pair.before, lit),
+    changes = compare_visits(
+        pair.before, pair.after, al, lambda image: crack_evidence(image, method)
     )
     hits = [
         c

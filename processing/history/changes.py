@@ -13,6 +13,7 @@ crack cut by the other image's border does not grow for that.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
@@ -24,6 +25,7 @@ from skimage.exposure import match_histograms
 from skimage.morphology import skeletonize
 
 from processing.detection.defects import Components, skeleton_length
+from processing.history.align import Alignment
 from processing.history.confirm import gray_float, still_there
 
 
@@ -392,4 +394,27 @@ def _change(
         before.bbox(bs) if bs else None,
         None if len_b is None else round(len_b, 2),
         None if len_a is None else round(len_a, 2),
+    )
+
+
+def compare_visits(
+    before: NDArray[np.uint8],
+    after: NDArray[np.uint8],
+    alignment: Alignment,
+    evidence: Callable[[NDArray[np.uint8]], CrackEvidence] = crack_evidence,
+    params: ChangeParams = ChangeParams(),
+) -> list[Change]:
+    """The changes between two aligned visits' images: AFTER relit like BEFORE, cracks found
+    in both by ``evidence`` (the network by default), matched and confirmed on the images."""
+    lit = lit_like(after, before)
+    seen_before, seen_after = evidence(before), evidence(lit)
+    return match_defects(
+        seen_before.mask,
+        seen_after.mask,
+        alignment.after_to_before,
+        alignment.residual_px,
+        params,
+        before_weak=seen_before.weak,
+        after_weak=seen_after.weak,
+        images=(before, lit),
     )

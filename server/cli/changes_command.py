@@ -12,13 +12,7 @@ import numpy as np
 
 from processing.detection import detect_cracks_tiled
 from processing.history.align import AlignmentError, align_visits
-from processing.history.changes import (
-    Change,
-    CrackEvidence,
-    crack_evidence,
-    lit_like,
-    match_defects,
-)
+from processing.history.changes import Change, CrackEvidence, compare_visits, crack_evidence
 from server.cli.commands import TILED_ABOVE_PX, read_image
 from server.errors import CommandError
 from server.storage.files import write_atomic
@@ -32,14 +26,14 @@ def _bgr(image: np.ndarray, path: Path) -> np.ndarray:
     return image
 
 
-def _cracks(image: np.ndarray, method: str, path: Path) -> CrackEvidence:
+def _cracks(image: np.ndarray, method: str) -> CrackEvidence:
     try:
         if method != "learned" and image.shape[0] * image.shape[1] > TILED_ABOVE_PX:
             mask = detect_cracks_tiled(image, method=method)  # type: ignore[arg-type]
             return CrackEvidence(mask, mask)
         return crack_evidence(image, method)
     except (ValueError, FileNotFoundError) as exc:
-        raise CommandError(f"{path}: {exc}") from None
+        raise CommandError(f"crack detection ({method}): {exc}") from None
 
 
 def _record(change: Change, px_per_mm: float | None) -> dict[str, Any]:
@@ -72,18 +66,7 @@ def changes(
         alignment = align_visits(before, after)
     except AlignmentError as exc:
         raise CommandError(f"{before_path.name} and {after_path.name}: {exc}") from None
-    seen_before = _cracks(before, method, before_path)
-    lit = lit_like(after, before)
-    seen_after = _cracks(lit, method, after_path)
-    found = match_defects(
-        seen_before.mask,
-        seen_after.mask,
-        alignment.after_to_before,
-        alignment.residual_px,
-        before_weak=seen_before.weak,
-        after_weak=seen_after.weak,
-        images=(before, lit),
-    )
+    found = compare_visits(before, after, alignment, lambda image: _cracks(image, method))
     out.mkdir(parents=True, exist_ok=True)
     write_atomic(
         out / "alignment.json",
