@@ -98,6 +98,23 @@ def _transform(H: NDArray[np.float64], xy: NDArray[np.float64]) -> NDArray[np.fl
     return np.asarray(moved, np.float64).reshape(-1, 2)
 
 
+def _disc(radius_px: float) -> NDArray[np.uint8]:
+    """A disc-shaped structuring element of (at least 1 px) ``radius_px``."""
+    r = max(1, int(np.ceil(radius_px)))
+    return np.asarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+
+
+def _carried(
+    mask: NDArray[np.bool_], H: NDArray[np.float64], shape: tuple[int, ...]
+) -> NDArray[np.int64]:
+    """(N, 2) whole-pixel (x, y) where ``H`` carries ``mask``'s pixels, those landing inside
+    an image of ``shape`` only."""
+    ys, xs = np.nonzero(mask)
+    q = np.round(_transform(H, np.stack([xs, ys], 1).astype(np.float64))).astype(np.int64)
+    h, w = shape[:2]
+    return q[(q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)]
+
+
 def common_mask(
     H_to_other: NDArray[np.float64], shape: tuple[int, ...], other_shape: tuple[int, ...]
 ) -> NDArray[np.bool_]:
@@ -173,11 +190,10 @@ class _Views:
 
 def _joins(pieces: _Pieces, offset: int, join_px: float) -> list[tuple[int, int]]:
     """Graph edges between pieces of one visit within ``join_px`` of each other."""
-    r = max(1, int(np.ceil(join_px / 2)))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    kernel = _disc(join_px / 2)
     labels = pieces.comps.labels * np.isin(pieces.comps.labels, pieces.ids)
     # the largest and the smallest label within reach of each pixel: where they differ,
-    # two pieces come within 2 r of each other
+    # two pieces come within join_px of each other
     high = cv2.dilate(labels.astype(np.float32), kernel).astype(np.int64)
     background = float(2**24)
     low = cv2.erode(np.where(labels > 0, labels, background).astype(np.float32), kernel)
@@ -196,22 +212,14 @@ def _links(
     before: _Pieces, after: _Pieces, H_b2a: NDArray[np.float64], tol_px: float
 ) -> list[tuple[int, int]]:
     """(BEFORE index, AFTER index) pairs whose components meet under the alignment."""
-    r = max(1, int(np.ceil(tol_px)))
-    near = cv2.dilate(
-        (after.comps.labels * np.isin(after.comps.labels, after.ids)).astype(np.float32),
-        cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)),
-    ).astype(np.int32)  # a dilated label image: where two meet, the larger label wins
-    hits = cv2.dilate(
-        np.isin(after.comps.labels, after.ids).astype(np.uint8),
-        cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)),
-    ).astype(bool)
-    h, w = near.shape
+    kernel = _disc(tol_px)
+    kept = np.isin(after.comps.labels, after.ids)
+    # a dilated label image: where two meet, the larger label wins
+    near = cv2.dilate((after.comps.labels * kept).astype(np.float32), kernel).astype(np.int32)
+    hits = cv2.dilate(kept.astype(np.uint8), kernel).astype(bool)
     links = set()
     for bi, j in enumerate(before.ids):
-        ys, xs = np.nonzero(before.skeletons[j])
-        q = np.round(_transform(H_b2a, np.stack([xs, ys], 1).astype(np.float64))).astype(int)
-        ok = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
-        q = q[ok]
+        q = _carried(before.skeletons[j], H_b2a, near.shape)
         q = q[hits[q[:, 1], q[:, 0]]]
         for label in np.unique(near[q[:, 1], q[:, 0]]):
             if label in after.ids:
@@ -292,15 +300,10 @@ def _grown_part_was_there(
     """Whether BEFORE's image is as dark along the part of AFTER's crack that BEFORE's
     detection lacks (then the crack was as long, its end missed by the detector)."""
     line = after.line(as_)
-    ys, xs = np.nonzero(before.line(bs))
-    q = np.round(_transform(H_b2a, np.stack([xs, ys], 1).astype(np.float64))).astype(np.int32)
+    q = _carried(before.line(bs), H_b2a, line.shape)
     old = np.zeros(line.shape, np.uint8)
-    h, w = line.shape
-    q = q[(q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)]
     old[q[:, 1], q[:, 0]] = 1
-    r = max(1, int(np.ceil(tol_px)))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    added = line & ~cv2.dilate(old, kernel).astype(bool)
+    added = line & ~cv2.dilate(old, _disc(tol_px)).astype(bool)
     return bool(added.any()) and still_there(added, views.after, views.before_in_after)
 
 
@@ -346,16 +349,10 @@ def _support(
 ) -> float:
     """Fraction of the members' skeleton pixels that land near the other visit's weak
     evidence (those landing outside the other image not counted)."""
-    r = max(1, int(np.ceil(tol_px)))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    near = cv2.dilate(other_weak.astype(np.uint8), kernel).astype(bool)
-    ys, xs = np.nonzero(np.any([pieces.skeletons[i] for i in members], axis=0))
-    q = np.round(_transform(H_to_other, np.stack([xs, ys], 1).astype(np.float64))).astype(int)
-    h, w = other_weak.shape
-    inside = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
-    if not inside.any():
+    near = cv2.dilate(other_weak.astype(np.uint8), _disc(tol_px)).astype(bool)
+    q = _carried(pieces.line(members), H_to_other, other_weak.shape)
+    if not len(q):
         return 0.0
-    q = q[inside]
     return float(near[q[:, 1], q[:, 0]].mean())
 
 
