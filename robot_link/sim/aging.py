@@ -5,12 +5,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from skimage.morphology import skeletonize
 
-from robot_link.sim.structure import SteelStructure, TrueDefect, _draw_corrosion, _true_defect
+from robot_link.sim.structure import (
+    SteelStructure,
+    TrueDefect,
+    _draw_corrosion,
+    _draw_crack,
+    _true_defect,
+)
 
 
 @dataclass(frozen=True)
@@ -38,30 +43,6 @@ def _tip(skel: NDArray[np.bool_]) -> tuple[NDArray[np.float64], float] | None:
     return far, float(np.arctan2(direction[1], direction[0]))
 
 
-def _extend(
-    img: NDArray[np.float32],
-    mask: NDArray[np.uint8],
-    start: NDArray[np.float64],
-    heading: float,
-    length_px: float,
-    width_px: float,
-    rng: np.random.Generator,
-) -> NDArray[np.bool_]:
-    """Paint a crack's continuation from ``start`` along ``heading``; its pixels."""
-    pts = [start]
-    for _ in range(max(1, int(length_px / 4.0))):
-        heading += rng.normal(0, 0.15)
-        pts.append(pts[-1] + 4.0 * np.array([np.cos(heading), np.sin(heading)]))
-    layer = np.zeros(mask.shape, np.uint8)
-    poly = np.round(np.array(pts) * 16).astype(np.int32).reshape(-1, 1, 2)
-    cv2.polylines(layer, [poly], False, 255, max(1, int(round(width_px))), cv2.LINE_AA, shift=4)
-    alpha = (layer.astype(np.float32) / 255.0)[..., None] * 0.85
-    img[:] = img * (1 - alpha) + np.array([38, 36, 34], np.float32) * alpha
-    mine = layer > 127
-    mask[mine] = 255
-    return mine
-
-
 def age_structure(
     structure: SteelStructure, seed: int, crack_growth_m: tuple[float, float] = (0.005, 0.03)
 ) -> tuple[SteelStructure, list[Growth]]:
@@ -85,7 +66,9 @@ def age_structure(
                 defects.append(d)
                 continue
             added = rng.uniform(*crack_growth_m)
-            new = _extend(img, crack, tip[0], tip[1], added / mpp, d.width_m / mpp, rng)
+            new = _draw_crack(
+                rng, img, crack, tip[0], added / mpp, d.width_m / mpp, tip[1], turn_sigma=0.15
+            )
             both = mine | new
             defects.append(_true_defect(d.id, "crack", both, mpp, d.length_m + added, d.width_m))
             growth.append(Growth(d.id, "crack", length_m=added))

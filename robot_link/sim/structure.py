@@ -84,13 +84,17 @@ def _draw_crack(
     start: NDArray[np.float64],
     length_px: float,
     width_px: float,
+    heading: float | None = None,
+    turn_sigma: float = 0.25,
 ) -> NDArray[np.bool_]:
-    """Paint a dark meandering crack; returns the full-size mask of its pixels."""
-    heading = rng.uniform(0, np.pi)
+    """Paint a dark meandering crack from ``start`` (along ``heading``, else a random one,
+    turning by ``turn_sigma`` rad a step); returns the full-size mask of its pixels."""
+    if heading is None:
+        heading = rng.uniform(0, np.pi)
     pts = [start]
     step = 4.0
-    for _ in range(int(length_px / step)):
-        heading += rng.normal(0, 0.25)
+    for _ in range(max(1, int(length_px / step))):
+        heading += rng.normal(0, turn_sigma)
         pts.append(pts[-1] + step * np.array([np.cos(heading), np.sin(heading)]))
     arr = np.array(pts)
     pad = int(width_px) + 4
