@@ -1,5 +1,6 @@
-"""The same simulated structure visited again months later: cracks extended at a tip and
-widened, rust patches grown and new ones, with the true growth of each defect known."""
+"""The same simulated structure visited again months later: cracks extended at a tip, rust
+patches grown and new ones, the paint weathered and the light different, with the true
+growth of each defect known."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from robot_link.sim.structure import (
     TrueDefect,
     _draw_corrosion,
     _draw_crack,
+    _noise,
     _true_defect,
 )
 
@@ -43,11 +45,30 @@ def _tip(skel: NDArray[np.bool_]) -> tuple[NDArray[np.float64], float] | None:
     return far, float(np.arctan2(direction[1], direction[0]))
 
 
+def weather(
+    image: NDArray[np.float32], rng: np.random.Generator, strength: float
+) -> NDArray[np.float32]:
+    """Paint faded and the light changed: ``image`` (H, W, 3) times a smooth gain field of
+    about ±``strength`` (a plate-wide brighter or darker visit, a shadow, a sunlit side), the
+    blue of the paint faded by up to ``strength``, and a finer chalking of the surface."""
+    h, w = image.shape[:2]
+    level = 1 + strength * rng.uniform(-1, 1)
+    gain = level + strength * np.clip(_noise(rng, (h, w), max(h, w) // 3), -1.5, 1.5)
+    chalk = 60 * strength * _noise(rng, (h, w), 24)
+    out = image * gain[..., None] + chalk[..., None]
+    out[..., 0] *= 1 - strength * rng.uniform(0, 1)  # the blue fades first
+    return out
+
+
 def age_structure(
-    structure: SteelStructure, seed: int, crack_growth_m: tuple[float, float] = (0.005, 0.03)
+    structure: SteelStructure,
+    seed: int,
+    crack_growth_m: tuple[float, float] = (0.005, 0.03),
+    weathering: float = 0.0,
 ) -> tuple[SteelStructure, list[Growth]]:
     """The structure a visit later: each crack longer by ``crack_growth_m`` (a range) at one
-    tip, each rust patch grown, one new rust patch; and the truth of each change."""
+    tip, each rust patch grown, one new rust patch, and the surface :func:`weather` ed by
+    ``weathering`` (0: as it was); and the truth of each change."""
     rng = np.random.default_rng(seed)
     mpp = structure.m_per_px
     img = structure.texture.astype(np.float32)
@@ -87,6 +108,8 @@ def age_structure(
     new_id = max((d.id for d in defects), default=0) + 1
     defects.append(_true_defect(new_id, "corrosion", patch, mpp, 0.0, 0.0))
     growth.append(Growth(new_id, "corrosion", area_m2=float(patch.sum()) * mpp**2, new=True))
+    if weathering > 0:
+        img = weather(img, rng, weathering)
     aged = replace(
         structure,
         texture=np.clip(img, 0, 255).astype(np.uint8),

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.poses import compose_se2, relative_se2
 from robot_link.client import RobotLink
 from robot_link.clouds import encode_depth_png
 from robot_link.protocol import STOP_COMMANDS, Message, MessageType
@@ -54,6 +55,9 @@ class SimConfig:
     inclination_deg: float = 90.0
     ir_eps_m: float = 0.02
     flush_timeout_s: float = 120.0  # wait this long at the end for every ACK
+    # where the robot truly starts relative to where it believes (x, y in metres, yaw in
+    # radians, in its start pose's frame): a robot set down off the structure's datum
+    start_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -103,7 +107,8 @@ class InspectionSim:
         self.camera = DownwardCamera()
         self.tof = TofCamera(self.structure)
         start = np.array([config.start_x_m, config.first_lane_y_m, 0.0])
-        self.robot = SimRobot(self.spec, self.rng, pose=start.copy(), odom=start.copy())
+        true_start = compose_se2(start, np.asarray(config.start_offset, float))
+        self.robot = SimRobot(self.spec, self.rng, pose=true_start, odom=start.copy())
         self.spacing_m = self.camera.capture_spacing_m(config.min_overlap)
         self.lane_spacing_m = float(
             np.floor(self.camera.footprint_m[1] * (1 - config.min_overlap) * 100) / 100
@@ -122,6 +127,13 @@ class InspectionSim:
         self._next_telemetry = 0.0
         self._last_edge: list[int] = []
         link.on_command = self.on_command
+
+    def datum(self) -> NDArray[np.float64]:
+        """The session's world frame (the robot's odometry frame) on the structure: the true
+        pose of the world's origin, (x, y, yaw)."""
+        start = np.array([self.cfg.start_x_m, self.cfg.first_lane_y_m, 0.0])
+        true_start = compose_se2(start, np.asarray(self.cfg.start_offset, float))
+        return compose_se2(true_start, relative_se2(start, np.zeros(3)))
 
     def calibration(self) -> dict[str, Any]:
         """Sensor calibration sent with SESSION_START (T_robot_camera, T_robot_tof, ...)."""

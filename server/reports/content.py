@@ -20,6 +20,7 @@ from processing.coverage import CoverageParams
 from server.reports.condition import element_condition
 from server.reports.coverage import QualityCache, session_coverage
 from server.reports.fields import CONDITION_STATES, GENERATOR
+from server.reports.visits import visit_changes
 from server.storage.files import SessionFiles
 from server.storage.models import (
     Cloud,
@@ -88,8 +89,18 @@ def build_report(
         "files": _files(results_dir, base_url, session_id),
         "coverage": _coverage(db, files, session_id, coverage) if coverage else None,
         "calibration": s.calibration,
+        "changes_since": _changes_since(db, files, s),
         "element_condition": _element_condition(db, s),
     }
+
+
+def _changes_since(db: Session, files: SessionFiles, s: InspectionSession) -> dict[str, Any] | None:
+    """What changed since the structure's previous inspection (None without one); places
+    the session on the structure first, so the element condition below uses that place."""
+    if s.structure_id is None:
+        return None
+    changes = visit_changes(db, files, s)
+    return changes if changes["previous_session_id"] else None
 
 
 def _element_condition(db: Session, s: InspectionSession) -> dict[str, Any] | None:

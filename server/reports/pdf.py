@@ -29,7 +29,7 @@ from processing.snapshot import render_points
 from server.errors import NotFound
 from server.reports.content import build_report, read_json
 from server.reports.fields import CONDITION_MEANING, CONDITION_STATES
-from server.reports.pdf_condition import condition_table
+from server.reports.pdf_condition import changes_section, condition_table
 from server.reports.pdf_defects import Thumbnail, defect_table
 from server.reports.pdf_sections import coverage_section, parameters_appendix
 from server.reports.pdf_style import (
@@ -226,6 +226,7 @@ def write_report_pdf(
     story += _mosaic_page(report, st, marked)
     story.append(PageBreak())
     story += defect_table(report, st, thumbnail)
+    story += changes_section(report, st)
     story += condition_table(report, st)
     story.append(PageBreak())
     story += _map_page(report, st, map_snapshot)

@@ -54,3 +54,60 @@ def condition_table(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> li
             ),
         ]
     return story
+
+
+_STATUS = {"new": "new", "grown": "grown", "unchanged": "unchanged", "gone": "no longer seen"}
+
+
+def changes_section(report: dict[str, Any], st: dict[str, ParagraphStyle]) -> list[Any]:
+    """ "Changes since <date>": how the session was placed on the previous visit, each
+    defect's change, and the elements whose condition worsened; nothing without a previous
+    visit on record."""
+    ch = report.get("changes_since")
+    if not ch:
+        return []
+    reg = ch.get("registration")
+    placed = (
+        f"The mosaic was registered to the previous visit's: residual {reg['residual_mm']:.1f} mm "
+        f"over {reg['overlap'] * 100:.0f} % of the surface."
+        if reg
+        else "The mosaics could not be registered: the session is placed by its marked datum."
+    )
+    counts = {k: sum(c["status"] == k for c in ch["changes"]) for k in _STATUS}
+    story: list[Any] = [
+        para(f"Changes since {ch['previous_date']}", st["h1"]),
+        para(
+            f"{placed} {counts['new']} new, {counts['grown']} grown, {counts['unchanged']} "
+            f"unchanged, {counts['gone']} no longer seen.",
+            st["body"],
+        ),
+        Spacer(1, 2 * mm),
+    ]
+    rows: list[list[Any]] = [["Defect", "Class", "Change", "Before", "After", "Length +", "Area +"]]
+    for c in ch["changes"]:
+        if c["status"] == "unchanged":
+            continue
+        b, a = c["before"] or {}, c["after"] or {}
+        rows.append(
+            [
+                f"#{a.get('number') or b.get('number') or '–'}",
+                c["class"],
+                _STATUS[c["status"]],
+                fmt_num(b.get("length_mm"), "{:.0f}", " mm") if b else "–",
+                fmt_num(a.get("length_mm"), "{:.0f}", " mm") if a else "–",
+                fmt_num(c["length_change_mm"], "{:+.1f}", " mm"),
+                fmt_num(c["area_change_mm2"], "{:+.0f}", " mm²"),
+            ]
+        )
+    if len(rows) > 1:
+        story.append(grid_table(rows, [20 * mm, 24 * mm, 28 * mm] + [(BODY_W - 72 * mm) / 4] * 4))
+    for e in ch["worsened_elements"]:
+        story.append(
+            para(
+                f"Element {e['number']} worsened: CS3+CS4 "
+                f"{e['before']['cs3'] + e['before']['cs4']:.2f} to "
+                f"{e['after']['cs3'] + e['after']['cs4']:.2f}.",
+                st["note"],
+            )
+        )
+    return story

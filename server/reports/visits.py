@@ -40,18 +40,23 @@ def previous_session(db: Session, s: InspectionSession) -> InspectionSession | N
 class _Mosaic:
     """A session's mosaic overview and where its pixels are in its world frame."""
 
+    job_id: int  # the stitch job that made it
     image: np.ndarray
     origin_m: tuple[float, float]
     px_per_m: float  # overview pixels per metre
 
 
-def _mosaic(db: Session, files: SessionFiles, session_id: str) -> _Mosaic | None:
-    job = db.scalars(
+def _stitch_job(db: Session, session_id: str) -> Job | None:
+    return db.scalars(
         select(Job)
         .where(Job.session_id == session_id, Job.kind == "stitch", Job.state == JobState.done)
         .order_by(Job.id.desc())
         .limit(1)
     ).first()
+
+
+def _mosaic(db: Session, files: SessionFiles, session_id: str) -> _Mosaic | None:
+    job = _stitch_job(db, session_id)
     if job is None or not job.result.get("overview_path"):
         return None
     path = files.results_dir(session_id) / Path(job.result["overview_path"]).name
@@ -60,7 +65,13 @@ def _mosaic(db: Session, files: SessionFiles, session_id: str) -> _Mosaic | None
         return None
     r = job.result
     origin = (float(r["origin_m"][0]), float(r["origin_m"][1]))
-    return _Mosaic(image, origin, float(r["px_per_m"]) * float(r.get("overview_scale", 1.0)))
+    scale = float(r["px_per_m"]) * float(r.get("overview_scale", 1.0))
+    return _Mosaic(job.id, image, origin, scale)
+
+
+def _pose(datum: dict[str, Any] | None) -> dict[str, float]:
+    d = datum or {}
+    return {k: float(d.get(k, 0.0)) for k in ("x", "y", "yaw")}
 
 
 def register_visit(
@@ -85,10 +96,10 @@ def register_visit(
         mb.origin_m,
         mb.px_per_m,
     )
-    d = before.datum or {}
-    datum_b = np.array([d.get("x", 0.0), d.get("y", 0.0), d.get("yaw", 0.0)], float)
-    x, y, yaw = compose_se2(datum_b, pose)
+    d = _pose(before.datum)
+    x, y, yaw = compose_se2(np.array([d["x"], d["y"], d["yaw"]]), pose)
     return {
+        "previous_session_id": before.id,
         "datum": {"x": round(float(x), 6), "y": round(float(y), 6), "yaw": round(float(yaw), 8)},
         "residual_mm": round(al.residual_px / mb.px_per_m * 1000, 3),
         "rigid_rms_mm": round(rigid_rms * 1000, 3),
@@ -96,9 +107,39 @@ def register_visit(
     }
 
 
-def _visit_defects(
-    db: Session, s: InspectionSession, datum: dict[str, Any] | None = None
-) -> list[VisitDefect]:
+def place_session(
+    db: Session, files: SessionFiles, s: InspectionSession, before: InspectionSession
+) -> dict[str, Any] | None:
+    """Place ``s`` on its structure through the previous visit ``before``: its datum as
+    marked (where the robot was set down) refined by :func:`register_visit`, stored on the
+    session (``datum`` x, y, yaw: the refined pose; ``marked``: as set; ``registration``:
+    how it was found) so that its defects, its element condition and later visits use it.
+    Registered once per pair of mosaics and BEFORE's placement; the registration, or None
+    where the mosaics do not align (the marked datum stands)."""
+    marked = _pose((s.datum or {}).get("marked", s.datum))
+    mosaics = [j.id if j else None for j in (_stitch_job(db, before.id), _stitch_job(db, s.id))]
+    key = [before.id, *mosaics, *_pose(before.datum).values()]
+    done = (s.datum or {}).get("registration")
+    if done is not None and done.get("key") == key:
+        return done.get("result")
+    result = register_visit(db, files, before, s)
+    placed = result["datum"] if result else marked
+    s.datum = {**placed, "marked": marked, "registration": {"key": key, "result": result}}
+    db.commit()
+    return result
+
+
+def place(db: Session, files: SessionFiles, s: InspectionSession) -> None:
+    """Place ``s`` and the structure's visits before it on the structure, oldest first
+    (:func:`place_session`; each one registered once)."""
+    chain = [s]
+    while (before := previous_session(db, chain[-1])) is not None:
+        chain.append(before)
+    for after, before in zip(chain[-2::-1], chain[::-1], strict=False):
+        place_session(db, files, after, before)
+
+
+def _visit_defects(db: Session, s: InspectionSession) -> list[VisitDefect]:
     rows = db.scalars(
         select(Defect)
         .where(Defect.session_id == s.id, Defect.source == "mosaic")
@@ -107,7 +148,7 @@ def _visit_defects(
     ).all()
     out = []
     for d in rows:
-        box = structure_box(d, datum if datum is not None else s.datum)
+        box = structure_box(d, s.datum)
         if box is not None:
             out.append(
                 VisitDefect(d.id, d.defect_class, box, d.length_mm, d.max_width_mm, d.area_mm2)
@@ -144,7 +185,7 @@ def _record(c: DefectChange, numbers: dict[int, int | None]) -> dict[str, Any]:
 def visit_changes(db: Session, files: SessionFiles, s: InspectionSession) -> dict[str, Any]:
     """The changes since the structure's previous session (none when there is none); the
     session is placed on the structure by registering its mosaic to the previous one's
-    where both exist, else by its datum."""
+    where both exist (:func:`place_session`), else by its datum as marked."""
     before = previous_session(db, s)
     out: dict[str, Any] = {
         "session_id": s.id,
@@ -157,14 +198,13 @@ def visit_changes(db: Session, files: SessionFiles, s: InspectionSession) -> dic
     }
     if before is None:
         return out
-    registration = register_visit(db, files, before, s)
-    out["registration"] = registration
+    place(db, files, before)
+    out["registration"] = place_session(db, files, s, before)
     rows = db.execute(
         select(Defect.id, Defect.number).where(Defect.session_id.in_([s.id, before.id]))
     ).all()
     numbers = {int(i): n for i, n in rows}
-    datum = registration["datum"] if registration else None
-    changes = match_visits(_visit_defects(db, before), _visit_defects(db, s, datum))
+    changes = match_visits(_visit_defects(db, before), _visit_defects(db, s))
     out["changes"] = [_record(c, numbers) for c in changes]
     structure = db.get(Structure, s.structure_id)
     assert structure is not None

@@ -30,3 +30,16 @@ def test_a_later_visit_grows_every_defect_by_what_it_says() -> None:
     untouched[:10, :] = False
     diff = np.abs(after.texture.astype(int) - before.texture.astype(int))[untouched]
     assert np.percentile(diff, 99) <= 40 and np.median(diff) == 0
+
+
+def test_weathering_relights_the_plate_and_leaves_the_defects_where_they_were() -> None:
+    before = make_structure(3, plate_size_m=(0.8, 0.5), defect_region_m=(0.1, 0.1, 0.7, 0.4))
+    plain, _ = age_structure(before, seed=31)
+    weathered, growth = age_structure(before, seed=31, weathering=0.2)
+    assert np.array_equal(plain.crack_mask, weathered.crack_mask)
+    assert [d.bbox_m for d in plain.defects] == [d.bbox_m for d in weathered.defects]
+    ratio = weathered.texture.astype(float).mean((0, 1)) / plain.texture.astype(float).mean((0, 1))
+    assert np.all(np.abs(ratio - 1) < 0.5) and np.any(np.abs(ratio - 1) > 0.02)
+    # a smooth light: neighbouring pixels keep their contrast
+    diff = weathered.texture.astype(float) - plain.texture.astype(float)
+    assert np.std(diff) > 3 and np.median(np.abs(np.diff(diff[..., 1], axis=1))) < 6

@@ -17,7 +17,7 @@ from server.api.deps import OperatorUser, SessionDep, StateDep, get_current_user
 from server.api.queries import MAX_INT, get_session_or_404
 from server.errors import Conflict, NotFound
 from server.reports.condition import condition_csv, element_condition, latest_session
-from server.reports.visits import visit_changes
+from server.reports.visits import place, visit_changes
 from server.storage.models import Element, InspectionSession, Structure, utcnow
 
 router = APIRouter(prefix="/api", tags=["structures"], dependencies=[Depends(get_current_user)])
@@ -234,6 +234,7 @@ def read_changes(db: SessionDep, state: StateDep, session_id: str) -> dict[str, 
 @router.get("/structures/{structure_id}/condition")
 def read_condition(
     db: SessionDep,
+    state: StateDep,
     structure_id: StructureId,
     session_id: Annotated[str | None, Query(max_length=36)] = None,
 ) -> dict[str, Any]:
@@ -241,6 +242,8 @@ def read_condition(
     session unless ``session_id``), and the defects on no element."""
     structure = _structure_or_404(db, structure_id)
     session = _session_of(db, structure, session_id)
+    if session is not None:
+        place(db, state.files, session)
     table, unplaced = element_condition(db, structure, session)
     return {
         "structure_id": structure.id,
@@ -254,12 +257,16 @@ def read_condition(
 @router.get("/structures/{structure_id}/condition.csv")
 def read_condition_csv(
     db: SessionDep,
+    state: StateDep,
     structure_id: StructureId,
     session_id: Annotated[str | None, Query(max_length=36)] = None,
 ) -> Response:
     """The condition table as CSV: element rows and element/defect rows with CS quantities."""
     structure = _structure_or_404(db, structure_id)
-    table, _ = element_condition(db, structure, _session_of(db, structure, session_id))
+    session = _session_of(db, structure, session_id)
+    if session is not None:
+        place(db, state.files, session)
+    table, _ = element_condition(db, structure, session)
     return Response(
         condition_csv(structure, table),
         media_type="text/csv",

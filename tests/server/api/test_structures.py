@@ -246,8 +246,19 @@ def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> 
         assert [c["after"]["defect_id"] for c in by_status["new"]] == [missing.id]
         assert [c["before"]["number"] for c in by_status["gone"]] == [999]
         assert len(by_status.get("unchanged", [])) == len(found) - 2
+        # the place found is kept: the report's element condition and changes use it
+        report = httpx.get(f"{api}/sessions/{sid}/report.json").json()
+        assert report["changes_since"]["registration"]["datum"] == datum
+        assert report["changes_since"]["previous_date"] == earlier.started_at.date().isoformat()
+        pdf = httpx.get(f"{api}/sessions/{sid}/report.pdf", timeout=120).content
+        import pypdfium2
+
+        text = "".join(p.get_textpage().get_text_range() for p in pypdfium2.PdfDocument(pdf))
+        assert f"Changes since {earlier.started_at.date().isoformat()}" in text
+        assert "grown" in text and "no longer seen" in text
     finally:  # the session is shared with other tests: the earlier visit goes again
         _forget_session(live.settings.resolved_database_url(), earlier_id)
+        httpx.put(f"{api}/sessions/{sid}/structure", json={"structure_id": None})
 
 
 def _forget_session(url: str, session_id: str) -> None:
