@@ -10,6 +10,7 @@ from pathlib import Path
 from bench.changes import bench_changes
 from bench.common import Result
 from bench.detect import bench_detect
+from bench.history import bench_history
 from bench.ingest import bench_ingest
 from bench.map import bench_map
 from bench.robot import bench_robot
@@ -29,6 +30,7 @@ BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {
     "scale": bench_scale,
     "robot": bench_robot,
     "changes": bench_changes,
+    "history": bench_history,
 }
 DEFAULT = [
     "detect",
@@ -36,7 +38,7 @@ DEFAULT = [
     "map",
     "ingest",
     "teleop",
-]  # stitch-scale, scale and robot (sweeps in real time) take many minutes: run them by name
+]  # stitch-scale, scale, robot, changes and history take many minutes: run them by name
 
 
 def run_benchmarks(

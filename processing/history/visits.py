@@ -2,16 +2,27 @@
 new, grown, unchanged, or no longer seen, with the change of a crack's length and width and
 of a rust patch's area.
 
-Two defects of one class are the same when their boxes, each widened by ``tolerance_m``
-(how well the visits' frames agree), overlap; among several candidates the closest centres
-pair up (an optimal assignment). A crack has grown when it is longer by more than
-``crack_growth_mm``, a rust patch when its area grew by more than ``area_growth``.
+A detector does not cut a defect the same way twice: one visit's crack may be another's two
+pieces, and rust edges give short crack-like pieces that come and go. So the matching is of
+groups, not of single detections:
+
+1. a short crack piece within a rust patch of its visit (boxes widened by ``tolerance_m``,
+   shorter than half the patch's narrower side) is the patch's texture, part of the patch;
+2. defects of one class whose widened boxes overlap pair across the two visits, one to one,
+   the closest centres together (an optimal assignment);
+3. a piece left without a pair joins the pair whose pieces on its side of the visits it
+   touches (a crack seen whole once and in pieces the other time), else stands alone;
+4. a group is new without a piece in BEFORE, gone without one in AFTER; else grown when its
+   cracks are longer in all by more than ``crack_growth_mm`` or its rust area grew by more
+   than ``area_growth`` of the earlier area, else unchanged.
+
+``tolerance_m`` is how well the visits' frames agree (their registration).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -42,11 +53,15 @@ class VisitParams:
 
 @dataclass(frozen=True)
 class DefectChange:
-    """One defect across two visits (``before`` or ``after`` None where it is not seen)."""
+    """One defect across two visits (``before`` or ``after`` None where it is not seen):
+    each side the merge of its pieces (:func:`merge`), whose ids are in ``parts_before`` and
+    ``parts_after`` (the largest first)."""
 
     status: str  # new, grown, unchanged, gone
     before: VisitDefect | None
     after: VisitDefect | None
+    parts_before: tuple[int, ...] = field(default=())
+    parts_after: tuple[int, ...] = field(default=())
 
     def delta(self, field: str) -> float | None:
         """AFTER's value minus BEFORE's for ``field`` (length_mm, width_mm, area_mm2)."""
@@ -56,12 +71,65 @@ class DefectChange:
         return None if a is None or b is None else round(a - b, 3)
 
 
-def _centre(b: Box) -> np.ndarray:
-    return np.array([(b[0] + b[2]) / 2, (b[1] + b[3]) / 2])
-
-
 def _near(a: Box, b: Box, tol: float) -> bool:
     return a[0] - tol <= b[2] and b[0] - tol <= a[2] and a[1] - tol <= b[3] and b[1] - tol <= a[3]
+
+
+def _inside(a: Box, b: Box, tol: float) -> bool:
+    return a[0] >= b[0] - tol and a[1] >= b[1] - tol and a[2] <= b[2] + tol and a[3] <= b[3] + tol
+
+
+def _part_of(crack: VisitDefect, rust: VisitDefect, tol: float) -> bool:
+    """Whether a crack piece is rust's texture: inside the patch and shorter than half its
+    narrower side (a crack that crosses into a patch, or is long beside it, is a crack)."""
+    narrow_mm = min(rust.box[2] - rust.box[0], rust.box[3] - rust.box[1]) * 1000
+    return _inside(crack.box, rust.box, tol) and (crack.length_mm or 0.0) < narrow_mm / 2
+
+
+def _size(d: VisitDefect) -> float:
+    return d.area_mm2 or d.length_mm or 0.0
+
+
+def _sum(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return round(sum(known), 3) if known else None
+
+
+def merge(parts: Sequence[VisitDefect]) -> VisitDefect:
+    """One defect of several pieces of one class: the largest piece's id, the boxes'
+    union, lengths and areas summed, the widest width."""
+    main = max(parts, key=_size)
+    widths = [p.width_mm for p in parts if p.width_mm is not None]
+    return VisitDefect(
+        main.id,
+        main.defect_class,
+        (
+            min(p.box[0] for p in parts),
+            min(p.box[1] for p in parts),
+            max(p.box[2] for p in parts),
+            max(p.box[3] for p in parts),
+        ),
+        _sum([p.length_mm for p in parts]),
+        max(widths) if widths else None,
+        _sum([p.area_mm2 for p in parts]),
+    )
+
+
+def _fold_into_rust(defects: Sequence[VisitDefect], tol: float) -> list[list[VisitDefect]]:
+    """The visit's defects as pieces: each rust patch with the crack pieces inside it, each
+    other defect alone."""
+    rust = [d for d in defects if d.defect_class == "corrosion"]
+    pieces: dict[int, list[VisitDefect]] = {d.id: [d] for d in rust}
+    out = [pieces[d.id] for d in rust]
+    for d in defects:
+        if d.defect_class == "corrosion":
+            continue
+        holder = next((r for r in rust if _part_of(d, r, tol)), None)
+        if holder is not None:
+            pieces[holder.id].append(d)
+        else:
+            out.append([d])
+    return out
 
 
 def _grown(b: VisitDefect, a: VisitDefect, p: VisitParams) -> bool:
@@ -70,27 +138,97 @@ def _grown(b: VisitDefect, a: VisitDefect, p: VisitParams) -> bool:
     return (a.area_mm2 or 0.0) > (1 + p.area_growth) * (b.area_mm2 or 0.0)
 
 
+def _pairs(heads_b: list[VisitDefect], heads_a: list[VisitDefect], tol: float) -> dict[int, int]:
+    """One-to-one pairs (AFTER index -> BEFORE index) of one class whose widened boxes
+    overlap, the closest centres together (an optimal assignment)."""
+    big = 1e9
+    cost = np.full((len(heads_b), len(heads_a)), big)
+    for i, b in enumerate(heads_b):
+        for j, a in enumerate(heads_a):
+            if a.defect_class == b.defect_class and _near(b.box, a.box, tol):
+                cost[i, j] = float(np.linalg.norm(_centre(a.box) - _centre(b.box)))
+    if not cost.size:
+        return {}
+    rows, cols = linear_sum_assignment(cost)
+    return {int(c): int(r) for r, c in zip(rows, cols, strict=True) if cost[r, c] < big}
+
+
+def _centre(b: Box) -> np.ndarray:
+    return np.array([(b[0] + b[2]) / 2, (b[1] + b[3]) / 2])
+
+
+def _union(parts: Sequence[VisitDefect]) -> Box:
+    return merge(parts).box
+
+
+def _attach(
+    groups: list[tuple[list[int], list[int]]],
+    leftovers: list[int],
+    heads: list[VisitDefect],
+    side: int,
+    tol: float,
+) -> None:
+    """Pieces without a pair join the group whose pieces on their side they touch (boxes
+    widened by ``tol``, the closest group), repeatedly, so a crack's several pieces join;
+    the rest become groups of their own."""
+    waiting = list(leftovers)
+    joined = True
+    while waiting and joined:
+        joined = False
+        for k in list(waiting):
+            piece = heads[k]
+            near = [
+                g
+                for g in groups
+                if g[side]
+                and heads[g[side][0]].defect_class == piece.defect_class
+                and _near(_union([heads[m] for m in g[side]]), piece.box, tol)
+            ]
+            if near:
+                best = min(
+                    near,
+                    key=lambda g: float(
+                        np.linalg.norm(
+                            _centre(_union([heads[m] for m in g[side]])) - _centre(piece.box)
+                        )
+                    ),
+                )
+                best[side].append(k)
+                waiting.remove(k)
+                joined = True
+    for k in waiting:
+        groups.append(([], [k]) if side == 1 else ([k], []))
+
+
 def match_visits(
     before: Sequence[VisitDefect], after: Sequence[VisitDefect], params: VisitParams = VisitParams()
 ) -> list[DefectChange]:
-    """Each defect of either visit once, in AFTER's order then BEFORE's unmatched ones."""
-    big = 1e9
-    cost = np.full((len(before), len(after)), big)
-    for i, b in enumerate(before):
-        for j, a in enumerate(after):
-            if a.defect_class == b.defect_class and _near(b.box, a.box, params.tolerance_m):
-                cost[i, j] = float(np.linalg.norm(_centre(a.box) - _centre(b.box)))
-    pairs: dict[int, int] = {}
-    if cost.size:
-        rows, cols = linear_sum_assignment(cost)
-        pairs = {int(c): int(r) for r, c in zip(rows, cols, strict=True) if cost[r, c] < big}
+    """Each defect of either visit in one change: the pairs and AFTER's new ones in AFTER's
+    order, then those seen in BEFORE only."""
+    tol = params.tolerance_m
+    fb, fa = _fold_into_rust(before, tol), _fold_into_rust(after, tol)
+    hb, ha = [g[0] for g in fb], [g[0] for g in fa]
+    pairs = _pairs(hb, ha, tol)
+    groups: list[tuple[list[int], list[int]]] = [([pairs[j]], [j]) for j in sorted(pairs)]
+    paired_b = set(pairs.values())
+    _attach(groups, [j for j in range(len(ha)) if j not in pairs], ha, 1, tol)
+    _attach(groups, [i for i in range(len(hb)) if i not in paired_b], hb, 0, tol)
+    groups.sort(key=lambda g: (not g[1], min(g[1] or g[0])))
     out = []
-    for j, a in enumerate(after):
-        if j in pairs:
-            b = before[pairs[j]]
-            out.append(DefectChange("grown" if _grown(b, a, params) else "unchanged", b, a))
+    for ib, ia in groups:
+        a = merge([ha[j] for j in ia]) if ia else None
+        b = merge([hb[i] for i in ib]) if ib else None
+        if a is None:
+            status = "gone"
+        elif b is None:
+            status = "new"
         else:
-            out.append(DefectChange("new", None, a))
-    matched = set(pairs.values())
-    out += [DefectChange("gone", b, None) for i, b in enumerate(before) if i not in matched]
+            status = "grown" if _grown(b, a, params) else "unchanged"
+        out.append(DefectChange(status, b, a, _ids(fb, ib), _ids(fa, ia)))
     return out
+
+
+def _ids(folded: list[list[VisitDefect]], ks: list[int]) -> tuple[int, ...]:
+    """The ids of a group's pieces on one side, the largest first."""
+    pieces = [d for k in ks for d in folded[k]]
+    return tuple(d.id for d in sorted(pieces, key=_size, reverse=True))

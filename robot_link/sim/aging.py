@@ -45,6 +45,31 @@ def _tip(skel: NDArray[np.bool_]) -> tuple[NDArray[np.float64], float] | None:
     return far, float(np.arctan2(direction[1], direction[0]))
 
 
+def _free_spot(
+    rng: np.random.Generator, structure: SteelStructure, region_m: tuple[float, float, float, float]
+) -> NDArray[np.float64]:
+    """A place (m) in ``region_m`` (x0, y0, x1, y1) 0.1 m from every defect's box, or as far
+    from them as 200 tries find."""
+    x0, y0, x1, y1 = region_m
+    best, best_gap = np.array([(x0 + x1) / 2, (y0 + y1) / 2]), -1.0
+    for _ in range(200):
+        spot = rng.uniform((x0, y0), (x1, y1))
+        gap = min(
+            (
+                float(
+                    np.hypot(*np.maximum(0, np.abs(spot - (x + w / 2, y + h / 2)) - (w / 2, h / 2)))
+                )
+                for x, y, w, h in (d.bbox_m for d in structure.defects)
+            ),
+            default=1.0,
+        )
+        if gap >= 0.1:
+            return spot
+        if gap > best_gap:
+            best, best_gap = spot, gap
+    return best
+
+
 def weather(
     image: NDArray[np.float32], rng: np.random.Generator, strength: float
 ) -> NDArray[np.float32]:
@@ -65,9 +90,11 @@ def age_structure(
     seed: int,
     crack_growth_m: tuple[float, float] = (0.005, 0.03),
     weathering: float = 0.0,
+    region_m: tuple[float, float, float, float] | None = None,
 ) -> tuple[SteelStructure, list[Growth]]:
     """The structure a visit later: each crack longer by ``crack_growth_m`` (a range) at one
-    tip, each rust patch grown, one new rust patch, and the surface :func:`weather` ed by
+    tip, each rust patch grown, one new rust patch (in ``region_m``, x0, y0, x1, y1 in metres:
+    by default the plate 0.1 m in from its edges), and the surface :func:`weather` ed by
     ``weathering`` (0: as it was); and the truth of each change."""
     rng = np.random.default_rng(seed)
     mpp = structure.m_per_px
@@ -103,10 +130,11 @@ def age_structure(
             defects.append(d2)
             growth.append(Growth(d.id, "corrosion", area_m2=(int(grown.sum()) - before) * mpp**2))
     w_m, h_m = structure.plate_size_m
-    spot = np.array([rng.uniform(0.1, w_m - 0.1), rng.uniform(0.1, h_m - 0.1)]) / mpp
-    patch = _draw_corrosion(rng, img, rust, spot, rng.uniform(0.015, 0.025) / mpp)
+    spot = _free_spot(rng, structure, region_m or (0.1, 0.1, w_m - 0.1, h_m - 0.1)) / mpp
+    radius_m = rng.uniform(0.015, 0.025)
+    patch = _draw_corrosion(rng, img, rust, spot, radius_m / mpp)
     new_id = max((d.id for d in defects), default=0) + 1
-    defects.append(_true_defect(new_id, "corrosion", patch, mpp, 0.0, 0.0))
+    defects.append(_true_defect(new_id, "corrosion", patch, mpp, 2 * radius_m, 2 * radius_m))
     growth.append(Growth(new_id, "corrosion", area_m2=float(patch.sum()) * mpp**2, new=True))
     if weathering > 0:
         img = weather(img, rng, weathering)

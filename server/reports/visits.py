@@ -176,6 +176,8 @@ def _record(c: DefectChange, numbers: dict[int, int | None]) -> dict[str, Any]:
         "class": kind.defect_class,
         "before": side(c.before),
         "after": side(c.after),
+        "parts_before": list(c.parts_before),
+        "parts_after": list(c.parts_after),
         "length_change_mm": c.delta("length_mm"),
         "width_change_mm": c.delta("width_mm"),
         "area_change_mm2": c.delta("area_mm2"),

@@ -43,3 +43,13 @@ def test_weathering_relights_the_plate_and_leaves_the_defects_where_they_were() 
     # a smooth light: neighbouring pixels keep their contrast
     diff = weathered.texture.astype(float) - plain.texture.astype(float)
     assert np.std(diff) > 3 and np.median(np.abs(np.diff(diff[..., 1], axis=1))) < 6
+
+
+def test_a_third_visit_grows_the_second_visits_new_patch() -> None:
+    first = make_structure(4, plate_size_m=(0.8, 0.5), defect_region_m=(0.1, 0.1, 0.7, 0.4))
+    second, g2 = age_structure(first, seed=40)
+    third, g3 = age_structure(second, seed=41)
+    new = next(g.defect_id for g in g2 if g.new)
+    assert next(d for d in second.defects if d.id == new).width_m > 0.02
+    assert next(g for g in g3 if g.defect_id == new).area_m2 > 0
+    assert len(third.defects) == len(first.defects) + 2

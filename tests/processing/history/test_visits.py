@@ -37,3 +37,43 @@ def test_grown_unchanged_new_and_gone() -> None:
     assert changes[(None, 14)].status == "new" and changes[(None, 15)].status == "new"
     assert changes[(4, None)].status == "gone"
     assert len(changes) == 6
+
+
+def test_pieces_of_one_defect_are_one_change() -> None:
+    """A crack seen whole before and in two pieces after is one crack whose length is the
+    pieces' sum; short crack-like pieces inside a rust patch are that patch's texture, and
+    pieces that come and go with it are no change of their own."""
+    before = [
+        VisitDefect(1, "crack", (0.10, 0.10, 0.16, 0.12), length_mm=60.0),
+        VisitDefect(2, "corrosion", (0.50, 0.50, 0.58, 0.57), area_mm2=3000.0),
+        VisitDefect(3, "crack", (0.52, 0.52, 0.521, 0.521), length_mm=1.0),  # in the rust
+    ]
+    after = [
+        VisitDefect(11, "crack", (0.10, 0.10, 0.14, 0.12), length_mm=40.0),
+        VisitDefect(12, "crack", (0.142, 0.10, 0.172, 0.12), length_mm=30.0),  # a gap of 2 mm
+        VisitDefect(13, "corrosion", (0.50, 0.50, 0.58, 0.57), area_mm2=3100.0),
+        VisitDefect(14, "crack", (0.55, 0.55, 0.552, 0.551), length_mm=2.0),  # in the rust
+        VisitDefect(15, "crack", (0.53, 0.51, 0.535, 0.512), length_mm=1.5),  # in the rust
+    ]
+    changes = match_visits(before, after)
+    assert len(changes) == 2
+    crack = next(c for c in changes if c.after and c.after.defect_class == "crack")
+    assert crack.status == "grown" and crack.delta("length_mm") == 10.0
+    assert crack.parts_after == (11, 12) and crack.parts_before == (1,)
+    assert crack.after is not None and crack.after.box == (0.10, 0.10, 0.172, 0.12)
+    rust = next(c for c in changes if c.after and c.after.defect_class == "corrosion")
+    assert rust.status == "unchanged" and set(rust.parts_after) == {13, 14, 15}
+    assert rust.parts_before == (2, 3)
+
+
+def test_a_long_crack_inside_a_rust_box_stays_a_crack() -> None:
+    before = [VisitDefect(1, "crack", (0.10, 0.10, 0.16, 0.12), length_mm=60.0)]
+    after = [
+        VisitDefect(11, "crack", (0.10, 0.10, 0.16, 0.12), length_mm=61.0),
+        VisitDefect(12, "corrosion", (0.09, 0.08, 0.17, 0.15), area_mm2=4000.0),
+    ]
+    changes = match_visits(before, after)
+    assert sorted((c.status, c.parts_before, c.parts_after) for c in changes) == [
+        ("new", (), (12,)),
+        ("unchanged", (1,), (11,)),
+    ]
