@@ -38,7 +38,7 @@ def structure_box(
     if defect.world_x_m is None or defect.world_y_m is None:
         return None
     w, h = defect.world_w_m or 0.0, defect.world_h_m or 0.0
-    x, y = defect.world_x_m - w / 2, defect.world_y_m - h / 2
+    x, y = defect.world_x_m, defect.world_y_m  # the box's corner nearest the origin
     d = datum or {}
     T = se2_matrix(float(d.get("x", 0.0)), float(d.get("y", 0.0)), float(d.get("yaw", 0.0)))
     corners = np.array([[x, y, 1], [x + w, y, 1], [x + w, y + h, 1], [x, y + h, 1]]) @ T.T

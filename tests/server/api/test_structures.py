@@ -56,10 +56,10 @@ def test_element_condition_matches_the_truth(inspected: tuple[LiveServer, str]) 
     rejected = []  # (the session is shared with other tests: its reviews are put back)
     for d in found:
         box = [
-            d["world_x_m"] - d["world_w_m"] / 2,
-            d["world_y_m"] - d["world_h_m"] / 2,
-            d["world_x_m"] + d["world_w_m"] / 2,
-            d["world_y_m"] + d["world_h_m"] / 2,
+            d["world_x_m"],
+            d["world_y_m"],
+            d["world_x_m"] + d["world_w_m"],
+            d["world_y_m"] + d["world_h_m"],
         ]
         matches = {i for i, b in true_boxes.items() if _overlap(box, b)}
         seen |= matches
