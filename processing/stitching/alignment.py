@@ -215,13 +215,17 @@ def _consecutive_from_odometry(
     reg: _PairRegistrar, guess: NDArray[np.float64], spread: PairSpread
 ) -> tuple[list[PairMeasurement | None], NDArray[np.float64]]:
     """Consecutive pairs measured from the odometry's steps (their priors); where the
-    odometry was too far off (wheel slip), the images alone decide."""
+    odometry was too far off (wheel slip), the images alone decide, within a frame of it."""
     n = len(guess)
     priors = np.array([relative_se2(guess[k], guess[k + 1]) for k in range(n - 1)]).reshape(-1, 3)
     consecutive = spread([PairRequest(k, k + 1, priors[k], (reg.params,)) for k in range(n - 1)])
     lost = [k for k, m in enumerate(consecutive) if m is None]
+    h, w = reg.load(0).shape
     for k, (m, _) in zip(lost, reg.pool.map(reg.measure_blind, lost)):
-        consecutive[k] = m
+        # the images alone may pick a look-alike patch anywhere: a step more than a whole
+        # frame from the odometry's is not wheel slip but a false match, and is not kept
+        if m is not None and np.hypot(*(m.delta[:2] - priors[k][:2])) <= max(h, w):
+            consecutive[k] = m
     return consecutive, priors
 
 

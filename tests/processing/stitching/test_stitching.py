@@ -253,3 +253,35 @@ def test_feathered_mosaic_reproduces_the_surface_in_colour_and_grey(grey: bool) 
     )
     diff = np.abs(seen.astype(int) - frames[1].astype(int))[10:-10, 10:-10]
     assert diff.mean() < 0.5, diff.mean()
+
+
+def test_a_look_alike_far_from_the_odometry_does_not_place_a_frame(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A pair the odometry's guess cannot register is measured from the images alone; a
+    match more than a frame from where the odometry put it is a look-alike patch, not wheel
+    slip, and the frame stays where its other pairs and the odometry hold it."""
+    import processing.stitching.alignment as alignment
+    from processing.stitching.registration import PairMeasurement
+
+    s = sweep()
+    k = 4  # the pair across the turn to the second lane
+    genuine_pair = alignment.measure_pair
+    genuine_blind = alignment._PairRegistrar.measure_blind
+
+    def failing(load, request):  # type: ignore[no-untyped-def]
+        if (request.i, request.j) == (k, k + 1) and request.angles == (0.0,):
+            return None  # the odometry-guided registration of this pair fails
+        return genuine_pair(load, request)
+
+    def look_alike(self, j, next_too=False, previous=None):  # type: ignore[no-untyped-def]
+        m, step = genuine_blind(self, j, next_too, previous)
+        if j != k or m is None:
+            return m, step
+        far = m.delta + (3 * 320.0, 0.0, 0.0)  # a patch three frames away looks the same
+        return PairMeasurement(m.i, m.j, far, 0.99, m.mean_i, m.mean_j), far
+
+    monkeypatch.setattr(alignment, "measure_pair", failing)
+    monkeypatch.setattr(alignment._PairRegistrar, "measure_blind", look_alike)
+    layout, _ = plan_mosaic(decoded(s), s.odometry)
+    assert worst_pair_error(layout.poses_px, s.truth, (320, 240)) < 1.0
