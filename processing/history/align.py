@@ -27,11 +27,11 @@ class AlignmentError(ValueError):
 class AlignParams:
     """How the alignment searches and when it gives up."""
 
-    feature_side_px: int = 1600  # features on a copy whose longer side is at most this
+    feature_pixels: int = 1600 * 1600  # features on a copy of at most this many pixels
     ratio: float = 0.75  # Lowe's ratio test
     min_inliers: int = 15
     ransac_px: float = 3.0  # at the feature copy's scale
-    ecc_side_px: int = 1200  # refinement on a copy whose longer side is at most this
+    ecc_pixels: int = 1200 * 1200  # refinement on a copy of at most this many pixels
     ecc_iterations: int = 200
     min_overlap: float = 0.2
 
@@ -53,8 +53,10 @@ def _gray(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return np.asarray(clahe.apply(np.asarray(g, np.uint8)), np.uint8)
 
 
-def _scaled(gray: NDArray[np.uint8], side: int) -> tuple[NDArray[np.uint8], float]:
-    s = min(1.0, side / max(gray.shape))
+def _scaled(gray: NDArray[np.uint8], pixels: int) -> tuple[NDArray[np.uint8], float]:
+    """A copy of at most ``pixels`` pixels (a long strip keeps its short side's detail) and
+    its scale."""
+    s = min(1.0, float(np.sqrt(pixels / gray.size)))
     if s == 1.0:
         return gray, 1.0
     small = cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
@@ -71,8 +73,8 @@ def feature_homography(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """First AFTER → BEFORE homography from features, and the inlier point pairs (N, 2)
     each, in full-image pixels (``before``, ``after``: equalised grey images)."""
-    b, sb = _scaled(before, params.feature_side_px)
-    a, sa = _scaled(after, params.feature_side_px)
+    b, sb = _scaled(before, params.feature_pixels)
+    a, sa = _scaled(after, params.feature_pixels)
     sift = cv2.SIFT_create(nfeatures=8000)  # type: ignore[attr-defined]  # the stubs omit SIFT
     kb, db = sift.detectAndCompute(b, None)
     ka, da = sift.detectAndCompute(a, None)
@@ -101,8 +103,8 @@ def refine_ecc(
     params: AlignParams = AlignParams(),
 ) -> NDArray[np.float64] | None:
     """``H`` refined by ECC on the gradient magnitudes (None when ECC does not converge)."""
-    b, sb = _scaled(before, params.ecc_side_px)
-    a, sa = _scaled(after, params.ecc_side_px)
+    b, sb = _scaled(before, params.ecc_pixels)
+    a, sa = _scaled(after, params.ecc_pixels)
 
     def grad(g: NDArray[np.uint8]) -> NDArray[np.float32]:
         f = cv2.GaussianBlur(g.astype(np.float32), (0, 0), 1.0)

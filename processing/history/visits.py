@@ -6,8 +6,8 @@ A detector does not cut a defect the same way twice: one visit's crack may be an
 pieces, and rust edges give short crack-like pieces that come and go. So the matching is of
 groups, not of single detections:
 
-1. a short crack piece within a rust patch of its visit (boxes widened by ``tolerance_m``,
-   shorter than half the patch's narrower side) is the patch's texture, part of the patch;
+1. a piece within a rust patch of its visit (boxes widened by ``tolerance_m``) smaller than
+   half the patch's narrower side (a crack-like rust edge, a spot) is part of the patch;
 2. defects of one class whose widened boxes overlap pair across the two visits, one to one,
    the closest centres together (an optimal assignment);
 3. a piece left without a pair joins the pair whose pieces on its side of the visits it
@@ -79,11 +79,15 @@ def _inside(a: Box, b: Box, tol: float) -> bool:
     return a[0] >= b[0] - tol and a[1] >= b[1] - tol and a[2] <= b[2] + tol and a[3] <= b[3] + tol
 
 
-def _part_of(crack: VisitDefect, rust: VisitDefect, tol: float) -> bool:
-    """Whether a crack piece is rust's texture: inside the patch and shorter than half its
-    narrower side (a crack that crosses into a patch, or is long beside it, is a crack)."""
+def _part_of(piece: VisitDefect, rust: VisitDefect, tol: float) -> bool:
+    """Whether a piece is part of a rust patch: inside it and smaller than half its narrower
+    side (a crack-like edge of the rust, a spot of its own; a crack that crosses into a
+    patch, or is long beside it, is a crack)."""
     narrow_mm = min(rust.box[2] - rust.box[0], rust.box[3] - rust.box[1]) * 1000
-    return _inside(crack.box, rust.box, tol) and (crack.length_mm or 0.0) < narrow_mm / 2
+    extent_mm = max(piece.box[2] - piece.box[0], piece.box[3] - piece.box[1]) * 1000
+    if piece.defect_class == "crack":
+        extent_mm = max(extent_mm, piece.length_mm or 0.0)
+    return piece.id != rust.id and _inside(piece.box, rust.box, tol) and extent_mm < narrow_mm / 2
 
 
 def _size(d: VisitDefect) -> float:
@@ -116,20 +120,17 @@ def merge(parts: Sequence[VisitDefect]) -> VisitDefect:
 
 
 def _fold_into_rust(defects: Sequence[VisitDefect], tol: float) -> list[list[VisitDefect]]:
-    """The visit's defects as pieces: each rust patch with the crack pieces inside it, each
-    other defect alone."""
-    rust = [d for d in defects if d.defect_class == "corrosion"]
-    pieces: dict[int, list[VisitDefect]] = {d.id: [d] for d in rust}
-    out = [pieces[d.id] for d in rust]
-    for d in defects:
-        if d.defect_class == "corrosion":
-            continue
-        holder = next((r for r in rust if _part_of(d, r, tol)), None)
-        if holder is not None:
-            pieces[holder.id].append(d)
-        else:
-            out.append([d])
-    return out
+    """The visit's defects as pieces: each rust patch with the smaller pieces inside it
+    (:func:`_part_of` the largest patch holding them), each other defect alone."""
+    rust = sorted((d for d in defects if d.defect_class == "corrosion"), key=_size, reverse=True)
+    holder = {d.id: next((r.id for r in rust if _part_of(d, r, tol)), None) for d in defects}
+    pieces: dict[int, list[VisitDefect]] = {}
+    for d in sorted(defects, key=lambda d: holder[d.id] is not None):
+        h = holder[d.id]
+        while h is not None and holder[h] is not None:  # a piece of a piece of a patch
+            h = holder[h]
+        pieces.setdefault(d.id if h is None else h, []).append(d)
+    return [pieces[d.id] for d in defects if d.id in pieces]
 
 
 def _grown(b: VisitDefect, a: VisitDefect, p: VisitParams) -> bool:

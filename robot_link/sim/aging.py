@@ -124,8 +124,10 @@ def age_structure(
             ys, xs = np.nonzero(structure.corrosion_mask[box])
             centre = np.array([xs.mean() + box[1].start, ys.mean() + box[0].start])
             radius = d.width_m / 2 * rng.uniform(1.1, 1.3) / mpp
-            grown = _draw_corrosion(rng, img, rust, centre, radius)
-            before = int(structure.corrosion_mask[box].sum())
+            old = np.zeros(rust.shape, bool)
+            old[box] = structure.corrosion_mask[box]
+            grown = _draw_corrosion(rng, img, rust, centre, radius) | old
+            before = int(old.sum())
             d2 = _true_defect(d.id, "corrosion", grown, mpp, 2 * radius * mpp, 2 * radius * mpp)
             defects.append(d2)
             growth.append(Growth(d.id, "corrosion", area_m2=(int(grown.sum()) - before) * mpp**2))

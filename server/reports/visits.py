@@ -13,7 +13,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from processing.history.align import AlignmentError, align_visits, world_transform
+from processing.history.align import AlignmentError, AlignParams, align_visits, world_transform
 from processing.history.visits import DefectChange, VisitDefect, match_visits
 from processing.poses import compose_se2
 from server.reports.condition import element_condition, structure_box
@@ -59,14 +59,42 @@ def _mosaic(db: Session, files: SessionFiles, session_id: str) -> _Mosaic | None
     job = _stitch_job(db, session_id)
     if job is None or not job.result.get("overview_path"):
         return None
-    path = files.results_dir(session_id) / Path(job.result["overview_path"]).name
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        return None
     r = job.result
     origin = (float(r["origin_m"][0]), float(r["origin_m"][1]))
-    scale = float(r["px_per_m"]) * float(r.get("overview_scale", 1.0))
-    return _Mosaic(job.id, image, origin, scale)
+    results = files.results_dir(session_id)
+    full = results / "mosaic.png"
+    if full.exists():  # the full mosaic shrunk to the alignment's pixel budget: a long
+        # strip keeps more of its fine texture than in the fixed-size overview
+        image, scale = _shrunk(full, AlignParams().feature_pixels)
+    else:
+        image = cv2.imread(str(results / Path(r["overview_path"]).name), cv2.IMREAD_COLOR)
+        scale = float(r.get("overview_scale", 1.0))
+    if image is None:
+        return None
+    return _Mosaic(job.id, image, origin, float(r["px_per_m"]) * scale)
+
+
+def _shrunk(path: Path, pixels: int) -> tuple[np.ndarray | None, float]:
+    """An image of at most about ``pixels`` pixels (BGR) from a large PNG without decoding
+    it whole at full size, and its scale."""
+    import pyvips
+
+    try:
+        header = pyvips.Image.new_from_file(str(path))
+        width, height = header.width, header.height
+        s = min(1.0, float(np.sqrt(pixels / (width * height))))
+        small = pyvips.Image.thumbnail(
+            str(path), max(1, round(width * s)), height=height, size="down"
+        )
+        rgb = np.ndarray(
+            buffer=small.write_to_memory(),
+            dtype=np.uint8,
+            shape=(small.height, small.width, small.bands),
+        )
+    except pyvips.Error:
+        return None, 1.0
+    bgr = cv2.cvtColor(np.ascontiguousarray(rgb[..., :3]), cv2.COLOR_RGB2BGR)
+    return bgr, small.width / width
 
 
 def _pose(datum: dict[str, Any] | None) -> dict[str, float]:
