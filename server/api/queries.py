@@ -12,7 +12,7 @@ from server.api.schemas import JobPublic, ResultsCover, SessionPublic
 from server.errors import NotFound
 from server.jobs.inputs import is_current, latest_inputs, stored_inputs
 from server.storage.files import SessionFiles
-from server.storage.models import Cloud, Defect, Frame, InspectionSession, Job
+from server.storage.models import Cloud, Defect, Frame, InspectionSession, Job, Structure
 from server.storage.spans import duration_s
 
 MAX_INT = 2**63 - 1  # SQLite's largest integer: a bigger id cannot exist
@@ -53,6 +53,14 @@ def get_session_or_404(db: Session, session_id: str) -> InspectionSession:
     s = db.get(InspectionSession, session_id)
     if s is None:
         raise NotFound(f"session {session_id} not found")
+    return s
+
+
+def get_structure_or_404(db: Session, structure_id: int) -> Structure:
+    """The structure, or NotFound."""
+    s = db.get(Structure, structure_id)
+    if s is None:
+        raise NotFound(f"structure {structure_id} not found")
     return s
 
 

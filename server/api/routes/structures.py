@@ -14,7 +14,7 @@ from sqlalchemy.exc import IntegrityError
 
 from processing.history.condition import defect_names, element_types
 from server.api.deps import OperatorUser, SessionDep, StateDep, get_current_user
-from server.api.queries import MAX_INT, get_session_or_404
+from server.api.queries import MAX_INT, get_session_or_404, get_structure_or_404
 from server.errors import Conflict, NotFound
 from server.reports.condition import condition_csv, element_condition, latest_session
 from server.reports.visits import place, visit_changes
@@ -91,13 +91,6 @@ class SessionStructure(BaseModel):
         return {k: float(v.get(k, 0.0)) for k in ("x", "y", "yaw")}
 
 
-def _structure_or_404(db: SessionDep, structure_id: int) -> Structure:
-    s = db.get(Structure, structure_id)
-    if s is None:
-        raise NotFound(f"structure {structure_id} not found")
-    return s
-
-
 def _public(db: SessionDep, s: Structure) -> StructurePublic:
     n = db.scalar(select(func.count()).where(InspectionSession.structure_id == s.id)) or 0
     return StructurePublic(
@@ -156,13 +149,13 @@ def create_structure(db: SessionDep, user: OperatorUser, body: StructureCreate) 
 @router.get("/structures/{structure_id}", response_model=StructurePublic)
 def read_structure(db: SessionDep, structure_id: StructureId) -> StructurePublic:
     """One structure."""
-    return _public(db, _structure_or_404(db, structure_id))
+    return _public(db, get_structure_or_404(db, structure_id))
 
 
 @router.get("/structures/{structure_id}/elements", response_model=list[ElementPublic])
 def read_elements(db: SessionDep, structure_id: StructureId) -> list[ElementPublic]:
     """The structure's elements."""
-    _structure_or_404(db, structure_id)
+    get_structure_or_404(db, structure_id)
     rows = db.scalars(
         select(Element).where(Element.structure_id == structure_id).order_by(Element.id)
     )
@@ -178,7 +171,7 @@ def create_element(
     db: SessionDep, user: OperatorUser, structure_id: StructureId, body: ElementCreate
 ) -> ElementPublic:
     """Define an element on the structure."""
-    _structure_or_404(db, structure_id)
+    get_structure_or_404(db, structure_id)
     x0, y0, x1, y1 = body.box
     e = Element(
         structure_id=structure_id,
@@ -216,7 +209,7 @@ def set_session_structure(
     """Say which structure a session inspects and where its world frame lies on it."""
     s = get_session_or_404(db, session_id)
     if body.structure_id is not None:
-        _structure_or_404(db, body.structure_id)
+        get_structure_or_404(db, body.structure_id)
     s.structure_id = body.structure_id
     s.datum = body.datum
     db.commit()
@@ -240,7 +233,7 @@ def read_condition(
 ) -> dict[str, Any]:
     """Each element's quantity in CS1-CS4 from a session's defects (the structure's latest
     session unless ``session_id``), and the defects on no element."""
-    structure = _structure_or_404(db, structure_id)
+    structure = get_structure_or_404(db, structure_id)
     session = _session_of(db, structure, session_id)
     if session is not None:
         place(db, state.files, session)
@@ -262,7 +255,7 @@ def read_condition_csv(
     session_id: Annotated[str | None, Query(max_length=36)] = None,
 ) -> Response:
     """The condition table as CSV: element rows and element/defect rows with CS quantities."""
-    structure = _structure_or_404(db, structure_id)
+    structure = get_structure_or_404(db, structure_id)
     session = _session_of(db, structure, session_id)
     if session is not None:
         place(db, state.files, session)

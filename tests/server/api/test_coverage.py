@@ -7,8 +7,7 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.conftest import LiveServer
-from tests.server.conftest import TRUE_CAMERA_POSES
+from tests.conftest import TRUE_CAMERA_POSES, LiveServer
 
 
 def test_coverage_of_the_session_with_frames_holes_and_a_grid(

@@ -14,6 +14,7 @@ import pytest
 from processing.history.condition import CodedDefect, Element, element_of, state_quantities
 from robot_link.sim.structure import make_structure
 from tests.conftest import LiveServer
+from tests.server.earlier_visits import REPAIRED_NUMBER, add_earlier_visit, forget_session
 
 ELEMENTS = [  # the simulated plate girder's panel, 1.6 m x 0.9 m
     {"number": 107, "quantity": 1.6, "box": [0.0, 0.0, 1.6, 0.45]},
@@ -148,15 +149,6 @@ def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> 
     and defects are this session's moved by that; one crack 8 mm shorter, one defect not yet
     there, one since repaired): the session is registered to it by the mosaics and the
     changes say what changed."""
-    from datetime import timedelta
-
-    import cv2
-    import numpy as np
-
-    from server.storage.db import make_engine, make_sessionmaker
-    from server.storage.files import SessionFiles
-    from server.storage.models import Defect, InspectionSession, Job, JobState, SessionStatus
-
     live, sid = inspected
     api = f"{live.url}/api"
     st = httpx.post(f"{api}/structures", json={"name": f"Visits {sid[:8]}"}).json()["id"]
@@ -165,87 +157,22 @@ def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> 
         httpx.put(f"{api}/sessions/{sid}/structure", json={"structure_id": st}).status_code == 200
     )
     assert httpx.get(f"{api}/sessions/{sid}/changes").json()["previous_session_id"] is None
-    stitch = next(
-        j for j in httpx.get(f"{api}/sessions/{sid}/jobs").json() if j["kind"] == "stitch"
-    )["result"]
-    k = stitch["px_per_m"] * stitch["overview_scale"]  # overview pixels per metre
-    shift_px = (round(0.03 * k), round(-0.02 * k))
-    shift_m = (shift_px[0] / k, shift_px[1] / k)  # the earlier world's offset
-    files = SessionFiles(live.settings.data_dir)
-    earlier_id = f"earlier-{sid[:20]}"
-    overview = cv2.imread(str(files.results_dir(sid) / "mosaic_overview.png"))
-    assert overview is not None
-    M = np.float32([[1, 0, shift_px[0]], [0, 1, shift_px[1]]])
-    moved = cv2.warpAffine(overview, M, overview.shape[1::-1], borderMode=cv2.BORDER_REFLECT)
-    files.results_dir(earlier_id).mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(files.results_dir(earlier_id) / "mosaic_overview.png"), moved)
-    engine = make_engine(live.settings.resolved_database_url())
-    try:
-        with make_sessionmaker(engine)() as db:
-            now = db.get(InspectionSession, sid)
-            assert now is not None
-            earlier = InspectionSession(
-                id=earlier_id,
-                structure="the same girder",
-                structure_id=st,
-                datum={"x": 0.0, "y": 0.0, "yaw": 0.0},
-                status=SessionStatus.ended,
-                started_at=now.started_at - timedelta(days=730),
-            )
-            db.add(earlier)
-            db.add(
-                Job(
-                    session_id=earlier_id,
-                    kind="stitch",
-                    state=JobState.done,
-                    result={**stitch, "overview_path": "mosaic_overview.png"},
-                )
-            )
-            found = list(
-                db.query(Defect).filter_by(session_id=sid, source="mosaic").order_by(Defect.number)
-            )
-            found = [d for d in found if d.review_status != "rejected"]
-            cracks = [d for d in found if d.defect_class == "crack"]
-            assert cracks and len(found) >= 2
-            grown, missing = cracks[0], next(d for d in found if d is not cracks[0])
-            columns = [
-                c.key
-                for c in Defect.__table__.columns
-                if c.key not in ("id", "session_id", "job_id")
-            ]
-            for d in found:
-                if d is missing:
-                    continue
-                copy = Defect(session_id=earlier.id, **{c: getattr(d, c) for c in columns})
-                copy.world_x_m = (d.world_x_m or 0.0) + shift_m[0]
-                copy.world_y_m = (d.world_y_m or 0.0) + shift_m[1]
-                if d is grown:
-                    copy.length_mm = (d.length_mm or 0.0) - 8.0
-                db.add(copy)
-            repaired = Defect(
-                session_id=earlier.id,
-                **{k: getattr(grown, k) for k in columns},
-            )
-            repaired.world_x_m, repaired.world_y_m, repaired.number = 1.5, 0.8, 999
-            db.add(repaired)
-            db.commit()
-    finally:
-        engine.dispose()
+    earlier = add_earlier_visit(live, sid, st)
     try:
         result = httpx.get(f"{api}/sessions/{sid}/changes").json()
-        assert result["previous_session_id"] == earlier_id
+        assert result["previous_session_id"] == earlier.id
         datum = result["registration"]["datum"]  # this session's world on the structure
-        assert datum["x"] == pytest.approx(shift_m[0], abs=0.001)
-        assert datum["y"] == pytest.approx(shift_m[1], abs=0.001)
+        assert datum["x"] == pytest.approx(earlier.shift_m[0], abs=0.001)
+        assert datum["y"] == pytest.approx(earlier.shift_m[1], abs=0.001)
         assert result["registration"]["residual_mm"] < 2.0
         by_status: dict[str, list] = {}
         for c in result["changes"]:
             by_status.setdefault(c["status"], []).append(c)
-        assert [c["after"]["defect_id"] for c in by_status["grown"]] == [grown.id]
+        assert [c["after"]["defect_id"] for c in by_status["grown"]] == [earlier.grown_id]
         assert by_status["grown"][0]["length_change_mm"] == pytest.approx(8.0)
-        assert [c["after"]["defect_id"] for c in by_status["new"]] == [missing.id]
-        assert [c["before"]["number"] for c in by_status["gone"]] == [999]
-        assert len(by_status.get("unchanged", [])) == len(found) - 2
+        assert [c["after"]["defect_id"] for c in by_status["new"]] == [earlier.missing_id]
+        assert [c["before"]["number"] for c in by_status["gone"]] == [REPAIRED_NUMBER]
+        assert len(by_status.get("unchanged", [])) == earlier.found - 2
         # the place found is kept: the report's element condition and changes use it
         report = httpx.get(f"{api}/sessions/{sid}/report.json").json()
         assert report["changes_since"]["registration"]["datum"] == datum
@@ -257,20 +184,5 @@ def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> 
         assert f"Changes since {earlier.started_at.date().isoformat()}" in text
         assert "grown" in text and "no longer seen" in text
     finally:  # the session is shared with other tests: the earlier visit goes again
-        _forget_session(live.settings.resolved_database_url(), earlier_id)
+        forget_session(live, earlier.id)
         httpx.put(f"{api}/sessions/{sid}/structure", json={"structure_id": None})
-
-
-def _forget_session(url: str, session_id: str) -> None:
-    from sqlalchemy import text
-
-    from server.storage.db import make_engine
-
-    engine = make_engine(url)
-    try:
-        with engine.begin() as conn:
-            for table in ("defects", "jobs", "inspection_sessions"):
-                column = "id" if table == "inspection_sessions" else "session_id"
-                conn.execute(text(f"DELETE FROM {table} WHERE {column} = :s"), {"s": session_id})
-    finally:
-        engine.dispose()
