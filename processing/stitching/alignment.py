@@ -19,7 +19,7 @@ from itertools import pairwise
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.poses import chain_se2, relative_se2
+from processing.poses import chain_se2, relative_se2, se2_matrix
 from processing.stitching.phase import PHASE_SCALES, PhaseView, phase_candidates
 from processing.stitching.pose_graph import candidate_pairs, measurement_residuals, solve_pose_graph
 from processing.stitching.registration import (
@@ -221,10 +221,17 @@ def _consecutive_from_odometry(
     consecutive = spread([PairRequest(k, k + 1, priors[k], (reg.params,)) for k in range(n - 1)])
     lost = [k for k, m in enumerate(consecutive) if m is None]
     h, w = reg.load(0).shape
+    corners = np.array(
+        [[-w / 2, -h / 2, 1], [w / 2, -h / 2, 1], [w / 2, h / 2, 1], [-w / 2, h / 2, 1]]
+    )
     for k, (m, _) in zip(lost, reg.pool.map(reg.measure_blind, lost)):
-        # the images alone may pick a look-alike patch anywhere: a step more than a whole
-        # frame from the odometry's is not wheel slip but a false match, and is not kept
-        if m is not None and np.hypot(*(m.delta[:2] - priors[k][:2])) <= max(h, w):
+        # the images alone may pick a look-alike patch anywhere, turned any way: a frame
+        # placed more than a frame's length from where the odometry's step puts it is not
+        # wheel slip but a false match, and is not kept
+        if m is None:
+            continue
+        moved = corners @ (se2_matrix(*m.delta) - se2_matrix(*priors[k])).T
+        if np.max(np.hypot(moved[:, 0], moved[:, 1])) <= max(h, w):
             consecutive[k] = m
     return consecutive, priors
 

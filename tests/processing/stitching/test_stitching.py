@@ -255,12 +255,14 @@ def test_feathered_mosaic_reproduces_the_surface_in_colour_and_grey(grey: bool) 
     assert diff.mean() < 0.5, diff.mean()
 
 
+@pytest.mark.parametrize("wrong", [(3 * 320.0, 0.0, 0.0), (0.0, 0.0, np.pi)])
 def test_a_look_alike_far_from_the_odometry_does_not_place_a_frame(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, wrong: tuple[float, float, float]
 ) -> None:
     """A pair the odometry's guess cannot register is measured from the images alone; a
     match more than a frame from where the odometry put it is a look-alike patch, not wheel
-    slip, and the frame stays where its other pairs and the odometry hold it."""
+    slip, and the frame stays where its other pairs and the odometry hold it (a look-alike
+    three frames along, or the same place turned around)."""
     import processing.stitching.alignment as alignment
     from processing.stitching.registration import PairMeasurement
 
@@ -278,7 +280,7 @@ def test_a_look_alike_far_from_the_odometry_does_not_place_a_frame(
         m, step = genuine_blind(self, j, next_too, previous)
         if j != k or m is None:
             return m, step
-        far = m.delta + (3 * 320.0, 0.0, 0.0)  # a patch three frames away looks the same
+        far = m.delta + wrong
         return PairMeasurement(m.i, m.j, far, 0.99, m.mean_i, m.mean_j), far
 
     monkeypatch.setattr(alignment, "measure_pair", failing)
