@@ -66,8 +66,11 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if "database" in metafunc.fixturenames:
         under_test = databases_under_test()
         metafunc.parametrize("database", under_test[:1] if one else under_test, indirect=True)
-    elif "inspected" in metafunc.fixturenames and one:
-        metafunc.parametrize("inspected", databases_under_test()[:1], indirect=True)
+    if "inspected" in metafunc.fixturenames:
+        under_test = databases_under_test()
+        metafunc.parametrize(
+            "inspected", under_test[:1] if one else under_test, indirect=True, scope="session"
+        )
 
 
 @pytest.fixture(scope="session")
@@ -129,11 +132,12 @@ def live_server(settings: Settings) -> Iterator[LiveServer]:
 TRUE_CAMERA_POSES: dict[str, list[list[float]]] = {}
 
 
-@pytest.fixture(scope="session", params=databases_under_test())
+@pytest.fixture(scope="session")
 def inspected(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[tuple[LiveServer, str]]:
-    """A live server that holds one simulated inspection, fully processed (one per database)."""
+    """A live server that holds one simulated inspection, fully processed (one per database:
+    :func:`pytest_generate_tests` names them)."""
     data = tmp_path_factory.mktemp("reports") / "data"
     if request.param == "postgresql":
         database_url = request.getfixturevalue("postgres").new_database()

@@ -1,4 +1,5 @@
-// The dashboard: sign-in, the live link, and three views (#/drive, #/sessions, #/session/<id>).
+// The dashboard: sign-in, the live link, and its views (#/drive, #/sessions, #/session/<id>,
+// #/structures, #/structure/<id>, #/admin).
 import { loadAdmin } from "./admin.js";
 import { api, apiJSON, onSignedOut, setToken, text } from "./api.js";
 import { initCoverage } from "./coverage.js";
@@ -7,6 +8,7 @@ import { EVENT } from "./events.js";
 import { connect, on } from "./live.js";
 import { initReview, showSession } from "./review.js";
 import { initSessions, loadSessions } from "./sessions.js";
+import { showStructure, showStructures } from "./structures.js";
 import { initTelemetry } from "./telemetry.js";
 
 let started = false;
@@ -75,7 +77,14 @@ function route() {
   if (!started) return;
   const hash = location.hash || "#/drive";
   const [, name, id, sub, number] = hash.split("/");
-  const viewName = name === "session" && id ? "session" : ["sessions", "admin"].includes(name) ? name : "drive";
+  const viewName =
+    name === "session" && id
+      ? "session"
+      : name === "structure" && id
+        ? "structures"
+        : ["sessions", "structures", "admin"].includes(name)
+          ? name
+          : "drive";
   document.querySelectorAll("main.view").forEach((m) => {
     m.hidden = m.id !== `view-${viewName}`;
   });
@@ -88,6 +97,10 @@ function route() {
       ),
     );
   if (viewName === "sessions") loadSessions().catch(() => {});
+  if (viewName === "structures") {
+    const shown = name === "structure" ? showStructure(id, sub === "visit" ? number : null) : showStructures();
+    shown.catch((e) => text(document.getElementById("structures-page"), `cannot show structures: ${e.message}`));
+  }
   if (viewName === "admin") {
     loadAdmin({ opening: true }).catch((e) =>
       text(document.getElementById("admin"), `cannot show accounts: ${e.message}`),
