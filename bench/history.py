@@ -34,6 +34,7 @@ from bench.history_score import (
     score_condition,
     score_placement,
 )
+from robot_link.sim.sensors import DownwardCamera
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,7 @@ ELEMENTS = [  # the simulated plate girder's panel, 1.6 m x 0.9 m
     {"number": 515, "quantity": 1.44, "box": [0.0, 0.0, 1.6, 0.9]},
 ]
 DEFECT_REGION_M = (0.25, 0.14, 1.35, 0.54)  # where make_structure puts defects: the route's
+FOOTPRINT_M = DownwardCamera().footprint_m
 TARGETS = {"registration_mm": 2.0, "matched": 0.95, "growth_mm": 2.0}
 
 
@@ -97,6 +99,7 @@ def _run_seed(client: httpx.Client, url: str, token: str, seed: int, count: int)
         client.post(f"/api/structures/{structure_id}/elements", json=e).raise_for_status()
     scores: dict[str, Any] = {"seed": seed, "visits": []}
     anchors: list[np.ndarray] = []
+    poses: list[list[list[float]]] = []  # each visit's true camera poses
     placed: dict[str, Any] | None = None  # the previous visit's place on the structure
     for v, visit in enumerate(visits):
         t0 = time.monotonic()
@@ -108,12 +111,14 @@ def _run_seed(client: httpx.Client, url: str, token: str, seed: int, count: int)
         ).raise_for_status()
         world = client.get(f"/api/sessions/{sid}/results/mosaic.json").json()
         anchors.append(mosaic_anchor(world, true_poses))
+        poses.append(true_poses)
         record: dict[str, Any] = {"visit": v + 1, "session_id": sid}
         if v > 0:
             changes = client.get(f"/api/sessions/{sid}/changes", timeout=120).json()
             reg = changes["registration"]
             record |= score_placement(reg, (anchors[-2], anchors[-1]), placed, true_poses)
-            record |= score_changes(changes["changes"], visits[v - 1], visit)
+            seen = (poses[-2], poses[-1])
+            record |= score_changes(changes["changes"], visits[v - 1], visit, seen, FOOTPRINT_M)
             placed = reg["datum"] if reg else None
         condition = client.get(
             f"/api/structures/{structure_id}/condition", params={"session_id": sid}
@@ -190,6 +195,7 @@ def summarise(per_seed: list[dict[str, Any]]) -> Iterator[Result]:
         else None,
         "grown_detected": f"{grown}/{growable}",
         "grown_detected_fraction": round(grown / growable, 3) if growable else None,
+        "not_imaged_whole": sum(r["growth_not_imaged"] for _, r in later),
     }
     area = [e for _, r in later for e in r["area_growth_rel_errors"]]
     yield {

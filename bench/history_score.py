@@ -110,14 +110,34 @@ def score_placement(
     return out
 
 
+def imaged(box: Box, poses: Sequence[Sequence[float]], footprint_m: tuple[float, float]) -> bool:
+    """Whether a box's corners all lie in some camera frame of a visit (true camera poses
+    x, y, yaw; footprint along and across the heading)."""
+    p = np.asarray(poses, float)
+    half = np.array(footprint_m) / 2
+    for x, y in ((box[0], box[1]), (box[2], box[1]), (box[2], box[3]), (box[0], box[3])):
+        d = np.array([x, y]) - p[:, :2]
+        c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+        local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], 1)
+        if not np.any(np.all(np.abs(local) <= half, axis=1)):
+            return False
+    return True
+
+
 def score_changes(
-    changes: list[dict[str, Any]], before: VisitTruth, after: VisitTruth
+    changes: list[dict[str, Any]],
+    before: VisitTruth,
+    after: VisitTruth,
+    seen: tuple[Sequence[Sequence[float]], Sequence[Sequence[float]]] | None = None,
+    footprint_m: tuple[float, float] = (0.18, 0.135),
 ) -> dict[str, Any]:
     """Matching and growth against the truth: a true defect detected in both visits is
     matchable, and matched when a change pairs a detection of it in each visit; a pair of
     detections of two different true defects is a false match; a new or gone change where
     nothing truly appeared is a false change. Growth is scored once per true defect (its
-    largest matched change)."""
+    largest matched change), for defects each visit imaged whole (``seen``: both visits' true
+    camera poses; a crack that grew beyond the surface a visit imaged is left out and
+    counted in ``growth_not_imaged``)."""
     tb, ta = before.structure.defects, after.structure.defects
     growth = {g.defect_id: g for g in after.growth}
     seen_b: set[int] = set()
@@ -140,9 +160,18 @@ def score_changes(
         elif c["status"] in ("new", "gone"):
             out["false_changes"] += 1
     both = seen_b & seen_a
+    whole = {
+        t.id
+        for t in ta
+        if seen is None
+        or (
+            imaged(_box(t), seen[1], footprint_m)
+            and all(imaged(_box(o), seen[0], footprint_m) for o in tb if o.id == t.id)
+        )
+    }
     growable = {
         g.defect_id for g in after.growth if g.defect_class == "crack" and g.length_m >= 0.005
-    }
+    } & whole
     out |= {
         "matchable": len(both),
         "matched": len(set(matched) & both),
@@ -152,9 +181,10 @@ def score_changes(
         "growth_errors_mm": [],
         "area_growth_rel_errors": [],
     }
+    out["growth_not_imaged"] = len(set(matched) - whole)
     for i, c in sorted(matched.items()):
         g = growth.get(i)
-        if g is None:
+        if g is None or i not in whole:
             continue
         if g.defect_class == "crack" and c["length_change_mm"] is not None:
             out["growth_errors_mm"].append(round(abs(c["length_change_mm"] - g.length_m * 1000), 2))
