@@ -40,6 +40,8 @@ def crop_affine(
     if size_px < 1 or px_per_m <= 0:
         raise ValueError(f"size_px and px_per_m must be positive, got {size_px}, {px_per_m}")
     crop_per_m = size_px / max(x1 - x0, y1 - y0)
+    if not np.isfinite(crop_per_m):
+        raise ValueError(f"box {box} is too small to crop at {size_px} px")
     shape = (max(1, round((x1 - x0) * crop_per_m)), max(1, round((y1 - y0) * crop_per_m)))
     d = datum or {}
     T_structure_world = se2_matrix(

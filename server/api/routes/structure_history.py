@@ -22,7 +22,7 @@ router = APIRouter(
 
 StructureId = Annotated[int, Path(ge=1, le=MAX_INT)]
 Metres = Annotated[float, Field(ge=-1e6, le=1e6)]
-MAX_CROP_SIDE_M = 1000.0
+MIN_CROP_SIDE_M, MAX_CROP_SIDE_M = 0.001, 1000.0
 
 
 class CropBox(BaseModel):
@@ -38,8 +38,10 @@ class CropBox(BaseModel):
     def _ordered(self) -> CropBox:
         if not (self.x0 < self.x1 and self.y0 < self.y1):
             raise ValueError("the box needs x0 < x1 and y0 < y1 (metres)")
-        if max(self.x1 - self.x0, self.y1 - self.y0) > MAX_CROP_SIDE_M:
-            raise ValueError(f"the box is larger than {MAX_CROP_SIDE_M:g} m")
+        if not MIN_CROP_SIDE_M <= max(self.x1 - self.x0, self.y1 - self.y0) <= MAX_CROP_SIDE_M:
+            raise ValueError(
+                f"the box's longer side must be {MIN_CROP_SIDE_M:g} to {MAX_CROP_SIDE_M:g} m"
+            )
         return self
 
 
