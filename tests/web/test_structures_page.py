@@ -1,7 +1,8 @@
 """The structure page in Debian's headless chromium, on the processed inspection: a
 structure created, an element drawn on the session's mosaic, the session attached; with an
 earlier visit on record, the timeline of both, the element condition table, the changes since
-the earlier visit, and a grown crack compared side by side, in the swipe view and over time."""
+the earlier visit, and a grown crack compared side by side, in the swipe view and over time;
+the element deleted again."""
 
 from __future__ import annotations
 
@@ -92,6 +93,11 @@ def test_structure_page_elements_timeline_changes_and_swipe(
             assert page.locator("#history-chart circle").count() == 2
             assert "grown" in page.inner_text(".history-table")
             shot(page, "structure")
+            # an element deleted goes from the table and the mosaic
+            page.click("#elements tr[data-element] button.danger")
+            wait_js(page, "!document.querySelector('#elements tr[data-element]')")
+            wait_js(page, "!document.querySelector('#element-viewer .element-box[data-element]')")
+            assert httpx.get(f"{api}/structures/{st}/elements").json() == []
         finally:
             browser.close()
             if earlier is not None:
