@@ -14,8 +14,9 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from processing.history.align import AlignmentError, AlignParams, align_visits, world_transform
+from processing.history.map_align import MapAlignmentError, align_maps
 from processing.history.visits import DefectChange, VisitDefect, match_visits
-from processing.poses import compose_se2
+from processing.poses import compose_se2, se2_to_se3
 from server.reports.condition import element_condition, structure_box
 from server.storage.files import SessionFiles
 from server.storage.models import Defect, InspectionSession, Job, JobState, Structure
@@ -47,12 +48,7 @@ class _Mosaic:
 
 
 def _stitch_job(db: Session, session_id: str) -> Job | None:
-    return db.scalars(
-        select(Job)
-        .where(Job.session_id == session_id, Job.kind == "stitch", Job.state == JobState.done)
-        .order_by(Job.id.desc())
-        .limit(1)
-    ).first()
+    return _job(db, session_id, "stitch")
 
 
 def _mosaic(db: Session, files: SessionFiles, session_id: str) -> _Mosaic | None:
@@ -132,6 +128,58 @@ def register_visit(
         "residual_mm": round(al.residual_px / mb.px_per_m * 1000, 3),
         "rigid_rms_mm": round(rigid_rms * 1000, 3),
         "overlap": round(al.overlap, 4),
+        "map": _maps_agree(db, files, before, after, pose),
+    }
+
+
+def _job(db: Session, session_id: str, kind: str) -> Job | None:
+    return db.scalars(
+        select(Job)
+        .where(Job.session_id == session_id, Job.kind == kind, Job.state == JobState.done)
+        .order_by(Job.id.desc())
+        .limit(1)
+    ).first()
+
+
+def _map_points(db: Session, files: SessionFiles, session_id: str) -> np.ndarray | None:
+    if _job(db, session_id, "map") is None:
+        return None
+    path = files.results_dir(session_id) / "map.ply"
+    if not path.exists():
+        return None
+    import open3d as o3d
+
+    points = np.asarray(o3d.io.read_point_cloud(str(path)).points)
+    return points if len(points) else None
+
+
+def _maps_agree(
+    db: Session,
+    files: SessionFiles,
+    before: InspectionSession,
+    after: InspectionSession,
+    pose: np.ndarray,
+) -> dict[str, Any] | None:
+    """How the two visits' 3D maps agree once the mosaics' pose (AFTER's world in BEFORE's)
+    places them (:func:`processing.history.map_align.align_maps`): the residual across the
+    surfaces, the share of AFTER's map on BEFORE's, how far the maps moved the mosaics'
+    pose, and AFTER's height and tilt in BEFORE's frame. None without both maps or when
+    they do not align."""
+    pb, pa = _map_points(db, files, before.id), _map_points(db, files, after.id)
+    if pb is None or pa is None:
+        return None
+    try:
+        found = align_maps(pb, pa, se2_to_se3(*(float(v) for v in pose)))
+    except MapAlignmentError:
+        return None
+    T = found.after_to_before
+    return {
+        "rmse_mm": round(found.rmse_m * 1000, 2),
+        "fitness": round(found.fitness, 3),
+        "correction_mm": round(found.correction_m * 1000, 2),
+        "height_mm": round(float(T[2, 3]) * 1000, 2),
+        "tilt_deg": round(float(np.degrees(np.arccos(np.clip(T[2, 2], -1, 1)))), 3),
+        "unobserved_directions": found.degenerate,
     }
 
 
@@ -145,7 +193,11 @@ def place_session(
     Registered once per pair of mosaics and BEFORE's placement; the registration, or None
     where the mosaics do not align (the marked datum stands)."""
     marked = _pose((s.datum or {}).get("marked", s.datum))
-    mosaics = [j.id if j else None for j in (_stitch_job(db, before.id), _stitch_job(db, s.id))]
+    mosaics = [
+        j.id if j else None
+        for kind in ("stitch", "map")
+        for j in (_job(db, before.id, kind), _job(db, s.id, kind))
+    ]
     key = [before.id, *mosaics, *_pose(before.datum).values()]
     done = (s.datum or {}).get("registration")
     if done is not None and done.get("key") == key:

@@ -51,7 +51,8 @@ def add_earlier_visit(
     repaired: bool = True,
 ) -> EarlierVisit:
     """A visit of ``structure_id`` ``days`` before session ``sid``, its robot started
-    about ``shift_m`` off (whole overview pixels): the session's first crack
+    about ``shift_m`` off (whole overview pixels; its 3D map moved alike where the session
+    has one): the session's first crack
     ``shorter_mm`` shorter, with or without the session's next defect (``missing``) and
     a defect repaired since (``repaired``, at 1.5, 0.8 m)."""
     stitch = stitch_result(live, sid)
@@ -66,6 +67,7 @@ def add_earlier_visit(
     moved = cv2.warpAffine(overview, M, overview.shape[1::-1], borderMode=cv2.BORDER_REFLECT)
     files.results_dir(earlier_id).mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(files.results_dir(earlier_id) / "mosaic_overview.png"), moved)
+    mapped = _moved_map(files, sid, earlier_id, shift)
     engine = make_engine(live.settings.resolved_database_url())
     try:
         with make_sessionmaker(engine)() as db:
@@ -89,6 +91,8 @@ def add_earlier_visit(
                     result={**stitch, "overview_path": "mosaic_overview.png"},
                 )
             )
+            if mapped:
+                db.add(Job(session_id=earlier_id, kind="map", state=JobState.done, result={}))
             found = list(
                 db.query(Defect).filter_by(session_id=sid, source="mosaic").order_by(Defect.number)
             )
@@ -126,6 +130,19 @@ def add_earlier_visit(
             )
     finally:
         engine.dispose()
+
+
+def _moved_map(files: SessionFiles, sid: str, earlier_id: str, shift: tuple[float, float]) -> bool:
+    """The session's 3D map moved by the earlier world's offset, as the earlier visit's
+    (False when the session has none)."""
+    import open3d as o3d
+
+    path = files.results_dir(sid) / "map.ply"
+    if not path.exists():
+        return False
+    pcd = o3d.io.read_point_cloud(str(path))
+    pcd.translate((shift[0], shift[1], 0.0))
+    return bool(o3d.io.write_point_cloud(str(files.results_dir(earlier_id) / "map.ply"), pcd))
 
 
 def forget_session(live: LiveServer, session_id: str) -> None:

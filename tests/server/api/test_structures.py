@@ -165,6 +165,10 @@ def test_changes_since_the_previous_visit(inspected: tuple[LiveServer, str]) -> 
         assert datum["x"] == pytest.approx(earlier.shift_m[0], abs=0.001)
         assert datum["y"] == pytest.approx(earlier.shift_m[1], abs=0.001)
         assert result["registration"]["residual_mm"] < 2.0
+        # the 3D maps agree where the mosaics placed them
+        maps = result["registration"]["map"]
+        assert maps["rmse_mm"] < 3 and maps["fitness"] > 0.9
+        assert maps["correction_mm"] < 3 and abs(maps["height_mm"]) < 1 and maps["tilt_deg"] < 0.1
         by_status: dict[str, list] = {}
         for c in result["changes"]:
             by_status.setdefault(c["status"], []).append(c)
