@@ -145,15 +145,19 @@ class Scene3D:
             client.camera.position = camera.position
 
     def _add_marker(self, d: DefectMarker) -> None:
+        """A defect's sphere on the structure and its number just above it. The label is the
+        sphere's child in viser's scene tree ("/defects/7/label" under "/defects/7"), so its
+        position is relative to the sphere: straight up (-z) from it."""
+        radius = float(np.clip(d.size / 2, 0.008, 0.06))
         handle = self.server.scene.add_icosphere(
             f"/defects/{d.id}",
-            radius=float(np.clip(d.size / 2, 0.008, 0.06)),
+            radius=radius,
             color=CLASS_COLOURS.get(d.defect_class, (200, 200, 200)),
             position=(d.x, d.y, -0.004),
             opacity=0.8,
         )
         self.server.scene.add_label(
-            f"/defects/{d.id}/label", f"{d.number}", position=(d.x, d.y, -0.03)
+            f"/defects/{d.id}/label", f"{d.number}", position=(0.0, 0.0, -radius - 0.01)
         )
 
         self.markers[d.id] = d
