@@ -10,6 +10,8 @@ from server.storage.models import Defect
 GENERATOR = "steelscan 0.1.0"
 CONDITION_STATES = ("CS1", "CS2", "CS3", "CS4")
 CONDITION_MEANING = {"CS1": "good", "CS2": "fair", "CS3": "poor", "CS4": "severe"}
+# what a defect's one position (``world_x_m``, ``world_y_m``) is, wherever it is shown
+POSITION_MEANING = "the corner of the defect's box nearest the structure's origin"
 DEFECT_FIELDS = (
     "number",
     "id",

@@ -13,6 +13,7 @@ from reportlab.lib.styles import ParagraphStyle
 from reportlab.lib.units import mm
 from reportlab.platypus import Paragraph, Spacer
 
+from server.reports.fields import POSITION_MEANING
 from server.reports.pdf_style import BODY_W, fmt_num, grid_table, para, picture
 
 Thumbnail = Callable[[dict[str, Any]], np.ndarray | None]
@@ -38,7 +39,8 @@ def defect_table(
     rejected = len(report["defects"]) - len(listed)
     intro = (
         f"{len(listed)} defects, ordered along the structure; numbers match the markers on the mosaic. "
-        "Position is the defect box's corner on the structure (metres, world frame); sizes from the camera scale."
+        f"Position: {POSITION_MEANING} (x, y in metres, world frame; world_x_m, world_y_m in defects.csv); "
+        "sizes from the camera scale."
     )
     if rejected:
         intro += f" {rejected} defects rejected in review are not listed (they are in defects.csv)."
@@ -52,7 +54,7 @@ def defect_table(
             "Length\nmm",
             "Max w.\nmm",
             "Area\nmm²",
-            "Position\nx, y (m)",
+            "Box corner\nx, y (m)",
             "Review",
             "CS",
             "Comment",

@@ -18,6 +18,13 @@ const COLUMNS = [
   ["world_x_m", "x (m)", 3],
   ["world_y_m", "y (m)", 3],
 ];
+// A defect's one position, in the table, the panel, the 3D view, the PDF and the CSV
+// (world_x_m, world_y_m); world_w_m, world_h_m are its box's size.
+const POSITION_MEANING = "the corner of the defect's box nearest the structure's origin";
+const HEADING_TITLE = {
+  world_x_m: `x of ${POSITION_MEANING}`,
+  world_y_m: `y of ${POSITION_MEANING}`,
+};
 const view = {
   session: null,
   defects: [],
@@ -103,6 +110,7 @@ function renderTable() {
         "th",
         {
           class: "sortable",
+          title: HEADING_TITLE[key],
           "aria-sort": view.sort === key ? (view.desc ? "descending" : "ascending") : "none",
           onclick: () => {
             view.desc = view.sort === key ? !view.desc : false;
@@ -118,6 +126,7 @@ function renderTable() {
     el("th", {}, "comment"),
   );
   table.replaceChildren(
+    el("caption", { id: "defects-position", class: "muted small" }, `x, y: ${POSITION_MEANING} (m)`),
     head,
     ...rows.map((d) => {
       const tr = el(
@@ -207,8 +216,7 @@ function showDetail(d) {
           `${d.area_mm2 === null ? "" : `, ${fmt(d.area_mm2, 0)} mm²`}`,
       ),
       ...(d.drawn_by ? [el("dt", {}, "drawn by"), el("dd", {}, d.drawn_by)] : []),
-      el("dt", {}, "on the structure"),
-      el("dd", {}, d.world_x_m === null ? "not placed" : `x ${fmt(d.world_x_m, 3)} m, y ${fmt(d.world_y_m, 3)} m`),
+      ...placement(d),
       el("dt", {}, "review"),
       el("dd", { class: "review-state" }, d.review_status),
       el("dt", {}, "condition state"),
@@ -220,6 +228,24 @@ function showDetail(d) {
     ),
     replayFor(d),
   );
+}
+
+// Where the defect is on the structure: its position (the box's corner, as in the table)
+// and the box it spans.
+function placement(d) {
+  if (d.world_x_m === null) return [el("dt", {}, "on the structure"), el("dd", {}, "not placed")];
+  const x0 = d.world_x_m;
+  const y0 = d.world_y_m;
+  return [
+    el("dt", {}, "on the structure"),
+    el("dd", { class: "defect-position" }, `x ${fmt(x0, 3)} m, y ${fmt(y0, 3)} m (${POSITION_MEANING})`),
+    el("dt", {}, "box"),
+    el(
+      "dd",
+      { class: "defect-box-m" },
+      `x ${fmt(x0, 3)}–${fmt(x0 + (d.world_w_m ?? 0), 3)} m, y ${fmt(y0, 3)}–${fmt(y0 + (d.world_h_m ?? 0), 3)} m`,
+    ),
+  ];
 }
 
 // The replay strip and timeline, kept while the same defect stays selected.

@@ -30,6 +30,7 @@ from server.errors import NotFound
 from server.live.events import DefectSelected
 from server.live.scene3d import DefectMarker, Scene3D
 from server.live.scenes import Scenes
+from server.reports.fields import POSITION_MEANING
 from server.state import AppState
 from server.storage.models import Defect, InspectionSession
 
@@ -132,6 +133,23 @@ async def _socket(websocket: WebSocket, key: str) -> None:
         await pass_through(websocket, upstream)
 
 
+def defect_marker(d: Defect) -> DefectMarker:
+    """A placed defect's marker: a sphere at the middle of its box on the structure, and the
+    text the view shows for it, whose position is the defect's one position everywhere
+    (``world_x_m``, ``world_y_m``: the box's corner nearest the origin) and then the box."""
+    x0, y0 = float(d.world_x_m or 0.0), float(d.world_y_m or 0.0)
+    w, h = float(d.world_w_m or 0.0), float(d.world_h_m or 0.0)
+    text = (
+        f"**Defect {d.number or d.id}** — {d.defect_class}  \n"
+        f"length {d.length_mm or 0:.1f} mm, max width {d.max_width_mm or 0:.2f} mm  \n"
+        f"at x {x0:.3f} m, y {y0:.3f} m ({POSITION_MEANING})  \n"
+        f"box x {x0:.3f}–{x0 + w:.3f} m, y {y0:.3f}–{y0 + h:.3f} m ({d.source})"
+    )
+    return DefectMarker(
+        d.id, d.number or d.id, d.defect_class, x0 + w / 2, y0 + h / 2, max(w, h), text
+    )
+
+
 def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
     """Load a session's map, trajectory and defects into the 3D view; what was shown."""
     import open3d as o3d
@@ -152,24 +170,7 @@ def session_scene(db: Any, state: AppState, session_id: str) -> dict[str, Any]:
     )
     rows = list(rows)
     mosaic_rows = [d for d in rows if d.source == "mosaic"]
-    markers = []
-    for d in mosaic_rows or rows:
-        size = max(d.world_w_m or 0.0, d.world_h_m or 0.0)
-        text = (
-            f"**Defect {d.number or d.id}** — {d.defect_class}  \nlength {d.length_mm or 0:.1f} mm, max width {d.max_width_mm or 0:.2f} mm  \n"
-            f"at x {d.world_x_m + (d.world_w_m or 0) / 2:.3f} m, y {d.world_y_m + (d.world_h_m or 0) / 2:.3f} m ({d.source})"
-        )
-        markers.append(
-            DefectMarker(
-                d.id,
-                d.number or d.id,
-                d.defect_class,
-                d.world_x_m + (d.world_w_m or 0) / 2,
-                d.world_y_m + (d.world_h_m or 0) / 2,
-                size,
-                text,
-            )
-        )
+    markers = [defect_marker(d) for d in mosaic_rows or rows]
     title = f"{s.structure or 'session'} — {session_id[:8]}" if s is not None else session_id
     scenes = _scenes_or_404(state)
     scenes.for_session(session_id).show_session(session_id, points, trajectory, markers, title)

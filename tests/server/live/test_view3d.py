@@ -156,3 +156,43 @@ def test_the_map_grows_live_during_a_session(live_server: LiveServer) -> None:
         time.sleep(0.2)
     assert scene.live_map_points > 1000
     assert "map of" in scene._title.content
+
+
+def test_a_defects_3d_text_gives_its_one_position_and_its_box(live_server: LiveServer) -> None:
+    """The view's text gives the position the table, PDF and CSV give (world_x_m, world_y_m:
+    the box's corner nearest the origin), then the box; the sphere sits in the box's middle."""
+    from server.storage.models import Defect
+
+    sid = uuid.uuid4()
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
+        ws.send(start(sid))
+        decode_message(ws.recv(timeout=10))
+    engine = make_engine(live_server.settings.resolved_database_url())
+    with make_sessionmaker(engine)() as db:
+        d = Defect(
+            session_id=str(sid),
+            number=8,
+            defect_class="crack",
+            **dict.fromkeys(("bbox_x", "bbox_y", "bbox_w", "bbox_h", "area_px"), 10),
+            **dict.fromkeys(("length_px", "max_width_px", "mean_width_px"), 1.0),
+            orientation_deg=0.0,
+            length_mm=52.0,
+            max_width_mm=0.8,
+            world_x_m=0.544,
+            world_y_m=0.465,
+            world_w_m=0.076,
+            world_h_m=0.084,
+        )
+        db.add(d)
+        db.commit()
+        defect_id = d.id
+    engine.dispose()
+    httpx.post(f"{live_server.url}/api/sessions/{sid}/view3d").raise_for_status()
+    marker = live_server.app.state.steelscan.scenes.get(str(sid)).markers[defect_id]
+    assert "**Defect 8**" in marker.text
+    assert "at x 0.544 m, y 0.465 m (the corner of the defect's box nearest" in marker.text
+    assert "box x 0.544–0.620 m, y 0.465–0.549 m" in marker.text
+    assert "0.582" not in marker.text and "0.507" not in marker.text
+    assert (marker.x, marker.y) == pytest.approx((0.582, 0.507))
