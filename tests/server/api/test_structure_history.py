@@ -93,18 +93,26 @@ def test_crops_of_two_visits_show_the_same_ground(inspected: tuple[LiveServer, s
     try:
         changes = httpx.get(f"{api}/sessions/{sid}/changes").json()
         datum = changes["registration"]["datum"]
-        grown = next(c for c in changes["changes"] if c["status"] == "grown")
-        x0, y0, x1, y1 = grown["after"]["box_m"]
-        pad = 0.03
-        box = {"x0": x0 - pad, "y0": y0 - pad, "x1": x1 + pad, "y1": y1 + pad, "size": 160}
+        stitch = stitch_result(live, sid)
+        ppm, (ox, oy) = stitch["px_per_m"], stitch["origin_m"]
+        extent = (stitch["width_px"] / ppm, stitch["height_px"] / ppm)
+
+        def inside(c: dict) -> float:  # how far the defect's centre is in from the mosaic's edge
+            x0, y0, x1, y1 = c["after"]["box_m"]
+            u, v = (x0 + x1) / 2 - datum["x"] - ox, (y0 + y1) / 2 - datum["y"] - oy
+            return min(u, extent[0] - u, v, extent[1] - v)
+
+        defect = max((c for c in changes["changes"] if c["after"]), key=inside)
+        assert inside(defect) > 0.05
+        x0, y0, x1, y1 = defect["after"]["box_m"]
+        cx, cy, half = (x0 + x1) / 2, (y0 + y1) / 2, 0.04
+        box = {"x0": cx - half, "y0": cy - half, "x1": cx + half, "y1": cy + half, "size": 160}
         now = _png(httpx.get(f"{api}/sessions/{sid}/mosaic/crop", params=box))
         then = _png(httpx.get(f"{api}/sessions/{earlier.id}/mosaic/crop", params=box))
         side = max(box["x1"] - box["x0"], box["y1"] - box["y0"])
         assert now.shape == then.shape and max(now.shape[:2]) == 160
         assert now[..., 3].min() == 255  # the mosaic covers the box
         # the crop is the mosaic's pixels under the box, placed through the datum
-        stitch = stitch_result(live, sid)
-        ppm, (ox, oy) = stitch["px_per_m"], stitch["origin_m"]
         u0 = round((box["x0"] - datum["x"] - ox) * ppm)
         v0 = round((box["y0"] - datum["y"] - oy) * ppm)
         w, h = round(side * ppm * now.shape[1] / 160), round(side * ppm * now.shape[0] / 160)
