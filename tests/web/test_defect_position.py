@@ -39,7 +39,7 @@ def test_the_table_and_panel_name_the_box_corner_they_show(
             row.wait_for(timeout=20000)
             cells = row.locator("td").all_inner_texts()
             assert f"{x0:.3f}" in cells and f"{y0:.3f}" in cells
-            assert CORNER in page.inner_text("#defects caption")
+            assert CORNER in page.inner_text("#defects-position")
             titles = page.locator("#defects th[title]").evaluate_all(
                 "ths => ths.map(th => [th.textContent, th.title])"
             )

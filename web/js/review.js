@@ -126,7 +126,6 @@ function renderTable() {
     el("th", {}, "comment"),
   );
   table.replaceChildren(
-    el("caption", { id: "defects-position", class: "muted small" }, `x, y: ${POSITION_MEANING} (m)`),
     head,
     ...rows.map((d) => {
       const tr = el(
@@ -567,7 +566,8 @@ export async function showSession(id, defectNumber = null) {
         "Keys: j/k next/previous · c confirm · x reject · u unreviewed · 1–4 condition state · 0 clear · / comment",
       ),
     ),
-    el("table", { id: "defects" }),
+    el("p", { id: "defects-position", class: "muted small" }, `x, y: ${POSITION_MEANING} (m)`),
+    el("div", { class: "table-scroll" }, el("table", { id: "defects" })),
   );
   const mapDone = s.jobs.some((j) => j.kind === "map" && j.state === "done");
   if (mapDone) root.appendChild(view3dButton(s, root));
