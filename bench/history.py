@@ -85,8 +85,8 @@ async def _inspect(
 
 
 def _process(client: httpx.Client, sid: str) -> None:
-    """Stitch, then detect on the mosaic, as an operator would start them."""
-    for kind in ("stitch", "detect"):
+    """Stitch, detect on the mosaic and map, as an operator would start them."""
+    for kind in ("stitch", "detect", "map"):
         r = client.post(f"/api/sessions/{sid}/jobs", json={"kind": kind})
         follow_job(client, r.raise_for_status().json()["id"], 1.0)
 
@@ -117,6 +117,7 @@ def _run_seed(client: httpx.Client, url: str, token: str, seed: int, count: int)
             changes = client.get(f"/api/sessions/{sid}/changes", timeout=120).json()
             reg = changes["registration"]
             record |= score_placement(reg, (anchors[-2], anchors[-1]), placed, true_poses)
+            record["map"] = reg.get("map") if reg else None
             seen = (poses[-2], poses[-1])
             record |= score_changes(changes["changes"], visits[v - 1], visit, seen, FOOTPRINT_M)
             placed = reg["datum"] if reg else None
@@ -164,6 +165,18 @@ def summarise(per_seed: list[dict[str, Any]]) -> Iterator[Result]:
         "baseline_is": "the datum as marked (robot set down up to 3 cm, 2.5° off)",
         "not_registered": failed,
         "per_visit": {f"{s}/{r['visit']}": r.get("registration_mm") for s, r in later},
+    }
+    maps = [r["map"] for _, r in later if r.get("map")]
+    yield {
+        "name": "history.map_agreement_mm",
+        "value": round(max(m["rmse_mm"] for m in maps), 2) if maps else None,
+        "unit": "mm",
+        "of": "the largest RMS distance across the surfaces between two visits' 3D maps",
+        "aligned": f"{len(maps)}/{len(later)}",
+        "correction_mm_worst": round(max(m["correction_mm"] for m in maps), 2) if maps else None,
+        "height_mm_worst": round(max(abs(m["height_mm"]) for m in maps), 2) if maps else None,
+        "tilt_deg_worst": round(max(m["tilt_deg"] for m in maps), 3) if maps else None,
+        "truth": "the visits' maps lie on one plate: height and tilt 0",
     }
     matchable = sum(r["matchable"] for _, r in later)
     correct = sum(r["matched"] for _, r in later)
