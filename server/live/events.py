@@ -103,6 +103,18 @@ class FrameDefects(Event):
     defects: list[dict[str, Any]]
 
 
+class CoverageState(Event):
+    """A live session's coverage map so far, for a browser that opens during it: the
+    robot's trajectory and the defects found in its frames as they arrived."""
+
+    type: Literal["coverage_state"] = "coverage_state"
+    session_id: str
+    trail: list[list[float]] = Field(description="the robot's positions [x, y] (m), in order")
+    found: list[dict[str, Any]] = Field(
+        description="each defect of frame_defects so far, with its frame's seq"
+    )
+
+
 class DefectSelected(Event):
     """A defect's marker was clicked in a session's 3D view."""
 
@@ -137,6 +149,7 @@ EVENTS: tuple[type[Event], ...] = (
     CommandAck,
     CommandResult,
     FrameDefects,
+    CoverageState,
     DefectSelected,
 )
 

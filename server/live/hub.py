@@ -9,7 +9,17 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from server.live.events import Control, Event, FrameHeader, Hello, Robot, Session, Telemetry
+from server.live.coverage_state import LiveCoverage
+from server.live.events import (
+    Control,
+    Event,
+    FrameDefects,
+    FrameHeader,
+    Hello,
+    Robot,
+    Session,
+    Telemetry,
+)
 
 SendCommand = Callable[[str, dict[str, Any]], Awaitable[int]]
 
@@ -44,6 +54,7 @@ class LiveHub:
         self.names: dict[str, str] = {}  # session id -> the robot's registered name
         self.drivers: dict[str, list[str]] = {}  # session id -> users who drove its robot
         self.latest: dict[str, dict[str, Any]] = {}  # session id -> last telemetry
+        self.coverage = LiveCoverage()  # each live session's trajectory and defects seen
         self.controllers: dict[
             str, Watcher
         ] = {}  # session id -> the one browser that drives its robot
@@ -57,18 +68,21 @@ class LiveHub:
         return seq
 
     def watch(self, user: str = "") -> Watcher:
-        """Register a browser."""
+        """Register a browser; it gets its id, then what is live now: the robots, their
+        latest telemetry, who drives them and each live session's coverage map so far (its
+        queue holds all of that on top of its usual size)."""
+        watcher_id = next(self._watcher_ids)
+        greeting: list[Event] = [Hello(watcher_id=watcher_id)]
+        greeting += [self._robot_event(sid, connected=True) for sid in self.robots]
+        greeting += [Telemetry(session_id=sid, data=t) for sid, t in self.latest.items()]
+        greeting += [self._control_event(sid) for sid in self.controllers]
+        greeting += self.coverage.events()
         watcher = Watcher(
-            queue=asyncio.Queue(maxsize=self.queue_size), id=next(self._watcher_ids), user=user
+            queue=asyncio.Queue(maxsize=self.queue_size + len(greeting)), id=watcher_id, user=user
         )
         self.watchers.add(watcher)
-        watcher.offer(Hello(watcher_id=watcher.id).text())
-        for sid in self.robots:
-            watcher.offer(self._robot_event(sid, connected=True).text())
-        for sid, telemetry in self.latest.items():
-            watcher.offer(Telemetry(session_id=sid, data=telemetry).text())
-        for sid in self.controllers:
-            watcher.offer(self._control_event(sid).text())
+        for event in greeting:
+            watcher.offer(event.text())
         return watcher
 
     def unwatch(self, watcher: Watcher) -> list[str]:
@@ -112,12 +126,18 @@ class LiveHub:
         return self.controllers.get(session_id)
 
     def publish(self, event: Event) -> None:
-        """Send an event to every browser (the last telemetry of a live session is kept
-        for browsers that open later; an ended session's is dropped)."""
+        """Send an event to every browser (the last telemetry of a live session, its
+        trajectory and the defects seen in its frames are kept for browsers that open later;
+        an ended session's are dropped)."""
         if isinstance(event, Telemetry):
             self.latest[event.session_id] = event.data
+            if isinstance(event.data.get("pose"), dict):
+                self.coverage.add_pose(event.session_id, event.data["pose"])
+        elif isinstance(event, FrameDefects):
+            self.coverage.add_found(event.session_id, event.seq, event.defects)
         elif isinstance(event, Session) and event.event == "session_end":
             self.latest.pop(event.session_id, None)
+            self.coverage.forget(event.session_id)
         text = event.text()
         for watcher in list(self.watchers):
             watcher.offer(text)

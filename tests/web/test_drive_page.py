@@ -213,3 +213,77 @@ def test_the_coverage_map_shows_the_frames_and_the_gap_left_between_lanes(
         shot(page, "drive-coverage")
         browser.close()
     assert errors == []
+
+
+TRAIL_PIXELS = """(() => {
+  const c = document.querySelector('#coverage-map');
+  const px = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let n = 0;
+  for (let i = 0; i < px.length; i += 4)
+    if (Math.abs(px[i] - 0xe0) < 12 && Math.abs(px[i + 1] - 0xa0) < 12 && Math.abs(px[i + 2] - 0x30) < 12) n++;
+  return n;
+})()"""
+
+
+def coverage_shown(page) -> tuple[int, int, int]:  # type: ignore[no-untyped-def]
+    """The coverage map's defects seen in frames, trajectory points and trajectory pixels."""
+    data = page.evaluate("({...document.querySelector('#coverage-map').dataset})")
+    return int(data.get("found") or 0), int(data.get("trail") or 0), page.evaluate(TRAIL_PIXELS)
+
+
+def test_the_coverage_map_keeps_its_trajectory_and_defects_on_reload_and_in_a_new_tab(
+    live_server: LiveServer, robot: TeleopRobot
+) -> None:
+    """The robot driven over a crack with two frames captured: the page reloaded, and a
+    second tab opened, draw the same trajectory and the crack seen in the frames."""
+    from playwright.sync_api import sync_playwright
+
+    sim = robot.sim
+    sim.auto_capture = False
+    crack = max(
+        (d for d in sim.structure.defects if d.defect_class == "crack"), key=lambda d: d.length_m
+    )
+    cx, cy = crack.bbox_m[0] + crack.bbox_m[2] / 2, crack.bbox_m[1] + crack.bbox_m[3] / 2
+    along = sim.camera.footprint_m[0]
+    x0 = cx - sim.camera.mount_x_m - along * 0.3
+    errors: list[str] = []
+    with sync_playwright() as pw:
+        browser, page = open_page(pw, live_server.url, errors, 1440, 900)
+        wait_js(page, "document.querySelector('#coverage-summary').textContent !== ''")
+        for i in range(6):  # along the crack, a telemetry sample at each place
+            sim.robot.pose[:] = sim.robot.odom[:] = (x0 + 0.12 * along * i, cy, 0.0)
+            page.wait_for_timeout(250)
+            if i in (2, 4):
+                page.click("button[data-cmd=capture]")
+        wait_js(page, "Number(document.querySelector('#coverage-map').dataset.found || 0) >= 1")
+        wait_js(page, "Number(document.querySelector('#coverage-map').dataset.frames) >= 2")
+        page.wait_for_timeout(1000)  # the second frame searched too
+        found, trail, pixels = coverage_shown(page)
+        assert pixels > 50  # the trajectory drawn
+        summary = page.inner_text("#coverage-summary")
+        assert "seen in frames:" in summary
+        other = browser.new_page(viewport={"width": 1440, "height": 900})
+        watch_errors(other, errors, [])
+        other.goto(live_server.url + "/")
+        page.reload()
+        for tab in (page, other):
+            wait_js(tab, "document.querySelector('#robot-state').textContent.startsWith('robot:')")
+            wait_js(
+                tab,
+                f"Number(document.querySelector('#coverage-map').dataset.found || 0) === {found}",
+            )
+            wait_js(
+                tab,
+                f"Number(document.querySelector('#coverage-map').dataset.trail || 0) >= {trail}",
+            )
+            wait_js(
+                tab, "document.querySelector('#coverage-summary').textContent.includes('seen in')"
+            )
+            assert coverage_shown(tab)[2] > 50
+            assert (
+                tab.inner_text("#coverage-summary").split(" · seen in frames")[1]
+                == (summary.split(" · seen in frames")[1])
+            )
+        shot(other, "drive-coverage-new-tab")
+        browser.close()
+    assert errors == []

@@ -3,6 +3,9 @@
 // its odometry pose as it arrives and then where the station's registration puts it (the
 // live 3D map's while the robot drives, the mosaic's after), and what counts as imaged at
 // the required resolution: footprints that do not count outlined red, holes filled red.
+// The trajectory and the defects seen in frames are kept for every live session, from the
+// station's coverage_state as the page connects and the live events after it, so a page
+// reloaded, opened in another tab or switched between robots draws them all.
 import { api, apiJSON, el, fmt, text } from "./api.js";
 import { selectedSession } from "./drive.js";
 import { EVENT } from "./events.js";
@@ -21,11 +24,19 @@ const state = {
   found: [],
   sweep: null,
 };
+// session id -> {trail: [{x, y}], found: [{seq, defect_class, world_box, ...}], pose, sweep}
+const kept = new Map();
 let canvas;
 let ctx;
 
+function keep(sid) {
+  if (!kept.has(sid)) kept.set(sid, { trail: [], found: [], pose: null, sweep: null });
+  return kept.get(sid);
+}
+
 function reset(sid) {
-  Object.assign(state, { sid, camera: null, frames: [], trail: [], pose: null, cov: null, found: [], sweep: null });
+  const k = sid ? keep(sid) : { trail: [], found: [], pose: null, sweep: null };
+  Object.assign(state, { sid, camera: null, frames: [], cov: null, ...k });
   if (sid) {
     apiJSON(`/api/sessions/${sid}`)
       .then((s) => {
@@ -94,21 +105,34 @@ async function fetchMissing(sid) {
 }
 
 function onEvent(ev) {
-  // searched as it arrived
-  if (ev.type === EVENT.FRAME_DEFECTS && ev.session_id === state.sid) {
-    for (const d of ev.defects) state.found.push({ seq: ev.seq, ...d });
-    canvas.dataset.found = String(state.found.length);
-    draw();
-    summary();
+  if (ev.type === EVENT.COVERAGE_STATE) {
+    // what the station kept of this session so far: it replaces what this page has
+    const k = keep(ev.session_id);
+    k.trail.length = 0;
+    for (const [x, y] of ev.trail) k.trail.push({ x, y });
+    k.found.length = 0;
+    k.found.push(...ev.found);
+  } else if (ev.type === EVENT.FRAME_DEFECTS) {
+    // searched as it arrived
+    keep(ev.session_id).found.push(...ev.defects.map((d) => ({ seq: ev.seq, ...d })));
+  } else if (ev.type === EVENT.TELEMETRY && ev.data.pose) {
+    const k = keep(ev.session_id);
+    const p = ev.data.pose;
+    k.pose = p;
+    k.sweep = ev.data.sweep || null;
+    const last = k.trail[k.trail.length - 1];
+    if (!last || Math.hypot(p.x - last.x, p.y - last.y) > 0.005) k.trail.push({ x: p.x, y: p.y });
+    if (ev.session_id === state.sid) Object.assign(state, { pose: k.pose, sweep: k.sweep });
+    return; // drawn at the next poll
+  } else if (ev.type === EVENT.SESSION && ev.event === "session_end") {
+    kept.delete(ev.session_id);
+    return;
+  } else {
     return;
   }
-  if (ev.type === EVENT.TELEMETRY && ev.session_id === state.sid && ev.data.pose) {
-    const p = ev.data.pose;
-    state.pose = p;
-    state.sweep = ev.data.sweep || null;
-    const last = state.trail[state.trail.length - 1];
-    if (!last || Math.hypot(p.x - last.x, p.y - last.y) > 0.005) state.trail.push({ x: p.x, y: p.y });
-  }
+  if (ev.session_id !== state.sid) return;
+  draw();
+  summary();
 }
 
 async function poll() {
@@ -160,6 +184,8 @@ function draw() {
   ctx.fillRect(0, 0, W, H);
   const b = bounds();
   canvas.dataset.frames = String(state.cov?.frames.length ?? 0);
+  canvas.dataset.found = String(state.found.length);
+  canvas.dataset.trail = String(state.trail.length);
   if (!b) {
     ctx.fillStyle = "#8b96a0";
     ctx.font = "14px system-ui";

@@ -9,6 +9,7 @@ export const EVENT = Object.freeze({
   "COMMAND_ACK": "command_ack",
   "COMMAND_RESULT": "command_result",
   "FRAME_DEFECTS": "frame_defects",
+  "COVERAGE_STATE": "coverage_state",
   "DEFECT_SELECTED": "defect_selected"
 });
 export const EVENT_FIELDS = Object.freeze({
@@ -52,6 +53,11 @@ export const EVENT_FIELDS = Object.freeze({
     "defects",
     "seq",
     "session_id"
+  ],
+  "coverage_state": [
+    "found",
+    "session_id",
+    "trail"
   ],
   "defect_selected": [
     "defect_id",
