@@ -210,6 +210,19 @@ def summarise(per_seed: list[dict[str, Any]]) -> Iterator[Result]:
         "grown_detected_fraction": round(grown / growable, 3) if growable else None,
         "not_imaged_whole": sum(r["growth_not_imaged"] for _, r in later),
     }
+    widths = [w for _, r in later for w in r["width_changes_mm"]]
+    wider = [m for t, m in widths if t > 0]
+    same = [m for t, m in widths if t == 0]
+    yield {
+        "name": "history.crack_width_change_error_mm",
+        "value": round(float(np.median([abs(m - t) for t, m in widths])), 3) if widths else None,
+        "unit": "mm",
+        "worst": round(max(abs(m - t) for t, m in widths), 3) if widths else None,
+        "true_widening_mm": round(max(t for t, _ in widths), 2) if widths else None,
+        "measured_on_widened_mm": round(float(np.median(wider)), 3) if wider else None,
+        "measured_on_unchanged_mm": round(float(np.median(same)), 3) if same else None,
+        "cracks": len(widths),
+    }
     area = [e for _, r in later for e in r["area_growth_rel_errors"]]
     yield {
         "name": "history.rust_growth_error",

@@ -179,6 +179,7 @@ def score_changes(
         "grown_true": len(growable & both),
         "grown_found": sum(matched[i]["status"] == "grown" for i in growable & set(matched)),
         "growth_errors_mm": [],
+        "width_changes_mm": [],  # (true, measured) per crack
         "area_growth_rel_errors": [],
     }
     out["growth_not_imaged"] = len(set(matched) - whole)
@@ -188,6 +189,10 @@ def score_changes(
             continue
         if g.defect_class == "crack" and c["length_change_mm"] is not None:
             out["growth_errors_mm"].append(round(abs(c["length_change_mm"] - g.length_m * 1000), 2))
+            if c.get("width_change_mm") is not None:
+                out["width_changes_mm"].append(
+                    (round(g.width_m * 1000, 2), round(c["width_change_mm"], 2))
+                )
         elif g.defect_class == "corrosion" and c["area_change_mm2"] is not None and g.area_m2 > 0:
             true_mm2 = g.area_m2 * 1e6
             out["area_growth_rel_errors"].append(

@@ -53,3 +53,20 @@ def test_a_third_visit_grows_the_second_visits_new_patch() -> None:
     assert next(d for d in second.defects if d.id == new).width_m > 0.02
     assert next(g for g in g3 if g.defect_id == new).area_m2 > 0
     assert len(third.defects) == len(first.defects) + 2
+
+
+def test_some_cracks_widen_by_a_pixel_on_each_side() -> None:
+    before = make_structure(5, plate_size_m=(0.8, 0.5), defect_region_m=(0.1, 0.1, 0.7, 0.4))
+    after, growth = age_structure(before, seed=50, widen_share=1.0)
+    old = {d.id: d for d in before.defects}
+    cracks = [g for g in growth if g.defect_class == "crack"]
+    assert cracks and all(g.width_m == pytest.approx(2 * before.m_per_px) for g in cracks)
+    for d in after.defects:
+        if d.defect_class == "crack":
+            assert d.width_m == pytest.approx(old[d.id].width_m + 2 * before.m_per_px)
+    # the painted crack is wider: more of its pixels, darker than the paint around them
+    assert after.crack_mask.sum() > 1.8 * before.crack_mask.sum()
+    ring = after.crack_mask & ~before.crack_mask
+    assert after.texture[ring].mean() < before.texture[ring].mean() - 30
+    none, growth = age_structure(before, seed=50, widen_share=0.0)
+    assert all(g.width_m == 0 for g in growth)
