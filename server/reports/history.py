@@ -11,8 +11,7 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from server.reports.condition import structure_box
-from server.reports.visits import place, visit_changes
+from server.reports.visits import place, side_record, visit_changes, visit_defects
 from server.storage.files import SessionFiles
 from server.storage.models import Defect, InspectionSession, Job, JobState, Structure
 
@@ -94,25 +93,11 @@ def visit_summaries(db: Session, files: SessionFiles, structure: Structure) -> l
 
 def first_visit_defects(db: Session, s: InspectionSession) -> list[dict[str, Any]]:
     """The visit's defects placed on the structure, as one side of a change."""
-    rows = db.scalars(
-        _counted(select(Defect).where(Defect.session_id == s.id)).order_by(Defect.number)
-    ).all()
-    out = []
-    for d in rows:
-        box = structure_box(d, s.datum)
-        if box is not None:
-            out.append(
-                {
-                    "class": d.defect_class,
-                    "defect_id": d.id,
-                    "number": d.number,
-                    "length_mm": d.length_mm,
-                    "width_mm": d.max_width_mm,
-                    "area_mm2": d.area_mm2,
-                    "box_m": [round(x, 4) for x in box],
-                }
-            )
-    return out
+    rows = db.execute(select(Defect.id, Defect.number).where(Defect.session_id == s.id)).all()
+    numbers = {int(i): n for i, n in rows}
+    return [
+        {"class": v.defect_class, **side_record(v, numbers.get(v.id))} for v in visit_defects(db, s)
+    ]
 
 
 def _entry(visit: Visit, status: str, side: dict[str, Any] | None) -> dict[str, Any]:

@@ -219,7 +219,9 @@ def place(db: Session, files: SessionFiles, s: InspectionSession) -> None:
         place_session(db, files, after, before)
 
 
-def _visit_defects(db: Session, s: InspectionSession) -> list[VisitDefect]:
+def visit_defects(db: Session, s: InspectionSession) -> list[VisitDefect]:
+    """The visit's defects on its mosaic, not rejected, placed on the structure through
+    its datum (those without a position left out)."""
     rows = db.scalars(
         select(Defect)
         .where(Defect.session_id == s.id, Defect.source == "mosaic")
@@ -236,18 +238,21 @@ def _visit_defects(db: Session, s: InspectionSession) -> list[VisitDefect]:
     return out
 
 
+def side_record(v: VisitDefect, number: int | None) -> dict[str, Any]:
+    """One visit's side of a change, as the REST answer gives it."""
+    return {
+        "defect_id": v.id,
+        "number": number,
+        "box_m": [round(x, 4) for x in v.box],
+        "length_mm": v.length_mm,
+        "width_mm": v.width_mm,
+        "area_mm2": v.area_mm2,
+    }
+
+
 def _record(c: DefectChange, numbers: dict[int, int | None]) -> dict[str, Any]:
     def side(v: VisitDefect | None) -> dict[str, Any] | None:
-        if v is None:
-            return None
-        return {
-            "defect_id": v.id,
-            "number": numbers.get(v.id),
-            "box_m": [round(x, 4) for x in v.box],
-            "length_mm": v.length_mm,
-            "width_mm": v.width_mm,
-            "area_mm2": v.area_mm2,
-        }
+        return None if v is None else side_record(v, numbers.get(v.id))
 
     kind = c.after or c.before
     assert kind is not None
@@ -286,7 +291,7 @@ def visit_changes(db: Session, files: SessionFiles, s: InspectionSession) -> dic
         select(Defect.id, Defect.number).where(Defect.session_id.in_([s.id, before.id]))
     ).all()
     numbers = {int(i): n for i, n in rows}
-    changes = match_visits(_visit_defects(db, before), _visit_defects(db, s))
+    changes = match_visits(visit_defects(db, before), visit_defects(db, s))
     out["changes"] = [_record(c, numbers) for c in changes]
     structure = db.get(Structure, s.structure_id)
     assert structure is not None
