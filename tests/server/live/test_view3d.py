@@ -14,7 +14,7 @@ from server.api.accounts import create_user
 from server.storage.db import make_engine, make_sessionmaker
 from server.storage.models import Role
 from tests.conftest import LiveServer
-from tests.server.helpers import msg, start, ws_url
+from tests.server.helpers import empty_session, msg, start, ws_url
 
 
 def view_ws(server: LiveServer) -> str:
@@ -163,12 +163,7 @@ def test_a_defects_3d_text_gives_its_one_position_and_its_box(live_server: LiveS
     the box's corner nearest the origin), then the box; the sphere sits in the box's middle."""
     from server.storage.models import Defect
 
-    sid = uuid.uuid4()
-    with connect(
-        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
-    ) as ws:
-        ws.send(start(sid))
-        decode_message(ws.recv(timeout=10))
+    sid = empty_session(live_server)
     engine = make_engine(live_server.settings.resolved_database_url())
     with make_sessionmaker(engine)() as db:
         d = Defect(
