@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 from processing.coverage import CoverageParams
 from server.reports.condition import element_condition
 from server.reports.coverage import QualityCache, session_coverage
-from server.reports.fields import CONDITION_STATES, GENERATOR
+from server.reports.fields import CONDITION_STATES, GENERATOR, RESOLVED_PX
 from server.reports.visits import visit_changes
 from server.storage.files import SessionFiles
 from server.storage.models import (
@@ -65,7 +65,9 @@ def build_report(
             .order_by(Defect.number.is_(None), Defect.number, Defect.id)
         )
     )
-    records = [_defect_record(d, d.number or i + 1, base_url) for i, d in enumerate(defects)]
+    resolved = [d for d in defects if _resolved(d, s.calibration)]
+    unresolved = len(defects) - len(resolved)
+    records = [_defect_record(d, d.number or i + 1, base_url) for i, d in enumerate(resolved)]
     counts = {
         m.__tablename__: db.scalar(
             select(func.count()).select_from(m).where(m.session_id == session_id)
@@ -74,6 +76,11 @@ def build_report(
         for m in (Frame, Cloud, TelemetrySample)
     }
     notes = _notes(latest, done, listed_source == "frame" and bool(defects))
+    if unresolved:
+        notes.append(
+            f"{unresolved} detections below the camera's resolution (under {RESOLVED_PX:g} px) "
+            "are not listed."
+        )
     return {
         "generator": GENERATOR,
         "generated_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -205,6 +212,20 @@ def read_json(path: Path) -> dict[str, Any] | None:
         return None
 
 
+def _resolved(d: Defect, calibration: dict[str, Any] | None) -> bool:
+    """Whether a defect is at least :data:`RESOLVED_PX` camera pixels long (a crack) or
+    that squared in area (corrosion); one drawn by a reviewer always counts."""
+    px_per_m = float((calibration or {}).get("camera", {}).get("px_per_m") or 0)
+    if d.drawn_by is not None or px_per_m <= 0:
+        return True
+    min_mm = RESOLVED_PX * 1000.0 / px_per_m
+    if d.defect_class == "crack" and d.length_mm is not None:
+        return d.length_mm >= min_mm
+    if d.defect_class == "corrosion" and d.area_mm2 is not None:
+        return d.area_mm2 >= min_mm**2
+    return True
+
+
 def _defect_record(d: Defect, number: int, base_url: str) -> dict[str, Any]:
     mean_width_mm = (
         d.mean_width_px * d.max_width_mm / d.max_width_px
@@ -216,6 +237,7 @@ def _defect_record(d: Defect, number: int, base_url: str) -> dict[str, Any]:
         "id": d.id,
         "defect_class": d.defect_class,
         "source": d.source,
+        "drawn_by": d.drawn_by,
         "frame_seq": d.frame_seq,
         "length_mm": d.length_mm,
         "max_width_mm": d.max_width_mm,

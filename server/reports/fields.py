@@ -8,6 +8,9 @@ from typing import Any
 from server.storage.models import Defect
 
 GENERATOR = "steelscan 0.1.0"
+# the smallest defect a report lists, in camera pixels: a crack shorter than this, a
+# corrosion patch smaller than its square, is below what the camera resolves
+RESOLVED_PX = 3.0
 CONDITION_STATES = ("CS1", "CS2", "CS3", "CS4")
 CONDITION_MEANING = {"CS1": "good", "CS2": "fair", "CS3": "poor", "CS4": "severe"}
 # what a defect's one position (``world_x_m``, ``world_y_m``) is, wherever it is shown
@@ -17,6 +20,7 @@ DEFECT_FIELDS = (
     "id",
     "defect_class",
     "source",
+    "drawn_by",
     "frame_seq",
     "length_mm",
     "max_width_mm",

@@ -40,7 +40,7 @@ def defect_table(
     intro = (
         f"{len(listed)} defects, ordered along the structure; numbers match the markers on the mosaic. "
         f"Position: {POSITION_MEANING} (x, y in metres, world frame; world_x_m, world_y_m in defects.csv); "
-        "sizes from the camera scale."
+        'sizes from the camera scale; "drawn by" marks a defect a reviewer drew by hand.'
     )
     if rejected:
         intro += f" {rejected} defects rejected in review are not listed (they are in defects.csv)."
@@ -83,7 +83,10 @@ def _defect_row(
     return [
         _number_link(d, st),
         cell,
-        d["defect_class"],
+        para(
+            d["defect_class"] + (f"\ndrawn by {d['drawn_by']}" if d.get("drawn_by") else ""),
+            st["cell"],
+        ),
         fmt_num(d["length_mm"]),
         fmt_num(d["max_width_mm"], "{:.2f}"),
         fmt_num(d["area_mm2"], "{:.0f}"),

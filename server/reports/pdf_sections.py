@@ -21,15 +21,17 @@ def coverage_section(cov: dict[str, Any] | None, st: dict[str, ParagraphStyle]) 
     if not cov["area_surface_m2"]:
         return story + [para("No frame with a pose and a camera scale: no coverage.", st["body"])]
     why = ", ".join(f"{n} {r}" for r, n in cov["frames_not_counted_by_reason"].items())
-    rows = [
-        [
+    facts = [
+        (
             f"Surface imaged at ≤ {cov['required_mm_per_px']:g} mm/px, sharp and exposed",
             f"{cov['area_imaged_m2']:.3f} of {cov['area_surface_m2']:.3f} m² in view "
             f"({cov['fraction_imaged'] * 100:.1f} %)",
-        ],
-        ["Frames not counted", f"{cov['frames_not_counted']}" + (f" ({why})" if why else "")],
-        ["Holes", str(len(cov["holes"]))],
+        ),
+        ("Frames not counted", f"{cov['frames_not_counted']}" + (f" ({why})" if why else "")),
+        ("Holes", str(len(cov["holes"]))),
     ]
+    # paragraphs, which wrap within their cell (a plain string runs over the next one)
+    rows = [[para(label, st["label"]), para(value, st["body"])] for label, value in facts]
     story.append(grid_table(rows, [75 * mm, BODY_W - 75 * mm], header=False, font_size=9.5))
     if cov["holes"]:
         holes = [["Hole", "Centre x, y (m)", "Extent w × h (m)", "Area (cm²)"]] + [

@@ -46,6 +46,9 @@ def make_styles() -> dict[str, ParagraphStyle]:
         "body": ParagraphStyle("body", parent=base["BodyText"], fontSize=9.5, leading=12.5),
         "small": ParagraphStyle("small", parent=base["BodyText"], fontSize=7.5, leading=9.5),
         "cell": ParagraphStyle("cell", parent=base["BodyText"], fontSize=8, leading=10),
+        "label": ParagraphStyle(
+            "label", parent=base["BodyText"], fontName="Helvetica-Bold", fontSize=9.5, leading=12
+        ),
         "cover": ParagraphStyle("cover", parent=base["BodyText"], fontSize=10, leading=12.5),
         "note": ParagraphStyle(
             "note",
