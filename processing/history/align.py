@@ -28,7 +28,7 @@ class AlignParams:
     """How the alignment searches and when it gives up."""
 
     feature_pixels: int = 1600 * 1600  # features on a copy of at most this many pixels
-    ratio: float = 0.75  # Lowe's ratio test
+    ratio: float = 0.8  # Lowe's ratio test (his paper's value)
     min_inliers: int = 15
     ransac_px: float = 3.0  # at the feature copy's scale
     ecc_pixels: int = 1200 * 1200  # refinement on a copy of at most this many pixels

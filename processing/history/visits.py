@@ -14,7 +14,9 @@ groups, not of single detections:
    touches (a crack seen whole once and in pieces the other time), else stands alone;
 4. a group is new without a piece in BEFORE, gone without one in AFTER; else grown when its
    cracks are longer in all by more than ``crack_growth_mm`` or its rust area grew by more
-   than ``area_growth`` of the earlier area, else unchanged.
+   than ``area_growth`` of the earlier area, else unchanged. Crack pieces of one visit only
+   that touch one another are one group; such a group shorter than ``crack_growth_mm`` is
+   left out (a speck of the detector: no growth can be told on it).
 
 ``tolerance_m`` is how well the visits' frames agree (their registration).
 """
@@ -133,6 +135,12 @@ def _fold_into_rust(defects: Sequence[VisitDefect], tol: float) -> list[list[Vis
     return [pieces[d.id] for d in defects if d.id in pieces]
 
 
+def _unresolved(d: VisitDefect, p: VisitParams) -> bool:
+    """A crack seen on one visit only that is shorter than the growth the matching can tell
+    (``crack_growth_mm``): a detector's speck, not a defect to report as new or gone."""
+    return d.defect_class == "crack" and (d.length_mm or 0.0) < p.crack_growth_mm
+
+
 def _grown(b: VisitDefect, a: VisitDefect, p: VisitParams) -> bool:
     if a.defect_class == "crack":
         return (a.length_mm or 0.0) - (b.length_mm or 0.0) > p.crack_growth_mm
@@ -197,8 +205,22 @@ def _attach(
                 best[side].append(k)
                 waiting.remove(k)
                 joined = True
-    for k in waiting:
-        groups.append(([], [k]) if side == 1 else ([k], []))
+    # the rest: pieces of one crack that touch one another are one defect
+    while waiting:
+        cluster = [waiting.pop(0)]
+        grew = True
+        while grew:
+            grew = False
+            for k in list(waiting):
+                piece = heads[k]
+                if piece.defect_class == "crack" and any(
+                    heads[m].defect_class == "crack" and _near(heads[m].box, piece.box, tol)
+                    for m in cluster
+                ):
+                    cluster.append(k)
+                    waiting.remove(k)
+                    grew = True
+        groups.append(([], cluster) if side == 1 else (cluster, []))
 
 
 def match_visits(
@@ -219,6 +241,10 @@ def match_visits(
     for ib, ia in groups:
         a = merge([ha[j] for j in ia]) if ia else None
         b = merge([hb[i] for i in ib]) if ib else None
+        seen = a or b
+        assert seen is not None
+        if (a is None or b is None) and _unresolved(seen, params):
+            continue  # shorter than any growth the visits can tell: no change to report
         if a is None:
             status = "gone"
         elif b is None:

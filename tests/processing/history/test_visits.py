@@ -77,3 +77,22 @@ def test_a_long_crack_inside_a_rust_box_stays_a_crack() -> None:
         ("new", (), (12,)),
         ("unchanged", (1,), (11,)),
     ]
+
+
+def test_specks_seen_once_are_no_change_and_pieces_seen_once_are_one() -> None:
+    """Crack pieces on one visit only that touch one another are one new crack; a speck
+    shorter than the growth the matching can tell is not reported at all."""
+    before = [VisitDefect(1, "crack", (0.10, 0.10, 0.16, 0.12), length_mm=60.0)]
+    after = [
+        VisitDefect(11, "crack", (0.10, 0.10, 0.16, 0.12), length_mm=60.5),
+        VisitDefect(12, "crack", (0.50, 0.50, 0.53, 0.51), length_mm=30.0),  # a new crack,
+        VisitDefect(13, "crack", (0.535, 0.50, 0.56, 0.51), length_mm=25.0),  # in two pieces
+        VisitDefect(14, "crack", (0.80, 0.80, 0.8005, 0.8005), length_mm=0.5),  # a speck
+    ]
+    changes = match_visits(before, after)
+    assert sorted((c.status, c.parts_after) for c in changes) == [
+        ("new", (12, 13)),
+        ("unchanged", (11,)),
+    ]
+    new = next(c for c in changes if c.status == "new")
+    assert new.after is not None and new.after.length_mm == 55.0
