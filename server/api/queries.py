@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 from server.api.schemas import JobPublic, ResultsCover, SessionPublic
 from server.errors import NotFound
 from server.jobs.inputs import is_current, latest_inputs, stored_inputs
+from server.reports.fields import IMPORTED_FROM
 from server.storage.files import SessionFiles
 from server.storage.models import Cloud, Defect, Frame, InspectionSession, Job, Structure
 from server.storage.spans import duration_s
@@ -81,6 +82,7 @@ def session_public(db: Session, s: InspectionSession, *, with_jobs: bool = True)
     out.defects = db.scalar(defects.where(Defect.source == "mosaic")) or 0
     out.frame_defects = db.scalar(defects.where(Defect.source == "frame")) or 0
     out.robot_name = s.robot.name if s.robot else None
+    out.imported = s.robot_id is None and IMPORTED_FROM in (s.notes or "")
     out.duration_s = duration_s(db, s)
     if with_jobs:
         jobs = db.scalars(select(Job).where(Job.session_id == s.id).order_by(Job.id))

@@ -88,6 +88,7 @@ class SessionPublic(ORM):
     defects: int = 0
     frame_defects: int = 0
     robot_name: str | None = None
+    imported: bool = Field(default=False, description="imported from an MCAP log")
     duration_s: float = Field(
         default=0.0, description="how long the inspection lasted (its data's span, robot clock)"
     )

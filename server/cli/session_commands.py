@@ -51,8 +51,24 @@ def cmd_import(args: argparse.Namespace) -> int:
             result = import_session(db, files, path)
         except McapImportError as exc:
             raise CommandError(str(exc)) from None
+    settings = settings_from_args(args)
+    if settings.auto_process:  # queued as for a session that ends: the station runs them
+        result["jobs"] = _job_runner(factory, settings).enqueue_pipeline(result["session_id"])
     print(json.dumps(result))
     return 0
+
+
+def _job_runner(factory: Any, settings: Any) -> Any:
+    """A job runner that only queues (the station's dispatcher runs what it queues)."""
+    from server.jobs.runner import JobRunner
+
+    return JobRunner(
+        factory,
+        settings.resolved_database_url(),
+        str(settings.data_dir.resolve()),
+        0,
+        defaults={"detect": {"method": settings.detect_method}},
+    )
 
 
 def _session_id(factory: Any, session_id: str) -> str:

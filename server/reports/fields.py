@@ -8,6 +8,8 @@ from typing import Any
 from server.storage.models import Defect
 
 GENERATOR = "steelscan 0.1.0"
+# how an imported session's notes name the file it came from (its robot is none)
+IMPORTED_FROM = "Imported from"
 # the smallest defect a report lists, in camera pixels: a crack shorter than this, a
 # corrosion patch smaller than its square, is below what the camera resolves
 RESOLVED_PX = 3.0

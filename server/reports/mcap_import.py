@@ -30,6 +30,7 @@ from sqlalchemy.orm import Session
 
 from robot_link.image_header import ImageHeaderError, check_pixels, png_header
 from robot_link.protocol import MAX_CLOUD_PIXELS, MAX_FRAME_PIXELS
+from server.reports.fields import IMPORTED_FROM
 from server.reports.mcap_common import METADATA, Progress
 from server.reports.mcap_records import ChunkError, messages
 from server.storage.files import SessionFiles
@@ -116,7 +117,7 @@ def _new_session(session_id: str, meta: dict[str, str], name: str) -> Inspection
         calibration = json.loads(meta.get("calibration", "{}"))
     except ValueError:
         calibration = {}
-    note = f"Imported from {name}" + (f" (session {meta['id']})" if meta.get("id") else "")
+    note = f"{IMPORTED_FROM} {name}" + (f" (session {meta['id']})" if meta.get("id") else "")
     return InspectionSession(
         id=session_id,
         robot_id=None,

@@ -45,7 +45,7 @@ export async function loadSessions() {
         },
         el("td", {}, s.structure),
         el("td", {}, s.location || "–"),
-        el("td", {}, s.robot_name || "–"),
+        el("td", {}, s.robot_name || (s.imported ? "imported" : "–")),
         el("td", {}, s.operator || "–"),
         el("td", {}, new Date(s.started_at).toLocaleString()),
         el("td", { class: "num" }, duration(s.duration_s)),

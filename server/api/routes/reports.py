@@ -211,8 +211,11 @@ async def import_mcap(
             else (lambda _: None),
         )
         try:
-            return await run_in_threadpool(import_session, db, state.files, tmp)
+            result = await run_in_threadpool(import_session, db, state.files, tmp)
         except McapImportError as exc:
             raise HTTPException(422, str(exc).replace(tmp.name, name)) from None
     finally:
         tmp.unlink(missing_ok=True)
+    if state.settings.auto_process:  # processed as a session that ends
+        result["jobs"] = await run_in_threadpool(state.jobs.enqueue_pipeline, result["session_id"])
+    return result

@@ -247,6 +247,10 @@ def test_mcap_opens_with_foxglove_schemas_and_reimports_losslessly(
         and result["clouds"] == session["clouds"]
     )
     copy = httpx.get(f"{live.url}/api/sessions/{new}").json()
+    # processed as a session that ends, and told apart from the original
+    kinds = {j["kind"] for j in copy["jobs"]}
+    assert len(result["jobs"]) == len(kinds) and {"stitch", "detect", "map"} <= kinds
+    assert copy["imported"] and not session["imported"]
     assert (
         copy["structure"] == session["structure"] and copy["calibration"] == session["calibration"]
     )
@@ -267,6 +271,8 @@ def test_mcap_opens_with_foxglove_schemas_and_reimports_losslessly(
         and up.json()["frames"] == session["frames"]
         and up.json()["session_id"] not in (sid, new)
     )
+    jobs = httpx.get(f"{live.url}/api/sessions/{up.json()['session_id']}/jobs").json()
+    assert sorted(j["id"] for j in jobs) == sorted(up.json()["jobs"])
     bad = httpx.post(
         f"{live.url}/api/sessions/import", files={"file": ("x.mcap", b"not an mcap at all")}
     )
