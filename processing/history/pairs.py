@@ -18,13 +18,15 @@ from processing.detection.defects import skeleton_length
 @dataclass(frozen=True)
 class VisitPair:
     """BEFORE and AFTER images, the true AFTER → BEFORE homography, and the crack's true
-    growth (AFTER's pixels) with where it grew (AFTER's pixels, x, y, w, h)."""
+    growth (AFTER's pixels) with where it grew (AFTER's pixels, x, y, w, h) and its whole
+    length on AFTER."""
 
     before: NDArray[np.uint8]
     after: NDArray[np.uint8]
     after_to_before: NDArray[np.float64]
     growth_px: float
     grown_box_after: tuple[int, int, int, int]
+    length_after_px: float
 
 
 def _longest_crack(mask: NDArray[np.bool_]) -> NDArray[np.bool_] | None:
@@ -107,7 +109,8 @@ def make_pair(
     )
     scale = float(np.sqrt(abs(np.linalg.det(B2A[:2, :2]))))
     A2B = np.asarray(np.linalg.inv(B2A), np.float64)
-    return VisitPair(np.asarray(before, np.uint8), after, A2B, removed * scale, box)
+    length = skeleton_length(skeletonize(crack)) * scale
+    return VisitPair(np.asarray(before, np.uint8), after, A2B, removed * scale, box, length)
 
 
 def corner_error_px(
