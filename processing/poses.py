@@ -11,7 +11,6 @@ from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 
 def wrap_angle(a: NDArray[np.floating] | float) -> NDArray[np.float64]:
@@ -111,6 +110,8 @@ def format_tum(timestamps: NDArray[np.floating], poses: NDArray[np.floating]) ->
             f"timestamps ({len(timestamps)}) and poses ({len(poses)}) differ in length"
         )
     lines = ["# timestamp tx ty tz qx qy qz qw"]
+    from scipy.spatial.transform import Rotation
+
     for t, T in zip(timestamps, poses):
         q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
         tx, ty, tz = T[:3, 3]
@@ -120,9 +121,10 @@ def format_tum(timestamps: NDArray[np.floating], poses: NDArray[np.floating]) ->
     return "\n".join(lines) + "\n"
 
 
-def parse_tum(text: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Parse TUM text into (N,) timestamps and (N, 4, 4) poses; raise ValueError on bad lines."""
-    times, poses = [], []
+def tum_rows(text: str) -> NDArray[np.float64]:
+    """(N, 8) rows ``t tx ty tz q1 q2 q3 q4`` of TUM text, checked: eight finite numbers a
+    line and a quaternion of non-zero length; a ValueError names the first bad line."""
+    rows = []
     for lineno, line in enumerate(text.splitlines(), 1):
         line = line.split("#", 1)[0].strip()
         if not line:
@@ -131,18 +133,49 @@ def parse_tum(text: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         if len(parts) != 8:
             raise ValueError(f"TUM line {lineno}: expected 8 numbers, got {len(parts)}")
         try:
-            t, tx, ty, tz, qx, qy, qz, qw = (float(p) for p in parts)
+            row = [float(p) for p in parts]
         except ValueError:
             raise ValueError(f"TUM line {lineno}: not a number") from None
-        norm = np.linalg.norm([qx, qy, qz, qw])
-        if not np.isfinite(norm) or norm < 1e-9:
+        if not np.isfinite(row).all():
+            raise ValueError(f"TUM line {lineno}: NaN or infinite value")
+        if np.linalg.norm(row[4:]) < 1e-9:
             raise ValueError(f"TUM line {lineno}: quaternion has zero length")
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
-        T[:3, 3] = (tx, ty, tz)
-        times.append(t)
-        poses.append(T)
-    return np.array(times), np.array(poses).reshape(-1, 4, 4)
+        rows.append(row)
+    return np.array(rows, np.float64).reshape(-1, 8)
+
+
+def quaternion_matrices(q: NDArray[np.floating]) -> NDArray[np.float64]:
+    """(N, 3, 3) rotation matrices of (N, 4) quaternions ``x y z w`` (normalised here)."""
+    q = np.asarray(q, np.float64)
+    x, y, z, w = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=1,
+    )
+
+
+def poses_of_tum_rows(rows: NDArray[np.floating], *, w_first: bool = False) -> NDArray[np.float64]:
+    """(N, 4, 4) poses of (N, 8) TUM rows (:func:`tum_rows`); ``w_first`` reads each
+    quaternion as ``qw qx qy qz`` (a file written in that order) instead of TUM's
+    ``qx qy qz qw``."""
+    rows = np.asarray(rows, np.float64)
+    q = rows[:, 4:]
+    if w_first:
+        q = np.roll(q, -1, axis=1)
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :3] = quaternion_matrices(q)
+    poses[:, :3, 3] = rows[:, 1:4]
+    return poses
+
+
+def parse_tum(text: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Parse TUM text into (N,) timestamps and (N, 4, 4) poses; raise ValueError on bad lines."""
+    rows = tum_rows(text)
+    return rows[:, 0].copy(), poses_of_tum_rows(rows)
 
 
 def yaw_of(T: NDArray[np.floating]) -> float:
@@ -257,6 +290,8 @@ def se3_log(T: NDArray[np.floating]) -> NDArray[np.float64]:
     R = np.asarray(T[:3, :3], dtype=np.float64)
     cos = float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))
     if cos < -0.99:  # near a half turn the axis is not in R - Rᵀ: the general solver
+        from scipy.spatial.transform import Rotation
+
         w = Rotation.from_matrix(R).as_rotvec()
     else:
         vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2

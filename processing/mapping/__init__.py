@@ -53,7 +53,7 @@ view again; nothing but the stiffeners and the odometry fixes the distance along
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -118,6 +118,7 @@ def register_clouds(
     *,
     params: MapParams = MapParams(),
     shape: tuple[int, int] | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> MapResult:
     """Register clouds (each (K, 3), sensor frame) into one world map.
 
@@ -127,6 +128,7 @@ def register_clouds(
     initial_poses : (N, 4, 4) odometry guesses of T_world_sensor, or None (the first cloud
         is the world frame and motion is estimated from geometry alone).
     shape : (H, W) when the clouds are organised depth images (enables depth filtering).
+    progress : called with the number of clouds registered so far, after each one.
     """
     n = len(clouds)
     if n == 0:
@@ -156,6 +158,8 @@ def register_clouds(
     graph_map = IncrementalMap(params)
     for i, cloud in enumerate(clouds):
         graph_map.add(cloud, None if guesses is None else guesses[i], shape)
+        if progress is not None:
+            progress(i + 1)
     return _finished(graph_map)
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from processing.poses import parse_tum
+from processing.poses import poses_of_tum_rows, tum_rows
 from server.errors import CommandError
 
 
@@ -20,12 +20,18 @@ def list_files(folder: Path, exts: set[str], what: str) -> list[Path]:
     return files
 
 
-def read_odometry(path: Path, n: int, what: str) -> np.ndarray:
-    """(n, 4, 4) poses from a TUM file with one pose per input (``what``: "frames", "clouds")."""
+def read_odometry_rows(path: Path, n: int, what: str) -> np.ndarray:
+    """(n, 8) checked rows of a TUM file with one pose per input (``what``: "frames",
+    "clouds"); an error names the file and its first bad line."""
     try:
-        _, poses = parse_tum(path.read_text())
+        rows = tum_rows(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise CommandError(f"{path}: {exc}") from None
-    if len(poses) != n:
-        raise CommandError(f"{path}: {len(poses)} poses for {n} {what}; need one per {what[:-1]}")
-    return poses
+    if len(rows) != n:
+        raise CommandError(f"{path}: {len(rows)} poses for {n} {what}; need one per {what[:-1]}")
+    return rows
+
+
+def read_odometry(path: Path, n: int, what: str) -> np.ndarray:
+    """(n, 4, 4) poses from a TUM file with one pose per input (``what``: "frames", "clouds")."""
+    return poses_of_tum_rows(read_odometry_rows(path, n, what))

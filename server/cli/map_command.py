@@ -2,10 +2,13 @@
 unorganised ``.ply``/``.pcd`` from other tools) registered into ``map.ply``, ``poses.tum``
 and ``map_report.json``.
 
-Foreign input is checked before any work: clouds in millimetres are recognised by their
-ranges and refused (``--units mm`` converts them), empty and all-NaN clouds are skipped
-(placed by the odometry, or by the previous step's motion without it) and reported.
-Only what the map needs is imported, so the command starts quickly.
+Foreign input is checked before any work: the folder, ``sensor.json`` and the odometry
+(every line: eight finite numbers, one pose per cloud) before Open3D is imported, so a bad
+argument is answered at once; clouds in millimetres are recognised by their ranges and
+refused (``--units mm`` converts them), empty and all-NaN clouds are skipped (placed by the
+odometry, or by the previous step's motion without it) and reported. Odometry written with
+its quaternions w-first is recognised by the clouds (:mod:`processing.mapping.quaternion_order`),
+read in that order and reported. Long runs log their progress on stderr.
 """
 
 from __future__ import annotations
@@ -13,12 +16,13 @@ from __future__ import annotations
 import json
 import logging
 import re
+import time
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
-from server.cli.inputs import list_files, read_odometry
+from server.cli.inputs import list_files, read_odometry_rows
 from server.errors import CommandError
 from server.storage.files import write_atomic
 
@@ -29,6 +33,21 @@ CLOUD_EXTS = {".ply", ".pcd"}
 MAX_PLAUSIBLE_RANGE_M = 50.0
 UNITS_SAMPLE = 1000  # points of each cloud whose ranges decide the units
 Units = Literal["auto", "m", "mm"]
+PROGRESS_EVERY_S = 2.0  # a long run says how far it is at most this often
+
+
+class Progress:
+    """Logs "<what> i of n" when ``PROGRESS_EVERY_S`` have passed since the last line."""
+
+    def __init__(self, what: str, n: int) -> None:
+        self.what, self.n = what, n
+        self.last = time.monotonic()
+
+    def __call__(self, i: int) -> None:
+        now = time.monotonic()
+        if now - self.last >= PROGRESS_EVERY_S and i < self.n:
+            self.last = now
+            log.info("%s %d of %d", self.what, i, self.n)
 
 
 def _read_sensor(folder: Path) -> dict | None:
@@ -110,21 +129,58 @@ def _write_map(out: Path, points: np.ndarray) -> None:
     tmp.replace(out / "map.ply")
 
 
+def _odometry(
+    rows: np.ndarray | None, clouds: list[np.ndarray]
+) -> tuple[np.ndarray | None, dict[str, object] | None]:
+    """The odometry's poses, in the quaternion order the clouds agree with, and what was
+    found of the order (None without odometry)."""
+    if rows is None:
+        return None, None
+    from processing.mapping.quaternion_order import check_order
+    from processing.poses import poses_of_tum_rows
+
+    given, w_first = poses_of_tum_rows(rows), poses_of_tum_rows(rows, w_first=True)
+    check = check_order(clouds, given, w_first)
+    order: dict[str, object] = {
+        "quaternion_order": "qw qx qy qz" if check.swap else "qx qy qz qw",
+        "voxels_given_order": check.given_voxels,
+        "voxels_w_first": check.other_voxels,
+    }
+    if check.swap:
+        log.warning(
+            "the odometry's quaternions read as TUM's qx qy qz qw place the clouds over "
+            "%.1fx the voxels of qw qx qy qz: read w-first (write TUM files as "
+            "t tx ty tz qx qy qz qw)",
+            check.ratio,
+        )
+        return w_first, order
+    return given, order
+
+
 def map_folder(
     clouds_dir: Path, out: Path, *, odometry: Path | None, units: Units = "auto"
 ) -> None:
     """Write ``map.ply``, ``poses.tum`` (one pose per input cloud) and ``map_report.json``."""
+    files = list_files(clouds_dir, CLOUD_EXTS, "point cloud")
+    sensor = _read_sensor(clouds_dir)
+    rows = read_odometry_rows(odometry, len(files), "clouds") if odometry else None
+    # the arguments hold: now the heavy imports and the work
     from processing.mapping import register_clouds
     from processing.poses import format_tum
 
-    files = list_files(clouds_dir, CLOUD_EXTS, "point cloud")
-    sensor = _read_sensor(clouds_dir)
-    init = read_odometry(odometry, len(files), "clouds") if odometry else None
-    clouds = _check_units([_read_cloud(p, sensor) for p in files], units, clouds_dir)
-    skipped = _unusable(files, clouds, clouds_dir, by_odometry=init is not None)
+    reading = Progress("read cloud", len(files))
+    clouds = []
+    for i, path in enumerate(files):
+        clouds.append(_read_cloud(path, sensor))
+        reading(i + 1)
+    clouds = _check_units(clouds, units, clouds_dir)
+    skipped = _unusable(files, clouds, clouds_dir, by_odometry=rows is not None)
+    init, order = _odometry(rows, clouds)
     shape = (int(sensor["height"]), int(sensor["width"])) if sensor else None
     try:
-        result = register_clouds(clouds, init, shape=shape)
+        result = register_clouds(
+            clouds, init, shape=shape, progress=Progress("registered cloud", len(clouds))
+        )
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     _write_map(out, result.points)
@@ -141,6 +197,7 @@ def map_folder(
         "clouds_with_unobservable_directions": int((result.degenerate_dims > 0).sum()),
         "odometry_error_scale": round(float(result.odometry_error_scale), 2),
         "plane_landmarks": result.plane_landmarks,
+        "odometry": order,
     }
     write_atomic(out / "map_report.json", json.dumps(report, indent=1).encode())
     log.info(

@@ -26,6 +26,25 @@ def test_tum_roundtrip_and_bad_lines() -> None:
         parse_tum("0 1 2 3\n")
     with pytest.raises(ValueError, match="zero length"):
         parse_tum("0 0 0 0 0 0 0 0\n")
+    for bad in ("nan", "inf", "-1e999"):
+        with pytest.raises(ValueError, match="line 3: NaN or infinite"):
+            parse_tum(f"# t x y z qx qy qz qw\n0 0 0 0 0 0 0 1\n1 {bad} 0 0 0 0 0 1\n")
+
+
+def test_quaternions_read_in_either_order_match_scipy() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from processing.poses import poses_of_tum_rows, quaternion_matrices, tum_rows
+
+    turns = Rotation.random(40, random_state=5)
+    assert np.allclose(quaternion_matrices(turns.as_quat()), turns.as_matrix(), atol=1e-12)
+    poses = np.tile(np.eye(4), (40, 1, 1))
+    poses[:, :3, :3] = turns.as_matrix()
+    rows = tum_rows(format_tum(np.arange(40.0), poses))
+    w_first = rows.copy()
+    w_first[:, 4:] = np.roll(rows[:, 4:], 1, axis=1)  # written qw qx qy qz
+    assert np.allclose(poses_of_tum_rows(w_first, w_first=True), poses, atol=1e-6)
+    assert not np.allclose(poses_of_tum_rows(w_first), poses, atol=0.1)
 
 
 def test_compose_se2_matches_matrix_product() -> None:

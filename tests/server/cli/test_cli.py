@@ -177,10 +177,14 @@ def test_stitch_folder_with_odometry_writes_mosaic_pyramid_and_poses(tmp_path: P
     assert_clean_error(bad, "1 poses for 8 frames")
 
 
-def test_map_folder_of_organised_clouds_with_odometry_beats_the_odometry(tmp_path: Path) -> None:
+@pytest.mark.parametrize("w_first", [False, True], ids=["tum-order", "w-first"])
+def test_map_folder_of_organised_clouds_with_odometry_beats_the_odometry(
+    tmp_path: Path, w_first: bool
+) -> None:
     """``steelscan map`` on a ToF sweep that returns to its start, as files (PLY with NaN
     rows, sensor.json, TUM odometry): map.ply and one pose per cloud, closer to the truth
-    than the odometry it started from."""
+    than the odometry it started from; odometry written with its quaternions w-first is
+    recognised by the clouds, read so and reported."""
     import open3d as o3d
 
     from processing.metrics import absolute_trajectory_error
@@ -194,12 +198,17 @@ def test_map_folder_of_organised_clouds_with_odometry_beats_the_odometry(tmp_pat
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(c.astype(np.float64)))
         assert o3d.io.write_point_cloud(str(clouds / f"c{i:03d}.ply"), pcd, write_ascii=False)
     (clouds / "sensor.json").write_text(json.dumps(sweep.intrinsics))
-    (tmp_path / "odo.tum").write_text(
-        format_tum(np.arange(len(sweep.clouds), dtype=float), sweep.odometry)
-    )
+    tum = format_tum(np.arange(len(sweep.clouds), dtype=float), sweep.odometry)
+    if w_first:  # t tx ty tz qw qx qy qz
+        lines = [ln.split() for ln in tum.splitlines()[1:]]
+        tum = "\n".join(" ".join(p[:4] + [p[7]] + p[4:7]) for p in lines) + "\n"
+    (tmp_path / "odo.tum").write_text(tum)
     out = tmp_path / "out"
     proc = steelscan("map", str(clouds), "--out", str(out), "--odometry", str(tmp_path / "odo.tum"))
     assert proc.returncode == 0, proc.stderr
+    order = json.loads((out / "map_report.json").read_text())["odometry"]["quaternion_order"]
+    assert order == ("qw qx qy qz" if w_first else "qx qy qz qw")
+    assert ("read w-first" in proc.stderr) == w_first
     _, poses = parse_tum((out / "poses.tum").read_text())
     assert poses.shape == (len(sweep.clouds), 4, 4)
     ate = absolute_trajectory_error(poses, sweep.truth)

@@ -1,8 +1,9 @@
 """``steelscan map`` on foreign input: unorganised clouds, millimetres, empty and all-NaN
-clouds, broken files."""
+clouds, broken files, bad odometry."""
 
 import json
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -91,4 +92,35 @@ def test_a_broken_cloud_file_is_refused_by_name(tmp_path: Path, sweep: TofSweep)
     clouds = write_sweep(sweep, tmp_path)
     (clouds / "c0002.ply").write_bytes(b"\x00garbage" * 10)
     assert_clean_error(_run(tmp_path), "c0002.ply")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("odometry", "fragment"),
+    [
+        ("0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n", "odo.tum: TUM line 2: NaN or infinite value"),
+        ("0 0 0 0 0 0 0 1\n", "odo.tum: 1 poses for 2 clouds"),
+    ],
+)
+def test_bad_odometry_is_refused_by_file_and_line_before_the_heavy_imports(
+    tmp_path: Path, odometry: str, fragment: str
+) -> None:
+    """Arguments and files are checked before Open3D and SciPy load: the answer is at once."""
+    clouds = tmp_path / "clouds"
+    clouds.mkdir()
+    for name in ("a.ply", "b.ply"):
+        (clouds / name).write_bytes(b"not read before the odometry is checked")
+    (tmp_path / "odo.tum").write_text(odometry)
+    probe = (
+        "import sys\n"
+        "from server.cli.main import main\n"
+        f"rc = main(['map', {str(clouds)!r}, '--out', {str(tmp_path / 'out')!r},"
+        f" '--odometry', {str(tmp_path / 'odo.tum')!r}])\n"
+        "print(rc, sorted(m for m in ('open3d', 'scipy') if m in sys.modules))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert proc.stdout.split("\n")[0] == "2 []", proc.stderr
+    assert fragment in proc.stderr
     assert not (tmp_path / "out").exists()
