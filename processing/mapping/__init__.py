@@ -54,10 +54,13 @@ view again; nothing but the stiffeners and the odometry fixes the distance along
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import numpy as np
+import open3d as o3d
 from numpy.typing import NDArray
 
+from processing.mapping.camera_motion import CameraFactors
 from processing.mapping.icp import (
     align,
     constrain_to_observable,
@@ -119,6 +122,7 @@ def register_clouds(
     params: MapParams = MapParams(),
     shape: tuple[int, int] | None = None,
     progress: Callable[[int], None] | None = None,
+    camera: CameraFactors | None = None,
 ) -> MapResult:
     """Register clouds (each (K, 3), sensor frame) into one world map.
 
@@ -129,6 +133,8 @@ def register_clouds(
         is the world frame and motion is estimated from geometry alone).
     shape : (H, W) when the clouds are organised depth images (enables depth filtering).
     progress : called with the number of clouds registered so far, after each one.
+    camera : the downward camera's steps between the clouds (:mod:`.camera_motion`), edges
+        of the pose graph beside the ToF's.
     """
     n = len(clouds)
     if n == 0:
@@ -155,12 +161,26 @@ def register_clouds(
             np.ones(n, bool),
             np.zeros(n, int),
         )
+    gaps = np.zeros(n, bool)  # steps the camera did not see, among those it did
+    if camera is not None:
+        guesses = camera.guided(guesses, n)
+        gaps[1:] = [step is None for step in camera.steps[: n - 1]]
     graph_map = IncrementalMap(params)
     for i, cloud in enumerate(clouds):
-        graph_map.add(cloud, None if guesses is None else guesses[i], shape)
+        graph_map.add(cloud, None if guesses is None else guesses[i], shape, bool(gaps[i]))
         if progress is not None:
             progress(i + 1)
-    return _finished(graph_map)
+    if camera is None:
+        return _finished(graph_map)
+    linked = np.zeros(n, bool)
+    for source, target, T, information in camera.edges(graph_map.poses):
+        graph_map.graph.edges.append(
+            o3d.pipelines.registration.PoseGraphEdge(
+                source, target, T, information, uncertain=False
+            )
+        )
+        linked[source] = True
+    return replace(_finished(graph_map), camera_steps=linked)
 
 
 def register_measured(

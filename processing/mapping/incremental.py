@@ -107,8 +107,10 @@ class IncrementalMap:
         points: NDArray[np.floating],
         guess: NDArray[np.floating] | None = None,
         shape: tuple[int, int] | None = None,
+        uncertain: bool = False,
     ) -> NDArray[np.float64]:
-        """Place one cloud (sensor frame) given its odometry pose ``guess``; its pose."""
+        """Place one cloud (sensor frame) given its odometry pose ``guess`` (``uncertain``: a
+        step less precise than those before it); its pose."""
         pose_guess = None if guess is None else np.asarray(guess, dtype=np.float64)
         # 1. selection: filter, downsample, normals
         pcd = select(points, self.params.select, shape)
@@ -116,7 +118,7 @@ class IncrementalMap:
         # 2. tracking, where enabled: the tracked pose is the graph's odometry
         tracked_information = None
         if self.params.tracking.enabled:
-            pose_guess = self.tracker.track(pcd, pose_guess)
+            pose_guess = self.tracker.track(pcd, pose_guess, uncertain)
             tracked_information = self.tracker.information()
         # 3. the step from the previous cloud: odometry (or the last step), corrected by ICP
         step = None

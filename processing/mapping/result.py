@@ -25,3 +25,5 @@ class MapResult:
     odometry_error_scale: float = 1.0
     # large planes (deck plate, web, stiffener faces) that tied the clouds seeing them
     plane_landmarks: int = 0
+    # clouds tied to the one before by the downward camera's motion
+    camera_steps: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))

@@ -262,10 +262,14 @@ class Tracker:
         return self._poses[-1].copy()
 
     def track(
-        self, pcd: o3d.geometry.PointCloud, guess: NDArray[np.float64] | None = None
+        self,
+        pcd: o3d.geometry.PointCloud,
+        guess: NDArray[np.float64] | None = None,
+        uncertain: bool = False,
     ) -> NDArray[np.float64]:
         """Pose T_world_sensor (4, 4) of the next cloud (selected, with normals) given its
-        odometry pose ``guess`` (or None)."""
+        odometry pose ``guess`` (or None); an ``uncertain`` guess (one step of a less
+        precise source than the steps before) is searched as widely as the first ones."""
         points = np.asarray(pcd.points, dtype=np.float64)
         normals = (
             np.asarray(pcd.normals, dtype=np.float64)
@@ -279,9 +283,14 @@ class Tracker:
             prediction = self._prediction(guess)
             pose = prediction
             if pcd.has_normals():
-                found = register_near(
-                    points, normals, self.map, prediction, self.sigmas(), self.params
-                )
+                sigmas = self.sigmas()
+                if uncertain:
+                    wide = (
+                        float(np.radians(self.params.initial_sigma_deg)),
+                        self.params.initial_sigma_m,
+                    )
+                    sigmas = (max(sigmas[0], wide[0]), max(sigmas[1], wide[1]))
+                found = register_near(points, normals, self.map, prediction, sigmas, self.params)
                 if found is not None and found.matched >= self.params.min_points:
                     pose, self.last = found.pose, found
                     c = se3_log(np.linalg.inv(prediction) @ pose)

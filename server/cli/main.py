@@ -157,6 +157,7 @@ def cmd_map(args: argparse.Namespace) -> int:
         Path(args.out),
         odometry=Path(args.odometry) if args.odometry else None,
         units=args.units,
+        frames=Path(args.frames) if args.frames else None,
     )
     return 0
 
@@ -316,6 +317,10 @@ def _add_processing_commands(sub: Any) -> None:
         choices=("auto", "m", "mm"),
         default="auto",
         help="the clouds' unit: auto (metres; millimetres are recognised and refused), m, or mm (converted)",
+    )
+    s.add_argument(
+        "--frames",
+        help="the downward camera's images and camera.json: their motion joins the clouds'",
     )
     s.set_defaults(func=cmd_map, image_work=True)
 

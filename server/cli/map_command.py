@@ -22,6 +22,7 @@ from typing import Literal
 
 import numpy as np
 
+from server.cli.camera_input import camera_factors, read_camera_input
 from server.cli.inputs import list_files, read_odometry_rows
 from server.errors import CommandError
 from server.storage.files import write_atomic
@@ -157,13 +158,37 @@ def _odometry(
     return given, order
 
 
+def _fixed_by(k: int, result: object, odometry: bool) -> list[str]:
+    """What placed cloud ``k``: the camera's step into it, the ToF's registration, the
+    odometry (alone, when neither other)."""
+    out = []
+    if len(result.camera_steps) > k and result.camera_steps[k]:  # type: ignore[attr-defined]
+        out.append("camera")
+    if k > 0 and not result.used_odometry[k]:  # type: ignore[attr-defined]
+        out.append("tof")
+    if odometry and (k == 0 or not out):
+        out.append("odometry")
+    return out
+
+
 def map_folder(
-    clouds_dir: Path, out: Path, *, odometry: Path | None, units: Units = "auto"
+    clouds_dir: Path,
+    out: Path,
+    *,
+    odometry: Path | None,
+    units: Units = "auto",
+    frames: Path | None = None,
 ) -> None:
-    """Write ``map.ply``, ``poses.tum`` (one pose per input cloud) and ``map_report.json``."""
+    """Write ``map.ply``, ``poses.tum`` (one pose per input cloud) and ``map_report.json``;
+    with ``frames`` (the downward camera's images and ``camera.json``) the images' motion
+    joins the clouds' in the pose graph."""
     files = list_files(clouds_dir, CLOUD_EXTS, "point cloud")
     sensor = _read_sensor(clouds_dir)
     rows = read_odometry_rows(odometry, len(files), "clouds") if odometry else None
+    cloud_times = rows[:, 0] if rows is not None else np.arange(len(files), dtype=float)
+    if rows is not None and (np.diff(cloud_times) <= 0).any():
+        raise CommandError(f"{odometry}: timestamps must increase (one pose per cloud, in order)")
+    given = read_camera_input(frames, cloud_times) if frames else None
     # the arguments hold: now the heavy imports and the work
     from processing.mapping import register_clouds
     from processing.poses import format_tum
@@ -176,10 +201,17 @@ def map_folder(
     clouds = _check_units(clouds, units, clouds_dir)
     skipped = _unusable(files, clouds, clouds_dir, by_odometry=rows is not None)
     init, order = _odometry(rows, clouds)
+    factors, camera_report = (
+        camera_factors(given, clouds, cloud_times) if given is not None else (None, None)
+    )
     shape = (int(sensor["height"]), int(sensor["width"])) if sensor else None
     try:
         result = register_clouds(
-            clouds, init, shape=shape, progress=Progress("registered cloud", len(clouds))
+            clouds,
+            init,
+            shape=shape,
+            progress=Progress("registered cloud", len(clouds)),
+            camera=factors,  # type: ignore[arg-type]
         )
     except ValueError as exc:
         raise CommandError(str(exc)) from None
@@ -198,6 +230,11 @@ def map_folder(
         "odometry_error_scale": round(float(result.odometry_error_scale), 2),
         "plane_landmarks": result.plane_landmarks,
         "odometry": order,
+        "camera": camera_report,
+        "factors": [
+            {"file": f.name, "fixed_by": _fixed_by(k, result, rows is not None)}
+            for k, f in enumerate(files)
+        ],
     }
     write_atomic(out / "map_report.json", json.dumps(report, indent=1).encode())
     log.info(

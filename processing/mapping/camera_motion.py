@@ -1,0 +1,394 @@
+"""The downward camera's motion as pose-graph factors beside the ToF's.
+
+Consecutive frames are registered as the stitcher registers them
+(:func:`processing.stitching.registration.register_pair`: sub-pixel translation and
+rotation). What a pair measures is where the second frame's optical axis meets the surface
+in the first frame's image, and the turn about the surface's normal: the *footprint
+frame* F (the axis' foot on the surface, the image's heading) moves by a planar step
+(x, y, ψ) in metres, scaled from pixels by the distance to the surface along the optical
+axis, which the ToF measures (the plane of the surface in its cloud, carried into the
+camera's frame). Footprint steps compose exactly in SE(2), so frames taken at their own
+times are chained and interpolated to the clouds' times (never paired by index): a cloud
+pair's step F(tᵢ₋₁)⁻¹ F(tᵢ) with the chain's covariance.
+
+In the graph the step is an edge between the two clouds' nodes whose information covers
+only what the camera sees: the foot's two coordinates and the heading (J Σ⁻¹ Jᵀ with J
+the measurement's Jacobian, so a tilt, which moves the foot by Z·θ, is tied to the
+translation as the image ties them); height, roll and pitch stay the ToF's. The edge's
+transformation is the current estimate moved just enough to agree with the measurement;
+both are carried into the ToF's frame by the camera's mounting (``T_tof_camera``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from processing.poses import se3_adjoint_inverse, se3_exp, wrap_angle
+
+Guess = tuple[NDArray[np.float64], tuple[float, ...]]  # (dx, dy px, dθ) and turns to search
+# a pair the last motion does not predict is searched over this much more turn (a robot
+# entering or leaving a turn between two frames)
+TURN_SEARCH_DEG = 10.0
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A pinhole camera (px) and its pose in the ToF sensor's frame (4, 4, metres)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    T_tof_camera: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class CameraParams:
+    """The camera factors' error model and which plane is the surface under the camera."""
+
+    sigma_px: float = 0.1  # a frame pair's registration error per axis (px)
+    sigma_scale: float = 0.002  # relative error of the distance that turns px into metres
+    # a cloud's plane is the surface under the camera when its normal is this close to the
+    # optical axis (cosine)
+    min_normal_cos: float = 0.85
+    min_plane_points: int = 200
+    plane_threshold_m: float = 0.015  # a plane's inliers: within this (about the ToF's noise)
+    # the surface is measured this near the camera: farther off a plate ends, steps or
+    # bends, and a far point's lever tilts the plane under the camera
+    near_m: float = 1.0
+    # a camera on a wheeled robot stays within this fraction of its usual height
+    max_height_change: float = 0.06
+
+
+@dataclass(frozen=True)
+class FootStep:
+    """The footprint frame's planar motion (x, y metres, ψ radians) in the earlier frame,
+    with its covariance (3, 3)."""
+
+    delta: NDArray[np.float64]
+    cov: NDArray[np.float64]
+
+
+def largest_plane(
+    pts: NDArray[np.float64], threshold_m: float, iterations: int = 200
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The plane (unit normal n, offset d: n·p + d = 0) with the most of ``pts`` (K, 3)
+    within ``threshold_m`` (RANSAC, seeded: the same cloud gives the same plane), refitted
+    to its inliers by least squares; and those inliers (K,)."""
+    rng = np.random.default_rng(0)
+    sample = pts[rng.choice(len(pts), min(len(pts), 4000), replace=False)]
+    trios = sample[rng.integers(len(sample), size=(iterations, 3))]
+    normals = np.cross(trios[:, 1] - trios[:, 0], trios[:, 2] - trios[:, 0])
+    lengths = np.linalg.norm(normals, axis=1)
+    ok = lengths > 1e-12
+    normals, trios = normals[ok] / lengths[ok, None], trios[ok]
+    offsets = -np.einsum("ij,ij->i", normals, trios[:, 0])
+    counts = (np.abs(sample @ normals.T + offsets) < threshold_m).sum(axis=0)
+    best = int(np.argmax(counts))
+    inliers = np.abs(pts @ normals[best] + offsets[best]) < threshold_m
+    centre = pts[inliers].mean(axis=0)
+    n = np.linalg.svd(pts[inliers] - centre, full_matrices=False)[2][2]
+    inliers = np.abs((pts - centre) @ n) < threshold_m
+    return np.append(n, -float(n @ centre)), inliers
+
+
+def fit_plane_along_rays(
+    pts: NDArray[np.float64], plane: NDArray[np.float64], window_m: float, iterations: int = 6
+) -> NDArray[np.float64]:
+    """``plane`` (n, d) refitted to a range sensor's points ``pts`` ((K, 3), sensor frame)
+    by their errors along their rays (Gauss-Newton): a ToF's noise lies along the ray, so a
+    fit across the plane (least squares, SVD) tilts towards oblique rays and misplaces the
+    plane millimetres away from the view; points farther than ``window_m`` along the ray
+    are left out."""
+    r = np.linalg.norm(pts, axis=1)
+    u = pts / np.maximum(r, 1e-12)[:, None]
+    n, d = plane[:3] / np.linalg.norm(plane[:3]), float(plane[3])
+    for _ in range(iterations):
+        un = u @ n
+        facing = np.abs(un) > 0.05
+        predicted = -d / np.where(facing, un, 1.0)  # the range at which each ray meets the plane
+        residual = r - predicted
+        ok = facing & (np.abs(residual) < window_m)
+        if ok.sum() < 3:
+            break
+        # the window shrinks to three robust deviations of the noise: a parallel surface a
+        # flange's thickness away drops out
+        window_m = min(window_m, max(3 * 1.4826 * float(np.median(np.abs(residual[ok]))), 1e-3))
+        ok = facing & (np.abs(residual) < window_m)
+        tangent = np.linalg.svd(n[None])[2][1:]  # two directions across n
+        J = np.column_stack([d * (u[ok] @ tangent.T) / un[ok, None] ** 2, -1 / un[ok]])
+        step = np.linalg.lstsq(J, residual[ok], rcond=None)[0]
+        n = n + tangent.T @ step[:2]
+        n /= np.linalg.norm(n)
+        d += float(step[2])
+    return np.append(n, d)
+
+
+def surface_distance(
+    cloud: NDArray[np.floating], camera: CameraModel, params: CameraParams = CameraParams()
+) -> float | None:
+    """Distance (m) along the optical axis from the camera to the surface under it: of the
+    largest planes of ``cloud`` ((K, 3), ToF frame, NaN rows ignored) near the camera and
+    facing it, the one seen nearest the axis, fitted along the ToF's rays and carried into
+    the camera's frame; None when the cloud shows no such plane."""
+    pts = np.asarray(cloud, np.float64).reshape(-1, 3)
+    R, t = camera.T_tof_camera[:3, :3], camera.T_tof_camera[:3, 3]
+    with np.errstate(invalid="ignore"):
+        near = np.linalg.norm(pts - t, axis=1) < params.near_m  # NaN rows compare False
+    pts = pts[near]
+    best: tuple[float, float] | None = None  # (gap to the foot, distance)
+    for _ in range(3):  # the largest planes in turn: of those facing the camera, the one
+        # whose points come nearest the optical axis' foot (a plate on a plate: a step)
+        if len(pts) < params.min_plane_points:
+            break
+        plane, inliers = largest_plane(pts, params.plane_threshold_m)
+        if inliers.sum() < params.min_plane_points:
+            break
+        plane = fit_plane_along_rays(pts, plane, 2 * params.plane_threshold_m)
+        n_camera, d_camera = R.T @ plane[:3], plane[3] + plane[:3] @ t
+        if abs(n_camera[2]) >= params.min_normal_cos and -d_camera / n_camera[2] > 0:
+            distance = float(-d_camera / n_camera[2])  # the axis (0, 0, s) meets the plane
+            seen = (pts[inliers] - t) @ R  # camera frame
+            gap = float(np.min(np.linalg.norm(seen - (0.0, 0.0, distance), axis=1)))
+            if best is None or gap < best[0]:
+                best = (gap, distance)
+        pts = pts[~inliers]
+    return None if best is None else best[1]
+
+
+def surface_distances(
+    clouds: Sequence[NDArray[np.floating]],
+    camera: CameraModel,
+    params: CameraParams = CameraParams(),
+) -> NDArray[np.float64]:
+    """(N,) :func:`surface_distance` of every cloud, where a cloud shows no surface (or one
+    farther from the others' median than the robot's suspension lets the camera move)
+    interpolated from its neighbours; all NaN when no cloud shows it."""
+    found = np.array([surface_distance(c, camera, params) or np.nan for c in clouds], float)
+    if np.isfinite(found).any():
+        median = float(np.nanmedian(found))
+        with np.errstate(invalid="ignore"):
+            found[np.abs(found - median) > params.max_height_change * median] = np.nan
+    ok = np.isfinite(found)
+    if not ok.any():
+        return found
+    index = np.arange(len(found))
+    return np.interp(index, index[ok], found[ok])
+
+
+def foot(T_ab: NDArray[np.floating], distance_m: float) -> NDArray[np.float64]:
+    """(x, y, ψ): where camera b's optical axis meets the surface (the plane z =
+    ``distance_m`` of camera a's frame) in camera a's frame, and b's heading there."""
+    T = np.asarray(T_ab, np.float64)
+    d = T[:3, 2]
+    s = (distance_m - T[2, 3]) / d[2]
+    return np.array([T[0, 3] + s * d[0], T[1, 3] + s * d[1], float(np.arctan2(T[1, 0], T[0, 0]))])
+
+
+def _foot_jacobian(T_ab: NDArray[np.float64], distance_m: float) -> NDArray[np.float64]:
+    """(3, 6) derivative of :func:`foot` at ``T_ab`` exp(ζ) for ζ = (ω, v) at 0."""
+    J = np.zeros((3, 6))
+    m0, h = foot(T_ab, distance_m), 1e-6
+    for k in range(6):
+        xi = np.zeros(6)
+        xi[k] = h
+        dm = foot(T_ab @ se3_exp(xi), distance_m) - m0
+        dm[2] = float(wrap_angle(dm[2]))
+        J[:, k] = dm / h
+    return J
+
+
+def camera_edge(
+    step: FootStep,
+    predicted_tof: NDArray[np.floating],
+    distance_m: float,
+    camera: CameraModel,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The graph edge of a cloud pair's footprint ``step``: T_a_b in the ToF frame (the
+    ``predicted_tof`` relative pose moved to agree with the step) and its information
+    (6, 6; rotation first) in the pose graph's convention (error ζ with T = X exp(ζ))."""
+    T_tc = np.asarray(camera.T_tof_camera, np.float64)
+    X = np.linalg.inv(T_tc) @ np.asarray(predicted_tof, np.float64) @ T_tc  # camera frame
+    for _ in range(3):  # Gauss-Newton, moving only what the measurement sees
+        r = step.delta - foot(X, distance_m)
+        r[2] = float(wrap_angle(r[2]))
+        X = X @ se3_exp(np.linalg.pinv(_foot_jacobian(X, distance_m)) @ r)
+    J = _foot_jacobian(X, distance_m)
+    info_camera = J.T @ np.linalg.inv(step.cov) @ J
+    A = se3_adjoint_inverse(T_tc)  # ζ_camera = Ad(T_tc⁻¹) ζ_tof
+    info_tof = A.T @ info_camera @ A
+    return T_tc @ X @ np.linalg.inv(T_tc), 0.5 * (info_tof + info_tof.T)
+
+
+def _compose(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """SE(2) a ⊕ b of (x, y, ψ)."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
+
+
+def _between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """SE(2) a⁻¹ ⊕ b."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b[2] - a[2]))])
+
+
+def foot_steps_px_to_m(
+    deltas_px: Sequence[NDArray[np.floating] | None],
+    distances_m: NDArray[np.floating],
+    camera: CameraModel,
+    params: CameraParams = CameraParams(),
+) -> list[FootStep | None]:
+    """Each frame pair's registration (dx, dy px, dθ; None where it failed) as a footprint
+    step in metres, scaled by the distance to the surface at the earlier frame."""
+    out: list[FootStep | None] = []
+    for delta, z in zip(deltas_px, distances_m):
+        if delta is None or not np.isfinite(z):
+            out.append(None)
+            continue
+        d = np.array([delta[0] * z / camera.fx, delta[1] * z / camera.fy, delta[2]], np.float64)
+        sigma_t = params.sigma_px * z / min(camera.fx, camera.fy)
+        var_t = sigma_t**2 + (params.sigma_scale * float(np.hypot(d[0], d[1]))) ** 2
+        sigma_r = params.sigma_px / (0.5 * min(camera.width, camera.height))
+        out.append(FootStep(d, np.diag([var_t, var_t, sigma_r**2])))
+    return out
+
+
+def cloud_steps(
+    frame_times: NDArray[np.floating],
+    steps: Sequence[FootStep | None],
+    cloud_times: NDArray[np.floating],
+) -> list[FootStep | None]:
+    """Footprint steps between consecutive clouds (N - 1; None where the frames do not
+    link them): the frames' steps (``steps[k]`` from frame k to k + 1) chained, the ends
+    interpolated within a step to the clouds' times."""
+    times = np.asarray(frame_times, np.float64)
+    # chains of linked frames: F in each chain's first frame's footprint frame, with the
+    # variance accumulated from that frame
+    segment = np.zeros(len(times), int)
+    feet = np.zeros((len(times), 3))
+    var = np.zeros((len(times), 3))
+    for k, step in enumerate(steps[: len(times) - 1]):
+        if step is None:
+            segment[k + 1] = segment[k] + 1
+            continue
+        segment[k + 1] = segment[k]
+        feet[k + 1] = _compose(feet[k], step.delta)
+        var[k + 1] = var[k] + np.diag(step.cov)
+
+    def at(t: float) -> tuple[int, NDArray[np.float64], NDArray[np.float64]] | None:
+        k = int(np.searchsorted(times, t, side="right")) - 1
+        if k < 0 or t > times[-1]:
+            return None
+        if k == len(times) - 1 or t == times[k]:
+            return int(segment[k]), feet[k], var[k]
+        if segment[k + 1] != segment[k]:
+            return None
+        a = (t - times[k]) / (times[k + 1] - times[k])
+        step = _between(feet[k], feet[k + 1])
+        return int(segment[k]), _compose(feet[k], a * step), var[k] + a * (var[k + 1] - var[k])
+
+    out: list[FootStep | None] = []
+    ends = [at(float(t)) for t in cloud_times]
+    for a, b in zip(ends[:-1], ends[1:]):
+        if a is None or b is None or a[0] != b[0]:
+            out.append(None)
+            continue
+        delta = _between(a[1], b[1])
+        v = np.abs(b[2] - a[2])
+        # a heading error carried along the step moves its end sideways
+        v_t = max(v[0], v[1]) + v[2] * float(delta[0] ** 2 + delta[1] ** 2)
+        out.append(FootStep(delta, np.diag([max(v_t, 1e-12), max(v_t, 1e-12), max(v[2], 1e-12)])))
+    return out
+
+
+def frame_deltas(
+    frames: Sequence[NDArray[np.uint8]],
+    predicted_px: Sequence[NDArray[np.floating]] | None = None,
+) -> list[NDArray[np.float64] | None]:
+    """Each consecutive frame pair's registration (dx, dy px, dθ: frame k + 1 in frame k's
+    centred pixels; None where it fails), searched from the last pair's motion (the robot
+    drives smoothly), failing that from the pair's phase correlation (any shift), and last
+    from ``predicted_px`` (the odometry's)."""
+    from processing.stitching.registration import Level, register_pair
+
+    levels = [Level.of(np.asarray(f, np.float32)) for f in frames]
+    out: list[NDArray[np.float64] | None] = []
+    last = np.zeros(3)
+    turns = tuple(np.radians(np.arange(-TURN_SEARCH_DEG, TURN_SEARCH_DEG + 1e-9, 2.5)))
+    for k in range(len(frames) - 1):
+
+        def guesses(k: int = k, last: NDArray[np.float64] = last) -> Iterator[Guess]:
+            yield last, (0.0,)
+            yield last, turns
+            (sx, sy), _ = cv2.phaseCorrelate(levels[k].full.image, levels[k + 1].full.image)
+            yield np.array([-sx, -sy, last[2]]), turns
+            if predicted_px is not None:
+                yield np.asarray(predicted_px[k], np.float64), turns
+
+        found = None
+        for guess, angles in guesses():
+            found = register_pair(levels[k], levels[k + 1], guess, angles=angles)
+            if found is not None:
+                break
+        out.append(None if found is None else found[0])
+        if found is not None:
+            last = found[0]
+    return out
+
+
+@dataclass(frozen=True)
+class CameraFactors:
+    """What the camera adds to a map: its model, the footprint step between each pair of
+    consecutive clouds (N - 1; None where the frames do not link them) and the distance
+    to the surface at each cloud (N; NaN where unknown)."""
+
+    camera: CameraModel
+    steps: list[FootStep | None]
+    distances_m: NDArray[np.float64]
+
+    def guided(self, odometry: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
+        """(N, 4, 4) initial poses: where the camera links two clouds, its step along the
+        surface (the robot stays on it: no change of height or tilt, which the ToF then
+        measures), else the odometry's step (identity without odometry); chained from the
+        odometry's first pose. ICP then starts within millimetres of the truth in the
+        directions the camera sees, and the odometry's tilt errors do not accumulate."""
+        T_tc = np.asarray(self.camera.T_tof_camera, np.float64)
+        start = np.eye(4) if odometry is None else np.asarray(odometry[0], np.float64)
+        poses = [start]
+        for i in range(1, n):
+            predicted = (
+                np.eye(4) if odometry is None else np.linalg.inv(odometry[i - 1]) @ odometry[i]
+            )
+            step = self.steps[i - 1] if i - 1 < len(self.steps) else None
+            z = float(self.distances_m[i - 1])
+            if step is not None and np.isfinite(z):
+                x, y, yaw = step.delta
+                along = np.eye(4)  # the step in the camera's frame, on the surface
+                along[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+                along[:2, 3] = x, y
+                predicted = T_tc @ along @ np.linalg.inv(T_tc)
+            poses.append(poses[-1] @ predicted)
+        return np.array(poses)
+
+    def edges(
+        self, poses: NDArray[np.float64]
+    ) -> list[tuple[int, int, NDArray[np.float64], NDArray[np.float64]]]:
+        """(source i, target i - 1, T_target_source, information) of every linked cloud
+        pair, moved from the current ``poses`` (N, 4, 4) to agree with its step."""
+        out = []
+        for i, step in enumerate(self.steps, start=1):
+            z = float(self.distances_m[i - 1])
+            if step is None or not np.isfinite(z) or i >= len(poses):
+                continue
+            predicted = np.linalg.inv(poses[i - 1]) @ poses[i]
+            X, info = camera_edge(step, predicted, z, self.camera)
+            out.append((i, i - 1, X, info))
+        return out
