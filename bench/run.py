@@ -13,6 +13,7 @@ from bench.detect import bench_detect
 from bench.history import bench_history
 from bench.ingest import bench_ingest
 from bench.map import bench_map
+from bench.map_camera import bench_map_camera
 from bench.robot import bench_robot
 from bench.scale import bench_scale
 from bench.stitch import bench_stitch
@@ -24,6 +25,7 @@ BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {
     "detect": bench_detect,
     "stitch": bench_stitch,
     "map": bench_map,
+    "map-camera": bench_map_camera,
     "ingest": bench_ingest,
     "stitch-scale": bench_stitch_scale,
     "teleop": bench_teleop,
@@ -38,7 +40,7 @@ DEFAULT = [
     "map",
     "ingest",
     "teleop",
-]  # stitch-scale, scale, robot, changes and history take many minutes: run them by name
+]  # stitch-scale, scale, robot, changes, history and map-camera take many minutes: run them by name
 
 
 def run_benchmarks(

@@ -8,7 +8,6 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -112,14 +111,7 @@ def camera_factors(
 ) -> tuple[object, dict[str, object]]:
     """The map's camera factors from the frames and the clouds, and what the report says of
     them."""
-    from processing.mapping.camera_motion import (
-        CameraFactors,
-        CameraModel,
-        cloud_steps,
-        foot_steps_px_to_m,
-        frame_deltas,
-        surface_distances,
-    )
+    from processing.mapping.camera_motion import CameraModel, camera_factors
 
     c = given.camera
     width, height = int(c["width"]), int(c["height"])  # type: ignore[call-overload]
@@ -132,19 +124,15 @@ def camera_factors(
         float(c["cy"]),  # type: ignore[arg-type]
         np.asarray(c["T_tof_camera"], np.float64),
     )
-    deltas = frame_deltas(read_frames(given.files, width, height))
-    distances = surface_distances(clouds, model)
+    frames = read_frames(given.files, width, height)
+    factors, registered = camera_factors(frames, given.times, clouds, cloud_times, model)
+    distances, steps = factors.distances_m, factors.steps
     if not np.isfinite(distances).any():
         log.warning("no cloud shows the surface under the camera: the map uses the ToF alone")
-        steps: list[Any] = [None] * (len(clouds) - 1)
-    else:
-        at_frames = np.interp(given.times, cloud_times, distances)
-        steps = cloud_steps(given.times, foot_steps_px_to_m(deltas, at_frames, model), cloud_times)
-    registered = sum(d is not None for d in deltas)
     report: dict[str, object] = {
         "frames": len(given.files),
         "frame_pairs_registered": registered,
-        "frame_pairs": len(deltas),
+        "frame_pairs": len(frames) - 1,
         "surface_distance_m": (
             round(float(np.nanmedian(distances)), 4) if np.isfinite(distances).any() else None
         ),
@@ -153,8 +141,8 @@ def camera_factors(
     log.info(
         "camera: %d of %d frame pairs registered, %d of %d cloud steps linked",
         registered,
-        len(deltas),
+        len(frames) - 1,
         report["cloud_steps_linked"],
         len(clouds) - 1,
     )
-    return CameraFactors(model, steps, distances), report
+    return factors, report

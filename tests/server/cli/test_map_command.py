@@ -124,3 +124,76 @@ def test_bad_odometry_is_refused_by_file_and_line_before_the_heavy_imports(
     assert proc.stdout.split("\n")[0] == "2 []", proc.stderr
     assert fragment in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_frames_join_the_map_and_the_report_says_what_fixed_each_cloud(tmp_path: Path) -> None:
+    """``steelscan map --frames``: the downward camera's images with camera.json (its
+    intrinsics, T_tof_camera and the frames' times on the odometry's clock)."""
+    from processing.metrics import absolute_trajectory_error
+    from robot_link.sim.camera_frames import camera_sweep, write_frames
+    from robot_link.sim.scene_sweeps import scene_camera
+
+    config = SceneSweepConfig(kind="gusset_joint", seed=12, clouds=16)
+    sweep = scene_sweep(config)
+    tof = scene_camera(config)
+    frames = camera_sweep(sweep.truth, tof.T_robot_tof, 12, tof.structure.mesh)
+    write_sweep(sweep, tmp_path)
+    write_frames(frames, tmp_path / "frames")
+    runs = {}
+    for name, extra in (("without", []), ("with", ["--frames", str(tmp_path / "frames")])):
+        proc = steelscan(
+            "map",
+            str(tmp_path / "clouds"),
+            "--out",
+            str(tmp_path / name),
+            "--odometry",
+            str(tmp_path / "odom.tum"),
+            *extra,
+        )
+        assert proc.returncode == 0, proc.stderr
+        _, poses = parse_tum((tmp_path / name / "poses.tum").read_text())
+        runs[name] = absolute_trajectory_error(poses, sweep.truth)
+    assert runs["with"] < 0.5 * runs["without"]
+    report = json.loads((tmp_path / "with" / "map_report.json").read_text())
+    assert report["camera"]["frames"] == len(frames.frames)
+    assert report["camera"]["cloud_steps_linked"] == len(sweep.clouds) - 1
+    assert report["factors"][0]["fixed_by"] == ["odometry"]
+    assert all("camera" in f["fixed_by"] for f in report["factors"][1:])
+    plain = json.loads((tmp_path / "without" / "map_report.json").read_text())
+    assert plain["camera"] is None and all("camera" not in f["fixed_by"] for f in plain["factors"])
+
+
+@pytest.mark.parametrize(
+    ("change", "fragment"),
+    [
+        ({"T_tof_camera": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "rigid"),
+        ({"fx": -5}, "must be positive"),
+        ({"timestamps": [0.0, 1.0]}, "2 timestamps for 3 images"),
+        ({"width": None}, "width must be a finite number"),
+    ],
+)
+def test_a_bad_camera_json_is_refused_before_any_work(
+    tmp_path: Path, change: dict[str, object], fragment: str
+) -> None:
+    clouds = tmp_path / "clouds"
+    clouds.mkdir()
+    for name in ("a.ply", "b.ply", "c.ply"):
+        (clouds / name).write_bytes(b"not read before the frames are checked")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(3):
+        (frames / f"f{k}.png").write_bytes(b"not read before camera.json is checked")
+    camera = {
+        "width": 320,
+        "height": 240,
+        "fx": 266.0,
+        "fy": 266.0,
+        "cx": 159.5,
+        "cy": 119.5,
+        "T_tof_camera": np.eye(4).tolist(),
+        **change,
+    }
+    (frames / "camera.json").write_text(json.dumps(camera))
+    proc = steelscan("map", str(clouds), "--out", str(tmp_path / "out"), "--frames", str(frames))
+    assert_clean_error(proc, fragment)
+    assert not (tmp_path / "out").exists()

@@ -1,0 +1,105 @@
+"""The downward camera's factors: footprint steps chained to the clouds' times, edges that
+agree with the truth and tie only what the camera sees, the surface distance from the ToF,
+and the map with them, on simulated structures."""
+
+import numpy as np
+import pytest
+
+from processing.mapping import register_clouds
+from processing.mapping.camera_motion import (
+    CameraFactors,
+    CameraModel,
+    FootStep,
+    camera_factors,
+    cloud_steps,
+)
+from processing.mapping.graph_optimiser import _linearised
+from processing.mapping.surface_distance import surface_distances
+from processing.metrics import absolute_trajectory_error
+from robot_link.sim.camera_frames import CameraSweep, camera_sweep
+from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_camera, scene_sweep
+from robot_link.sim.tof_sweeps import TofSweep
+
+
+def _model(frames: CameraSweep) -> CameraModel:
+    c = frames.camera
+    return CameraModel(
+        int(c["width"]),  # type: ignore[call-overload]
+        int(c["height"]),  # type: ignore[call-overload]
+        float(c["fx"]),  # type: ignore[arg-type]
+        float(c["fy"]),  # type: ignore[arg-type]
+        float(c["cx"]),  # type: ignore[arg-type]
+        float(c["cy"]),  # type: ignore[arg-type]
+        np.asarray(c["T_tof_camera"], np.float64),
+    )
+
+
+@pytest.fixture(scope="module")
+def sequence() -> tuple[TofSweep, CameraSweep, tuple[int, int]]:
+    config = SceneSweepConfig(kind="gusset_joint", seed=7)
+    sweep, tof = scene_sweep(config), scene_camera(config)
+    frames = camera_sweep(sweep.truth, tof.T_robot_tof, 7, tof.structure.mesh)
+    return sweep, frames, (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
+
+
+def test_frame_steps_chain_to_the_clouds_times() -> None:
+    """Three frames a cloud, turning steadily: the chained step between clouds is the sum
+    of the frames' (composed in SE(2)), with the variance of the frames it spans."""
+    step = FootStep(np.array([0.01, 0.0, 0.02]), np.diag([1e-8, 1e-8, 1e-8]))
+    frame_times = np.arange(10) / 3
+    steps = cloud_steps(frame_times, [step] * 9, np.array([0.0, 1.0, 2.0, 3.0]))
+    assert len(steps) == 3 and all(s is not None for s in steps)
+    expected = np.zeros(3)
+    for _ in range(3):
+        c, s = np.cos(expected[2]), np.sin(expected[2])
+        expected = expected + [c * 0.01, s * 0.01, 0.02]
+    assert np.allclose(steps[0].delta, expected, atol=1e-12)
+    assert steps[0].cov[2, 2] == pytest.approx(3e-8)
+    broken = cloud_steps(frame_times, [step] * 4 + [None] + [step] * 4, np.arange(4.0))
+    assert broken[0] is not None and broken[1] is None and broken[2] is not None
+
+
+def test_the_surface_distance_follows_the_truth(sequence) -> None:  # type: ignore[no-untyped-def]
+    sweep, frames, _ = sequence
+    model = _model(frames)
+    measured = surface_distances(sweep.clouds, model)
+    camera_in_world = sweep.truth @ model.T_tof_camera
+    truth = -camera_in_world[:, 2, 3] / camera_in_world[:, 2, 2]  # to the plate z = 0
+    assert np.median(np.abs(measured - truth)) < 0.001
+
+
+def test_edges_agree_with_the_truth_and_tie_only_what_the_camera_sees(sequence) -> None:  # type: ignore[no-untyped-def]
+    sweep, frames, _ = sequence
+    model = _model(frames)
+    factors, registered = camera_factors(
+        frames.frames, frames.timestamps, sweep.clouds, np.arange(len(sweep.clouds), dtype=float), model
+    )
+    assert registered == len(frames.frames) - 1
+    edges = factors.edges(sweep.truth)
+    assert len(edges) == len(sweep.clouds) - 1
+    chi2 = []
+    for source, target, X, information in edges:
+        assert np.linalg.matrix_rank(information, tol=1e-6 * np.abs(information).max()) == 3
+        zeta = _linearised(np.linalg.inv(X) @ np.linalg.inv(sweep.truth[target]) @ sweep.truth[source])
+        chi2.append(zeta @ information @ zeta)
+    assert np.mean(chi2) < 3 * 3  # three measured directions a step, errors as modelled
+
+
+def test_the_camera_cuts_the_drift_and_a_gap_falls_back_to_the_tof(sequence) -> None:  # type: ignore[no-untyped-def]
+    sweep, frames, shape = sequence
+    model = _model(frames)
+    times = np.arange(len(sweep.clouds), dtype=float)
+    factors, _ = camera_factors(frames.frames, frames.timestamps, sweep.clouds, times, model)
+    path = sweep.path_length_m
+    without = absolute_trajectory_error(
+        register_clouds(sweep.clouds, sweep.odometry, shape=shape).poses, sweep.truth
+    )
+    fused = register_clouds(sweep.clouds, sweep.odometry, shape=shape, camera=factors)
+    with_camera = absolute_trajectory_error(fused.poses, sweep.truth)
+    assert with_camera < 0.4 * without and 100 * with_camera / path < 0.5
+    assert fused.camera_steps[1:].all() and not fused.camera_steps[0]
+    gap = CameraFactors(
+        model, [None if 10 <= k < 16 else s for k, s in enumerate(factors.steps)], factors.distances_m
+    )
+    gapped = register_clouds(sweep.clouds, sweep.odometry, shape=shape, camera=gap)
+    assert absolute_trajectory_error(gapped.poses, sweep.truth) < without
