@@ -35,16 +35,7 @@ def _measure(kind: str, seed: int, clouds: int) -> dict[str, float]:
     config = SceneSweepConfig(kind=kind, seed=seed, clouds=clouds)
     sweep, tof = scene_sweep(config), scene_camera(config)
     frames = camera_sweep(sweep.truth, tof.T_robot_tof, seed, tof.structure.mesh)
-    c = frames.camera
-    model = CameraModel(
-        int(c["width"]),  # type: ignore[call-overload]
-        int(c["height"]),  # type: ignore[call-overload]
-        float(c["fx"]),  # type: ignore[arg-type]
-        float(c["fy"]),  # type: ignore[arg-type]
-        float(c["cx"]),  # type: ignore[arg-type]
-        float(c["cy"]),  # type: ignore[arg-type]
-        np.asarray(c["T_tof_camera"], np.float64),
-    )
+    model = CameraModel.of(frames.camera)
     shape = (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
     n = len(sweep.clouds)
     times = np.arange(n, dtype=float)

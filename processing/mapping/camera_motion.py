@@ -21,8 +21,9 @@ both are carried into the ToF's frame by the camera's mounting (``T_tof_camera``
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -47,6 +48,19 @@ class CameraModel:
     cx: float
     cy: float
     T_tof_camera: NDArray[np.float64]
+
+    @classmethod
+    def of(cls, spec: Mapping[str, Any]) -> CameraModel:
+        """The model of a ``camera.json`` (its intrinsics and ``T_tof_camera``)."""
+        return cls(
+            int(spec["width"]),
+            int(spec["height"]),
+            float(spec["fx"]),
+            float(spec["fy"]),
+            float(spec["cx"]),
+            float(spec["cy"]),
+            np.asarray(spec["T_tof_camera"], np.float64),
+        )
 
 
 @dataclass(frozen=True)

@@ -113,17 +113,8 @@ def camera_factors(
     them."""
     from processing.mapping.camera_motion import CameraModel, camera_factors
 
-    c = given.camera
-    width, height = int(c["width"]), int(c["height"])  # type: ignore[call-overload]
-    model = CameraModel(
-        width,
-        height,
-        float(c["fx"]),  # type: ignore[arg-type]
-        float(c["fy"]),  # type: ignore[arg-type]
-        float(c["cx"]),  # type: ignore[arg-type]
-        float(c["cy"]),  # type: ignore[arg-type]
-        np.asarray(c["T_tof_camera"], np.float64),
-    )
+    model = CameraModel.of(given.camera)
+    width, height = model.width, model.height
     frames = read_frames(given.files, width, height)
     factors, registered = camera_factors(frames, given.times, clouds, cloud_times, model)
     distances, steps = factors.distances_m, factors.steps
