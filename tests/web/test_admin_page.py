@@ -55,7 +55,10 @@ def test_robots_accounts_import_and_jobs(live_server: LiveServer, tmp_path: Path
         browser = launch(pw)
         page = browser.new_page(viewport={"width": 1280, "height": 900})
         watch_errors(page, errors, [])
-        page.on("dialog", lambda d: d.accept())
+        def accept(dialog) -> None:  # type: ignore[no-untyped-def]
+            dialog.accept()
+
+        page.on("dialog", accept)
         page.goto(live_server.url + "/#/admin")
         page.wait_for_selector("#robots tr[data-robot='test-robot']", timeout=15000)
         assert page.is_visible("#nav-admin")
@@ -83,6 +86,23 @@ def test_robots_accounts_import_and_jobs(live_server: LiveServer, tmp_path: Path
         sid = page.inner_text("#session-detail h3").split(" — ")[-1]
         jobs = httpx.get(f"{live_server.url}/api/sessions/{sid}/jobs").json()
         assert [j["state"] for j in jobs if j["kind"] == "export"][-1] == "done"
+        # a finished stage asks before it runs again: declined, nothing is queued
+        asked: list[str] = []
+
+        def decline(dialog) -> None:  # type: ignore[no-untyped-def]
+            asked.append(dialog.message)
+            dialog.dismiss()
+
+        page.wait_for_selector("#jobs-bar button[data-job=export]", timeout=20000)
+        page.remove_listener("dialog", accept)
+        page.once("dialog", decline)
+        page.click("#jobs-bar button[data-job=export]")
+        page.wait_for_timeout(500)
+        assert asked and "again" in asked[0] and "replaced" in asked[0]
+        again = httpx.get(f"{live_server.url}/api/sessions/{sid}/jobs").json()
+        assert len([j for j in again if j["kind"] == "export"]) == len(
+            [j for j in jobs if j["kind"] == "export"]
+        )
         # the first account switches sign-in on: the page asks for it
         page.goto(live_server.url + "/#/admin")
         page.wait_for_selector("#add-user", timeout=10000)

@@ -1,6 +1,7 @@
 // The session page's processing bar: each stage's state and a button to run it again
-// (operator role), the running job's progress (wherever its worker is) and a button to
-// cancel it; the page reloads the session when the job is done.
+// (operator role; a finished stage asks first, its results being replaced), the running
+// job's progress (wherever its worker is) and a button to cancel it; the page reloads the
+// session when the job is done.
 import { api, apiJSON, el, text } from "./api.js";
 
 const STAGES = [
@@ -25,7 +26,14 @@ export function jobsBar(s, reload) {
     const state = j ? `${j.state}${j.error ? `: ${j.error}` : ""}` : "not run";
     return el(
       "button",
-      { dataset: { job: kind }, title: `${label}: ${state}`, onclick: () => run(kind, label) },
+      {
+        dataset: { job: kind },
+        title: `${label}: ${state}`,
+        onclick: () => {
+          const again = `Run the ${label} again? Its results are replaced when the new run finishes.`;
+          if (latest(kind)?.state !== "done" || window.confirm(again)) run(kind, label);
+        },
+      },
       `${j?.state === "done" ? "Re-run" : "Run"} ${label}`,
     );
   });
