@@ -147,6 +147,9 @@ def test_after_the_session_ends_the_page_shows_no_stale_video_or_telemetry(
         browser, page = open_page(pw, live_server.url, errors, 1440, 900)
         wait_js(page, "document.querySelector('#camera').dataset.live === 'true'")
         page.wait_for_selector("#telemetry dt", timeout=10000)
+        if page.inner_text("#take-control") != "Release control":
+            page.click("#take-control")
+        wait_js(page, "document.querySelector('#take-control').textContent === 'Release control'")
         page.on("dialog", lambda d: d.accept())
         page.click("#end-session")
         wait_js(page, "document.querySelector('#camera').dataset.live === 'false'", timeout=20000)
@@ -154,6 +157,9 @@ def test_after_the_session_ends_the_page_shows_no_stale_video_or_telemetry(
         assert page.inner_text("#video-info") == ""
         assert "no robot connected" in page.inner_text("#telemetry")
         assert "battery" not in page.inner_text("#telemetry")
+        # nothing left to release: the control button offers control, disabled
+        assert page.inner_text("#take-control") == "Take control"
+        assert page.is_disabled("#take-control")
         for pill in ("#robot-state", "#control-state"):
             assert page.inner_text(pill) == "no robot connected"
             assert "ok" not in (page.get_attribute(pill, "class") or "")

@@ -103,6 +103,7 @@ function refreshControl() {
   if (!r) {
     text(state, "no robot connected");
     state.classList.remove("ok");
+    text(button, "Take control"); // nothing is held on a robot that is gone
     button.disabled = true;
     return;
   }
@@ -328,6 +329,8 @@ function onEvent(ev) {
     const r = robot(ev.session_id);
     r.connected = false;
     r.lastTelemetry = null;
+    r.holder = null; // an ended session is driven by nobody
+    r.holderId = null;
     const wasSelected = ev.session_id === selected;
     refreshRobots();
     if (wasSelected && !selected) blankCamera("session ended: no robot connected");
