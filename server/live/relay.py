@@ -56,7 +56,9 @@ class LiveRelay:
             and isinstance(pose, dict)
             and message.type in (MessageType.FRAME, MessageType.TELEMETRY)
         ):
-            self.scenes.live.show_pose(sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"]))
+            self.scenes.live.show_pose(
+                sid, float(pose["x"]), float(pose["y"]), float(pose["yaw"]), robot
+            )
         if message.type is MessageType.FRAME:
             header = FrameHeader(
                 session_id=sid, seq=message.seq, t=message.timestamp, pose=message.meta.get("pose")

@@ -90,6 +90,7 @@ class Scene3D:
         # called with a defect's id when a browser clicks its marker (the dashboard selects it)
         self.on_select: Callable[[int], None] | None = None
         self._title = self.server.gui.add_markdown("**No session shown yet.**")
+        self._live_label = ""  # the live session's robot (its session id without a name)
 
     @property
     def port(self) -> int:
@@ -183,10 +184,11 @@ class Scene3D:
                 client.camera.position = (d.x, d.y - 0.4 * span, -0.9 * span)
         return True
 
-    def show_pose(self, session_id: str, x: float, y: float, yaw: float) -> None:
+    def show_pose(self, session_id: str, x: float, y: float, yaw: float, robot: str = "") -> None:
         """Move the robot marker (and grow its trail) for the session being shown; a new
-        live session takes over the view. At most ``POSE_HZ`` updates a second reach the
-        browsers (a robot may report far more often)."""
+        live session takes over the view, titled by its ``robot``'s name. At most
+        ``POSE_HZ`` updates a second reach the browsers (a robot may report far more
+        often)."""
         now = time.monotonic()
         if session_id == self.session_id and now - self._last_pose_t < 1.0 / POSE_HZ:
             return
@@ -198,7 +200,8 @@ class Scene3D:
                 self.live_map_points = 0
                 self.live_trajectory_poses = 0
                 self.server.scene.reset()
-                self._title.content = f"**Live: {session_id}**"
+                self._live_label = robot or session_id
+                self._title.content = f"**Live: {self._live_label}**"
             q = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
             self.server.scene.add_frame(
                 "/robot", wxyz=q, position=(x, y, -0.05), axes_length=0.08, axes_radius=0.004
@@ -250,7 +253,7 @@ class Scene3D:
                 )
                 self.live_trajectory_poses = len(path)
             self._title.content = (
-                f"**Live: {session_id}** — map of {clouds} clouds, {len(pts)} points"
+                f"**Live: {self._live_label}** — map of {clouds} clouds, {len(pts)} points"
             )
             if not self.live_map_points:
                 self._frame_view(pts)

@@ -55,6 +55,7 @@ def test_robots_accounts_import_and_jobs(live_server: LiveServer, tmp_path: Path
         browser = launch(pw)
         page = browser.new_page(viewport={"width": 1280, "height": 900})
         watch_errors(page, errors, [])
+
         def accept(dialog) -> None:  # type: ignore[no-untyped-def]
             dialog.accept()
 

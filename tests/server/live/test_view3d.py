@@ -156,6 +156,10 @@ def test_the_map_grows_live_during_a_session(live_server: LiveServer) -> None:
         time.sleep(0.2)
     assert scene.live_map_points > 1000
     assert "map of" in scene._title.content
+    # titled by the robot's name, not the session's id
+    robot = httpx.get(f"{live_server.url}/api/sessions/{scene.session_id}").json()["robot_name"]
+    assert robot and scene._title.content.startswith(f"**Live: {robot}**")
+    assert scene.session_id not in scene._title.content
 
 
 def test_a_defects_3d_text_gives_its_one_position_and_its_box(live_server: LiveServer) -> None:
