@@ -110,7 +110,13 @@ def test_drive_by_keyboard_with_deadman_estop_and_one_driver(
             "document.querySelector('#command-result').textContent.includes('emergency stop')",
             timeout=5000,
         )
+        # held on, and let go, the page keeps saying why the robot does not move
+        for _ in range(8):
+            page.wait_for_timeout(100)
+            assert "refused" in page.inner_text("#command-result")
         page.keyboard.up("ArrowUp")
+        page.wait_for_timeout(400)
+        assert "emergency stop" in page.inner_text("#command-result")
         page.click("button[data-cmd=resume]")
         wait_until(lambda: not latest_telemetry(url, sid)["estop"], 2, "the e-stop reset")
         # a second operator's page watches, may not drive, may stop

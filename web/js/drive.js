@@ -14,6 +14,8 @@ const robots = new Map(); // session id -> {connected, name, holder, holderId, l
 const held = new Set(); // drive inputs held: forward, back, left, right (keys and pad buttons)
 let selected = null;
 let moving = false;
+let refusedAt = 0; // when the robot last refused a command
+const REFUSAL_KEPT_MS = 3000;
 let drawing = false;
 const frameTimes = [];
 
@@ -309,9 +311,15 @@ function onEvent(ev) {
     stats.command.push(ev.latency_ms);
     if (stats.command.length > 5000) stats.command.shift();
     if (!ev.accepted && ev.reason) {
+      refusedAt = Date.now();
       text(document.getElementById("command-result"), `robot refused ${ev.cmd}: ${ev.reason}`);
+    } else if (ev.accepted && ev.cmd !== "stop") {
+      refusedAt = 0;
     }
   } else if (ev.type === EVENT.COMMAND_RESULT) {
+    // a robot's refusal (e-stopped, say) stays in view while the commands it refuses keep
+    // going out: "sent" only says the station passed them on
+    if (ev.ok && Date.now() - refusedAt < REFUSAL_KEPT_MS) return;
     text(document.getElementById("command-result"), ev.ok ? `${ev.cmd} sent` : `${ev.cmd || "command"}: ${ev.error}`);
   } else if (ev.type === EVENT.TELEMETRY) {
     const r = robot(ev.session_id);
