@@ -31,6 +31,17 @@ OVERFLOWING = """() => [...document.querySelectorAll('body *')]
     + ` ${Math.round(e.getBoundingClientRect().right)}`)"""
 
 
+# the mosaic viewer's zoom buttons that the legend (or anything laid over the mosaic) covers
+COVERED_BUTTONS = """() => {
+  const legend = document.querySelector('.mosaic-legend').getBoundingClientRect();
+  return [...document.querySelectorAll('#mosaic-viewer [title]')]
+    .filter(b => ['Zoom in', 'Zoom out', 'Go home', 'Toggle full page'].includes(b.title))
+    .filter(b => { const r = b.getBoundingClientRect();
+      return r.width > 0 && r.left < legend.right && legend.left < r.right
+        && r.top < legend.bottom && legend.top < r.bottom; })
+    .map(b => b.title)}"""
+
+
 @pytest.fixture
 def settings(settings: Settings) -> Settings:
     return settings.model_copy(update={"auto_process": False, "view3d": False})
@@ -78,6 +89,12 @@ def test_no_page_scrolls_sideways_at_any_width(
             wrong += widths_over(page, f"{live_server.url}/#/admin", "#robots tr[data-robot]")
             wrong += widths_over(page, f"{live.url}/#/sessions", "#sessions tbody tr")
             wrong += widths_over(page, f"{live.url}/#/session/{sid}", "#mosaic-viewer[data-ready]")
+            for width in WIDTHS:  # the mosaic's legend leaves its zoom buttons free
+                page.set_viewport_size({"width": width, "height": 800})
+                page.wait_for_timeout(200)
+                covered = page.evaluate(COVERED_BUTTONS)
+                if covered:
+                    wrong.append(f"the mosaic legend covers {covered} at {width} px")
             wrong += widths_over(page, f"{live.url}/#/structures", "#new-structure")
         finally:
             browser.close()
