@@ -219,47 +219,36 @@ def cloud_steps(
 def frame_deltas(
     frames: Sequence[NDArray[np.uint8]],
     predicted_px: Sequence[NDArray[np.floating]] | None = None,
-    workers: int = 2,
 ) -> list[NDArray[np.float64] | None]:
     """Each consecutive frame pair's registration (dx, dy px, dθ: frame k + 1 in frame k's
     centred pixels; None where it fails), searched from the last pair's motion (the robot
     drives smoothly), failing that from the pair's phase correlation (any shift), and last
-    from ``predicted_px`` (the odometry's). The sequence is split into ``workers`` runs
-    registered at once (OpenCV and NumPy leave the interpreter's lock)."""
-    from concurrent.futures import ThreadPoolExecutor
-
+    from ``predicted_px`` (the odometry's)."""
     from processing.stitching.registration import Level, register_pair
 
     levels = [Level.of(np.asarray(f, np.float32)) for f in frames]
+    out: list[NDArray[np.float64] | None] = []
+    last = np.zeros(3)
     turns = tuple(np.radians(np.arange(-TURN_SEARCH_DEG, TURN_SEARCH_DEG + 1e-9, 2.5)))
+    for k in range(len(frames) - 1):
 
-    def guesses(k: int, last: NDArray[np.float64]) -> Iterator[Guess]:
-        yield last, (0.0,)
-        yield last, turns
-        (sx, sy), _ = cv2.phaseCorrelate(levels[k].full.image, levels[k + 1].full.image)
-        yield np.array([-sx, -sy, last[2]]), turns
-        if predicted_px is not None:
-            yield np.asarray(predicted_px[k], np.float64), turns
+        def guesses(k: int = k, last: NDArray[np.float64] = last) -> Iterator[Guess]:
+            yield last, (0.0,)
+            yield last, turns
+            (sx, sy), _ = cv2.phaseCorrelate(levels[k].full.image, levels[k + 1].full.image)
+            yield np.array([-sx, -sy, last[2]]), turns
+            if predicted_px is not None:
+                yield np.asarray(predicted_px[k], np.float64), turns
 
-    def run(pairs: range) -> list[NDArray[np.float64] | None]:
-        out: list[NDArray[np.float64] | None] = []
-        last = np.zeros(3)
-        for k in pairs:
-            found = None
-            for guess, angles in guesses(k, last):
-                found = register_pair(levels[k], levels[k + 1], guess, angles=angles)
-                if found is not None:
-                    break
-            out.append(None if found is None else found[0])
+        found = None
+        for guess, angles in guesses():
+            found = register_pair(levels[k], levels[k + 1], guess, angles=angles)
             if found is not None:
-                last = found[0]
-        return out
-
-    n = len(frames) - 1
-    cuts = np.linspace(0, max(n, 0), max(1, min(workers, n)) + 1).astype(int)
-    runs = [range(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
-    with ThreadPoolExecutor(len(runs)) as pool:
-        return [d for part in pool.map(run, runs) for d in part]
+                break
+        out.append(None if found is None else found[0])
+        if found is not None:
+            last = found[0]
+    return out
 
 
 @dataclass(frozen=True)
