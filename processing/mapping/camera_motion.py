@@ -77,6 +77,7 @@ class CameraParams:
     # the surface is measured this near the camera: farther off a plate ends, steps or
     # bends, and a far point's lever tilts the plane under the camera
     near_m: float = 1.0
+    max_points: int = 5000  # of a cloud, for its planes
     # a camera on a wheeled robot stays within this fraction of its usual height
     max_height_change: float = 0.06
 

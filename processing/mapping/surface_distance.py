@@ -18,13 +18,13 @@ from processing.mapping.camera_motion import CameraModel, CameraParams
 
 
 def largest_plane(
-    pts: NDArray[np.float64], threshold_m: float, iterations: int = 200
+    pts: NDArray[np.float64], threshold_m: float, iterations: int = 100
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """The plane (unit normal n, offset d: n·p + d = 0) with the most of ``pts`` (K, 3)
     within ``threshold_m`` (RANSAC, seeded: the same cloud gives the same plane), refitted
     to its inliers by least squares; and those inliers (K,)."""
     rng = np.random.default_rng(0)
-    sample = pts[rng.choice(len(pts), min(len(pts), 4000), replace=False)]
+    sample = pts[rng.choice(len(pts), min(len(pts), 2000), replace=False)]
     trios = sample[rng.integers(len(sample), size=(iterations, 3))]
     normals = np.cross(trios[:, 1] - trios[:, 0], trios[:, 2] - trios[:, 0])
     lengths = np.linalg.norm(normals, axis=1)
@@ -84,6 +84,8 @@ def surface_distance(
     with np.errstate(invalid="ignore"):
         near = np.linalg.norm(pts - t, axis=1) < params.near_m  # NaN rows compare False
     pts = pts[near]
+    # an evenly spread sample: thousands of returns fix a plane to a fraction of a millimetre
+    pts = pts[:: max(1, len(pts) // params.max_points)]
     best: tuple[float, float] | None = None  # (gap to the foot, distance)
     for _ in range(3):  # the largest planes in turn: of those facing the camera, the one
         # whose points come nearest the optical axis' foot (a plate on a plate: a step)
