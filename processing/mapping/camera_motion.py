@@ -12,11 +12,13 @@ times are chained and interpolated to the clouds' times (never paired by index):
 pair's step F(tᵢ₋₁)⁻¹ F(tᵢ) with the chain's covariance.
 
 In the graph the step is an edge between the two clouds' nodes whose information covers
-only what the camera sees: the foot's two coordinates and the heading (J Σ⁻¹ Jᵀ with J
+only what the camera sees: the foot's two coordinates and the heading (Jᵀ Σ⁻¹ J with J
 the measurement's Jacobian, so a tilt, which moves the foot by Z·θ, is tied to the
 translation as the image ties them); height, roll and pitch stay the ToF's. The edge's
 transformation is the current estimate moved just enough to agree with the measurement;
-both are carried into the ToF's frame by the camera's mounting (``T_tof_camera``).
+both are carried into the ToF's frame by the camera's mounting (``T_tof_camera``). The
+same steps, taken along the surface, are the clouds' initial poses
+(:meth:`CameraFactors.guided`), so each cloud's ICP starts within millimetres.
 """
 
 from __future__ import annotations
