@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import uuid
 
+import httpx
 import pytest
 
 from robot_link.protocol import decode_message
@@ -95,7 +96,18 @@ def test_no_page_scrolls_sideways_at_any_width(
                 covered = page.evaluate(COVERED_BUTTONS)
                 if covered:
                     wrong.append(f"the mosaic legend covers {covered} at {width} px")
-            wrong += widths_over(page, f"{live.url}/#/structures", "#new-structure")
+            # a structure with the long names and places real ones have
+            httpx.post(
+                f"{live_server.url}/api/structures",
+                json={
+                    "name": "Interstate 5 Columbia River Bridge, northbound",
+                    "owner_id": "WA-0005-0000-1234-5678",
+                    "location": "Vancouver WA to Portland OR, span 3 over the shipping channel",
+                },
+            ).raise_for_status()
+            wrong += widths_over(
+                page, f"{live_server.url}/#/structures", "#structures tr[data-structure]"
+            )
         finally:
             browser.close()
     assert wrong == []

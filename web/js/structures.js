@@ -62,26 +62,31 @@ export async function showStructures() {
   root.replaceChildren(
     el("h2", {}, "Structures"),
     createForm(),
+    // a narrow screen scrolls the table, not the page
     el(
-      "table",
-      { id: "structures" },
-      el("tr", {}, ...["Name", "Owner's id", "Location", "Visits", "Added"].map((h) => el("th", {}, h))),
-      ...structures.map((s) =>
-        el(
-          "tr",
-          {
-            dataset: { structure: s.id },
-            tabindex: "0",
-            onclick: () => open(s),
-            onkeydown: (e) => {
-              if (e.key === "Enter") open(s);
+      "div",
+      { class: "table-scroll" },
+      el(
+        "table",
+        { id: "structures" },
+        el("tr", {}, ...["Name", "Owner's id", "Location", "Visits", "Added"].map((h) => el("th", {}, h))),
+        ...structures.map((s) =>
+          el(
+            "tr",
+            {
+              dataset: { structure: s.id },
+              tabindex: "0",
+              onclick: () => open(s),
+              onkeydown: (e) => {
+                if (e.key === "Enter") open(s);
+              },
             },
-          },
-          el("td", {}, s.name),
-          el("td", {}, s.owner_id || "–"),
-          el("td", {}, s.location || "–"),
-          el("td", { class: "num" }, String(s.sessions)),
-          el("td", {}, new Date(s.created_at).toLocaleDateString()),
+            el("td", {}, s.name),
+            el("td", {}, s.owner_id || "–"),
+            el("td", {}, s.location || "–"),
+            el("td", { class: "num" }, String(s.sessions)),
+            el("td", {}, new Date(s.created_at).toLocaleDateString()),
+          ),
         ),
       ),
     ),
