@@ -30,6 +30,9 @@ class CoverageParams:
     min_frames_for_sharpness: int = 5  # fewer frames: no median to compare with
     dark_level: int = 64  # a frame whose 95th-percentile grey is below this is too dark
     cells_per_footprint: int = 40  # grid cell: the footprint's shorter side over this
+    # a hole worth listing is this share of the footprint's shorter side across at its
+    # widest (a sliver between two footprints is none)
+    min_hole_width: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -44,10 +47,11 @@ class FrameQuality:
 class Hole:
     """A part of the surface no counting frame imaged (metres, world frame)."""
 
-    x_m: float  # centroid
+    x_m: float  # the point of the hole farthest from anything imaged
     y_m: float
     bbox_m: tuple[float, float, float, float]  # x, y, w, h
     area_m2: float
+    centroid_m: tuple[float, float] = (0.0, 0.0)  # may lie outside the hole (a C-shape)
 
 
 @dataclass
@@ -148,7 +152,11 @@ def coverage_map(
         outline = cast(NDArray[np.int32], cv2.convexHull(np.vstack([cells(p) for p in polys])))
     cv2.fillPoly(surface, [outline], 1)
     result = Coverage((float(lo[0]), float(lo[1])), cell, imaged.astype(bool), surface.astype(bool))
-    result.holes = find_holes(result, min_cells=params.cells_per_footprint // 4)
+    result.holes = find_holes(
+        result,
+        min_cells=params.cells_per_footprint // 4,
+        min_width_cells=params.min_hole_width * params.cells_per_footprint,
+    )
     return result
 
 
@@ -157,25 +165,39 @@ def hole_mask(cov: Coverage) -> NDArray[np.bool_]:
     return cov.surface & ~cov.imaged
 
 
-def find_holes(cov: Coverage, min_cells: int = 1) -> list[Hole]:
-    """Connected parts of the surface not imaged (at least ``min_cells`` cells each),
-    largest first."""
-    n, _, stats, centroids = cv2.connectedComponentsWithStats(
-        hole_mask(cov).astype(np.uint8), connectivity=4
-    )
+def find_holes(cov: Coverage, min_cells: int = 1, min_width_cells: float = 0.0) -> list[Hole]:
+    """Connected parts of the surface not imaged, largest first: each at least
+    ``min_cells`` cells and ``min_width_cells`` across at its widest (the diameter of the
+    largest disc it holds: a sliver between two footprints is no hole), placed at that
+    disc's centre, the point of the hole farthest from anything imaged (a C-shaped hole's
+    centroid can lie in the lane it wraps)."""
+    mask = hole_mask(cov).astype(np.uint8)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=4)
+    # distance of each hole cell to the nearest cell that is not hole (padded: the grid's
+    # edge is no hole's border)
+    inside = cv2.distanceTransform(
+        cv2.copyMakeBorder(mask, 1, 1, 1, 1, cv2.BORDER_REPLICATE), cv2.DIST_L2, 5
+    )[1:-1, 1:-1]
     ox, oy = cov.origin_m
     holes = []
     for i in range(1, n):
         x, y, w, h, area = stats[i]
         if area < max(min_cells, 1):
             continue
-        cx, cy = centroids[i]
+        here = np.where(labels[y : y + h, x : x + w] == i, inside[y : y + h, x : x + w], 0)
+        r, c = np.unravel_index(int(np.argmax(here)), here.shape)
+        if 2 * float(here[r, c]) < min_width_cells:
+            continue
         holes.append(
             Hole(
-                ox + (cx + 0.5) * cov.cell_m,
-                oy + (cy + 0.5) * cov.cell_m,
+                ox + (x + c + 0.5) * cov.cell_m,
+                oy + (y + r + 0.5) * cov.cell_m,
                 (ox + x * cov.cell_m, oy + y * cov.cell_m, w * cov.cell_m, h * cov.cell_m),
                 float(area) * cov.cell_m**2,
+                (
+                    ox + (centroids[i][0] + 0.5) * cov.cell_m,
+                    oy + (centroids[i][1] + 0.5) * cov.cell_m,
+                ),
             )
         )
     return sorted(holes, key=lambda h: -h.area_m2)

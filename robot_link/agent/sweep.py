@@ -27,10 +27,11 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.coverage import coverage_map
+from processing.coverage import CoverageParams, coverage_map
 from processing.poses import wrap_angle
 
 FRONT = (0, 1)  # front_left, front_right (IR_NAMES order)
+EVERY_GAP = CoverageParams(min_hole_width=0.0)
 
 
 class SweepStopped(Exception):
@@ -142,24 +143,29 @@ class CoverageSweep:
             return
         while len(visited) < self.p.max_hole_visits:
             footprints = self.pilot.frame_footprints()
-            cover = coverage_map(footprints, [True] * len(footprints), surface_outline=outline)
-            holes = [
-                h
-                for h in cover.holes
-                if all(math.hypot(h.x_m - vx, h.y_m - vy) > 0.02 for vx, vy in visited)
-            ]
-            if not holes:
-                return
-            hole = holes[0]
-            visited.append((hole.x_m, hole.y_m))
-            self.progress.holes_visited = len(visited)
-            self.progress.phase = (
-                f"visiting hole {len(visited)} at x {hole.x_m:.2f} m, y {hole.y_m:.2f} m"
+            # every gap counts for the robot, slivers too: it is there to close them
+            cover = coverage_map(
+                footprints, [True] * len(footprints), EVERY_GAP, surface_outline=outline
             )
+            # the robot drives to each hole's centroid and captures there
+            spots = [
+                h.centroid_m
+                for h in cover.holes
+                if all(
+                    math.hypot(h.centroid_m[0] - vx, h.centroid_m[1] - vy) > 0.02
+                    for vx, vy in visited
+                )
+            ]
+            if not spots:
+                return
+            hx, hy = spots[0]
+            visited.append((hx, hy))
+            self.progress.holes_visited = len(visited)
+            self.progress.phase = f"visiting hole {len(visited)} at x {hx:.2f} m, y {hy:.2f} m"
             x, y, _ = self.pilot.pose
-            heading = math.atan2(hole.y_m - y, hole.x_m - x)
+            heading = math.atan2(hy - y, hx - x)
             await self.rotate_to(heading)
-            await self.drive(heading, float(np.hypot(hole.x_m - x, hole.y_m - y)))
+            await self.drive(heading, float(np.hypot(hx - x, hy - y)))
             await self.pilot.capture()
 
     async def to_edge(self, heading: float, line: NDArray[np.float64] | None = None) -> None:

@@ -77,3 +77,22 @@ def test_blurred_dark_and_coarse_frames_do_not_count(structure) -> None:  # type
     assert sorted(h.x_m for h in cov.holes) == pytest.approx(
         [poses[3][0], poses[5][0]], abs=along * 0.1
     )
+
+
+def test_a_hole_is_placed_where_nothing_was_imaged_and_slivers_are_no_holes() -> None:
+    """A lane out, a turn, half a lane back: the hull spans the strip between the lanes and
+    the half lane not driven, an L around the lane back. The hole is reported at a point
+    no footprint covers (its centroid lies in the lane back); two frames a twentieth of a
+    footprint apart leave a sliver, no hole."""
+    poses = [(x, 0.0, 0.0) for x in np.arange(0.0, 1.0, 0.05)]
+    poses += [(1.0 + 0.2 * np.sin(a), 0.2 - 0.2 * np.cos(a), a) for a in np.linspace(0, np.pi, 9)]
+    poses += [(x, 0.40, np.pi) for x in np.arange(1.0, 0.45, -0.05)]
+    prints = [footprint(np.array(p), PX_PER_M, SIZE) for p in poses]
+    cov = coverage_map(prints, [True] * len(prints))
+    assert cov.holes, "the strip between the lanes is not imaged"
+    spot = (float(cov.holes[0].x_m), float(cov.holes[0].y_m))
+    for p in prints:
+        assert cv2.pointPolygonTest(p.astype(np.float32), spot, False) < 0
+    w = np.linalg.norm(prints[0][1] - prints[0][0])
+    pair = [footprint(np.array([x, 0.0, 0.0]), PX_PER_M, SIZE) for x in (0.0, 1.05 * w)]
+    assert coverage_map(pair, [True, True]).holes == []
