@@ -298,3 +298,19 @@ def se3_log(T: NDArray[np.floating]) -> NDArray[np.float64]:
         theta = float(np.arccos(cos))
         w = vee if theta < 1e-8 else vee * (theta / np.sin(theta))
     return np.concatenate([w, np.asarray(T[:3, 3], dtype=np.float64)])
+
+
+def interpolate_poses(
+    times: NDArray[np.floating], poses: NDArray[np.floating], at: NDArray[np.floating]
+) -> NDArray[np.float64]:
+    """Poses (4, 4) at times ``at`` between the (N, 4, 4) ``poses`` at ``times``: rotation
+    slerped, translation linear."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    poses = np.asarray(poses, np.float64)
+    at = np.clip(np.asarray(at, np.float64), times[0], times[-1])
+    out = np.tile(np.eye(4), (len(at), 1, 1))
+    out[:, :3, :3] = Slerp(times, Rotation.from_matrix(poses[:, :3, :3]))(at).as_matrix()
+    for k in range(3):
+        out[:, k, 3] = np.interp(at, times, poses[:, k, 3])
+    return out

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.poses import se3_adjoint_inverse, se3_exp, wrap_angle
+from processing.poses import compose_se2, relative_se2, se3_adjoint_inverse, se3_exp, wrap_angle
 
 Guess = tuple[NDArray[np.float64], tuple[float, ...]]  # (dx, dy px, dθ) and turns to search
 # a pair the last motion does not predict is searched over this much more turn (a robot
@@ -137,19 +137,6 @@ def camera_edge(
     return T_tc @ X @ np.linalg.inv(T_tc), 0.5 * (info_tof + info_tof.T)
 
 
-def _compose(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """SE(2) a ⊕ b of (x, y, ψ)."""
-    c, s = np.cos(a[2]), np.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
-
-
-def _between(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """SE(2) a⁻¹ ⊕ b."""
-    c, s = np.cos(a[2]), np.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, float(wrap_angle(b[2] - a[2]))])
-
-
 def foot_steps_px_to_m(
     deltas_px: Sequence[NDArray[np.floating] | None],
     distances_m: NDArray[np.floating],
@@ -190,7 +177,7 @@ def cloud_steps(
             segment[k + 1] = segment[k] + 1
             continue
         segment[k + 1] = segment[k]
-        feet[k + 1] = _compose(feet[k], step.delta)
+        feet[k + 1] = compose_se2(feet[k], step.delta)
         var[k + 1] = var[k] + np.diag(step.cov)
 
     def at(t: float) -> tuple[int, NDArray[np.float64], NDArray[np.float64]] | None:
@@ -202,8 +189,8 @@ def cloud_steps(
         if segment[k + 1] != segment[k]:
             return None
         a = (t - times[k]) / (times[k + 1] - times[k])
-        step = _between(feet[k], feet[k + 1])
-        return int(segment[k]), _compose(feet[k], a * step), var[k] + a * (var[k + 1] - var[k])
+        step = relative_se2(feet[k], feet[k + 1])
+        return int(segment[k]), compose_se2(feet[k], a * step), var[k] + a * (var[k + 1] - var[k])
 
     out: list[FootStep | None] = []
     ends = [at(float(t)) for t in cloud_times]
@@ -211,7 +198,7 @@ def cloud_steps(
         if a is None or b is None or a[0] != b[0]:
             out.append(None)
             continue
-        delta = _between(a[1], b[1])
+        delta = relative_se2(a[1], b[1])
         v = np.abs(b[2] - a[2])
         # a heading error carried along the step moves its end sideways
         v_t = max(v[0], v[1]) + v[2] * float(delta[0] ** 2 + delta[1] ** 2)

@@ -20,7 +20,8 @@ import cv2
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation, Slerp
+
+from processing.poses import interpolate_poses
 
 
 @dataclass(frozen=True)
@@ -116,20 +117,6 @@ def plate_texture(
         bead = np.clip(1 - across / 0.004, 0, 1)
         grey += 50 * bead * (np.sin(np.asarray(y) / 0.0015) * 0.5 + 0.5)
     return np.clip(grey, 0, 255)
-
-
-def interpolate_poses(
-    times: NDArray[np.floating], poses: NDArray[np.floating], at: NDArray[np.floating]
-) -> NDArray[np.float64]:
-    """Poses (4, 4) at times ``at`` between the (N, 4, 4) ``poses`` at ``times``: rotation
-    slerped, translation linear."""
-    poses = np.asarray(poses, np.float64)
-    at = np.clip(np.asarray(at, np.float64), times[0], times[-1])
-    out = np.tile(np.eye(4), (len(at), 1, 1))
-    out[:, :3, :3] = Slerp(times, Rotation.from_matrix(poses[:, :3, :3]))(at).as_matrix()
-    for k in range(3):
-        out[:, k, 3] = np.interp(at, times, poses[:, k, 3])
-    return out
 
 
 class SurfaceView:
