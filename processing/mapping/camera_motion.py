@@ -216,23 +216,27 @@ def frame_deltas(
     from ``predicted_px`` (the odometry's)."""
     from processing.stitching.registration import Level, register_pair
 
-    levels = [Level.of(np.asarray(f, np.float32)) for f in frames]
+    turns = tuple(np.radians(np.arange(-TURN_SEARCH_DEG, TURN_SEARCH_DEG + 1e-9, 2.5)))
     out: list[NDArray[np.float64] | None] = []
     last = np.zeros(3)
-    turns = tuple(np.radians(np.arange(-TURN_SEARCH_DEG, TURN_SEARCH_DEG + 1e-9, 2.5)))
-    for k in range(len(frames) - 1):
+    following = Level.of(np.asarray(frames[0], np.float32)) if len(frames) else None
+    for k in range(len(frames) - 1):  # two frames prepared at a time: any length fits
+        current, following = following, Level.of(np.asarray(frames[k + 1], np.float32))
+        assert current is not None
 
-        def guesses(k: int = k, last: NDArray[np.float64] = last) -> Iterator[Guess]:
+        def guesses(
+            k: int = k, last: NDArray[np.float64] = last, a: Level = current, b: Level = following
+        ) -> Iterator[Guess]:
             yield last, (0.0,)
             yield last, turns
-            (sx, sy), _ = cv2.phaseCorrelate(levels[k].full.image, levels[k + 1].full.image)
+            (sx, sy), _ = cv2.phaseCorrelate(a.full.image, b.full.image)
             yield np.array([-sx, -sy, last[2]]), turns
             if predicted_px is not None:
                 yield np.asarray(predicted_px[k], np.float64), turns
 
         found = None
         for guess, angles in guesses():
-            found = register_pair(levels[k], levels[k + 1], guess, angles=angles)
+            found = register_pair(current, following, guess, angles=angles)
             if found is not None:
                 break
         out.append(None if found is None else found[0])

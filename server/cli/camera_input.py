@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 
@@ -89,21 +91,35 @@ def read_camera_input(folder: Path, cloud_times: np.ndarray) -> CameraInput:
     return CameraInput(files, times, camera)
 
 
-def read_frames(files: list[Path], width: int, height: int) -> list[np.ndarray]:
-    """The images as grey (H, W) uint8, each of camera.json's size."""
-    import cv2
+class Frames(Sequence[np.ndarray]):
+    """The images as grey (H, W) uint8, read when asked for (a long session's frames need
+    not fit in memory), each checked against camera.json's size."""
 
-    frames = []
-    for path in files:
+    def __init__(self, files: list[Path], width: int, height: int) -> None:
+        self.files, self.width, self.height = files, width, height
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    @overload
+    def __getitem__(self, k: int) -> np.ndarray: ...
+    @overload
+    def __getitem__(self, k: slice) -> list[np.ndarray]: ...
+    def __getitem__(self, k: int | slice) -> np.ndarray | list[np.ndarray]:
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        import cv2
+
+        path = self.files[k]
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise CommandError(f"{path}: not a readable image")
-        if image.shape != (height, width):
+        if image.shape != (self.height, self.width):
             raise CommandError(
-                f"{path}: {image.shape[1]}x{image.shape[0]} px, but camera.json says {width}x{height}"
+                f"{path}: {image.shape[1]}x{image.shape[0]} px, but camera.json says "
+                f"{self.width}x{self.height}"
             )
-        frames.append(image)
-    return frames
+        return image
 
 
 def camera_factors(
@@ -115,7 +131,7 @@ def camera_factors(
 
     model = CameraModel.of(given.camera)
     width, height = model.width, model.height
-    frames = read_frames(given.files, width, height)
+    frames = Frames(given.files, width, height)
     factors, registered = camera_factors(frames, given.times, clouds, cloud_times, model)
     distances, steps = factors.distances_m, factors.steps
     if not np.isfinite(distances).any():
