@@ -87,6 +87,7 @@ class Scene3D:
         self._info = self.server.gui.add_markdown("Click a defect marker to see it.")
         self.markers: dict[int, DefectMarker] = {}
         self.focused: int | None = None  # the defect the view last flew to
+        self.moment: tuple[float, float, float] | None = None  # the robot's pose on view
         # called with a defect's id when a browser clicks its marker (the dashboard selects it)
         self.on_select: Callable[[int], None] | None = None
         self._title = self.server.gui.add_markdown("**No session shown yet.**")
@@ -184,6 +185,35 @@ class Scene3D:
                 client.camera.position = (d.x, d.y - 0.4 * span, -0.9 * span)
         return True
 
+    def _robot(self, name: str, x: float, y: float, yaw: float) -> None:
+        """The robot's axes and its downward camera's frustum at a pose (caller holds the
+        lock)."""
+        q = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
+        self.server.scene.add_frame(
+            name, wxyz=q, position=(x, y, -0.05), axes_length=0.08, axes_radius=0.004
+        )
+        self.server.scene.add_camera_frustum(
+            f"{name}/camera",
+            fov=np.radians(60),
+            aspect=4 / 3,
+            scale=0.06,
+            color=(250, 200, 0),
+            wxyz=(0.0, 1.0, 0.0, 0.0),
+            position=(0.0, 0.0, 0.0),
+        )
+
+    def show_moment(self, x: float, y: float, yaw: float, label: str = "") -> None:
+        """Place the robot at one moment of the session on view (a reviewer scrubbing its
+        timeline): its axes and camera at the pose, ``label`` (the moment) in the panel.
+        The session's map, trajectory and markers stay as they are."""
+        with self._lock:
+            if self._closed:
+                return
+            self._robot("/moment", x, y, yaw)
+            self.moment = (x, y, yaw)
+            if label:
+                self._info.content = label
+
     def show_pose(self, session_id: str, x: float, y: float, yaw: float, robot: str = "") -> None:
         """Move the robot marker (and grow its trail) for the session being shown; a new
         live session takes over the view, titled by its ``robot``'s name. At most
@@ -202,19 +232,7 @@ class Scene3D:
                 self.server.scene.reset()
                 self._live_label = robot or session_id
                 self._title.content = f"**Live: {self._live_label}**"
-            q = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
-            self.server.scene.add_frame(
-                "/robot", wxyz=q, position=(x, y, -0.05), axes_length=0.08, axes_radius=0.004
-            )
-            self.server.scene.add_camera_frustum(
-                "/robot/camera",
-                fov=np.radians(60),
-                aspect=4 / 3,
-                scale=0.06,
-                color=(250, 200, 0),
-                wxyz=(0.0, 1.0, 0.0, 0.0),
-                position=(0.0, 0.0, 0.0),
-            )
+            self._robot("/robot", x, y, yaw)
             if not self._trail or np.hypot(x - self._trail[-1][0], y - self._trail[-1][1]) > 0.01:
                 self._trail.append((x, y))
                 if len(self._trail) > 1:

@@ -87,9 +87,9 @@ def session_coverage(
     verdicts = frame_verdicts([cache.get(files, f) for f in frames], mm_per_px, params)
     polys, placed_by = [], []
     if px_per_m:
-        mosaic = _mosaic_cameras(files, session_id)
+        mosaic = mosaic_cameras(files, session_id)
         for f in frames:
-            cam, by = _camera_pose(f, mosaic, corrections, T_rc)
+            cam, by = camera_pose(f, mosaic, corrections, T_rc)
             polys.append(footprint(cam, px_per_m, (f.width, f.height)))
             placed_by.append(by)
     cov = coverage_map(polys, [not v for v in verdicts], params)
@@ -142,7 +142,7 @@ def _placed_frames(db: Session, session_id: str) -> list[Frame]:
     )
 
 
-def _camera_pose(
+def camera_pose(
     f: Frame,
     mosaic: dict[int, np.ndarray],
     corrections: NDArray[np.float64] | None,
@@ -159,7 +159,7 @@ def _camera_pose(
     return compose_se2(robot, T_rc), "odometry"
 
 
-def _mosaic_cameras(files: SessionFiles, session_id: str) -> dict[int, np.ndarray]:
+def mosaic_cameras(files: SessionFiles, session_id: str) -> dict[int, np.ndarray]:
     """Camera poses (x, y, yaw; world) of the frames the stitch job placed with confidence
     on a world-referenced mosaic, by frame seq."""
     try:

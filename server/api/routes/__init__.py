@@ -16,6 +16,7 @@ from server.api.routes import (
     structure_history,
     structures,
     telemetry,
+    timeline,
     users,
     view3d,
 )
@@ -28,6 +29,7 @@ ROUTERS = [
         frames,
         clouds,
         telemetry,
+        timeline,
         coverage,
         defects,
         structures,

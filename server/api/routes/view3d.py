@@ -19,6 +19,7 @@ import httpx
 import numpy as np
 from fastapi import APIRouter, Depends, Request, WebSocket
 from fastapi.responses import Response
+from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy import select
 from websockets.asyncio.client import connect
 
@@ -216,3 +217,26 @@ def focus_in_3d(state: StateDep, session_id: str, defect_id: int) -> dict[str, A
     if not scene.focus(defect_id):
         raise NotFound(f"defect {defect_id} has no marker in the 3D view of {session_id}")
     return {"session_id": session_id, "defect_id": defect_id}
+
+
+class Moment(BaseModel):
+    """The robot's pose at one moment of the session (world metres and radians, as
+    ``GET /api/sessions/{id}/timeline`` gives it) and the moment's words for the panel."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    x: float = Field(ge=-1e4, le=1e4)
+    y: float = Field(ge=-1e4, le=1e4)
+    yaw: float = Field(ge=-100.0, le=100.0)
+    label: str = Field(default="", max_length=200)
+
+
+@router.post(
+    "/api/sessions/{session_id}/view3d/moment",
+    dependencies=[Depends(get_current_user)],
+)
+def moment_in_3d(state: StateDep, session_id: str, moment: Moment) -> dict[str, Any]:
+    """Put the robot where it was at one moment in the session's 3D view (the dashboard's
+    timeline does this as a reviewer scrubs it)."""
+    scene = _view_or_404(state, session_id)
+    scene.show_moment(moment.x, moment.y, moment.yaw, moment.label)
+    return {"session_id": session_id, **moment.model_dump()}

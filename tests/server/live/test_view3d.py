@@ -195,3 +195,41 @@ def test_a_defects_3d_text_gives_its_one_position_and_its_box(live_server: LiveS
     assert "box x 0.544–0.620 m, y 0.465–0.549 m" in marker.text
     assert "0.582" not in marker.text and "0.507" not in marker.text
     assert (marker.x, marker.y) == pytest.approx((0.582, 0.507))
+
+
+def test_a_moment_of_the_timeline_moves_the_robot_in_the_sessions_view(
+    live_server: LiveServer,
+) -> None:
+    """The timeline puts the robot at the pose of the moment scrubbed to, in the session's
+    own view only; a moment without a view open, or with a pose that is not a number, is
+    refused."""
+    sid, other = uuid.uuid4(), uuid.uuid4()
+    with connect(
+        ws_url(live_server), additional_headers={"Authorization": f"Bearer {live_server.token}"}
+    ) as ws:
+        ws.send(start(sid))
+        decode_message(ws.recv(timeout=10))
+    url = f"{live_server.url}/api/sessions/{sid}/view3d/moment"
+    body = {"x": 0.42, "y": -0.1, "yaw": 1.5, "label": "frame 12 · +00:31"}
+    assert httpx.post(url, json=body).status_code == 404  # no view of it open yet
+    httpx.post(f"{live_server.url}/api/sessions/{sid}/view3d").raise_for_status()
+    assert httpx.post(url, json=body).raise_for_status().json()["yaw"] == 1.5
+    scenes = live_server.app.state.steelscan.scenes
+    view = scenes.get(str(sid))
+    assert view is not None and view.moment == (0.42, -0.1, 1.5)
+    assert scenes.live.moment is None  # the live robots' view is not moved
+    assert "frame 12" in view._info.content
+    for bad in (
+        {"x": 0.1, "y": 0.2},
+        {**body, "yaw": 1e9},
+        {**body, "speed": 3},
+        {**body, "label": "x" * 201},
+    ):
+        assert httpx.post(url, json=bad).status_code == 422, bad
+    raw = '{"x": NaN, "y": 0, "yaw": 0}'
+    r = httpx.post(url, content=raw, headers={"Content-Type": "application/json"})
+    assert r.status_code == 422 and view.moment == (0.42, -0.1, 1.5)
+    assert (
+        httpx.post(f"{live_server.url}/api/sessions/{other}/view3d/moment", json=body).status_code
+        == 404
+    )
