@@ -10,6 +10,7 @@ import { initReview, showSession } from "./review.js";
 import { initSessions, loadSessions } from "./sessions.js";
 import { showStructure, showStructures } from "./structures.js";
 import { initTelemetry } from "./telemetry.js";
+import { initTimeline } from "./timeline.js";
 
 let started = false;
 
@@ -141,6 +142,7 @@ async function start() {
   }
   document.body.classList.remove("signed-out");
   text(document.getElementById("who"), `${me.name} (${me.role})`);
+  document.body.dataset.user = me.name; // what is kept per user (the plotted telemetry fields)
   document.getElementById("sign-out").hidden = auth !== "required";
   document.getElementById("nav-admin").hidden = me.role !== "admin";
   if (started) {
@@ -152,6 +154,7 @@ async function start() {
   initTelemetry();
   initCoverage();
   initReview();
+  initTimeline();
   initSessions();
   document.getElementById("sign-out").addEventListener("click", signOut);
   connect();

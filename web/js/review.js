@@ -5,8 +5,10 @@ import { api, apiJSON, authHeaders, download, duration, el, fmt, patchJSON, text
 import { EVENT } from "./events.js";
 import { jobsBar } from "./jobs.js";
 import { on } from "./live.js";
+import { mosaicCursor, robotIn3d } from "./moment_views.js";
 import { attachTools, toolbar } from "./mosaic_tools.js";
 import { replay } from "./replay.js";
+import { seekDefect, sessionTimeline } from "./timeline.js";
 
 // column, heading, decimals: one format per quantity wherever it is shown
 const COLUMNS = [
@@ -170,6 +172,7 @@ function select(id, { pan = true, focus3d = true } = {}) {
   view.defects.forEach((x) => styleOverlay(x, shown.has(x.id)));
   const d = view.defects.find((x) => x.id === id);
   if (!d) return;
+  seekDefect(id); // the timeline moves to the frame it was first seen in
   const img = el("img", { alt: `defect ${label(d)}`, width: "192", height: "192" });
   api(`/api/sessions/${view.session.id}/defects/${d.id}/thumbnail.jpg?size=192`)
     .then((r) => (r.ok ? r.blob() : null))
@@ -328,6 +331,7 @@ async function openViewer(s, stitch) {
   viewer.addHandler("open", () => {
     for (const d of view.defects.filter((x) => x.source === "mosaic")) addOverlay(d);
     renderTable(); // the filters hide boxes too
+    view.cursor.attach(viewer, world);
     box.dataset.ready = "true";
   });
   viewer.addHandler("canvas-click", (ev) => {
@@ -466,6 +470,7 @@ function view3dButton(s, root) {
     const frame = document.getElementById("view3d") || el("iframe", { id: "view3d", title: "3D map" });
     frame.src = `${url}${token ? `?token=${encodeURIComponent(token)}` : ""}`;
     root.appendChild(frame);
+    view.robot3d.resend();
   });
   return button;
 }
@@ -494,6 +499,8 @@ export async function showSession(id, defectNumber = null) {
   view.overlays.clear();
   view.thumbnail = null;
   view.replay = null;
+  view.cursor = mosaicCursor();
+  view.robot3d = robotIn3d(id);
   if (view.viewer) {
     view.viewer.destroy();
     view.viewer = null;
@@ -526,6 +533,7 @@ export async function showSession(id, defectNumber = null) {
         el("p", { class: "muted" }, "Select a defect (click it, or j / k)."),
       ),
     ),
+    el("div", { id: "session-timeline" }),
     el(
       "div",
       { class: "filters" },
@@ -573,6 +581,16 @@ export async function showSession(id, defectNumber = null) {
   if (mapDone) root.appendChild(view3dButton(s, root));
   view.defects = (await apiJSON(`/api/sessions/${id}/defects?source=${source}&limit=5000`)).data;
   renderTable();
+  const timeline = sessionTimeline(s.id, {
+    defects: view.defects,
+    live: s.status === "live",
+    onMoment: (m, words) => {
+      view.cursor.move(m);
+      view.robot3d.move(m, words);
+    },
+    onDefect: (defectId) => select(defectId),
+  });
+  document.getElementById("session-timeline").replaceChildren(timeline.node);
   const wanted = defectNumber === null ? null : view.defects.find((d) => String(d.number) === String(defectNumber));
   if (stitch) {
     await openViewer(s, stitch);
