@@ -91,7 +91,9 @@ def test_one_slider_moves_every_view_together(inspected: tuple[LiveServer, str])
             page.locator(f".timeline-tick[data-defect='{d['id']}']").click()
             want = next(i for i, m in enumerate(frames) if m["seq"] == d["first_seq"])
             wait_js(page, f"{TL}.dataset.index === '{want}'")
-            wait_js(page, f"document.querySelector('#defect-detail').dataset.defect === '{d['id']}'")
+            wait_js(
+                page, f"document.querySelector('#defect-detail').dataset.defect === '{d['id']}'"
+            )
             other = ticked[0]
             page.locator(f"#defects tr[data-defect='{other['id']}'] td").first.click()
             want = next(i for i, m in enumerate(frames) if m["seq"] == other["first_seq"])
@@ -113,15 +115,23 @@ def test_one_slider_moves_every_view_together(inspected: tuple[LiveServer, str])
             field = "ir_range_m[0]"
             page.click("#timeline-fields summary")
             page.check(f"#timeline-fields input[value='{field}']")
-            wait_js(page, f"document.querySelector('#timeline-plots').dataset.fields.includes('{field}')")
+            wait_js(
+                page,
+                f"document.querySelector('#timeline-plots').dataset.fields.includes('{field}')",
+            )
             titles = page.locator("#timeline-plots .u-title").all_inner_texts()
             assert any(field in title and "(m)" in title for title in titles), titles
             kept = json.loads(
-                page.evaluate("localStorage.getItem('steelscan-plot-fields:' + (document.body.dataset.user || 'anyone'))")
+                page.evaluate(
+                    "localStorage.getItem('steelscan-plot-fields:' + (document.body.dataset.user || 'anyone'))"
+                )
             )
             assert field in kept
             page.reload()
-            wait_js(page, f"document.querySelector('#timeline-plots')?.dataset.fields?.includes('{field}')")
+            wait_js(
+                page,
+                f"document.querySelector('#timeline-plots')?.dataset.fields?.includes('{field}')",
+            )
         finally:
             browser.close()
     assert errors == []
