@@ -66,6 +66,16 @@ class User(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
+class UserPreferences(Base):
+    """What a user keeps of the dashboard across browsers (the telemetry fields plotted,
+    the Drive page's panels), by account name ("anonymous" while no account exists)."""
+
+    __tablename__ = "user_preferences"
+    user_name: Mapped[str] = mapped_column(String(200), primary_key=True)
+    data: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
+
+
 class AuthToken(Base):
     """A bearer token handed out by POST /api/auth/token (stored only as a SHA-256 hash)."""
 

@@ -1,11 +1,9 @@
 """The session timeline on the processed inspection's page, in chromium: one slider moves
 the frame, the coverage map, the mosaic cursor and the plots' cursor together; defects are
 ticks at the frame they were first seen in; keys step frame by frame; playback runs; the
-plotted telemetry fields are kept for the user."""
+plotted telemetry fields are kept with the user's preferences on the station."""
 
 from __future__ import annotations
-
-import json
 
 import httpx
 import pytest
@@ -121,12 +119,8 @@ def test_one_slider_moves_every_view_together(inspected: tuple[LiveServer, str])
             )
             titles = page.locator("#timeline-plots .u-title").all_inner_texts()
             assert any(field in title and "(m)" in title for title in titles), titles
-            kept = json.loads(
-                page.evaluate(
-                    "localStorage.getItem('steelscan-plot-fields:' + (document.body.dataset.user || 'anyone'))"
-                )
-            )
-            assert field in kept
+            prefs = f"{live.url}/api/auth/me/preferences"  # the open station's user
+            assert field in httpx.get(prefs).json()["plot_fields"]
             page.reload()
             wait_js(
                 page,
@@ -134,6 +128,7 @@ def test_one_slider_moves_every_view_together(inspected: tuple[LiveServer, str])
             )
         finally:
             browser.close()
+            httpx.patch(f"{live.url}/api/auth/me/preferences", json={"plot_fields": None})
     assert errors == []
 
 

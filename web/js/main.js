@@ -142,7 +142,6 @@ async function start() {
   }
   document.body.classList.remove("signed-out");
   text(document.getElementById("who"), `${me.name} (${me.role})`);
-  document.body.dataset.user = me.name; // what is kept per user (the plotted telemetry fields)
   document.getElementById("sign-out").hidden = auth !== "required";
   document.getElementById("nav-admin").hidden = me.role !== "admin";
   if (started) {

@@ -6,6 +6,7 @@
 // (GET /api/sessions/{id}/timeline), the same the coverage map and the mosaic use.
 import uPlot from "/vendor/uplot/uPlot.esm.js";
 import { api, apiJSON, el, fmt, text } from "./api.js";
+import { keep, preferences } from "./preferences.js";
 import { drawMap } from "./timeline_map.js";
 
 const SPEEDS = [1, 4, 16];
@@ -35,18 +36,9 @@ function image(path) {
   return frameURLs.get(path);
 }
 
-// Which telemetry fields this user plots, kept per user in this browser.
-function fieldsKey() {
-  return `steelscan-plot-fields:${document.body.dataset.user || "anyone"}`;
-}
-function chosenFields(available) {
+// Which telemetry fields this user plots (kept with their preferences), of those there are.
+function chosenFields(available, kept) {
   const names = new Set(available.map((f) => f.name));
-  let kept = null;
-  try {
-    kept = JSON.parse(localStorage.getItem(fieldsKey()) || "null");
-  } catch {
-    kept = null;
-  }
   const wanted = Array.isArray(kept) ? kept : DEFAULT_FIELDS;
   const out = wanted.filter((n) => names.has(n));
   return out.length || Array.isArray(kept) ? out : available.slice(0, 2).map((f) => f.name);
@@ -139,7 +131,7 @@ function fieldPicker(tl) {
     input.checked = tl.fields.includes(f.name);
     input.addEventListener("change", () => {
       tl.fields = [...tl.pickerNode.querySelectorAll("input:checked")].map((i) => i.value).slice(0, 12);
-      localStorage.setItem(fieldsKey(), JSON.stringify(tl.fields));
+      keep({ plot_fields: tl.fields });
       loadPlots(tl).catch((e) => text(tl.plotBox, `plots unavailable: ${e.message}`));
     });
     return el("label", { class: "small" }, input, ` ${f.name}${f.unit ? ` (${f.unit})` : ""}`);
@@ -285,14 +277,14 @@ export function sessionTimeline(sid, { defects = [], onMoment = null, onDefect =
     node.dataset.frames = String(data.frames.length);
     node.dataset.ticks = String(track.querySelectorAll(".timeline-tick").length);
   };
-  apiJSON(`/api/sessions/${sid}/timeline`)
-    .then((data) => {
+  Promise.all([apiJSON(`/api/sessions/${sid}/timeline`), preferences()])
+    .then(([data, prefs]) => {
       if (!data.frames.length) {
         node.replaceChildren(el("p", { class: "muted small" }, "timeline: the session stored no frame"));
         return;
       }
       build(data);
-      tl.fields = chosenFields(data.telemetry.fields);
+      tl.fields = chosenFields(data.telemetry.fields, prefs.plot_fields);
       node.replaceChildren(
         el("h4", {}, "Timeline"),
         el(

@@ -9,6 +9,7 @@ from server.api.routes import (
     frames,
     jobs,
     live,
+    preferences,
     reports,
     results,
     robots,
@@ -25,6 +26,7 @@ ROUTERS = [
     r.router
     for r in (
         auth,
+        preferences,
         sessions,
         frames,
         clouds,

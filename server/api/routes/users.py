@@ -13,7 +13,7 @@ from server.api.accounts import create_user, set_password
 from server.api.deps import AdminUser, SessionDep, StateDep, require
 from server.api.schemas import Text
 from server.errors import Conflict, NotFound
-from server.storage.models import AuthToken, Role, User
+from server.storage.models import AuthToken, Role, User, UserPreferences
 
 router = APIRouter(prefix="/api/users", tags=["users"], dependencies=[Depends(require(Role.admin))])
 Name = Annotated[Text, Field(min_length=1, max_length=200)]
@@ -84,11 +84,13 @@ def update_user(db: SessionDep, name: str, body: UserUpdate) -> User:
 
 @router.delete("/{name}", status_code=status.HTTP_204_NO_CONTENT)
 def remove_user(db: SessionDep, name: str, caller: AdminUser) -> None:
-    """Remove an account and its tokens (not your own, not the last admin)."""
+    """Remove an account, its tokens and its preferences (not your own, not the last
+    admin)."""
     user = _user_or_404(db, name)
     if user.name == caller.name:
         raise Conflict("you cannot remove your own account")
     _keep_an_admin(db, user)
     db.execute(delete(AuthToken).where(AuthToken.user_id == user.id))
+    db.execute(delete(UserPreferences).where(UserPreferences.user_name == user.name))
     db.delete(user)
     db.commit()

@@ -11,6 +11,7 @@ TABLES = {
     "elements",
     "users",
     "auth_tokens",
+    "user_preferences",
     "inspection_sessions",
     "received_messages",
     "frames",
