@@ -88,6 +88,7 @@ class Scene3D:
         self.markers: dict[int, DefectMarker] = {}
         self.focused: int | None = None  # the defect the view last flew to
         self.moment: tuple[float, float, float] | None = None  # the robot's pose on view
+        self._moment_text: Any = None  # the moment's words, below the defect's
         # called with a defect's id when a browser clicks its marker (the dashboard selects it)
         self.on_select: Callable[[int], None] | None = None
         self._title = self.server.gui.add_markdown("**No session shown yet.**")
@@ -204,15 +205,19 @@ class Scene3D:
 
     def show_moment(self, x: float, y: float, yaw: float, label: str = "") -> None:
         """Place the robot at one moment of the session on view (a reviewer scrubbing its
-        timeline): its axes and camera at the pose, ``label`` (the moment) in the panel.
+        timeline): its axes and camera at the pose, ``label`` (the moment) in the panel
+        below the selected defect's text.
         The session's map, trajectory and markers stay as they are."""
         with self._lock:
             if self._closed:
                 return
             self._robot("/moment", x, y, yaw)
             self.moment = (x, y, yaw)
-            if label:
-                self._info.content = label
+            if self._moment_text is None:
+                self._moment_text = self.server.gui.add_markdown("")
+            self._moment_text.content = (
+                f"Robot at {label}" if label else "Robot at the moment shown"
+            )
 
     def show_pose(self, session_id: str, x: float, y: float, yaw: float, robot: str = "") -> None:
         """Move the robot marker (and grow its trail) for the session being shown; a new

@@ -158,6 +158,7 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
         page.select_option("#filter-class", "")
         # the viewer's legend, scale bar and the cursor's place on the structure
         assert "corrosion" in page.inner_text(".mosaic-legend")
+        page.locator("#mosaic-viewer").scroll_into_view_if_needed()
         viewer = page.locator("#mosaic-viewer").bounding_box()
         cx, cy = viewer["x"] + viewer["width"] / 2, viewer["y"] + viewer["height"] / 2
         page.mouse.move(cx, cy)

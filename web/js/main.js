@@ -6,6 +6,8 @@ import { initCoverage } from "./coverage.js";
 import { initDrive } from "./drive.js";
 import { EVENT } from "./events.js";
 import { connect, on } from "./live.js";
+import { initLivePlots } from "./live_plots.js";
+import { initPanels } from "./panels.js";
 import { initReview, showSession } from "./review.js";
 import { initSessions, loadSessions } from "./sessions.js";
 import { showStructure, showStructures } from "./structures.js";
@@ -151,6 +153,8 @@ async function start() {
   started = true;
   initDrive();
   initTelemetry();
+  initLivePlots();
+  initPanels();
   initCoverage();
   initReview();
   initTimeline();

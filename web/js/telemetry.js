@@ -5,6 +5,7 @@ import { el, fmt, text } from "./api.js";
 import { selectedSession, stats } from "./drive.js";
 import { EVENT } from "./events.js";
 import { on } from "./live.js";
+import { recordLivePlots, redrawLivePlots, resetLivePlots } from "./live_plots.js";
 
 const WINDOW_S = 60;
 const LOW_MAIN_V = 11.4; // 12 V pack (3S): warn below 3.8 V per cell
@@ -24,6 +25,7 @@ function clear() {
   for (const k of Object.keys(series)) series[k].length = 0;
   document.getElementById("telemetry").replaceChildren(...row("robot", "no robot connected"));
   for (const { plot, keys } of plots) plot.setData([[], ...keys.map(() => [])]);
+  resetLivePlots();
   for (const name of ["front_left", "front_right", "rear_left", "rear_right"]) {
     document.getElementById(`ir-${name}`).classList.remove("nosurface");
   }
@@ -202,6 +204,7 @@ stats.plots = () =>
 function redraw() {
   if (document.getElementById("view-drive").hidden) return;
   for (const { plot, keys } of plots) plot.setData([series.t, ...keys.map((k) => series[k])]);
+  redrawLivePlots();
 }
 
 export function initTelemetry() {
@@ -226,6 +229,7 @@ export function initTelemetry() {
     lastAt = Date.now();
     render(ev.data);
     record(ev.data);
+    recordLivePlots(ev.session_id, ev.data);
   });
   setInterval(() => {
     redraw();

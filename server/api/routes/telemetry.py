@@ -11,7 +11,7 @@ from sqlalchemy import select
 from server.api.deps import SessionDep, get_current_user
 from server.api.queries import MAX_INT, count_query, get_session_or_404
 from server.api.schemas import TelemetryListPublic
-from server.reports.timeline import telemetry_series
+from server.reports.timeline import telemetry_fields, telemetry_series
 from server.storage.models import TelemetrySample
 
 MAX_SERIES = 12  # fields plotted at once
@@ -64,3 +64,11 @@ def read_telemetry_series(
     kept when there are more than ``max_points``)."""
     get_session_or_404(db, session_id)
     return telemetry_series(db, session_id, list(dict.fromkeys(field)), max_points)
+
+
+@router.get("/{session_id}/telemetry/fields")
+def read_telemetry_fields(db: SessionDep, session_id: str) -> dict[str, Any]:
+    """The numeric fields the session's telemetry holds (flattened names, as the series
+    take them) with the units the protocol's key suffixes name."""
+    get_session_or_404(db, session_id)
+    return telemetry_fields(db, session_id)

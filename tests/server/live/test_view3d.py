@@ -218,7 +218,8 @@ def test_a_moment_of_the_timeline_moves_the_robot_in_the_sessions_view(
     view = scenes.get(str(sid))
     assert view is not None and view.moment == (0.42, -0.1, 1.5)
     assert scenes.live.moment is None  # the live robots' view is not moved
-    assert "frame 12" in view._info.content
+    assert view._moment_text.content == "Robot at frame 12 · +00:31"
+    assert "frame 12" not in view._info.content  # the defect's text stays
     for bad in (
         {"x": 0.1, "y": 0.2},
         {**body, "yaw": 1e9},
