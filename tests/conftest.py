@@ -130,6 +130,8 @@ def live_server(settings: Settings) -> Iterator[LiveServer]:
 # the simulator's true camera pose (x, y, yaw) of each frame of the processed inspection,
 # in capture order, by session id: what placement on the structure is scored against
 TRUE_CAMERA_POSES: dict[str, list[list[float]]] = {}
+# and the true pose (4, 4, world) of its ToF sensor at each cloud, by session id and seq
+TRUE_CLOUD_POSES: dict[str, dict[int, Any]] = {}
 
 
 @pytest.fixture(scope="session")
@@ -157,6 +159,7 @@ def inspected(
                     link, SimConfig(seed=11, lanes=2, time_scale=0.0)
                 ).run()
                 TRUE_CAMERA_POSES[str(result.session_id)] = result.frame_poses_true
+                TRUE_CLOUD_POSES[str(result.session_id)] = result.cloud_poses_true
                 return result.session_id
             finally:
                 await link.close()
