@@ -18,6 +18,12 @@ member, and says nothing about it on a straight lane. The inverse of the summed 
 the least covariance of the poses; the bound on the trajectory error (TUM ATE: RMS of the
 positions after a rigid alignment, which removes any error common to the whole
 trajectory) is its positions' share outside the rigid motions.
+
+The downward camera adds, for each pair of consecutive clouds, the footprint step its
+frames measure (:mod:`processing.mapping.camera_motion`): where the later camera's optical
+axis meets the surface in the earlier camera's frame, and the turn about the normal, each
+registered to ``sigma_px`` and scaled by the distance to the surface, so its information
+is Jᵀ Σ⁻¹ J with J the step's derivative with respect to both poses.
 """
 
 from __future__ import annotations
@@ -25,7 +31,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.poses import se3_adjoint_inverse, skew
+from processing.mapping.camera_motion import foot
+from processing.poses import se3_adjoint_inverse, se3_exp, skew, wrap_angle
 from robot_link.sim.sensors import TofCamera
 
 MIN_INCIDENCE = 0.05  # |n·d| floor: returns at grazing incidence count as if at this angle
@@ -102,6 +109,49 @@ def no_slip_information(
     return H
 
 
+def camera_information(
+    truth: NDArray[np.float64],
+    T_tof_camera: NDArray[np.float64],
+    distance_m: float,
+    f_px: float,
+    size: tuple[int, int],
+    sigma_px: float,
+    pairs_per_step: float = 1.0,
+) -> NDArray[np.float64]:
+    """The information (6N, 6N) on the sensor poses ``truth`` (N, 4, 4) of a downward
+    camera at ``T_tof_camera`` (focal length ``f_px``, image ``size`` (w, h) px),
+    ``distance_m`` from the surface, whose consecutive frames are registered to
+    ``sigma_px``, ``pairs_per_step`` frame pairs chained between two poses: each step's
+    foot and turn, σ = sigma_px · distance / f in metres and sigma_px over the image's
+    half-diagonal in radians, for each pair."""
+    n = len(truth)
+    sigma_m = sigma_px * distance_m / f_px
+    sigma_turn = sigma_px / (0.5 * float(np.hypot(*size)))
+    info = np.diag([sigma_m**-2, sigma_m**-2, sigma_turn**-2]) / max(pairs_per_step, 1.0)
+    H = np.zeros((6 * n, 6 * n))
+    h = 1e-6
+
+    def step(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+        return foot(np.linalg.inv(a @ T_tof_camera) @ b @ T_tof_camera, distance_m)
+
+    for k in range(1, n):
+        m0 = step(truth[k - 1], truth[k])
+        J = np.zeros((3, 12))
+        for j in range(12):
+            xi = np.zeros(6)
+            xi[j % 6] = h
+            a, b = truth[k - 1], truth[k]
+            if j < 6:
+                a = se3_exp(xi) @ a  # world-frame (ω, v), as the views' information
+            else:
+                b = se3_exp(xi) @ b
+            dm = step(a, b) - m0
+            dm[2] = float(wrap_angle(dm[2]))
+            J[:, j] = dm / h
+        H[6 * (k - 1) : 6 * (k + 1), 6 * (k - 1) : 6 * (k + 1)] += J.T @ info @ J
+    return H
+
+
 def aligned_error_bound(H: NDArray[np.float64], truth: NDArray[np.float64]) -> float:
     """Least RMS position error (m) after rigid alignment, from the information ``H`` of the
     poses ``truth`` (N, 4, 4): the root of the mean expected squared error of an unbiased
@@ -120,11 +170,16 @@ def aligned_error_bound(H: NDArray[np.float64], truth: NDArray[np.float64]) -> f
 
 
 def trajectory_bound(
-    camera: TofCamera, truth: NDArray[np.float64], odometry_sigmas: tuple[float, float]
+    camera: TofCamera,
+    truth: NDArray[np.float64],
+    odometry_sigmas: tuple[float, float],
+    down: NDArray[np.float64] | None = None,
 ) -> float:
     """Least ATE (m) of any map of ``camera``'s views from the poses ``truth`` (N, 4, 4)
     with odometry of ``odometry_sigmas`` (rad, m per axis and step), on a robot that does
-    not slide sideways."""
+    not slide sideways; with ``down`` (the information of a downward camera,
+    :func:`camera_information`) beside them."""
     infos = [view_information(*camera.surface(T), camera.noise_sigma_m) for T in truth]
     H = pose_information(infos, truth, odometry_sigmas)
-    return aligned_error_bound(H + no_slip_information(truth, camera.T_robot_tof), truth)
+    H = H + no_slip_information(truth, camera.T_robot_tof)
+    return aligned_error_bound(H if down is None else H + down, truth)

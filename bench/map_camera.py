@@ -3,7 +3,8 @@ structure type of the simulator and seeds no parameter was chosen on.
 
 Per type, over the held-back seeds (:data:`bench.map_structures.HELD_BACK_SEEDS`): mean
 and worst trajectory error (ATE, % of the path) of camera + ToF + odometry, beside ToF +
-odometry (the map without frames) and odometry alone in the same run; the share of frame
+odometry (the map without frames) and odometry alone in the same run, and against the least error any map of the same sensors
+could reach (:mod:`bench.map_bound`, the camera's information included); the share of frame
 pairs the camera registered and of cloud steps it linked; ms per cloud of the whole map
 with the camera (frames registered, distances measured, graph) against the map without.
 Targets: 0.1 % mean and 0.2 % worst with the camera; never worse than without it.
@@ -26,10 +27,11 @@ TARGET_MEAN, TARGET_WORST = 0.1, 0.2
 def _measure(kind: str, seed: int, clouds: int) -> dict[str, float]:
     """ATE (% of path) of each estimate on one held-back sequence, the camera's link rates
     and ms per cloud with and without it."""
+    from bench.map_bound import camera_information, trajectory_bound
     from processing.mapping import register_clouds
-    from processing.mapping.camera_motion import CameraModel, camera_factors
+    from processing.mapping.camera_motion import CameraModel, CameraParams, camera_factors
     from processing.metrics import absolute_trajectory_error
-    from robot_link.sim.camera_frames import camera_sweep
+    from robot_link.sim.camera_frames import DownCamera, camera_sweep
     from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_camera, scene_sweep
 
     config = SceneSweepConfig(kind=kind, seed=seed, clouds=clouds)
@@ -53,8 +55,22 @@ def _measure(kind: str, seed: int, clouds: int) -> dict[str, float]:
     def pct(poses: np.ndarray) -> float:
         return 100 * absolute_trajectory_error(poses, sweep.truth) / path
 
+    # the least error of any map of these sensors, with the camera as the map models it
+    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+    down = camera_information(
+        sweep.truth,
+        model.T_tof_camera,
+        DownCamera().height_m,
+        model.fx,
+        (model.width, model.height),
+        CameraParams().sigma_px,
+        (len(frames.frames) - 1) / max(1, n - 1),
+    )
+    bound = 100 * trajectory_bound(tof, sweep.truth, sigmas, down=down) / path
+
     return {
         "camera": pct(fused),
+        "bound": bound,
         "tof": pct(tof_only),
         "odometry": pct(sweep.odometry),
         "pairs": registered / max(1, len(frames.frames) - 1),
@@ -89,6 +105,11 @@ def bench_map_camera(
             "ratio": round(float(np.mean(camera) / max(np.mean(tof), 1e-9)), 3),
             "baseline_is": "the same map without frames (ToF + odometry)",
             "odometry_mean": round(float(np.mean([r["odometry"] for r in runs])), 3),
+            # the least error any map of these sensors could reach, and ours against it
+            "bound_mean": round(float(np.mean([r["bound"] for r in runs])), 4),
+            "to_bound": round(
+                float(np.mean(camera) / max(np.mean([r["bound"] for r in runs]), 1e-12)), 1
+            ),
             "worse_than_without": int(sum(a > b for a, b in zip(camera, tof))),
             "frame_pairs_registered": round(float(np.mean([r["pairs"] for r in runs])), 3),
             "cloud_steps_linked": round(float(np.mean([r["linked"] for r in runs])), 3),

@@ -6,6 +6,7 @@ import asyncio
 import json
 import logging
 import secrets
+import signal
 import sys
 import time
 from typing import Any
@@ -107,7 +108,26 @@ def run_demo(
     lanes: int = 5,
     seed: int = 7,
 ) -> int:
-    """Run everything; the last stdout line is the JSON summary when ``exit_when_done``."""
+    """Run everything; the last stdout line is the JSON summary when ``exit_when_done``.
+    SIGTERM stops it as Ctrl-C does."""
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        return _run_demo(settings, port, exit_when_done, keep_serving, time_scale, lanes, seed)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run_demo(
+    settings: Settings,
+    port: int,
+    exit_when_done: bool,
+    keep_serving: bool,
+    time_scale: float,
+    lanes: int,
+    seed: int,
+) -> int:
     console = Console(stderr=True)
     token, operator, password = _accounts(settings)
     server = BackgroundServer(settings, port or free_port())
@@ -173,6 +193,12 @@ def _accounts(settings: Settings) -> tuple[str, str, str]:
     return token, operator, password
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    """SIGTERM ends the demo as Ctrl-C does: the robot's session ends, the station stops
+    its workers and closes its files."""
+    raise KeyboardInterrupt
+
+
 def _serve_with_a_robot_to_drive(
     server: BackgroundServer, token: str, seed: int, console: Console
 ) -> None:
@@ -180,18 +206,20 @@ def _serve_with_a_robot_to_drive(
     (live video, dead-man stop), until Ctrl-C."""
     from robot_link.sim.teleop import start_teleop_robot
 
-    teleop = start_teleop_robot(server.url, token, seed=seed)
-    console.print(
-        f"Serving {server.url}/ — drive the simulated robot on the Drive page (arrows/WASD), review the "
-        f"inspection under Sessions. Ctrl-C stops."
-    )
+    teleop = None
     try:
+        teleop = start_teleop_robot(server.url, token, seed=seed)
+        console.print(
+            f"Serving {server.url}/ — drive the simulated robot on the Drive page (arrows/WASD), "
+            f"review the inspection under Sessions. Ctrl-C stops."
+        )
         while server.thread.is_alive():
             time.sleep(0.5)
     except KeyboardInterrupt:
         pass
-    teleop.sim.end_requested = True
-    teleop.thread.join(timeout=10)
+    if teleop is not None:
+        teleop.sim.end_requested = True
+        teleop.thread.join(timeout=10)
     server.stop()
 
 

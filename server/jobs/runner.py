@@ -21,6 +21,7 @@ from server.jobs import leases
 from server.jobs.inputs import is_current, latest_inputs, latest_processing, stored_inputs
 from server.jobs.worker import JOB_KINDS, PIPELINE, run_job
 from server.process.orphans import init_worker
+from server.process.pools import stop_pool
 from server.storage.models import InspectionSession, Job, JobState, SessionStatus, utcnow
 
 Send = Callable[[int], None]  # hands a job id to a job queue
@@ -106,7 +107,7 @@ class JobRunner:
         if self._thread is not None:
             self._thread.join(timeout=10)
         if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+            stop_pool(self._pool)
 
     def enqueue(
         self,

@@ -16,6 +16,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any
 
 from server.process.orphans import init_worker
+from server.process.pools import stop_pool
 
 log = logging.getLogger(__name__)
 WARMING_CAP = 64  # items that may wait for a worker still warming up
@@ -73,4 +74,4 @@ class LiveWorker:
     def close(self) -> None:
         """Stop the worker."""
         if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+            stop_pool(self._pool)

@@ -6,12 +6,15 @@ import numpy as np
 
 from bench.map_bound import (
     aligned_error_bound,
+    camera_information,
     no_slip_information,
     pose_information,
     trajectory_bound,
 )
+from processing.mapping.camera_motion import foot
 from processing.metrics import absolute_trajectory_error
-from processing.poses import se3_exp
+from processing.poses import se3_exp, wrap_angle
+from robot_link.sim.camera_frames import DownCamera
 from robot_link.sim.scene_sweeps import (
     SceneSweepConfig,
     drifting_odometry,
@@ -76,3 +79,42 @@ def test_the_wheels_fix_each_steps_sideways_part() -> None:
     odometry = pose_information([np.zeros((6, 6))] * len(truth), truth, sigmas)
     wheels = odometry + no_slip_information(truth, mount)
     assert aligned_error_bound(wheels, truth) < aligned_error_bound(odometry, truth)
+
+
+def test_the_camera_measures_each_steps_foot_and_turn() -> None:
+    """Moving the poses a little changes each step's footprint step as the camera's
+    information says (its squares over their variances, summed); the camera lowers the
+    bound of the same views and odometry, the less the more frame pairs it chains between
+    two clouds."""
+    config = SceneSweepConfig(kind="i_girder", seed=4, clouds=16)
+    sweep, tof = scene_sweep(config), scene_camera(config)
+    down = DownCamera()
+    T_tc = np.linalg.inv(tof.T_robot_tof) @ down.T_robot_camera
+    size = (down.width, down.height)
+    H = camera_information(sweep.truth, T_tc, down.height_m, down.f, size, sigma_px=1.0)
+
+    def steps(poses: np.ndarray) -> np.ndarray:
+        out = []
+        for a, b in zip(poses[:-1], poses[1:]):
+            out.append(foot(np.linalg.inv(a @ T_tc) @ b @ T_tc, down.height_m))
+        return np.array(out)
+
+    sigma_m = down.height_m / down.f
+    sigma_turn = 1.0 / (0.5 * np.hypot(*size))
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        xi = rng.normal(0, 1e-6, (len(sweep.truth), 6))
+        moved = np.array([se3_exp(x) @ T for x, T in zip(xi, sweep.truth)])
+        d = steps(moved) - steps(sweep.truth)
+        d[:, 2] = wrap_angle(d[:, 2])
+        seen = np.sum(d[:, :2] ** 2) / sigma_m**2 + np.sum(d[:, 2] ** 2) / sigma_turn**2
+        assert np.isclose(seen, xi.ravel() @ H @ xi.ravel(), rtol=1e-3, atol=0)
+    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+    without = trajectory_bound(tof, sweep.truth, sigmas)
+    sigma_px = 0.3
+    down_info = camera_information(sweep.truth, T_tc, down.height_m, down.f, size, sigma_px)
+    with_camera = trajectory_bound(tof, sweep.truth, sigmas, down=down_info)
+    assert with_camera < 0.85 * without
+    # chaining more frame pairs between two poses: less information, a higher bound
+    chained = camera_information(sweep.truth, T_tc, down.height_m, down.f, size, sigma_px, 4)
+    assert with_camera < trajectory_bound(tof, sweep.truth, sigmas, down=chained) < without
