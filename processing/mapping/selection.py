@@ -12,6 +12,9 @@ from numpy.typing import NDArray
 
 from processing.mapping.params import SelectParams
 
+# rays (x/z, y/z) closer than this are one pixel's (float32 points carry ~1e-7 of rounding)
+RAY_TOLERANCE = 1e-5
+
 
 def clean_cloud(points: NDArray[np.floating], max_range_m: float) -> NDArray[np.float64]:
     """Drop NaN/inf points and returns beyond ``max_range_m``; returns (K, 3) float64."""
@@ -62,19 +65,64 @@ def filter_organised(
     return out.reshape(-1, 3)
 
 
+def _grid_pitch(values: NDArray[np.float64], n: int) -> float:
+    """The spacing of the columns (or rows) that a grid's rays fall on: the median gap
+    between the distinct values (0 when the values are not a grid's few columns)."""
+    distinct = np.unique(np.round(values / RAY_TOLERANCE))
+    if len(distinct) < 3 or len(distinct) > 4 * np.sqrt(n) + 16:
+        return 0.0
+    return float(np.median(np.diff(distinct))) * RAY_TOLERANCE
+
+
+def regrid(
+    points: NDArray[np.floating], max_pixels: int = 4_000_000
+) -> tuple[NDArray[np.float32], tuple[int, int]] | None:
+    """An unorganised cloud of a ToF camera (K, 3 in its own frame, in any order) put back
+    on its pixel grid: each point's ray (x/z, y/z) lies on the sensor's regular grid (a
+    pixel's ray is fixed, whatever its depth), whose pitch per axis is the spacing of the
+    distinct column and row values. Returns the
+    organised points (H·W, 3; NaN where no point fell) and (H, W); None when the points do
+    not lie in front of a sensor or fill too little of a grid (a cloud thinned or merged
+    by another tool), where a grid would be mostly holes."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < 16 or np.mean(pts[:, 2] > 0) < 0.9:
+        return None
+    pts = pts[pts[:, 2] > 0]
+    rays = pts[:, :2] / pts[:, 2:3]
+    pitch = np.array([_grid_pitch(rays[:, 0], len(rays)), _grid_pitch(rays[:, 1], len(rays))])
+    if not (pitch > 0).all():
+        return None
+    cell = np.rint((rays - rays.min(axis=0)) / pitch).astype(np.int64)
+    w, h = int(cell[:, 0].max()) + 1, int(cell[:, 1].max()) + 1
+    if w * h > max_pixels or len(pts) < 0.25 * w * h:
+        return None
+    grid = np.full((h * w, 3), np.nan, np.float32)
+    grid[cell[:, 1] * w + cell[:, 0]] = pts  # two points in one pixel: one is kept
+    return grid, (h, w)
+
+
 def select(
     points: NDArray[np.floating],
     params: SelectParams = SelectParams(),
     shape: tuple[int, int] | None = None,
 ) -> o3d.geometry.PointCloud:
-    """Selection step: (organised) depth filtering, cleaning, voxel downsampling, the points
-    whose normals the neighbourhood fixes, with them (:func:`with_normals`)."""
+    """Selection step: depth filtering on the pixel grid (an organised cloud's ``shape``,
+    else the grid its rays lie on, :func:`regrid`), cleaning, voxel downsampling, the
+    points whose normals the neighbourhood fixes, with them (:func:`with_normals`)."""
     if (
         shape is not None
         and params.depth_median_px
         and np.asarray(points).reshape(-1, 3).shape[0] == shape[0] * shape[1]
     ):
         points = filter_organised(points, shape, params.depth_median_px, params.pixel_stride)
+    elif shape is None and params.depth_median_px:
+        # an unorganised ToF cloud: its pixel grid recovered from its rays, then the same
+        gridded = regrid(points)
+        if gridded is not None:
+            points = filter_organised(
+                gridded[0], gridded[1], params.depth_median_px, params.pixel_stride
+            )
     pcd = o3d.geometry.PointCloud(
         o3d.utility.Vector3dVector(clean_cloud(points, params.max_range_m))
     )
