@@ -18,6 +18,8 @@ UNIT_SUFFIXES: dict[str, str] = {
     "_radps": "rad/s",
     "_dps": "°/s",
     "_mm": "mm",
+    "_mm2": "mm²",
+    "_m2": "m²",
     "_m": "m",
     "_v": "V",
     "_a": "A",

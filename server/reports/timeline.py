@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from processing.coverage import footprint
@@ -24,7 +24,8 @@ from server.reports.coverage import camera_pose, mosaic_cameras
 from server.storage.files import SessionFiles
 from server.storage.models import Defect, Frame, InspectionSession, TelemetrySample
 
-FIELD_SCAN = 100  # samples read at each end of a session to list its telemetry fields
+FIELD_SCAN = 50  # samples read in each of FIELD_RUNS runs to list a session's telemetry fields
+FIELD_RUNS = 8
 INSIDE_BLOCK = 256  # footprints tested against every defect at once (bounds the memory)
 
 
@@ -153,20 +154,24 @@ def _defect_moments(
 
 
 def telemetry_fields(db: Session, session_id: str) -> dict[str, Any]:
-    """The numeric telemetry fields a session holds (read from its first and last samples)
-    with their units, and how many samples there are."""
+    """The numeric telemetry fields a session holds (read from runs of samples spread over
+    it) with their units, and whether it holds any."""
     base = select(TelemetrySample.data).where(TelemetrySample.session_id == session_id)
-    rows = list(db.scalars(base.order_by(TelemetrySample.seq).limit(FIELD_SCAN)))
-    rows += list(db.scalars(base.order_by(TelemetrySample.seq.desc()).limit(FIELD_SCAN)))
-    names: dict[str, None] = {}
-    for data in rows:
-        for name in numeric_fields(data if isinstance(data, dict) else {}):
-            names.setdefault(name)
     count = db.scalar(
-        select(TelemetrySample.id).where(TelemetrySample.session_id == session_id).limit(1)
+        select(func.count())
+        .select_from(TelemetrySample)
+        .where(TelemetrySample.session_id == session_id)
     )
+    names: dict[str, None] = {}
+    # runs of samples spread over the session: a field a robot sends only for a while (a
+    # sweep's progress) is found wherever it was sent
+    for start in np.linspace(0, max(0, (count or 0) - FIELD_SCAN), FIELD_RUNS).astype(int):
+        runs = base.order_by(TelemetrySample.seq).offset(int(start)).limit(FIELD_SCAN)
+        for data in db.scalars(runs):
+            for name in numeric_fields(data if isinstance(data, dict) else {}):
+                names.setdefault(name)
     return {
-        "any": count is not None,
+        "any": bool(count),
         "fields": [{"name": n, "unit": field_unit(n)} for n in names],
     }
 

@@ -3,11 +3,15 @@ map places it, each defect at the first frame over it, and telemetry series of a
 
 from __future__ import annotations
 
+import uuid
+
 import httpx
 import numpy as np
 
+from robot_link.protocol import MessageType, decode_message
 from server.reports.timeline import first_sightings, inside_convex
 from tests.conftest import LiveServer
+from tests.server.helpers import msg, robot_ws, start
 
 
 def test_moments_agree_with_the_coverage_map_and_the_defects(
@@ -100,3 +104,24 @@ def test_first_sightings_take_the_earliest_footprint_across_blocks() -> None:
     assert inside_convex(np.array([[0.5, 0.5], [1.0, 0.5]]), turned[None]).tolist() == [
         [True, True]
     ]
+
+
+def test_a_field_sent_only_for_a_while_is_listed(live_server: LiveServer) -> None:
+    """A robot sends a sweep's progress only while it sweeps, mid-session: the session's
+    fields list it, with its unit, and its series holds it there and null elsewhere."""
+    sid = uuid.uuid4()
+    with robot_ws(live_server) as ws:
+        ws.send(start(sid))
+        for k in range(600):
+            meta: dict = {"battery_v": {"main": 12.5 - k * 1e-3}}
+            if 300 <= k < 320:
+                meta["sweep"] = {"lanes_done": k - 300, "covered_m2": 0.01 * (k - 300)}
+            ws.send(msg(sid, k + 2, MessageType.TELEMETRY, meta))
+        for _ in range(601):
+            decode_message(ws.recv(timeout=10))
+    api = f"{live_server.url}/api/sessions/{sid}"
+    units = {f["name"]: f["unit"] for f in httpx.get(f"{api}/telemetry/fields").json()["fields"]}
+    assert units == {"battery_v.main": "V", "sweep.lanes_done": "", "sweep.covered_m2": "m²"}
+    s = httpx.get(f"{api}/telemetry/series", params={"field": "sweep.lanes_done"}).json()
+    values = s["series"]["sweep.lanes_done"]
+    assert values[300:320] == list(range(20)) and values[:300] == [None] * 300
