@@ -64,7 +64,13 @@ def test_one_slider_moves_every_view_together(inspected: tuple[LiveServer, str])
             wait_js(page, "document.querySelector('#mosaic-viewer')?.dataset.ready === 'true'")
             wait_js(page, f"{TL}?.dataset.frames === '{len(frames)}'")
             wait_js(page, "document.querySelectorAll('#timeline-plots .plot').length >= 1")
-            assert page.evaluate(f"{TL}.dataset.ticks") == str(len(ticked))
+            # one tick a frame where defects were first seen
+            frames_ticked = {d["first_seq"] for d in ticked}
+            assert page.evaluate(f"{TL}.dataset.ticks") == str(len(frames_ticked))
+            on_ticks = page.locator(".timeline-tick").evaluate_all(
+                "ts => ts.map(t => t.dataset.defects.split(' ').map(Number))"
+            )
+            assert sorted(i for ids in on_ticks for i in ids) == sorted(d["id"] for d in ticked)
             # keys step frame by frame; every view follows
             page.locator("#session-detail h3").first.click()
             for key, want in ((".", 1), (".", 2), ("ArrowRight", 3), (",", 2)):
@@ -86,7 +92,7 @@ def test_one_slider_moves_every_view_together(inspected: tuple[LiveServer, str])
             # a defect's tick: the timeline goes to the frame it was first seen in and the
             # defect is selected; a defect selected in the table moves the timeline there
             d = ticked[-1]
-            page.locator(f".timeline-tick[data-defect='{d['id']}']").click()
+            page.locator(f".timeline-tick[data-defects~='{d['id']}']").click()
             want = next(i for i, m in enumerate(frames) if m["seq"] == d["first_seq"])
             wait_js(page, f"{TL}.dataset.index === '{want}'")
             wait_js(
@@ -97,6 +103,37 @@ def test_one_slider_moves_every_view_together(inspected: tuple[LiveServer, str])
             want = next(i for i, m in enumerate(frames) if m["seq"] == other["first_seq"])
             wait_js(page, f"{TL}.dataset.index === '{want}'")
             assert _at(page)["cursor"]["seq"] == str(other["first_seq"])
+            # defects first seen in one frame share a tick: each click selects the next
+            together = [
+                [d for d in ticked if d["first_seq"] == seq]
+                for seq in frames_ticked
+                if sum(d["first_seq"] == seq for d in ticked) > 1
+            ]
+            if together:
+                tick = page.locator(f".timeline-tick[data-defects~='{together[0][0]['id']}']")
+                chosen = set()
+                for _ in together[0]:
+                    tick.click()
+                    page.wait_for_timeout(150)
+                    chosen.add(
+                        page.evaluate("document.querySelector('#defect-detail').dataset.defect")
+                    )
+                assert chosen == {str(d["id"]) for d in together[0]}
+            # Enter on a timeline button presses it, even with a defect selected
+            page.focus("#timeline-next")
+            before = int(page.evaluate(f"{TL}.dataset.index"))
+            page.keyboard.press("Enter")
+            wait_js(page, f"{TL}.dataset.index === '{min(before + 1, len(frames) - 1)}'")
+            # a seek while playing: playback goes on from there
+            page.select_option("#timeline-speed", "1")
+            page.locator("#timeline-slider").fill("0")
+            page.click("#timeline-play")
+            wait_js(page, f"{TL}.dataset.playing === 'true'")
+            page.locator("#timeline-slider").fill(str(len(frames) - 3))
+            page.wait_for_timeout(400)
+            assert int(page.evaluate(f"{TL}.dataset.index")) >= len(frames) - 3
+            page.click("#timeline-play")
+            wait_js(page, f"{TL}.dataset.playing === 'false'")
             # playback at 16×: the moments advance in the session's time and stop at its end
             page.select_option("#timeline-speed", "16")
             page.locator("#timeline-slider").fill("0")

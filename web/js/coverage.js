@@ -10,6 +10,7 @@ import { api, apiJSON, el, fmt, text } from "./api.js";
 import { selectedSession } from "./drive.js";
 import { EVENT } from "./events.js";
 import { on } from "./live.js";
+import { drawRobot } from "./plan_view.js";
 
 const POLL_MS = 1500;
 const THUMB_W = 160;
@@ -247,24 +248,7 @@ function draw() {
     ctx.stroke();
   }
   // the robot: a triangle pointing along its heading
-  if (state.pose) {
-    const { x, y, yaw } = state.pose;
-    const r = 14 * px;
-    ctx.save();
-    ctx.translate(x, y);
-    ctx.rotate(yaw);
-    ctx.beginPath();
-    ctx.moveTo(r, 0);
-    ctx.lineTo(-r * 0.7, r * 0.6);
-    ctx.lineTo(-r * 0.7, -r * 0.6);
-    ctx.closePath();
-    ctx.fillStyle = "#4a90d9";
-    ctx.fill();
-    ctx.strokeStyle = "#fff";
-    ctx.lineWidth = 1.5 * px;
-    ctx.stroke();
-    ctx.restore();
-  }
+  if (state.pose) drawRobot(ctx, state.pose.x, state.pose.y, state.pose.yaw, 14 * px, px);
   scaleBar(k);
 }
 

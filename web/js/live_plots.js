@@ -4,6 +4,7 @@
 // user's preferences.
 import uPlot from "/vendor/uplot/uPlot.esm.js";
 import { apiJSON, el, text } from "./api.js";
+import { byUnit } from "./plan_view.js";
 import { keep, preferences } from "./preferences.js";
 
 const WINDOW_S = 60;
@@ -35,12 +36,7 @@ function rebuild() {
   if (!target) return;
   target.replaceChildren();
   target.dataset.fields = state.fields.join(",");
-  const groups = new Map();
-  for (const f of state.fields) {
-    const unit = state.units[f] ?? "";
-    if (!groups.has(unit)) groups.set(unit, []);
-    groups.get(unit).push(f);
-  }
+  const groups = byUnit(state.fields, (f) => state.units[f]);
   let colour = 0;
   for (const [unit, names] of groups) {
     const node = el("div", { class: "plot", dataset: { unit: unit || "none" } });

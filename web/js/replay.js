@@ -1,23 +1,10 @@
 // The replay of a defect: the frames it was seen in (thumbnails), and a timeline over every
 // frame of the session, the way Foxglove's is, with those frames marked: each position shows
 // the frame, the robot's pose and the telemetry of that moment, all from the stored data.
-import { api, apiJSON, el, fmt, text } from "./api.js";
+import { apiJSON, el, fmt, text } from "./api.js";
+import { imageURL } from "./images.js";
 
-const frameURLs = new Map();
 const timelines = new Map(); // session id -> its frames (seq, timestamp, pose), loaded once
-
-function frameImage(path) {
-  if (!frameURLs.has(path)) {
-    frameURLs.set(
-      path,
-      api(path)
-        .then((r) => (r.ok ? r.blob() : null))
-        .then((b) => (b ? URL.createObjectURL(b) : null))
-        .catch(() => null),
-    );
-  }
-  return frameURLs.get(path);
-}
 
 async function sessionFrames(sid) {
   if (!timelines.has(sid)) {
@@ -98,7 +85,7 @@ export function replay(sid, defectId) {
       });
       const thumbs = seen.map((s) => {
         const img = el("img", { alt: `frame ${s.seq}`, loading: "lazy" });
-        frameImage(s.image_url).then((url) => {
+        imageURL(s.image_url).then((url) => {
           if (url) img.src = url;
         });
         return el(
@@ -122,7 +109,7 @@ export function replay(sid, defectId) {
         node.dataset.seen = String(seen.some((s) => s.seq === f.seq));
         text(line, caption(f, start, null));
         const [url, telemetry] = await Promise.all([
-          frameImage(`/api/sessions/${sid}/frames/${f.seq}/image`),
+          imageURL(`/api/sessions/${sid}/frames/${f.seq}/image`),
           telemetryAt(sid, f.timestamp).catch(() => null),
         ]);
         if (shown !== i) return; // scrubbed on meanwhile

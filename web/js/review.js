@@ -259,6 +259,7 @@ function replayFor(d) {
 function onKey(e) {
   if (document.getElementById("view-session").hidden) return;
   if (["INPUT", "SELECT", "TEXTAREA"].includes(e.target.tagName)) return;
+  if (e.target.tagName === "BUTTON" && (e.key === "Enter" || e.key === " ")) return; // the button's own
   const rows = visible();
   const i = rows.findIndex((d) => d.id === view.selected);
   const d = rows[i];

@@ -5,7 +5,9 @@
 // the frame they were first seen in. Each moment's placement comes from the station
 // (GET /api/sessions/{id}/timeline), the same the coverage map and the mosaic use.
 import uPlot from "/vendor/uplot/uPlot.esm.js";
-import { api, apiJSON, el, fmt, text } from "./api.js";
+import { apiJSON, el, fmt, text } from "./api.js";
+import { imageURL } from "./images.js";
+import { byUnit } from "./plan_view.js";
 import { keep, preferences } from "./preferences.js";
 import { drawMap } from "./timeline_map.js";
 
@@ -15,25 +17,11 @@ const LIVE_POLL_MS = 3000; // a live session's new frames
 const DEFAULT_FIELDS = ["wheel_speed_mps[0]", "battery_v.main", "adhesion_margin"];
 const PLOT_COLOURS = ["#e0a030", "#3fae6a", "#4a90d9", "#d9443c", "#b07cd8", "#2ec4b6"];
 
-const frameURLs = new Map(); // image path -> object URL (kept while the page lives)
 let current = null; // the timeline on view
 
 function clock(seconds) {
   const t = Math.max(0, Math.round(seconds));
   return `${String(Math.floor(t / 60)).padStart(2, "0")}:${String(t % 60).padStart(2, "0")}`;
-}
-
-function image(path) {
-  if (!frameURLs.has(path)) {
-    frameURLs.set(
-      path,
-      api(path)
-        .then((r) => (r.ok ? r.blob() : null))
-        .then((b) => (b ? URL.createObjectURL(b) : null))
-        .catch(() => null),
-    );
-  }
-  return frameURLs.get(path);
 }
 
 // Which telemetry fields this user plots (kept with their preferences), of those there are.
@@ -56,6 +44,10 @@ function momentAt(frames, t) {
   return lo;
 }
 
+function plotWidth(box) {
+  return Math.max(240, Math.min(560, box.clientWidth - 8 || 320));
+}
+
 // One plot per unit of the chosen fields, each with the timeline's cursor drawn on it;
 // a click on a plot moves the timeline to that moment.
 async function loadPlots(tl) {
@@ -70,12 +62,7 @@ async function loadPlots(tl) {
   const q = tl.fields.map((f) => `field=${encodeURIComponent(f)}`).join("&");
   const s = await apiJSON(`/api/sessions/${tl.sid}/telemetry/series?${q}&max_points=3000`);
   const t = s.timestamps.map((v) => v - tl.data.start);
-  const groups = new Map();
-  for (const f of tl.fields) {
-    const unit = s.units[f] || "";
-    if (!groups.has(unit)) groups.set(unit, []);
-    groups.get(unit).push(f);
-  }
+  const groups = byUnit(tl.fields, (f) => s.units[f]);
   let colour = 0;
   for (const [unit, names] of groups) {
     const target = el("div", { class: "plot", dataset: { unit: unit || "none" } });
@@ -83,7 +70,7 @@ async function loadPlots(tl) {
     const plot = new uPlot(
       {
         title: unit ? `${names.join(", ")} (${unit})` : names.join(", "),
-        width: Math.max(260, Math.min(560, box.clientWidth - 8 || 320)),
+        width: plotWidth(box),
         height: 150,
         legend: { show: true, live: false },
         cursor: { drag: { x: false, y: false } },
@@ -145,29 +132,40 @@ function fieldPicker(tl) {
   );
 }
 
+// One tick per frame where defects were first seen; a click goes there and selects the
+// next of its defects (each click the next, where several were first seen together).
 function ticks(tl) {
   const n = tl.data.frames.length;
   const index = new Map(tl.data.frames.map((m, i) => [m.seq, i]));
-  return tl.defects
-    .filter((d) => d.first_seq !== null && index.has(d.first_seq))
-    .map((d) => {
-      const i = index.get(d.first_seq);
-      return el(
-        "button",
-        {
-          class: `timeline-tick ${d.defect_class}`,
-          style: `left: ${n > 1 ? (100 * i) / (n - 1) : 0}%`,
-          title: `${d.source === "frame" ? "F" : "#"}${d.number ?? d.id} ${d.defect_class}: first seen in frame ${d.first_seq}`,
-          "aria-label": `defect ${d.number ?? d.id}, first seen at ${clock(d.t_s)}`,
-          dataset: { defect: d.id, index: i },
-          onclick: () => {
-            tl.show(i);
-            tl.onDefect?.(d.id);
-          },
+  const at = new Map(); // frame index -> its defects
+  for (const d of tl.defects) {
+    if (d.first_seq === null || !index.has(d.first_seq)) continue;
+    const i = index.get(d.first_seq);
+    if (!at.has(i)) at.set(i, []);
+    at.get(i).push(d);
+  }
+  const name = (d) => `${d.source === "frame" ? "F" : "#"}${d.number ?? d.id}`;
+  return [...at.entries()].map(([i, ds]) => {
+    let next = 0;
+    const names = ds.map((d) => `${name(d)} ${d.defect_class}`).join(", ");
+    const classes = [...new Set(ds.map((d) => d.defect_class))].join(" ");
+    return el(
+      "button",
+      {
+        class: `timeline-tick ${classes}${ds.length > 1 ? " several" : ""}`,
+        style: `left: ${n > 1 ? (100 * i) / (n - 1) : 0}%`,
+        title: `${names}: first seen in frame ${tl.data.frames[i].seq}`,
+        "aria-label": `${ds.length > 1 ? `defects ${names}` : `defect ${names}`}, first seen at ${clock(tl.data.frames[i].t_s)}`,
+        dataset: { defects: ds.map((d) => d.id).join(" "), index: i },
+        onclick: () => {
+          tl.show(i);
+          tl.onDefect?.(ds[next % ds.length].id);
+          next += 1;
         },
-        "",
-      );
-    });
+      },
+      ds.length > 1 ? String(ds.length) : "",
+    );
+  });
 }
 
 // The session's timeline; ``defects`` are the page's defect records (for their place on the
@@ -209,6 +207,10 @@ export function sessionTimeline(sid, { defects = [], onMoment = null, onDefect =
     "aria-label": "coverage map at this moment",
   });
   tl.plotBox = el("div", { id: "timeline-plots", class: "timeline-plots" });
+  // the plots follow the page's width (a window narrowed, a phone turned)
+  new ResizeObserver(() => {
+    for (const p of tl.plots) p.setSize({ width: plotWidth(tl.plotBox), height: 150 });
+  }).observe(tl.plotBox);
   const track = el("div", { class: "timeline-track" }, slider);
 
   tl.show = (i) => {
@@ -229,7 +231,7 @@ export function sessionTimeline(sid, { defects = [], onMoment = null, onDefect =
       `frame ${m.seq} (${i + 1}/${frames.length}) · +${clock(m.t_s)} / ${clock(tl.data.duration_s)} · ${where}`,
     );
     const seq = m.seq;
-    image(`/api/sessions/${sid}/frames/${seq}/image`).then((url) => {
+    imageURL(`/api/sessions/${sid}/frames/${seq}/image`).then((url) => {
       if (url && tl.data.frames[tl.index]?.seq === seq) {
         frameImg.src = url;
         frameImg.dataset.seq = String(seq);
@@ -252,13 +254,16 @@ export function sessionTimeline(sid, { defects = [], onMoment = null, onDefect =
     let last = performance.now();
     text(play, "❚❚ Pause");
     node.dataset.playing = "true";
+    let played = tl.index; // the moment playback showed last
     tl.playing = setInterval(() => {
       if (!node.isConnected) return stop();
       const now = performance.now();
+      if (tl.index !== played) t = tl.data.frames[tl.index].t_s; // moved meanwhile: go on from there
       t += ((now - last) / 1000) * tl.speed;
       last = now;
       const i = momentAt(tl.data.frames, t);
       if (i !== tl.index) tl.show(i);
+      played = tl.index;
       if (i >= tl.data.frames.length - 1) stop();
     }, TICK_MS);
   };

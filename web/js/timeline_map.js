@@ -1,6 +1,8 @@
 // The coverage map of a session's timeline: every frame's footprint (those imaged by the
 // moment shown filled), the path driven so far, the defects (coloured once seen), the
 // camera's footprint now and the robot, in world metres: x right, y down, as the mosaic.
+import { drawRobot } from "./plan_view.js";
+
 const CLASS_COLOURS = { crack: "#ff3b30", corrosion: "#ffcc00" };
 
 // ``tl``: {canvas, data: the timeline, index: the moment shown, defects, places: id -> box}
@@ -65,22 +67,5 @@ export function drawMap(tl) {
     ctx.lineWidth = 2 * px;
     ctx.stroke();
   }
-  if (now.robot) {
-    const [x, y, yaw] = now.robot;
-    const r = 12 * px;
-    ctx.save();
-    ctx.translate(x, y);
-    ctx.rotate(yaw);
-    ctx.beginPath();
-    ctx.moveTo(r, 0);
-    ctx.lineTo(-r * 0.7, r * 0.6);
-    ctx.lineTo(-r * 0.7, -r * 0.6);
-    ctx.closePath();
-    ctx.fillStyle = "#4a90d9";
-    ctx.fill();
-    ctx.strokeStyle = "#fff";
-    ctx.lineWidth = 1.5 * px;
-    ctx.stroke();
-    ctx.restore();
-  }
+  if (now.robot) drawRobot(ctx, now.robot[0], now.robot[1], now.robot[2], 12 * px, px);
 }
