@@ -52,6 +52,20 @@ def relative_se2(a: NDArray[np.floating], b: NDArray[np.floating]) -> NDArray[np
     return np.array([d[0], d[1], float(wrap_angle(b[2] - a[2]))])
 
 
+def wheel_speeds(v: float, w: float, track_m: float) -> tuple[float, float]:
+    """Left and right wheel speeds (m/s) of a differential drive moving at ``v`` (m/s) and
+    turning at ``w`` (rad/s) about its z axis, which points into the surface (x forward, y
+    to its right): turning right (w > 0) the left wheels run faster."""
+    half = track_m / 2
+    return v + w * half, v - w * half
+
+
+def wheel_turn(left: float, right: float, track_m: float) -> float:
+    """The turn (rad, about z into the surface) of a differential drive whose left and right
+    wheels moved ``left`` and ``right`` (m): inverse of :func:`wheel_speeds`."""
+    return (left - right) / track_m
+
+
 def integrate_arc(pose: NDArray[np.floating], d: float, dth: float) -> NDArray[np.float64]:
     """Pose (x, y, θ) after a planar move of ``d`` metres while turning ``dth`` radians
     (midpoint integration, as a wheel odometer steps)."""

@@ -135,7 +135,8 @@ DRIVE_HOLD_S = 0.2  # a drive command holds this long; the robot stops unless a 
 
 class CommandMeta(_Meta):
     """An operator's command. ``drive`` args: ``linear_mps``, ``angular_radps`` (held for
-    DRIVE_HOLD_S); ``lift``: ``axle`` front|rear, ``up`` bool; ``auto_capture``: ``on`` bool,
+    DRIVE_HOLD_S; the yaw rate about the robot's z axis, which points into the surface with
+    x forward and y to its right: positive turns right); ``lift``: ``axle`` front|rear, ``up`` bool; ``auto_capture``: ``on`` bool,
     ``spacing_m``; ``sweep``: ``action`` start|pause|resume|stop (the on-board coverage
     sweep); any command may carry ``sent_ms`` (the operator's clock, ms since the epoch)."""
 

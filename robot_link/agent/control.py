@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.poses import wheel_speeds
 from robot_link.agent.config import RobotConfig
 from robot_link.agent.odometry import HallOdometry
 from robot_link.agent.safety import SafetyInputs, Verdict, allowed_motion
@@ -157,10 +158,8 @@ class Controller:
         moving = bool(self.verdict.v or self.verdict.w)
         try:
             if moving:
-                half = self.spec.track_m / 2
                 self.mcu.drive(
-                    self.verdict.v - self.verdict.w * half,
-                    self.verdict.v + self.verdict.w * half,
+                    *wheel_speeds(self.verdict.v, self.verdict.w, self.spec.track_m),
                     self.cfg.safety.deadman_s,
                 )
                 self.log.drives_sent += 1

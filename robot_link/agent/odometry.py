@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.poses import integrate_arc, wrap_angle
+from processing.poses import integrate_arc, wheel_turn, wrap_angle
 
 
 @dataclass
@@ -31,7 +31,7 @@ class HallOdometry:
         self._last = counts
         left, right = float(delta[[0, 2]].mean()), float(delta[[1, 3]].mean())
         d = (left + right) / 2
-        self.pose = integrate_arc(self.pose, d, (right - left) / self.track_m)
+        self.pose = integrate_arc(self.pose, d, wheel_turn(left, right, self.track_m))
         self.distance_m += abs(d)
         return abs(d)
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from processing.poses import wheel_turn
 from robot_link.emulator.world import World
 from robot_link.mcu.packets import (
     PROTOCOL_VERSION,
@@ -151,7 +152,7 @@ class Firmware:
         if self.estop:
             self.wheels = (0.0, 0.0)  # the e-stop cuts the motors' power: no ramp
         v = (self.wheels[0] + self.wheels[1]) / 2
-        w = (self.wheels[1] - self.wheels[0]) / self.world.spec.track_m
+        w = wheel_turn(self.wheels[0], self.wheels[1], self.world.spec.track_m)
         if on_plate:
             self.world.robot.step(v, w, dt)
         if self.world.robot.batteries.main_v < self.params.min_battery_v:

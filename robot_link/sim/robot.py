@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.poses import integrate_arc
+from processing.poses import integrate_arc, wheel_speeds, wheel_turn
 
 G = 9.81
 
@@ -115,8 +115,7 @@ class SimRobot:
 
     def step(self, v: float, w: float, dt: float) -> None:
         """Move with commanded speed ``v`` (m/s) and turn rate ``w`` (rad/s) for ``dt`` s."""
-        half = self.spec.track_m / 2
-        left, right = v - w * half, v + w * half
+        left, right = wheel_speeds(v, w, self.spec.track_m)
         wheel = np.array([left, right, left, right]) * dt  # FL, FR, RL, RR wheel travel
         # Hall sensors count magnet edges of the wheels' rotation
         exact = wheel / self.spec.metres_per_tick + self._tick_rem
@@ -127,7 +126,7 @@ class SimRobot:
         self.wheel_speed = wheel / dt if dt > 0 else np.zeros(4)
         # odometry: what the wheels say
         d_odo = (measured[[0, 2]].mean() + measured[[1, 3]].mean()) / 2
-        th_odo = (measured[[1, 3]].mean() - measured[[0, 2]].mean()) / self.spec.track_m
+        th_odo = wheel_turn(measured[[0, 2]].mean(), measured[[1, 3]].mean(), self.spec.track_m)
         self.odom = integrate_arc(self.odom, d_odo, th_odo)
         # truth: the body slips a little against the wheels
         d_true = (left + right) / 2 * dt * (1 - abs(self.rng.normal(0, self.spec.slip_sigma)))

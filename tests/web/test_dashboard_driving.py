@@ -195,10 +195,16 @@ def test_a_gamepad_drives_and_its_b_button_stops(
             "the robot to stop when the stick is let go",
         )
         page.evaluate("window.fakePad.axes[0] = -1")  # stick left: turn left
-        wait_until(
-            lambda: latest_telemetry(url, sid)["drive"]["angular_radps"] > 0.1,
+        yaw0 = latest_telemetry(url, sid)["pose"]["yaw"]
+        wait_until(  # yaw about z into the surface (y to the robot's right): a left turn is < 0
+            lambda: latest_telemetry(url, sid)["drive"]["angular_radps"] < -0.1,
             3,
             "the gamepad to turn",
+        )
+        wait_until(
+            lambda: latest_telemetry(url, sid)["pose"]["yaw"] < yaw0 - 0.02,
+            3,
+            "the robot's heading to turn to its left",
         )
         # B: stop, whatever the stick says
         page.evaluate("window.fakePad.buttons[1].pressed = true")

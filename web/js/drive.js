@@ -152,12 +152,14 @@ function velocity() {
   let w = 0;
   if (held.has("forward")) v += speed;
   if (held.has("back")) v -= speed;
-  if (held.has("left")) w += TURN_RADPS;
-  if (held.has("right")) w -= TURN_RADPS;
+  // the robot's yaw rate: about its z axis, which points into the surface (x forward, y to
+  // its right), so a turn to the right is positive and a turn to the left negative
+  if (held.has("left")) w -= TURN_RADPS;
+  if (held.has("right")) w += TURN_RADPS;
   const pad = gamepad();
   if (pad) {
     v += -pad.y * speed;
-    w += -pad.x * TURN_RADPS;
+    w += pad.x * TURN_RADPS;
   }
   return [v, w];
 }

@@ -13,6 +13,7 @@ import pytest
 from numpy.typing import NDArray
 
 from processing.coverage import footprint
+from processing.poses import wheel_speeds
 from robot_link.agent.odometry import HallOdometry
 from robot_link.agent.sweep import CoverageSweep, SweepParams
 from robot_link.emulator.coverage import footprint_coverage
@@ -49,8 +50,8 @@ class FirmwarePilot:
         self.odometry.set_heading(heading)
 
     async def step(self, v: float, w: float) -> None:
-        half = self.world.spec.track_m / 2
-        self.fw.handle(PacketType.DRIVE, 1, Drive(v - w * half, v + w * half, 0.2).pack())
+        left, right = wheel_speeds(v, w, self.world.spec.track_m)
+        self.fw.handle(PacketType.DRIVE, 1, Drive(left, right, 0.2).pack())
         for _ in range(2):
             self.fw.tick(0.01)
         self.since += self.odometry.update(self.fw.sensors().hall)
