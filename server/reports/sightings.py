@@ -12,15 +12,8 @@ from sqlalchemy.orm import Session
 
 from processing.coverage import footprint
 from processing.poses import compose_se2
+from server.reports.timeline import inside_convex
 from server.storage.models import Defect, Frame, InspectionSession, TelemetrySample
-
-
-def _inside(point: np.ndarray, poly: np.ndarray) -> bool:
-    """Whether a point lies in a convex polygon (corners in order, either direction)."""
-    edges = np.roll(poly, -1, axis=0) - poly
-    rel = point - poly
-    cross = edges[:, 0] * rel[:, 1] - edges[:, 1] * rel[:, 0]
-    return bool((cross >= 0).all() or (cross <= 0).all())
 
 
 def nearest_telemetry(db: Session, session_id: str, t: float) -> dict[str, Any] | None:
@@ -70,7 +63,9 @@ def defect_sightings(db: Session, defect: Defect) -> list[dict[str, Any]]:
         hit = own
         if not hit and centre is not None and f.pose_x is not None:
             cam = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw or 0.0]), T_rc)
-            hit = _inside(centre, footprint(cam, px_per_m, (f.width, f.height)))
+            hit = bool(
+                inside_convex(centre, footprint(cam, px_per_m, (f.width, f.height))[None])[0, 0]
+            )
         if hit:
             seen.append(
                 {
