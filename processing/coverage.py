@@ -3,8 +3,12 @@ and where the holes are.
 
 A frame counts when its resolution meets the required one (mm per pixel, from the camera's
 calibration), it is sharp compared with the session's other frames, and it is exposed
-(its brightest pixels are not all dark). The surface "in view" is the convex hull of every
-frame's footprint (or a declared surface outline); a hole is a connected part of it that no
+(its brightest pixels are not all dark). The surface "in view" is the surface a sensor saw
+within the convex hull of every frame's footprint (or a declared surface outline): the
+frames' parts that are not dark (the camera's exposure is set for the lit surface at its
+focus distance: past a plate's edge it sees dark), and where the depth camera saw the plane
+the robot stands on (:mod:`processing.surface_evidence`); without depth, the whole hull
+less what only dark parts of frames showed. A hole is a connected part of it that no
 counting frame imaged. Pure functions: arrays and dataclasses in and out.
 """
 
@@ -37,10 +41,13 @@ class CoverageParams:
 
 @dataclass(frozen=True)
 class FrameQuality:
-    """Sharpness (variance of the Laplacian, grey levels²) and exposure of one frame."""
+    """Sharpness (variance of the Laplacian, grey levels²) and exposure of one frame, and
+    the exposure of each of its tiles (a part of the frame past a plate's edge is dark: the
+    camera's exposure is set for the lit surface at its focus distance)."""
 
     sharpness: float
     bright_level: float  # 95th percentile of grey
+    tile_bright: NDArray[np.float32] | None = None  # (rows, cols) each tile's 95th percentile
 
 
 @dataclass(frozen=True)
@@ -52,6 +59,16 @@ class Hole:
     bbox_m: tuple[float, float, float, float]  # x, y, w, h
     area_m2: float
     centroid_m: tuple[float, float] = (0.0, 0.0)  # may lie outside the hole (a C-shape)
+
+
+@dataclass(frozen=True)
+class SurfaceVotes:
+    """Evidence about where the surface is, in the world frame (metres): at each point,
+    whether a sensor saw the surface there, and how much that counts."""
+
+    xy: NDArray[np.floating]  # (N, 2)
+    on: NDArray[np.bool_]  # (N,)
+    weight: NDArray[np.floating]  # (N,)
 
 
 @dataclass
@@ -77,10 +94,49 @@ class Coverage:
         return self.area_imaged_m2 / self.area_surface_m2 if self.surface.any() else 0.0
 
 
-def frame_quality(gray: NDArray[np.uint8]) -> FrameQuality:
-    """Sharpness and exposure of a grey image (H, W) uint8."""
+def frame_quality(gray: NDArray[np.uint8], tiles_across: int = 12) -> FrameQuality:
+    """Sharpness and exposure of a grey image (H, W) uint8, and the exposure of its tiles
+    (``tiles_across`` on its short side, square)."""
     sharp = float(cv2.Laplacian(gray, cv2.CV_32F).var())
-    return FrameQuality(sharp, float(np.percentile(gray, 95)))
+    h, w = gray.shape
+    side = max(1, min(h, w) // max(tiles_across, 1))
+    rows, cols = max(1, h // side), max(1, w // side)
+    th, tw = h // rows, w // cols
+    blocks = gray[: rows * th, : cols * tw].reshape(rows, th, cols, tw).transpose(0, 2, 1, 3)
+    tiles = np.percentile(blocks.reshape(rows, cols, -1), 95, axis=2).astype(np.float32)
+    return FrameQuality(sharp, float(np.percentile(gray, 95)), tiles)
+
+
+def dark_tiles(quality: FrameQuality | None, params: CoverageParams) -> NDArray[np.bool_] | None:
+    """(rows, cols) the tiles of a frame too dark to show the surface, or None (no tiles)."""
+    if quality is None or quality.tile_bright is None:
+        return None
+    return np.asarray(quality.tile_bright < params.dark_level)
+
+
+def tile_footprints(
+    camera_pose: NDArray[np.floating],
+    px_per_m: float,
+    size: tuple[int, int],
+    tiles: tuple[int, int],
+) -> NDArray[np.float64]:
+    """World corners (rows, cols, 4, 2) of the tiles (``tiles`` = rows, cols, each the
+    image's size over their count) of a downward-camera image of ``size`` (w, h)."""
+    w, h = size
+    rows, cols = tiles
+    u = np.linspace(0, w, cols + 1) - 0.5
+    v = np.linspace(0, h, rows + 1) - 0.5
+    corners = np.stack(
+        [
+            np.stack(np.meshgrid(u[:-1], v[:-1]), -1),
+            np.stack(np.meshgrid(u[1:], v[:-1]), -1),
+            np.stack(np.meshgrid(u[1:], v[1:]), -1),
+            np.stack(np.meshgrid(u[:-1], v[1:]), -1),
+        ],
+        axis=2,
+    )  # (rows, cols, 4, 2)
+    world = image_to_world(corners.reshape(-1, 2), camera_pose, px_per_m, size)
+    return world.reshape(rows, cols, 4, 2)
 
 
 def frame_verdicts(
@@ -121,10 +177,19 @@ def coverage_map(
     counts: Sequence[bool],
     params: CoverageParams = CoverageParams(),
     surface_outline: NDArray[np.floating] | None = None,
+    surface_votes: SurfaceVotes | None = None,
+    tiles: Sequence[tuple[NDArray[np.floating], NDArray[np.bool_]] | None] | None = None,
 ) -> Coverage:
     """Rasterise the footprints (each (4, 2) metres) of the frames that count onto a grid
-    over the surface in view (``surface_outline`` (N, 2), else the hull of all footprints)
-    and find the holes."""
+    over the surface in view and find the holes.
+
+    ``tiles``, per frame, its tiles' corners (rows, cols, 4, 2) and which are dark
+    (rows, cols), or None (the whole footprint shows the surface); a frame's dark tiles
+    image nothing. The surface in view lies within ``surface_outline`` (N, 2), else the
+    hull of all footprints; with ``surface_votes`` (what a depth camera saw) it is what a
+    frame's bright tiles showed (counting or not) or the votes say is surface (more weight
+    for it than against), and without them, the whole hull less what only dark tiles
+    showed."""
     if not len(footprints):
         empty = np.zeros((0, 0), bool)
         return Coverage((0.0, 0.0), 1.0, empty, empty)
@@ -141,16 +206,32 @@ def coverage_map(
     def cells(p: NDArray[np.float64]) -> NDArray[np.int32]:
         return np.round((p - lo) / cell - 0.5).astype(np.int32).reshape(-1, 1, 2)
 
-    imaged = np.zeros((rows, cols), np.uint8)
-    for p, ok in zip(polys, counts):  # one at a time: fillPoly XORs overlapping contours
-        if ok:
-            cv2.fillPoly(imaged, [cells(p)], 1)
+    imaged = np.zeros((rows, cols), np.uint8)  # by the frames that count
+    seen = np.zeros((rows, cols), np.uint8)  # by the others: the surface is there
+    dark = np.zeros((rows, cols), np.uint8)
+    frame_tiles = list(tiles) if tiles is not None else [None] * len(polys)
+    for p, ok, t in zip(polys, counts, frame_tiles):
+        into = imaged if ok else seen
+        if t is None:  # one at a time: fillPoly XORs overlapping contours
+            cv2.fillPoly(into, [cells(p)], 1)
+            continue
+        corners, is_dark = np.asarray(t[0], np.float64), np.asarray(t[1], bool)
+        for q in corners[~is_dark]:
+            cv2.fillPoly(into, [cells(q)], 1)
+        for q in corners[is_dark]:
+            cv2.fillPoly(dark, [cells(q)], 1)
+    seen |= imaged
     surface = np.zeros_like(imaged)
     if surface_outline is not None:
         outline = cells(np.asarray(surface_outline, dtype=np.float64))
     else:  # the hull of the footprints' own corner cells: its edges rasterise as theirs do
         outline = cast(NDArray[np.int32], cv2.convexHull(np.vstack([cells(p) for p in polys])))
     cv2.fillPoly(surface, [outline], 1)
+    if surface_votes is not None:  # in view: what the camera or the depth camera saw
+        against, for_ = _surface_votes(surface_votes, lo, cell, surface.shape)
+        surface &= (seen > 0) | (for_ > against)
+    else:  # in view: the hull, less what only the dark parts of frames showed
+        surface[(dark > 0) & (seen == 0)] = 0
     result = Coverage((float(lo[0]), float(lo[1])), cell, imaged.astype(bool), surface.astype(bool))
     result.holes = find_holes(
         result,
@@ -158,6 +239,21 @@ def coverage_map(
         min_width_cells=params.min_hole_width * params.cells_per_footprint,
     )
     return result
+
+
+def _surface_votes(
+    votes: SurfaceVotes, lo: NDArray[np.float64], cell: float, shape: tuple[int, ...]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(rows, cols) the weight of the votes against the surface in each cell, and for it."""
+    rows, cols = shape
+    c = np.floor((np.asarray(votes.xy, np.float64) - lo) / cell).astype(np.int64)
+    inside = (c[:, 0] >= 0) & (c[:, 0] < cols) & (c[:, 1] >= 0) & (c[:, 1] < rows)
+    idx = c[inside, 1] * cols + c[inside, 0]
+    w = np.asarray(votes.weight, np.float64)[inside]
+    on = np.asarray(votes.on, bool)[inside]
+    for_ = np.bincount(idx[on], w[on], rows * cols).reshape(rows, cols)
+    against = np.bincount(idx[~on], w[~on], rows * cols).reshape(rows, cols)
+    return against, for_
 
 
 def hole_mask(cov: Coverage) -> NDArray[np.bool_]:

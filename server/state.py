@@ -26,6 +26,7 @@ from server.live.live_map import LiveMap
 from server.live.relay import LiveRelay
 from server.live.scenes import Scenes
 from server.reports.coverage import QualityCache
+from server.reports.surface_votes import SurfaceCache
 from server.storage import db
 from server.storage.files import SessionFiles
 from server.storage.space import DiskReserve
@@ -57,6 +58,7 @@ class AppState:
     # who is shown a robot's live-only messages (VIDEO, COMMAND_ACK)
     on_live: list[Callable[[Message], None]] = field(default_factory=list)
     quality: QualityCache = field(default_factory=QualityCache)  # frame sharpness, exposure
+    surface: SurfaceCache = field(default_factory=SurfaceCache)  # what clouds say of the surface
     coverage_memo: dict[str, Any] = field(default_factory=dict)  # session -> (key, coverage)
     logins: LoginThrottle = field(default_factory=LoginThrottle)  # wrong passwords per client
     malformed: MalformedGuard = field(default_factory=MalformedGuard)  # per robot

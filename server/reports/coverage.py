@@ -20,12 +20,15 @@ from processing.coverage import (
     CoverageParams,
     FrameQuality,
     coverage_map,
+    dark_tiles,
     footprint,
     frame_quality,
     frame_verdicts,
     hole_mask,
+    tile_footprints,
 )
-from processing.poses import compose_se2
+from processing.poses import compose_se2, relative_se2
+from server.reports.surface_votes import SurfaceCache, session_surface_votes
 from server.storage.files import SessionFiles
 from server.storage.models import Frame, InspectionSession
 
@@ -72,27 +75,58 @@ def session_coverage(
     *,
     with_grid: bool = True,
     corrections: NDArray[np.float64] | None = None,
+    surface_cache: SurfaceCache | None = None,
 ) -> dict[str, Any]:
     """The coverage of a session as JSON: frames (footprint corners, verdict), surface and
     imaged areas, holes, and (``with_grid``) the grid as run-length rows for drawing.
     Each frame is placed by the best registration there is: the mosaic's (the stitch job's
     image registration), else ``corrections`` (N, 4: time, dx, dy, dyaw; the live map's
-    registration of the odometry, the cloud nearest in time), else its odometry pose."""
+    registration of the odometry, the cloud nearest in time), else its odometry pose. The
+    surface in view leaves out what the ToF clouds show is no surface (past the plate's
+    edges), each cloud placed as the frame nearest in time (``surface_cache`` keeps what
+    each cloud says: a live session's map reads only its new clouds), and what only the
+    dark tiles of frames showed (the part of a frame past an edge)."""
     s = db.get(InspectionSession, session_id)
     camera = (s.calibration or {}).get("camera", {}) if s is not None else {}
     px_per_m = float(camera.get("px_per_m") or 0) or None
     T_rc = np.asarray(camera.get("T_robot_camera", [0.0, 0.0, 0.0]), dtype=np.float64)
     frames = _placed_frames(db, session_id)
     mm_per_px = 1000.0 / px_per_m if px_per_m else None
-    verdicts = frame_verdicts([cache.get(files, f) for f in frames], mm_per_px, params)
-    polys, placed_by = [], []
+    qualities = [cache.get(files, f) for f in frames]
+    verdicts = frame_verdicts(qualities, mm_per_px, params)
+    polys, placed_by, fixes = [], [], []
+    tiles: list[tuple[NDArray[np.float64], NDArray[np.bool_]] | None] = []
+    votes = None
     if px_per_m:
         mosaic = mosaic_cameras(files, session_id)
-        for f in frames:
+        for f, q in zip(frames, qualities):
             cam, by = camera_pose(f, mosaic, corrections, T_rc)
             polys.append(footprint(cam, px_per_m, (f.width, f.height)))
             placed_by.append(by)
-    cov = coverage_map(polys, [not v for v in verdicts], params)
+            dark = dark_tiles(q, params)
+            tiles.append(
+                (tile_footprints(cam, px_per_m, (f.width, f.height), dark.shape), dark)
+                if dark is not None and dark.any()
+                else None
+            )
+            odom = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw or 0.0]), T_rc)
+            fixes.append(compose_se2(cam, relative_se2(odom, np.zeros(3))))
+        tof = (s.calibration or {}).get("tof", {}) if s is not None else {}
+        if frames and tof.get("T_robot_tof") is not None:
+            short = min(min(f.width, f.height) for f in frames) / px_per_m
+            votes = session_surface_votes(
+                db,
+                files,
+                surface_cache if surface_cache is not None else SurfaceCache(),
+                session_id,
+                np.asarray(tof["T_robot_tof"], dtype=np.float64),
+                short / params.cells_per_footprint,
+                np.array([f.timestamp for f in frames]),
+                np.array(fixes),
+            )
+    cov = coverage_map(
+        polys, [not v for v in verdicts], params, surface_votes=votes, tiles=tiles or None
+    )
     out: dict[str, Any] = {
         "required_mm_per_px": params.required_mm_per_px,
         "camera_mm_per_px": mm_per_px,

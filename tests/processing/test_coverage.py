@@ -10,10 +10,13 @@ import pytest
 
 from processing.coverage import (
     CoverageParams,
+    SurfaceVotes,
     coverage_map,
+    dark_tiles,
     footprint,
     frame_quality,
     frame_verdicts,
+    tile_footprints,
 )
 from robot_link.sim.sensors import DownwardCamera
 from robot_link.sim.structure import make_structure
@@ -96,3 +99,57 @@ def test_a_hole_is_placed_where_nothing_was_imaged_and_slivers_are_no_holes() ->
     w = np.linalg.norm(prints[0][1] - prints[0][0])
     pair = [footprint(np.array([x, 0.0, 0.0]), PX_PER_M, SIZE) for x in (0.0, 1.05 * w)]
     assert coverage_map(pair, [True, True]).holes == []
+
+
+def frame_tiles(structure, cam: np.ndarray):  # type: ignore[no-untyped-def]
+    """A real frame's footprint and its tiles (corners, which are dark)."""
+    image = CAMERA.render(structure, cam, np.random.default_rng(0))
+    dark = dark_tiles(frame_quality(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)), CoverageParams())
+    assert dark is not None
+    return footprint(cam, PX_PER_M, SIZE), (tile_footprints(cam, PX_PER_M, SIZE, dark.shape), dark)
+
+
+def test_the_part_of_a_frame_past_the_plates_edge_is_no_surface(structure) -> None:  # type: ignore[no-untyped-def]
+    """A lane along the plate's y = 0 edge with the footprint 4 cm past it: what the camera
+    saw past the edge is dark, images nothing and is not in view; no hole lies there."""
+    across = CAMERA.footprint_m[1]
+    y = across / 2 - 0.04
+    xs = np.arange(0.3, 0.9, 0.1)
+    parts = [frame_tiles(structure, np.array([x, y, 0.0])) for x in xs]
+    feet, tiles = [p[0] for p in parts], [p[1] for p in parts]
+    assert all(t[1].any() and not t[1].all() for t in tiles)
+    plain = coverage_map(feet, [True] * len(feet))
+    cov = coverage_map(feet, [True] * len(feet), tiles=tiles)
+    cell = cov.cell_m
+    rows = np.nonzero(cov.surface.any(axis=1))[0]
+    lowest = cov.origin_m[1] + rows.min() * cell
+    tile = CAMERA.footprint_m[1] / 12
+    assert -tile - cell <= lowest <= cell  # the edge, to within a tile
+    assert plain.origin_m[1] + np.nonzero(plain.surface.any(axis=1))[0].min() * cell < -0.035
+    assert cov.area_imaged_m2 == pytest.approx(cov.area_surface_m2)
+    assert cov.area_imaged_m2 < plain.area_imaged_m2 - 0.5 * 0.04 * 0.6
+    assert not cov.holes
+
+
+def test_the_depth_cameras_votes_decide_what_no_frame_saw() -> None:
+    """Two lanes with a gap: where the depth camera saw the plane, the gap is a hole; where
+    it saw past an edge, or nothing saw, it is not in view; a frame's own view wins."""
+    along, across = CAMERA.footprint_m
+    xs = np.arange(0.2, 1.0, along / 2)
+    feet = lane(0.2, xs) + lane(0.2 + 2 * across, xs)
+    gap = np.mgrid[0.25:0.55:0.002, 0.2 + across / 2 + 0.005 : 0.2 + 1.5 * across - 0.005 : 0.002]
+    gap = gap.reshape(2, -1).T
+    left, right = gap[gap[:, 0] < 0.4], gap[gap[:, 0] >= 0.4]
+    under = np.array([[0.3, 0.2]])  # in a frame, but a vote against it
+    votes = SurfaceVotes(
+        np.vstack([left, right, under]),
+        np.r_[np.ones(len(left), bool), np.zeros(len(right), bool), False],
+        np.ones(len(left) + len(right) + 1),
+    )
+    cov = coverage_map(feet, [True] * len(feet), surface_votes=votes)
+    assert len(cov.holes) == 1
+    h = cov.holes[0]
+    assert 0.25 <= h.x_m < 0.4 and h.area_m2 == pytest.approx(0.15 * across, rel=0.15)
+    plain = coverage_map(feet, [True] * len(feet))
+    assert plain.holes[0].area_m2 > 0.5 * (xs[-1] - xs[0]) * across
+    assert cov.area_imaged_m2 == pytest.approx(plain.area_imaged_m2)
