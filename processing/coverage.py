@@ -47,7 +47,7 @@ class FrameQuality:
 
     sharpness: float
     bright_level: float  # 95th percentile of grey
-    tile_bright: NDArray[np.float32] | None = None  # (rows, cols) each tile's 95th percentile
+    tile_bright: NDArray[np.uint8] | None = None  # (rows, cols) each tile's 95th percentile
 
 
 @dataclass(frozen=True)
@@ -94,7 +94,7 @@ class Coverage:
         return self.area_imaged_m2 / self.area_surface_m2 if self.surface.any() else 0.0
 
 
-def frame_quality(gray: NDArray[np.uint8], tiles_across: int = 12) -> FrameQuality:
+def frame_quality(gray: NDArray[np.uint8], tiles_across: int = 48) -> FrameQuality:
     """Sharpness and exposure of a grey image (H, W) uint8, and the exposure of its tiles
     (``tiles_across`` on its short side, square)."""
     sharp = float(cv2.Laplacian(gray, cv2.CV_32F).var())
@@ -103,40 +103,16 @@ def frame_quality(gray: NDArray[np.uint8], tiles_across: int = 12) -> FrameQuali
     rows, cols = max(1, h // side), max(1, w // side)
     th, tw = h // rows, w // cols
     blocks = gray[: rows * th, : cols * tw].reshape(rows, th, cols, tw).transpose(0, 2, 1, 3)
-    tiles = np.percentile(blocks.reshape(rows, cols, -1), 95, axis=2).astype(np.float32)
-    return FrameQuality(sharp, float(np.percentile(gray, 95)), tiles)
+    tiles = np.percentile(blocks.reshape(rows, cols, -1), 95, axis=2)
+    return FrameQuality(sharp, float(np.percentile(gray, 95)), tiles.astype(np.uint8))
 
 
 def dark_tiles(quality: FrameQuality | None, params: CoverageParams) -> NDArray[np.bool_] | None:
-    """(rows, cols) the tiles of a frame too dark to show the surface, or None (no tiles)."""
+    """(rows, cols) the tiles of a frame too dark to show the surface, or None (none)."""
     if quality is None or quality.tile_bright is None:
         return None
-    return np.asarray(quality.tile_bright < params.dark_level)
-
-
-def tile_footprints(
-    camera_pose: NDArray[np.floating],
-    px_per_m: float,
-    size: tuple[int, int],
-    tiles: tuple[int, int],
-) -> NDArray[np.float64]:
-    """World corners (rows, cols, 4, 2) of the tiles (``tiles`` = rows, cols, each the
-    image's size over their count) of a downward-camera image of ``size`` (w, h)."""
-    w, h = size
-    rows, cols = tiles
-    u = np.linspace(0, w, cols + 1) - 0.5
-    v = np.linspace(0, h, rows + 1) - 0.5
-    corners = np.stack(
-        [
-            np.stack(np.meshgrid(u[:-1], v[:-1]), -1),
-            np.stack(np.meshgrid(u[1:], v[:-1]), -1),
-            np.stack(np.meshgrid(u[1:], v[1:]), -1),
-            np.stack(np.meshgrid(u[:-1], v[1:]), -1),
-        ],
-        axis=2,
-    )  # (rows, cols, 4, 2)
-    world = image_to_world(corners.reshape(-1, 2), camera_pose, px_per_m, size)
-    return world.reshape(rows, cols, 4, 2)
+    dark = np.asarray(quality.tile_bright < params.dark_level)
+    return dark if dark.any() else None
 
 
 def frame_verdicts(
@@ -178,13 +154,13 @@ def coverage_map(
     params: CoverageParams = CoverageParams(),
     surface_outline: NDArray[np.floating] | None = None,
     surface_votes: SurfaceVotes | None = None,
-    tiles: Sequence[tuple[NDArray[np.floating], NDArray[np.bool_]] | None] | None = None,
+    dark: Sequence[NDArray[np.bool_] | None] | None = None,
 ) -> Coverage:
     """Rasterise the footprints (each (4, 2) metres) of the frames that count onto a grid
     over the surface in view and find the holes.
 
-    ``tiles``, per frame, its tiles' corners (rows, cols, 4, 2) and which are dark
-    (rows, cols), or None (the whole footprint shows the surface); a frame's dark tiles
+    ``dark``, per frame, which of its tiles (rows, cols, over the image as its footprint's
+    corners order it) are too dark to show the surface, or None; a frame's dark tiles
     image nothing. The surface in view lies within ``surface_outline`` (N, 2), else the
     hull of all footprints; with ``surface_votes`` (what a depth camera saw) it is what a
     frame's bright tiles showed (counting or not) or the votes say is surface (more weight
@@ -208,18 +184,13 @@ def coverage_map(
 
     imaged = np.zeros((rows, cols), np.uint8)  # by the frames that count
     seen = np.zeros((rows, cols), np.uint8)  # by the others: the surface is there
-    dark = np.zeros((rows, cols), np.uint8)
-    frame_tiles = list(tiles) if tiles is not None else [None] * len(polys)
-    for p, ok, t in zip(polys, counts, frame_tiles):
+    dark_cells = np.zeros((rows, cols), np.uint8)
+    for p, ok, d in zip(polys, counts, dark if dark is not None else [None] * len(polys)):
         into = imaged if ok else seen
-        if t is None:  # one at a time: fillPoly XORs overlapping contours
+        if d is None:  # one at a time: fillPoly XORs overlapping contours
             cv2.fillPoly(into, [cells(p)], 1)
-            continue
-        corners, is_dark = np.asarray(t[0], np.float64), np.asarray(t[1], bool)
-        for q in corners[~is_dark]:
-            cv2.fillPoly(into, [cells(q)], 1)
-        for q in corners[is_dark]:
-            cv2.fillPoly(dark, [cells(q)], 1)
+        else:
+            _paint_tiles(into, dark_cells, (p - lo) / cell - 0.5, np.asarray(d, bool))
     seen |= imaged
     surface = np.zeros_like(imaged)
     if surface_outline is not None:
@@ -231,7 +202,7 @@ def coverage_map(
         against, for_ = _surface_votes(surface_votes, lo, cell, surface.shape)
         surface &= (seen > 0) | (for_ > against)
     else:  # in view: the hull, less what only the dark parts of frames showed
-        surface[(dark > 0) & (seen == 0)] = 0
+        surface[(dark_cells > 0) & (seen == 0)] = 0
     result = Coverage((float(lo[0]), float(lo[1])), cell, imaged.astype(bool), surface.astype(bool))
     result.holes = find_holes(
         result,
@@ -239,6 +210,40 @@ def coverage_map(
         min_width_cells=params.min_hole_width * params.cells_per_footprint,
     )
     return result
+
+
+def _paint_tiles(
+    bright: NDArray[np.uint8],
+    dark: NDArray[np.uint8],
+    corners: NDArray[np.float64],
+    is_dark: NDArray[np.bool_],
+) -> None:
+    """Mark the grid cells whose centres fall in a frame's bright tiles in ``bright`` and in
+    its dark tiles in ``dark``; ``corners`` (4, 2) the footprint's corners in cell units."""
+    rows, cols = is_dark.shape
+    p0 = corners[0]
+    ex, ey = (corners[1] - p0) / cols, (corners[3] - p0) / rows
+    # tile units (a, b) -> cells: p0 + a·ex + b·ey, over the cells the footprint spans
+    x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 1
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, bright.shape[1]), min(y1, bright.shape[0])
+    if x1 <= x0 or y1 <= y0:
+        return
+    # OpenCV's tile (i, j) is centred at (i, j), tile units (i + 0.5, j + 0.5); each cell
+    # centre (whole numbers in these cell units) looks up the tile it falls in
+    M = np.column_stack([ex, ey, p0 + 0.5 * (ex + ey) - (x0, y0)])
+    states = np.where(is_dark, 2, 1).astype(np.uint8)
+    out = cv2.warpAffine(
+        states, M, (x1 - x0, y1 - y0), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE
+    )
+    # the footprint's cells as a whole footprint is filled (its border cells included)
+    inside = np.zeros_like(out)
+    poly = np.round(corners - (x0, y0)).astype(np.int32).reshape(-1, 1, 2)
+    cv2.fillPoly(inside, [poly], 1)
+    out *= inside
+    bright[y0:y1, x0:x1] |= (out == 1).astype(np.uint8)
+    dark[y0:y1, x0:x1] |= (out == 2).astype(np.uint8)
 
 
 def _surface_votes(

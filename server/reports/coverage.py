@@ -25,7 +25,6 @@ from processing.coverage import (
     frame_quality,
     frame_verdicts,
     hole_mask,
-    tile_footprints,
 )
 from processing.poses import compose_se2, relative_se2
 from server.reports.surface_votes import SurfaceCache, session_surface_votes
@@ -95,20 +94,13 @@ def session_coverage(
     qualities = [cache.get(files, f) for f in frames]
     verdicts = frame_verdicts(qualities, mm_per_px, params)
     polys, placed_by, fixes = [], [], []
-    tiles: list[tuple[NDArray[np.float64], NDArray[np.bool_]] | None] = []
     votes = None
     if px_per_m:
         mosaic = mosaic_cameras(files, session_id)
-        for f, q in zip(frames, qualities):
+        for f in frames:
             cam, by = camera_pose(f, mosaic, corrections, T_rc)
             polys.append(footprint(cam, px_per_m, (f.width, f.height)))
             placed_by.append(by)
-            dark = dark_tiles(q, params)
-            tiles.append(
-                (tile_footprints(cam, px_per_m, (f.width, f.height), dark.shape), dark)
-                if dark is not None and dark.any()
-                else None
-            )
             odom = compose_se2(np.array([f.pose_x, f.pose_y, f.pose_yaw or 0.0]), T_rc)
             fixes.append(compose_se2(cam, relative_se2(odom, np.zeros(3))))
         tof = (s.calibration or {}).get("tof", {}) if s is not None else {}
@@ -125,7 +117,11 @@ def session_coverage(
                 np.array(fixes),
             )
     cov = coverage_map(
-        polys, [not v for v in verdicts], params, surface_votes=votes, tiles=tiles or None
+        polys,
+        [not v for v in verdicts],
+        params,
+        surface_votes=votes,
+        dark=[dark_tiles(q, params) for q in qualities] if polys else None,
     )
     out: dict[str, Any] = {
         "required_mm_per_px": params.required_mm_per_px,

@@ -16,7 +16,6 @@ from processing.coverage import (
     footprint,
     frame_quality,
     frame_verdicts,
-    tile_footprints,
 )
 from robot_link.sim.sensors import DownwardCamera
 from robot_link.sim.structure import make_structure
@@ -102,11 +101,11 @@ def test_a_hole_is_placed_where_nothing_was_imaged_and_slivers_are_no_holes() ->
 
 
 def frame_tiles(structure, cam: np.ndarray):  # type: ignore[no-untyped-def]
-    """A real frame's footprint and its tiles (corners, which are dark)."""
+    """A real frame's footprint and which of its tiles are dark."""
     image = CAMERA.render(structure, cam, np.random.default_rng(0))
     dark = dark_tiles(frame_quality(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)), CoverageParams())
     assert dark is not None
-    return footprint(cam, PX_PER_M, SIZE), (tile_footprints(cam, PX_PER_M, SIZE, dark.shape), dark)
+    return footprint(cam, PX_PER_M, SIZE), dark
 
 
 def test_the_part_of_a_frame_past_the_plates_edge_is_no_surface(structure) -> None:  # type: ignore[no-untyped-def]
@@ -117,13 +116,13 @@ def test_the_part_of_a_frame_past_the_plates_edge_is_no_surface(structure) -> No
     xs = np.arange(0.3, 0.9, 0.1)
     parts = [frame_tiles(structure, np.array([x, y, 0.0])) for x in xs]
     feet, tiles = [p[0] for p in parts], [p[1] for p in parts]
-    assert all(t[1].any() and not t[1].all() for t in tiles)
+    assert all(t.any() and not t.all() for t in tiles)
     plain = coverage_map(feet, [True] * len(feet))
-    cov = coverage_map(feet, [True] * len(feet), tiles=tiles)
+    cov = coverage_map(feet, [True] * len(feet), dark=tiles)
     cell = cov.cell_m
     rows = np.nonzero(cov.surface.any(axis=1))[0]
     lowest = cov.origin_m[1] + rows.min() * cell
-    tile = CAMERA.footprint_m[1] / 12
+    tile = CAMERA.footprint_m[1] / 48
     assert -tile - cell <= lowest <= cell  # the edge, to within a tile
     assert plain.origin_m[1] + np.nonzero(plain.surface.any(axis=1))[0].min() * cell < -0.035
     assert cov.area_imaged_m2 == pytest.approx(cov.area_surface_m2)

@@ -20,9 +20,7 @@ def tof() -> TofCamera:
 
 def read(tof: TofCamera, pose: tuple[float, float, float], seed: int = 0):  # type: ignore[no-untyped-def]
     depth = tof.render(tof.T_world_tof(np.array(pose)), np.random.default_rng(seed))
-    grid = depth_to_points(depth, tof.fx, tof.fy, tof.cx, tof.cy).reshape(
-        tof.height, tof.width, 3
-    )
+    grid = depth_to_points(depth, tof.fx, tof.fy, tof.cx, tof.cy).reshape(tof.height, tof.width, 3)
     rays = pixel_rays(tof.width, tof.height, tof.fx, tof.fy, tof.cx, tof.cy)
     ev = surface_evidence(grid, tof.T_robot_tof, rays)
     world = np.array([compose_se2(np.array(pose), np.array([x, y, 0.0]))[:2] for x, y in ev.xy])
