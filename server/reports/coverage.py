@@ -31,7 +31,7 @@ from server.reports.surface_votes import SurfaceCache, session_surface_votes
 from server.storage.files import SessionFiles
 from server.storage.models import Frame, InspectionSession
 
-MAX_CACHED = 200_000
+MAX_CACHED = 50_000  # frames (about 3 KB each with their tiles)
 
 
 class QualityCache:
