@@ -241,7 +241,7 @@ def _paint_tiles(
     inside = np.zeros_like(out)
     poly = np.round(corners - (x0, y0)).astype(np.int32).reshape(-1, 1, 2)
     cv2.fillPoly(inside, [poly], 1)
-    out *= inside
+    out[inside == 0] = 0
     bright[y0:y1, x0:x1] |= (out == 1).astype(np.uint8)
     dark[y0:y1, x0:x1] |= (out == 2).astype(np.uint8)
 
@@ -256,8 +256,8 @@ def _surface_votes(
     idx = c[inside, 1] * cols + c[inside, 0]
     w = np.asarray(votes.weight, np.float64)[inside]
     on = np.asarray(votes.on, bool)[inside]
-    for_ = np.bincount(idx[on], w[on], rows * cols).reshape(rows, cols)
-    against = np.bincount(idx[~on], w[~on], rows * cols).reshape(rows, cols)
+    for_ = np.bincount(idx[on], w[on], rows * cols).astype(np.float64).reshape(rows, cols)
+    against = np.bincount(idx[~on], w[~on], rows * cols).astype(np.float64).reshape(rows, cols)
     return against, for_
 
 

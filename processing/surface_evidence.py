@@ -68,7 +68,7 @@ def surface_evidence(
     P = grid.reshape(-1, 3)
     T = np.asarray(T_robot_sensor, dtype=np.float64)
     R, o = T[:3, :3], T[:3, 3]
-    finite = np.isfinite(P).all(axis=1)
+    finite: NDArray[np.bool_] = np.asarray(np.isfinite(P).all(axis=1))
     rng = np.where(finite, np.linalg.norm(np.where(finite[:, None], P, 0.0), axis=1), np.nan)
     if rays is None:
         d = np.where(finite[:, None], P, 0.0) / np.where(rng > 0, rng, 1.0)[:, None]
