@@ -10,12 +10,13 @@ import time
 from collections.abc import Iterator
 
 import pytest
-from websockets.sync.client import ClientConnection, connect
+from websockets.sync.client import ClientConnection
 
 from robot_link.protocol import DRIVE_HOLD_S
 from robot_link.sim.teleop import TeleopRobot, start_teleop_robot
 from server.config import Settings
 from tests.conftest import LiveServer
+from tests.operator_ws import browser, events, wait_for_robot
 
 DEADMAN_BOUND_MS = 300
 
@@ -30,33 +31,6 @@ def robot(live_server: LiveServer) -> Iterator[TeleopRobot]:
     r = start_teleop_robot(live_server.url, live_server.token, seed=3)
     yield r
     r.stop(timeout_s=60)
-
-
-def browser(live_server: LiveServer) -> ClientConnection:
-    return connect(
-        live_server.url.replace("http", "ws") + "/ws/live", max_size=2**22, close_timeout=0.5
-    )
-
-
-def events(ws: ClientConnection, until: float) -> Iterator[dict | bytes]:
-    while time.monotonic() < until:
-        try:
-            item = ws.recv(timeout=max(0.01, until - time.monotonic()))
-        except TimeoutError:
-            return
-        yield item if isinstance(item, bytes) else json.loads(item)
-
-
-def wait_for_robot(ws: ClientConnection, sid: str) -> None:
-    for e in events(ws, time.monotonic() + 20):
-        if (
-            isinstance(e, dict)
-            and e.get("type") == "robot"
-            and e["session_id"] == sid
-            and e["connected"]
-        ):
-            return
-    raise AssertionError("the robot never attached")
 
 
 def drive(ws: ClientConnection, sid: str, seconds: float, v: float = 0.1) -> None:

@@ -16,7 +16,7 @@ from processing.coverage import coverage_map
 from robot_link.sim.teleop import TeleopRobot, start_teleop_robot
 from server.config import Settings
 from tests.conftest import LiveServer
-from tests.robot_link.test_teleop import browser, wait_for_robot
+from tests.operator_ws import browser, wait_for_robot
 
 SEED = 5
 
