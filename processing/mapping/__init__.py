@@ -61,6 +61,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from processing.mapping.camera_motion import CameraFactors
+from processing.mapping.camera_mounting import MountingParams, fit_mounting
 from processing.mapping.icp import (
     align,
     constrain_to_observable,
@@ -123,6 +124,7 @@ def register_clouds(
     shape: tuple[int, int] | None = None,
     progress: Callable[[int], None] | None = None,
     camera: CameraFactors | None = None,
+    mounting: MountingParams = MountingParams(),
 ) -> MapResult:
     """Register clouds (each (K, 3), sensor frame) into one world map.
 
@@ -135,6 +137,8 @@ def register_clouds(
     progress : called with the number of clouds registered so far, after each one.
     camera : the downward camera's steps between the clouds (:mod:`.camera_motion`), edges
         of the pose graph beside the ToF's.
+    mounting : how the camera's stated mounting is checked against the ToF's steps
+        (:mod:`.camera_mounting`) and corrected where they show it wrong.
     """
     n = len(clouds)
     if n == 0:
@@ -172,6 +176,22 @@ def register_clouds(
             progress(i + 1)
     if camera is None:
         return _finished(graph_map)
+    fit = None
+    if mounting.enabled:
+        poses = graph_map.poses
+        usable = np.array(
+            [not c.used_odometry and not c.degenerate_dims for c in graph_map.clouds[1:]], bool
+        )
+        fit = fit_mounting(
+            camera.steps,
+            np.linalg.inv(poses[:-1]) @ poses[1:],
+            camera.distances_m[:-1],
+            camera.camera.T_tof_camera,
+            usable,
+            mounting,
+        )
+        if fit is not None and fit.corrected:
+            camera = camera.remounted(fit.xi)
     linked = np.zeros(n, bool)
     for source, target, T, information in camera.edges(graph_map.poses):
         graph_map.graph.edges.append(
@@ -180,7 +200,7 @@ def register_clouds(
             )
         )
         linked[source] = True
-    return replace(_finished(graph_map), camera_steps=linked)
+    return replace(_finished(graph_map), camera_steps=linked, camera_mounting=fit)
 
 
 def register_measured(

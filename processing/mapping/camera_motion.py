@@ -24,7 +24,7 @@ same steps, taken along the surface, are the clouds' initial poses
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
@@ -93,13 +93,23 @@ class FootStep:
     cov: NDArray[np.float64]
 
 
-def foot(T_ab: NDArray[np.floating], distance_m: float) -> NDArray[np.float64]:
+def foot(
+    T_ab: NDArray[np.floating], distance_m: float | NDArray[np.floating]
+) -> NDArray[np.float64]:
     """(x, y, ψ): where camera b's optical axis meets the surface (the plane z =
-    ``distance_m`` of camera a's frame) in camera a's frame, and b's heading there."""
+    ``distance_m`` of camera a's frame) in camera a's frame, and b's heading there.
+    ``T_ab`` (..., 4, 4) and ``distance_m`` (...) give (..., 3)."""
     T = np.asarray(T_ab, np.float64)
-    d = T[:3, 2]
-    s = (distance_m - T[2, 3]) / d[2]
-    return np.array([T[0, 3] + s * d[0], T[1, 3] + s * d[1], float(np.arctan2(T[1, 0], T[0, 0]))])
+    d = T[..., :3, 2]
+    s = (distance_m - T[..., 2, 3]) / d[..., 2]
+    return np.stack(
+        [
+            T[..., 0, 3] + s * d[..., 0],
+            T[..., 1, 3] + s * d[..., 1],
+            np.arctan2(T[..., 1, 0], T[..., 0, 0]),
+        ],
+        axis=-1,
+    )
 
 
 def _foot_jacobian(T_ab: NDArray[np.float64], distance_m: float) -> NDArray[np.float64]:
@@ -279,6 +289,22 @@ class CameraFactors:
             poses.append(poses[-1] @ predicted)
         return np.array(poses)
 
+    def remounted(self, xi: NDArray[np.floating]) -> CameraFactors:
+        """The same factors through the mounting ``T_tof_camera`` exp(ξ) (ξ (6,): a twist in
+        the camera's frame, :mod:`.camera_mounting`): distances along the moved axis, steps
+        rescaled by them (the pixels' scale is the distance)."""
+        xi = np.asarray(xi, np.float64)
+        distances = self.distances_m - float(xi[5])
+        steps: list[FootStep | None] = []
+        for step, z, z_new in zip(self.steps, self.distances_m, distances):
+            if step is None or not np.isfinite(z):
+                steps.append(step)
+                continue
+            k = np.array([z_new / z, z_new / z, 1.0])
+            steps.append(FootStep(step.delta * k, step.cov * np.outer(k, k)))
+        mounting = self.camera.T_tof_camera @ se3_exp(xi)
+        return CameraFactors(replace(self.camera, T_tof_camera=mounting), steps, distances)
+
     def edges(
         self, poses: NDArray[np.float64]
     ) -> list[tuple[int, int, NDArray[np.float64], NDArray[np.float64]]]:
@@ -302,13 +328,15 @@ def camera_factors(
     cloud_times: NDArray[np.floating],
     camera: CameraModel,
     params: CameraParams = CameraParams(),
+    deltas: Sequence[NDArray[np.float64] | None] | None = None,
 ) -> tuple[CameraFactors, int]:
     """The camera's factors of a map: grey ``frames`` (H, W) at ``frame_times`` registered
-    pair by pair, scaled by the surface distance the ``clouds`` (at ``cloud_times``, the
-    same clock) show, chained to the clouds' times; and how many frame pairs registered."""
+    pair by pair (or their registrations ``deltas`` from :func:`frame_deltas`), scaled by
+    the surface distance the ``clouds`` (at ``cloud_times``, the same clock) show, chained
+    to the clouds' times; and how many frame pairs registered."""
     from processing.mapping.surface_distance import surface_distances
 
-    deltas = frame_deltas(frames)
+    deltas = frame_deltas(frames) if deltas is None else deltas
     distances = surface_distances(clouds, camera, params)
     steps: list[FootStep | None] = [None] * (len(clouds) - 1)
     if np.isfinite(distances).any():

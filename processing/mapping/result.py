@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from processing.mapping.camera_mounting import MountingFit
+
 
 @dataclass
 class MapResult:
@@ -27,3 +29,5 @@ class MapResult:
     plane_landmarks: int = 0
     # clouds tied to the one before by the downward camera's motion
     camera_steps: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    # the camera's mounting checked against the ToF's motion (None: not checked)
+    camera_mounting: MountingFit | None = None

@@ -215,6 +215,16 @@ def map_folder(
         )
     except ValueError as exc:
         raise CommandError(str(exc)) from None
+    if camera_report is not None:
+        fit = result.camera_mounting  # type: ignore[attr-defined]
+        camera_report["mounting"] = None if fit is None else fit.summary()
+        if fit is not None and fit.corrected:
+            log.warning(
+                "camera: the ToF's steps show T_tof_camera off by %s mm, %s deg; the map takes "
+                "the camera's steps through the corrected mounting",
+                fit.summary()["translation_mm"],
+                fit.summary()["rotation_deg"],
+            )
     _write_map(out, result.points)
     write_atomic(
         out / "poses.tum", format_tum(np.arange(len(clouds), dtype=float), result.poses).encode()
