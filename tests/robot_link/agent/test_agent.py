@@ -59,7 +59,7 @@ def run_robot(config: Path, *args: str) -> subprocess.Popen[str]:
 def test_a_sweep_covers_the_plate_without_crossing_an_edge(
     live_server: LiveServer, emulator_factory, tmp_path: Path
 ) -> None:  # type: ignore[no-untyped-def]
-    emu: EmulatorProcess = emulator_factory("--seed", "31", "--plate", "0.75x0.6")
+    emu: EmulatorProcess = emulator_factory("--seed", "31", "--plate", "0.6x0.5")
     config = write_config(
         tmp_path / "robot.toml", live_server.url, live_server.token, emu.device, FAST_SWEEP
     )
