@@ -220,8 +220,8 @@ def map_folder(
         camera_report["mounting"] = None if fit is None else fit.summary()
         if fit is not None and fit.corrected:
             log.warning(
-                "camera: the ToF's steps show T_tof_camera off by %s mm, %s deg; the map takes "
-                "the camera's steps through the corrected mounting",
+                "camera: the ToF's steps put the camera %s mm and %s deg (its own axes) from "
+                "where T_tof_camera says; the map takes its steps through the corrected mounting",
                 fit.summary()["translation_mm"],
                 fit.summary()["rotation_deg"],
             )
