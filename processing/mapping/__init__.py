@@ -61,7 +61,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from processing.mapping.camera_motion import CameraFactors
-from processing.mapping.camera_mounting import MountingParams, fit_mounting
+from processing.mapping.camera_mounting import MountingFit, MountingParams, fit_mounting
 from processing.mapping.icp import (
     align,
     constrain_to_observable,
@@ -176,22 +176,10 @@ def register_clouds(
             progress(i + 1)
     if camera is None:
         return _finished(graph_map)
-    fit = None
-    if mounting.enabled:
-        poses = graph_map.poses
-        usable = np.array(
-            [not c.used_odometry and not c.degenerate_dims for c in graph_map.clouds[1:]], bool
-        )
-        fit = fit_mounting(
-            camera.steps,
-            np.linalg.inv(poses[:-1]) @ poses[1:],
-            camera.distances_m[:-1],
-            camera.camera.T_tof_camera,
-            usable,
-            mounting,
-        )
-        if fit is not None and fit.corrected:
-            camera = camera.remounted(fit.xi)
+    # the camera's stated mounting checked against the ToF's steps, corrected where wrong
+    fit = _check_mounting(graph_map, camera, mounting) if mounting.enabled else None
+    if fit is not None and fit.corrected:
+        camera = camera.remounted(fit.xi)
     linked = np.zeros(n, bool)
     for source, target, T, information in camera.edges(graph_map.poses):
         graph_map.graph.edges.append(
@@ -201,6 +189,25 @@ def register_clouds(
         )
         linked[source] = True
     return replace(_finished(graph_map), camera_steps=linked, camera_mounting=fit)
+
+
+def _check_mounting(
+    graph_map: IncrementalMap, camera: CameraFactors, params: MountingParams
+) -> MountingFit | None:
+    """The camera's mounting fitted to the steps of the clouds the ToF placed
+    (:func:`.camera_mounting.fit_mounting`)."""
+    poses = graph_map.poses
+    usable = np.array(
+        [not c.used_odometry and not c.degenerate_dims for c in graph_map.clouds[1:]], bool
+    )
+    return fit_mounting(
+        camera.steps,
+        np.linalg.inv(poses[:-1]) @ poses[1:],
+        camera.distances_m[:-1],
+        camera.camera.T_tof_camera,
+        usable,
+        params,
+    )
 
 
 def register_measured(
