@@ -197,13 +197,15 @@ def _check_mounting(
     """The camera's mounting fitted to the steps of the clouds the ToF placed
     (:func:`.camera_mounting.fit_mounting`)."""
     poses = graph_map.poses
+    n = len(poses) - 1
     usable = np.array(
         [not c.used_odometry and not c.degenerate_dims for c in graph_map.clouds[1:]], bool
     )
+    steps = (list(camera.steps) + [None] * n)[:n]
     return fit_mounting(
-        camera.steps,
+        steps,
         np.linalg.inv(poses[:-1]) @ poses[1:],
-        camera.distances_m[:-1],
+        camera.distances_m[:n],
         camera.camera.T_tof_camera,
         usable,
         params,

@@ -66,6 +66,7 @@ class MountingFit:
             "corrected": self.corrected,
             "rotation_deg": [round(float(np.degrees(v)), 3) for v in self.xi[:3]],
             "translation_mm": [round(1000 * float(v), 2) for v in self.xi[3:]],
+            "translation_std_mm": [round(1000 * float(v), 2) for v in self.std[3:]],
             "likelihood_ratio": round(self.statistic, 1),
             "likelihood_ratio_halves": [round(v, 1) for v in self.halves],
             "steps": self.steps,
@@ -133,7 +134,9 @@ def _fit(
         for j in range(3):
             h = np.zeros(3)
             h[j] = 1e-6
-            J[:, :, j] = (residuals(xi + h) - r) / 1e-6
+            dr = residuals(xi + h) - r
+            dr[:, 2] = wrap_angle(dr[:, 2])
+            J[:, :, j] = dr / 1e-6
         Jn = J / s[None, :, None]
         H = np.einsum("nai,na,naj->ij", Jn, w, Jn) + np.diag(1 / prior**2)
         g = np.einsum("nai,na,na->i", Jn, w, e) + xi / prior**2
@@ -168,20 +171,28 @@ def fit_mounting(
     the ToF itself slipped shows in one half only)."""
     tof = np.asarray(tof_steps, np.float64)
     z = np.asarray(distances_m, np.float64)
-    keep = [
-        k
-        for k, s in enumerate(camera_steps)
-        if s is not None
-        and k < len(tof)
-        and np.isfinite(z[k])
-        and (usable is None or bool(usable[k]))
+    n = len(camera_steps)
+    if len(tof) != n or len(z) != n or (usable is not None and len(usable) != n):
+        raise ValueError(
+            f"one ToF step, distance and usable flag per camera step: {n} camera steps, "
+            f"{len(tof)} ToF steps, {len(z)} distances"
+            + ("" if usable is None else f", {len(usable)} flags")
+        )
+    pairs = [
+        (k, step)
+        for k, step in enumerate(camera_steps)
+        if step is not None and np.isfinite(z[k]) and (usable is None or bool(usable[k]))
     ]
-    if len(keep) < params.min_steps:
+    # each half of the route is tested on its own: two steps at least in each
+    if len(pairs) < max(params.min_steps, 4):
         return None
-    measured = np.array([camera_steps[k].delta for k in keep])  # type: ignore[union-attr]
+    keep = [k for k, _ in pairs]
+    measured = np.array([step.delta for _, step in pairs])
     A, zk = tof[keep], z[keep]
     T_tc = np.asarray(T_tof_camera, np.float64)
     xi, std, statistic, s = _fit(measured, A, zk, T_tc, params)
+    # split by time: a half without turns cannot show a lever arm, and the correction is
+    # then refused (the check errs towards the stated mounting)
     half = len(keep) // 2
     halves = [
         _fit(measured[part], A[part], zk[part], T_tc, params)[2]

@@ -216,14 +216,15 @@ def map_folder(
     except ValueError as exc:
         raise CommandError(str(exc)) from None
     if camera_report is not None:
-        fit = result.camera_mounting  # type: ignore[attr-defined]
-        camera_report["mounting"] = None if fit is None else fit.summary()
-        if fit is not None and fit.corrected:
+        fit = result.camera_mounting
+        mounting = None if fit is None else fit.summary()
+        camera_report["mounting"] = mounting
+        if mounting is not None and mounting["corrected"]:
             log.warning(
                 "camera: the ToF's steps put the camera %s mm and %s deg (its own axes) from "
                 "where T_tof_camera says; the map takes its steps through the corrected mounting",
-                fit.summary()["translation_mm"],
-                fit.summary()["rotation_deg"],
+                mounting["translation_mm"],
+                mounting["rotation_deg"],
             )
     _write_map(out, result.points)
     write_atomic(
