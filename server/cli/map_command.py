@@ -218,6 +218,13 @@ def map_folder(
     if camera_report is not None:
         fit = result.camera_mounting
         mounting = None if fit is None else fit.summary()
+        if fit is not None and fit.corrected and given is not None:
+            from processing.poses import se3_exp
+
+            # the mounting the map took: camera.json's, for the next run on this robot
+            stated = np.asarray(given.camera["T_tof_camera"], np.float64)
+            corrected = stated @ se3_exp(fit.xi)
+            mounting = {**(mounting or {}), "T_tof_camera": np.round(corrected, 6).tolist()}
         camera_report["mounting"] = mounting
         if mounting is not None and mounting["corrected"]:
             log.warning(

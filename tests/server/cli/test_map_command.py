@@ -164,6 +164,53 @@ def test_frames_join_the_map_and_the_report_says_what_fixed_each_cloud(tmp_path:
     assert plain["camera"] is None and all("camera" not in f["fixed_by"] for f in plain["factors"])
 
 
+def test_a_camera_stated_off_its_mount_is_found_and_the_report_gives_the_mounting(
+    tmp_path: Path,
+) -> None:
+    """camera.json's ``T_tof_camera`` 1 cm and 1° off about two axes: the map says so on
+    stderr, and ``camera.mounting`` in the report gives the mounting it took, whose
+    optical axis meets the plate much nearer the true camera's than the stated one's."""
+    from processing.poses import se3_exp
+    from robot_link.sim.camera_frames import camera_sweep, write_frames
+    from robot_link.sim.scene_sweeps import scene_camera
+
+    config = SceneSweepConfig(kind="cross_frames", seed=4, clouds=40)
+    sweep, tof = scene_sweep(config), scene_camera(config)
+    frames = camera_sweep(sweep.truth, tof.T_robot_tof, 4, tof.structure.mesh)
+    write_sweep(sweep, tmp_path)
+    write_frames(frames, tmp_path / "frames")
+    spec = json.loads((tmp_path / "frames" / "camera.json").read_text())
+    true_mount = np.asarray(spec["T_tof_camera"], float)
+    d = np.radians(1)
+    stated = true_mount @ se3_exp(np.array([d, d, 0, 0.01, 0.01, 0]))
+    spec["T_tof_camera"] = stated.tolist()
+    (tmp_path / "frames" / "camera.json").write_text(json.dumps(spec))
+    proc = steelscan(
+        "map",
+        str(tmp_path / "clouds"),
+        "--out",
+        str(tmp_path / "out"),
+        "--odometry",
+        str(tmp_path / "odom.tum"),
+        "--frames",
+        str(tmp_path / "frames"),
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "the ToF's steps put the camera" in proc.stderr
+    mounting = json.loads((tmp_path / "out" / "map_report.json").read_text())["camera"]["mounting"]
+    assert mounting["corrected"] and mounting["steps"] >= 20
+    assert min(mounting["likelihood_ratio_halves"]) > 11.3
+
+    def axis_foot(T: np.ndarray, distance: float = 0.09) -> np.ndarray:
+        """Where the camera's optical axis meets the plate, in the ToF's frame."""
+        return T[:3, 3] + distance * T[:3, 2]
+
+    taken = np.asarray(mounting["T_tof_camera"], float)
+    off_stated = np.linalg.norm(axis_foot(stated) - axis_foot(true_mount))
+    off_taken = np.linalg.norm(axis_foot(taken) - axis_foot(true_mount))
+    assert off_taken < off_stated / 2, (off_taken, off_stated)
+
+
 @pytest.mark.parametrize(
     ("change", "fragment"),
     [
