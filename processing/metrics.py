@@ -124,22 +124,67 @@ class Box:
     h: float
 
 
+def _overlaps(f: Box, t: Box, margin_m: float) -> bool:
+    """Whether ``f`` and ``t`` are of one class and their boxes meet within ``margin_m``."""
+    return (
+        f.defect_class == t.defect_class
+        and f.x <= t.x + t.w + margin_m
+        and t.x <= f.x + f.w + margin_m
+        and f.y <= t.y + t.h + margin_m
+        and t.y <= f.y + f.h + margin_m
+    )
+
+
 def match_defects(found: Sequence[Box], truth: Sequence[Box], *, margin_m: float = 0.01) -> int:
     """Number of true defects overlapped (within ``margin_m``) by a found defect of their class."""
-    matched = 0
-    for t in truth:
-        for f in found:
-            if f.defect_class != t.defect_class:
-                continue
-            if (
-                f.x <= t.x + t.w + margin_m
-                and t.x <= f.x + f.w + margin_m
-                and f.y <= t.y + t.h + margin_m
-                and t.y <= f.y + f.h + margin_m
-            ):
-                matched += 1
-                break
-    return matched
+    return sum(any(_overlaps(f, t, margin_m) for f in found) for t in truth)
+
+
+@dataclass(frozen=True)
+class DefectAccount:
+    """Found defects against true ones, from both sides.
+
+    ``matched``: true defects some found defect overlaps (recall = matched / true);
+    ``on_true``: found defects that overlap a true one (precision = on_true / found), of
+    which ``pieces`` are second and further found defects on one true defect (a crack
+    found in pieces); ``false_alarms``: found defects on no true defect.
+    """
+
+    found: int
+    true: int
+    matched: int
+    on_true: int
+    pieces: int
+    false_alarms: int
+
+    @property
+    def recall(self) -> float:
+        """Share of the true defects found (1 when there are none)."""
+        return self.matched / self.true if self.true else 1.0
+
+    @property
+    def precision(self) -> float:
+        """Share of the found defects that lie on a true one (1 when none were found)."""
+        return self.on_true / self.found if self.found else 1.0
+
+
+def account_defects(
+    found: Sequence[Box], truth: Sequence[Box], *, margin_m: float = 0.01
+) -> DefectAccount:
+    """Recall and precision of ``found`` against ``truth`` (boxes overlapping within
+    ``margin_m``, same class), with the extra found defects told apart: further pieces of
+    a true defect, or false alarms."""
+    hits = [[i for i, t in enumerate(truth) if _overlaps(f, t, margin_m)] for f in found]
+    on_true = sum(bool(h) for h in hits)
+    matched = len({i for h in hits for i in h})
+    return DefectAccount(
+        found=len(found),
+        true=len(truth),
+        matched=matched,
+        on_true=on_true,
+        pieces=max(0, on_true - matched),
+        false_alarms=len(found) - on_true,
+    )
 
 
 def mosaic_overlap_errors(

@@ -59,6 +59,14 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
         assert Path(summary["mosaic_path"]).is_file() and Path(summary["map_path"]).is_file()
         assert 0 <= summary["defects_matched"] <= summary["defects_true"] == 9
         assert summary["defects_found"] >= summary["defects_matched"]
+        # every found defect is accounted for: on a true one (first or further piece) or false
+        assert summary["defects_on_true"] + summary["false_alarms"] == summary["defects_found"]
+        assert (
+            summary["defects_in_pieces"] == summary["defects_on_true"] - summary["defects_matched"]
+        )
+        assert summary["precision"] == round(
+            summary["defects_on_true"] / summary["defects_found"], 3
+        )
         # frames placed on the structure
         assert summary["frame_defects_found"] >= summary["frame_defects_matched"] >= 1
         assert isinstance(summary["map_ate_m"], float) and summary["map_ate_m"] < 0.05

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 from skimage.filters import threshold_sauvola
 
+from processing.detection.confidence import Calibration
 from processing.detection.corrosion import CorrosionParams, corrosion_candidates, rust_saturation
 from processing.detection.crack_filter import (
     CrackParams,
@@ -30,7 +31,12 @@ from processing.detection.crack_filter import (
     sample_surface,
 )
 from processing.detection.defects import Components, Defect, measure_defects
-from processing.detection.learned import LearnedParams, learned_cracks
+from processing.detection.learned import (
+    LearnedParams,
+    crack_probability,
+    learned_cracks,
+    load_model,
+)
 from processing.detection.peaks import dominant_peaks, smooth_histogram, valley_emphasis_threshold
 from processing.detection.region_growing import grow_regions
 from processing.detection.ridges import line_emphasis
@@ -151,6 +157,8 @@ class DefectMasks:
     contrast: NDArray[np.float32]
     crack_components: Components
     rust_components: Components
+    probability: NDArray[np.float32] | None = None  # the network's (``learned`` only)
+    calibration: Calibration | None = None  # its per-defect confidence, when it has one
 
 
 def defect_masks(
@@ -198,11 +206,12 @@ def defect_masks(
         rust[core] = corrosion_candidates(part, corrosion_params, rust_sat)[cr, cc]
 
     # the network runs once over the image (its own tiles, all cores to each)
-    learned = (
-        learned_cracks(to_gray(image), learned_params)
-        if crack_method == "learned" and min(shape) >= 3
-        else None
-    )
+    probability, learned, calibration = None, None, None
+    if crack_method == "learned" and min(shape) >= 3:
+        model = load_model(learned_params.model_path, learned_params.threads)
+        probability = crack_probability(to_gray(image), learned_params)
+        t = model.threshold if learned_params.threshold is None else learned_params.threshold
+        learned, calibration = probability > t, Calibration.from_record(model.record)
     tiles = tile_cores(shape, tile_px, overlap_px)
     if surface is None and crack_method == "proposed" and len(tiles) > 1:
         surface = sample_surface(image, crack_params, tile_px)
@@ -212,7 +221,8 @@ def defect_masks(
         else rust_saturation(image, corrosion_params)
     )
     _each(run, tiles, workers)
-    return _kept(cracks, rust, contrast, valid, seams, corrosion_params)
+    kept = _kept(cracks, rust, contrast, valid, seams, corrosion_params)
+    return replace(kept, probability=probability, calibration=calibration)
 
 
 def _kept(
@@ -327,6 +337,8 @@ def find_defects(
         mm_per_px=mm_per_px,
         contrast=masks.contrast,
         components=masks.crack_components,
+        probability=masks.probability,
+        calibration=masks.calibration,
     )
     rust = partial(
         measure_defects,

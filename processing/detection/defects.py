@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from skimage.morphology import skeletonize
 
+from processing.detection.confidence import Calibration, component_features
 from processing.detection.labels import component_stats
 
 
@@ -33,6 +34,7 @@ class Defect:
     length_mm: float | None = None
     max_width_mm: float | None = None
     area_mm2: float | None = None
+    confidence: float | None = None  # calibrated P(a true defect); None: the method has none
 
 
 @dataclass(frozen=True)
@@ -64,6 +66,8 @@ def measure_defects(
     first_id: int = 1,
     contrast: NDArray[np.floating] | None = None,
     components: Components | None = None,
+    probability: NDArray[np.floating] | None = None,
+    calibration: Calibration | None = None,
 ) -> list[Defect]:
     """Measure each connected component of ``mask`` as one defect.
 
@@ -73,12 +77,18 @@ def measure_defects(
     With ``contrast`` (how much darker than its surroundings each pixel is), widths are
     taken at half the defect's peak contrast (full width at half maximum), so the blurred
     rim a detector includes does not widen the crack. ``components`` of ``mask`` may be
-    given when already labelled (they must be exactly its components).
+    given when already labelled (they must be exactly its components). With the network's
+    ``probability`` map and its ``calibration``, each defect gets its calibrated
+    confidence (:mod:`processing.detection.confidence`).
     """
     if contrast is not None and contrast.shape != mask.shape:
         raise ValueError(f"contrast {contrast.shape} and mask {mask.shape} differ in shape")
     comps = components if components is not None else Components.of(mask)
     labels, stats, centroids = comps.labels, comps.stats, comps.centroids
+    confidence = None
+    if probability is not None and calibration is not None:
+        feats = component_features(probability, labels, len(comps.keep))
+        confidence = calibration.confidence(feats)
     defects: list[Defect] = []
     for i in np.flatnonzero(comps.keep).tolist():
         x, y, w, h, area = (int(v) for v in stats[i])
@@ -106,6 +116,7 @@ def measure_defects(
             mean_width_px=round(float(widths.mean()), 2),
             orientation_deg=round(orientation, 1),
             centroid_px=(float(centroids[i][0]), float(centroids[i][1])),
+            confidence=round(float(confidence[i]), 3) if confidence is not None else None,
         )
         if mm_per_px is not None:
             d = _with_mm(d, mm_per_px)

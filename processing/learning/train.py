@@ -2,8 +2,11 @@
 
 The pipeline: crops drawn evenly from every training set and augmented
 (:mod:`processing.learning.data`), Dice + binary cross-entropy (a loss that does not let
-the 97 % background drown a one-pixel crack), AdamW under a one-cycle schedule, fixed
-seeds; then the probability threshold that maximises the pooled 2-px-tolerant DSC on
+the 97 % background drown a one-pixel crack; the crack's centre line, faint stretches most,
+weighted up), AdamW under a one-cycle schedule, fixed seeds, an exponential moving average
+of the weights as the model (usable at any iteration); a run saved to a checkpoint and
+resumed across sittings (:mod:`processing.learning.checkpoint`); then the probability
+threshold that maximises the pooled 2-px-tolerant DSC on
 images held back from every training set; then ONNX export with the threshold and the
 training record stored in the model's metadata.
 """
@@ -15,6 +18,7 @@ import logging
 import time
 import warnings
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +26,15 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from numpy.typing import NDArray
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from processing.learning.calibration import calibrate
+from processing.learning.checkpoint import (
+    RunState,
+    data_hash,
+    load_checkpoint,
+    save_checkpoint,
+)
 from processing.learning.data import (
     AugmentParams,
     Sample,
@@ -48,6 +60,8 @@ class TrainParams:
     learning_rate: float = 4e-3
     weight_decay: float = 1e-4
     dice_weight: float = 1.0
+    centre_weight: float = 0.0
+    ema_decay: float = 0.999
     seed: int = 0
     threads: int = 2
     augment: AugmentParams = field(default_factory=AugmentParams)
@@ -56,10 +70,16 @@ class TrainParams:
     tolerance_px: int = 2
 
 
-def loss_fn(logits: torch.Tensor, truth: torch.Tensor, dice_weight: float) -> torch.Tensor:
-    """Binary cross-entropy plus ``dice_weight`` × (1 − soft Dice), the Dice taken per crop
-    and averaged, so that a crop with a hairline weighs as much as one with a wide crack."""
-    bce = F.binary_cross_entropy_with_logits(logits, truth)
+def loss_fn(
+    logits: torch.Tensor,
+    truth: torch.Tensor,
+    dice_weight: float,
+    weight: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Binary cross-entropy (per-pixel ``weight``, default 1) plus ``dice_weight`` × (1 −
+    soft Dice), the Dice taken per crop and averaged, so that a crop with a hairline weighs
+    as much as one with a wide crack."""
+    bce = F.binary_cross_entropy_with_logits(logits, truth, weight=weight)
     p = torch.sigmoid(logits)
     inter = (p * truth).sum(dim=(1, 2, 3))
     dice = (2 * inter + 1.0) / (p.sum(dim=(1, 2, 3)) + truth.sum(dim=(1, 2, 3)) + 1.0)
@@ -99,10 +119,23 @@ def choose_threshold(
 
 
 def train(
-    datasets: dict[str, list[Sample]], params: TrainParams = TrainParams()
+    datasets: dict[str, list[Sample]],
+    params: TrainParams = TrainParams(),
+    *,
+    checkpoint: Path | None = None,
+    budget_s: float | None = None,
+    sitting_iterations: int | None = None,
+    checkpoint_every_s: float = 300.0,
 ) -> tuple[CrackNet, dict[str, Any]]:
-    """Train a :class:`CrackNet` on ``datasets`` (name → samples); returns the model (in
-    eval mode) and its training record (sets, sizes, threshold, loss, time)."""
+    """Train a :class:`CrackNet` on ``datasets`` (name → samples); returns the model (the
+    moving average of the weights, in eval mode) and its training record.
+
+    With ``checkpoint``, the run resumes from that file when it exists and saves to it
+    every ``checkpoint_every_s`` seconds and when it stops; ``budget_s`` stops this sitting
+    after that many seconds of training (the record says ``complete: false`` until all
+    ``params.iterations`` are done), ``sitting_iterations`` after that many iterations.
+    The same iterations give the same model whether run in one sitting or several.
+    """
     torch.manual_seed(params.seed)
     torch.set_num_threads(params.threads)
     rng = np.random.default_rng(params.seed)
@@ -115,47 +148,97 @@ def train(
         if h:
             hold[name] = h
     model = CrackNet(params.network)
+    average = AveragedModel(
+        model, multi_avg_fn=get_ema_multi_avg_fn(params.ema_decay), use_buffers=True
+    )
     opt = torch.optim.AdamW(
         model.parameters(), lr=params.learning_rate, weight_decay=params.weight_decay
     )
     sched = torch.optim.lr_scheduler.OneCycleLR(
         opt, max_lr=params.learning_rate, total_steps=max(params.iterations, 1), pct_start=0.1
     )
+    modules = {"network": model, "average": average, "optimizer": opt, "schedule": sched}
+    everything = _jsonable(asdict(params))
+    assert isinstance(everything, dict)
+    options = {k: v for k, v in everything.items() if k != "threads"}
+    data = data_hash(datasets)
+    state = RunState()
+    if checkpoint is not None and checkpoint.exists():
+        state = load_checkpoint(checkpoint, modules=modules, data=data, options=options)
+        rng.bit_generator.state = state.rng_state
+        log.info("resuming %s at iteration %d", checkpoint, state.iteration)
+    segment = state.begin(params.threads)
     sets = list(fit.values())
-    t0 = time.perf_counter()
+    t0 = last_save = time.perf_counter()
     recent: list[float] = []
+
+    def save() -> None:
+        segment.seconds = round(time.perf_counter() - t0, 1)
+        state.rng_state = dict(rng.bit_generator.state)
+        if checkpoint is not None:
+            save_checkpoint(checkpoint, modules=modules, state=state, data=data, options=options)
+
     model.train()
-    for it in range(params.iterations):
-        x, y = balanced_batch(sets, params.batch, rng, params.augment)
-        loss = loss_fn(model(torch.from_numpy(x)), torch.from_numpy(y), params.dice_weight)
+    while state.iteration < params.iterations:
+        if budget_s is not None and time.perf_counter() - t0 >= budget_s:
+            break
+        if sitting_iterations is not None and segment.iterations >= sitting_iterations:
+            break
+        x, y, w = balanced_batch(sets, params.batch, rng, params.augment, params.centre_weight)
+        loss = loss_fn(
+            model(torch.from_numpy(x)),
+            torch.from_numpy(y),
+            params.dice_weight,
+            torch.from_numpy(w),
+        )
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
+        average.update_parameters(model)
+        state.iteration += 1
+        segment.iterations += 1
         recent = (recent + [loss.item()])[-100:]
-        if (it + 1) % 100 == 0:
+        if state.iteration % 100 == 0:
             log.info(
                 "iteration %d/%d loss %.4f (%.0f s)",
-                it + 1,
+                state.iteration,
                 params.iterations,
                 float(np.mean(recent)),
                 time.perf_counter() - t0,
             )
-    model.eval()
-    threshold, holdout_dsc = choose_threshold(model, hold, params) if hold else (0.5, 0.0)
+        if time.perf_counter() - last_save >= checkpoint_every_s:
+            save()
+            last_save = time.perf_counter()
+    save()
+    shipped = average.module
+    assert isinstance(shipped, CrackNet)
+    shipped.eval()
+    threshold, holdout_dsc = choose_threshold(shipped, hold, params) if hold else (0.5, 0.0)
+    calibration = None
+    if hold:
+        try:
+            _, calibration = calibrate(partial(predict, shipped), hold, threshold)
+        except ValueError as exc:  # too few components to say how sure
+            log.warning("no confidence calibration: %s", exc)
     record = {
         "format": MODEL_FORMAT,
         "datasets": {k: len(v) for k, v in datasets.items()},
+        "data_hash": data,
         "holdout_images": {k: len(v) for k, v in hold.items()},
         "threshold": threshold,
         "holdout_dsc_tol": holdout_dsc,
+        "calibration": calibration,
         "final_loss": round(float(np.mean(recent)), 4) if recent else None,
-        "parameters": parameter_count(model),
-        "train_seconds": round(time.perf_counter() - t0, 1),
+        "parameters": parameter_count(shipped),
+        "iterations_done": state.iteration,
+        "complete": state.iteration >= params.iterations,
+        "train_seconds": round(state.seconds, 1),
+        "sittings": [vars(s) for s in state.segments],
         "params": _jsonable(asdict(params)),
         "torch": torch.__version__,
     }
-    return model, record
+    return shipped, record
 
 
 def _jsonable(value: object) -> object:
@@ -221,11 +304,16 @@ def train_from_folders(
     params: TrainParams = TrainParams(),
     limit: int | None = None,
     int8: bool = True,
+    *,
+    extra: dict[str, list[Sample]] | None = None,
+    checkpoint: Path | None = None,
+    budget_s: float | None = None,
 ) -> dict[str, Any]:
-    """Load each dataset folder, train, export to ``out`` (int8 unless not ``int8``);
-    returns the training record."""
-    datasets = {r.name: load_dataset(r, limit) for r in roots}
-    model, record = train(datasets, params)
+    """Load each dataset folder (and the ``extra`` sets, e.g. rendered ones), train (see
+    :func:`train` for ``checkpoint`` and ``budget_s``), export to ``out`` (int8 unless not
+    ``int8``); returns the training record."""
+    datasets = {r.name: load_dataset(r, limit) for r in roots} | (extra or {})
+    model, record = train(datasets, params, checkpoint=checkpoint, budget_s=budget_s)
     export_model(model, record, out, datasets, int8)
     return record
 

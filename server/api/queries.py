@@ -33,6 +33,7 @@ DEFECT_SORT_KEYS = (
     "world_y_m",
     "review_status",
     "condition_state",
+    "confidence",
 )
 
 
@@ -129,9 +130,11 @@ def defects_query(
     source: str | None = None,
     review_status: str | None = None,
     condition_state: str | None = None,
+    below_confidence: float | None = None,
     sort: str = "id",
 ) -> Select[Any]:
-    """SELECT of a session's defects with the list's filters and order (nulls last)."""
+    """SELECT of a session's defects with the list's filters (``below_confidence``: only
+    defects the detector is less sure of than that) and order (nulls last)."""
     q = select(Defect).where(Defect.session_id == session_id)
     if defect_class:
         q = q.where(Defect.defect_class == defect_class)
@@ -141,6 +144,8 @@ def defects_query(
         q = q.where(Defect.review_status == review_status)
     if condition_state:
         q = q.where(Defect.condition_state == condition_state)
+    if below_confidence is not None:
+        q = q.where(Defect.confidence.is_not(None), Defect.confidence < below_confidence)
     column = getattr(Defect, sort.lstrip("-"))
     order = column.desc() if sort.startswith("-") else column.asc()
     return q.order_by(column.is_(None), order, Defect.id)

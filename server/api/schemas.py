@@ -185,6 +185,11 @@ class DefectPublic(ORM):
     world_y_m: float | None
     world_w_m: float | None
     world_h_m: float | None
+    confidence: float | None = Field(
+        default=None,
+        description="how sure the detector is: the calibrated probability that this is a true "
+        "defect (None: drawn by hand, or a detector without calibration)",
+    )
     review_status: str
     condition_state: str | None
     defect_code: int | None = Field(

@@ -16,7 +16,12 @@ import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from processing.metrics import Box, absolute_trajectory_error, match_defects, mosaic_overlap_errors
+from processing.metrics import (
+    Box,
+    absolute_trajectory_error,
+    account_defects,
+    mosaic_overlap_errors,
+)
 from processing.poses import parse_tum
 from robot_link.client import RobotLink
 from robot_link.sim.inspection import InspectionSim, SimConfig, SimResult
@@ -50,14 +55,22 @@ def score(
     """Compare what the station found (on the mosaic, and frame by frame) with the simulator's ground truth."""
     assert result.structure is not None
     truth = [Box(d.defect_class, *d.bbox_m) for d in result.structure.defects]
+    found = account_defects(world_boxes(defects), truth)
     out: dict[str, Any] = {
-        "defects_found": len(defects),
-        "defects_true": len(truth),
-        "defects_matched": match_defects(world_boxes(defects), truth),
+        "defects_found": found.found,
+        "defects_true": found.true,
+        "defects_matched": found.matched,
+        "defects_on_true": found.on_true,
+        "defects_in_pieces": found.pieces,
+        "false_alarms": found.false_alarms,
+        "precision": round(found.precision, 3),
+        "recall": round(found.recall, 3),
     }
     if frame_defects is not None:
-        out["frame_defects_found"] = len(frame_defects)
-        out["frame_defects_matched"] = match_defects(world_boxes(frame_defects), truth)
+        per_frame = account_defects(world_boxes(frame_defects), truth)
+        out["frame_defects_found"] = per_frame.found
+        out["frame_defects_matched"] = per_frame.matched
+        out["frame_precision"] = round(per_frame.precision, 3)
     out["map_ate_m"] = None
     map_job = next(
         (j for j in session["jobs"] if j["kind"] == "map" and j["state"] == "done"), None

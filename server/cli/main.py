@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -14,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from server.cli.robot_commands import add_robot_commands
+from server.cli.train_commands import add_train_commands
 from server.errors import CommandError
 from server.logs import RedactSecrets, uvicorn_log_config
 from server.process.allocator import keep_arrays_on_heap
@@ -107,31 +107,6 @@ def cmd_changes(args: argparse.Namespace) -> int:
         method=args.method,
         px_per_mm=args.px_per_mm,
     )
-    return 0
-
-
-def cmd_train_detector(args: argparse.Namespace) -> int:
-    """Train the crack network on dataset folders and export it to ONNX (int8)."""
-    try:
-        from processing.learning.train import TrainParams, leave_one_out, train_from_folders
-    except ImportError as exc:
-        raise CommandError(
-            f"training needs PyTorch and onnx ({exc.name} is missing): "
-            "pip install 'steelscan[train]'"
-        ) from None
-    roots = [Path(d) for d in args.datasets]
-    for r in roots:
-        if not (r / "images").is_dir() or not (r / "masks").is_dir():
-            raise CommandError(f"{r}: not a dataset folder (needs images/ and masks/)")
-    params = TrainParams(
-        iterations=args.iterations, batch=args.batch, seed=args.seed, threads=args.threads
-    )
-    if args.leave_one_out:
-        records = leave_one_out(roots, Path(args.out), params, args.limit, not args.float)
-        print(json.dumps({k: v["threshold"] for k, v in records.items()}))
-    else:
-        record = train_from_folders(roots, Path(args.out), params, args.limit, not args.float)
-        print(json.dumps({k: record[k] for k in ("threshold", "parameters", "train_seconds")}))
     return 0
 
 
@@ -281,25 +256,7 @@ def _add_processing_commands(sub: Any) -> None:
     s.add_argument("--px-per-mm", type=float, help="AFTER's scale")
     s.set_defaults(func=cmd_changes, image_work=True)
 
-    s = sub.add_parser(
-        "train-detector", help="train the crack network on dataset folders, export it as ONNX"
-    )
-    s.add_argument("datasets", nargs="+", help="folders with images/ and masks/ (255 = crack)")
-    s.add_argument("--out", required=True, help="model file (.onnx); with --leave-one-out a folder")
-    s.add_argument("--iterations", type=int, default=6000)
-    s.add_argument("--batch", type=int, default=12)
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--threads", type=int, default=2)
-    s.add_argument("--limit", type=int, help="use at most this many images of each set")
-    s.add_argument(
-        "--leave-one-out",
-        action="store_true",
-        help="one model per dataset trained on the others, as OUT/<dataset>.onnx",
-    )
-    s.add_argument(
-        "--float", action="store_true", help="export in float (default: int8, twice as fast)"
-    )
-    s.set_defaults(func=cmd_train_detector)
+    add_train_commands(sub)
 
     s = sub.add_parser("stitch", help="stitch a folder of downward-camera frames")
     s.add_argument("frames_dir")

@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from scipy.cluster.hierarchy import DisjointSet
 
 from processing.detection import DefectMasks
+from processing.detection.confidence import Calibration, logit_code, probability_of_code
 from processing.detection.defects import Components, Defect, measure_defects, moved, seam_links
 from processing.detection.surface import on_surface
 from server.storage.files import write_atomic
@@ -142,15 +143,22 @@ def band_masks(_files: object, plan: BandPlan, band: tuple[int, tuple[int, int]]
     found = plan.masks(image, on_surface(image, coverage, plan.level), seams)
     a, b = y0 - rows.start, y1 - rows.start
     contrast = np.clip(np.round(np.where(found.cracks[a:b], found.contrast[a:b], 0)), 0, 255)
+    logits = logit_code(found.probability[a:b]) if found.probability is not None else None
     for name, part in (
         ("crack", found.cracks[a:b]),
         ("corrosion", found.rust[a:b]),
         ("contrast", contrast),
+        ("logit", logits),
     ):
+        if part is None:
+            continue
         write_atomic(scratch / f"band{index}.{name}", part.astype(np.uint8).tobytes())
         if name in CLASSES:
             c = contrast.astype(np.float32) if name == "crack" else None  # as stored: whole levels
-            data = _band_defects(part, name, c, plan.mm_per_px, y0)
+            # as stored, too: the logits' codes
+            p = probability_of_code(logits) if name == "crack" and logits is not None else None
+            cal = found.calibration if p is not None else None
+            data = _band_defects(part, name, c, plan.mm_per_px, y0, p, cal)
             write_atomic(scratch / f"band{index}.{name}.parts", data)
             write_segment(scratch / f"{name}.png.d", y0, part.astype(np.uint8) * 255)
 
@@ -161,6 +169,8 @@ def _band_defects(
     contrast: NDArray[np.float32] | None,
     mm_per_px: float | None,
     y0: int,
+    probability: NDArray[np.float32] | None = None,
+    calibration: Calibration | None = None,
 ) -> bytes:
     """A band's components (8-connected; the band's first row is mosaic row ``y0``) as an
     ``.npz``: those inside the band measured (``defects``, JSON, mosaic pixels); of those
@@ -172,7 +182,15 @@ def _band_defects(
     edge = edge[edge > 0]
     inner = replace(comps, keep=comps.keep.copy())
     inner.keep[edge] = False
-    found = measure_defects(mask, name, mm_per_px=mm_per_px, contrast=contrast, components=inner)
+    found = measure_defects(
+        mask,
+        name,
+        mm_per_px=mm_per_px,
+        contrast=contrast,
+        components=inner,
+        probability=probability,
+        calibration=calibration,
+    )
     boxes = comps.stats[edge, :4].astype(np.int64)
     seeds = np.array(
         [
@@ -233,6 +251,7 @@ def detect_banded(
     overlap: int = 64,
     progress: Callable[[float, str], None] = lambda f, m: None,
     map_bands: MapBands = _serial,
+    calibration: Calibration | None = None,
 ) -> list[Defect]:
     """Cracks and corrosion of ``results/mosaic.png`` (with its coverage and seams), band by
     band; writes the two mask PNGs into ``out`` (its scratch files too) and returns the
@@ -240,7 +259,8 @@ def detect_banded(
 
     The PNGs' pieces, then the bands, are independent parts (``map_bands``: in turn, on
     threads, or on other workers; ``rows`` high, else :func:`band_grid`'s); the bands'
-    components are then joined across seams in order, and measured."""
+    components are then joined across seams in order, and measured (a crack's confidence
+    by ``calibration`` on the network's logits, when the masks give them)."""
     header = pyvips.Image.new_from_file(str(results / "mosaic.png"))
     width, height = header.width, header.height
     rows = rows or band_grid(width, height, overlap)
@@ -261,7 +281,7 @@ def detect_banded(
         cores = [(y, min(y + rows, height)) for y in range(0, height, rows)]
         map_bands(band_masks, plan, list(enumerate(cores)))
         progress(0.8, f"{len(cores)} bands searched")
-        return _joined(scratch, out, cores, width, height, mm_per_px, progress)
+        return _joined(scratch, out, cores, width, height, mm_per_px, progress, calibration)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 
@@ -274,12 +294,14 @@ def _joined(
     height: int,
     mm_per_px: float | None,
     progress: Callable[[float, str], None],
+    calibration: Calibration | None = None,
 ) -> list[Defect]:
     """The bands' components joined across their edges, in order, and measured; the mask
     PNGs joined from the bands' segments into ``out``."""
     maps = {
         n: RowFiles([scratch / f"band{k}.{n}" for k in range(len(cores))], cores, width)
-        for n in ("crack", "corrosion", "contrast")
+        for n in ("crack", "corrosion", "contrast", "logit")
+        if n != "logit" or (scratch / "band0.logit").is_file()
     }
     parts = {c: _Parts() for c in CLASSES}
     for band, (y0, _) in enumerate(cores):
@@ -291,7 +313,10 @@ def _joined(
     found: list[Defect] = []
     for name in CLASSES:
         contrast = maps["contrast"] if name == "crack" else None
-        found += _measure(parts[name], maps[name], contrast, name, mm_per_px, len(found) + 1)
+        logits = maps.get("logit") if name == "crack" and calibration is not None else None
+        found += _measure(
+            parts[name], maps[name], contrast, name, mm_per_px, len(found) + 1, logits, calibration
+        )
     return found
 
 
@@ -345,6 +370,8 @@ def _measure(
     name: str,
     mm_per_px: float | None,
     first_id: int,
+    logits: RowFiles | None = None,
+    calibration: Calibration | None = None,
 ) -> list[Defect]:
     """Each component on a band's edges, joined with those it touches across seams,
     measured on a crop around it; with those measured inside their bands, in reading order."""
@@ -365,7 +392,15 @@ def _measure(
         sx, sy = ps[0].seed
         one = labels == labels[sy - y0, sx - x0]
         c = np.asarray(contrast[y0:y1, x0:x1], dtype=np.float32) if contrast is not None else None
-        for d in measure_defects(one, name, mm_per_px=mm_per_px, contrast=c):
+        p = probability_of_code(logits[y0:y1, x0:x1]) if logits is not None else None
+        for d in measure_defects(
+            one,
+            name,
+            mm_per_px=mm_per_px,
+            contrast=c,
+            probability=p,
+            calibration=calibration if p is not None else None,
+        ):
             found.append(moved(d, x0, y0, first_id + len(found)))
     found.sort(key=lambda d: (d.bbox[1], d.bbox[0]))
     return [moved(d, 0, 0, first_id + i) for i, d in enumerate(found)]

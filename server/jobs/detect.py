@@ -16,6 +16,7 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from processing.detection import CrackMethod, defect_masks, find_defects
+from processing.detection.confidence import Calibration
 from processing.detection.corrosion import CorrosionParams
 from processing.detection.crack_filter import CrackParams, SurfaceStats, measure_surface
 from processing.detection.defects import Defect as Defect_
@@ -60,6 +61,7 @@ def _defect_row(
         world_y_m=wy,
         world_w_m=ww,
         world_h_m=wh,
+        confidence=d.confidence,
     )
 
 
@@ -230,7 +232,7 @@ def _crack_record(method: CrackMethod) -> dict[str, Any]:
     if method == "proposed":
         return params_record(CrackParams())
     record = load_model().record
-    keys = ("format", "datasets", "threshold", "parameters", "train_seconds")
+    keys = ("format", "datasets", "threshold", "parameters", "train_seconds", "calibration")
     return {"method": "learned", **{k: record.get(k) for k in keys}}
 
 
@@ -263,6 +265,9 @@ def _detect_mosaic_banded(
         level,
         progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m),
         map_bands=ctx.map,
+        calibration=Calibration.from_record(load_model().record)
+        if _method(ctx) == "learned"
+        else None,
     )
 
 

@@ -259,6 +259,8 @@ class Defect(Base):
     world_y_m: Mapped[float | None]
     world_w_m: Mapped[float | None]
     world_h_m: Mapped[float | None]
+    # how sure the detector is (calibrated P(a true defect)); None: drawn, or no calibration
+    confidence: Mapped[float | None]
     review_status: Mapped[str] = mapped_column(String(16), default="unreviewed")
     condition_state: Mapped[str | None] = mapped_column(String(8))
     # the AASHTO defect code a reviewer set (None: the class's, crack 1010, corrosion 1000)

@@ -2,7 +2,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from processing.metrics import Box, absolute_trajectory_error, match_defects, segmentation_scores
+from processing.metrics import (
+    Box,
+    absolute_trajectory_error,
+    account_defects,
+    match_defects,
+    segmentation_scores,
+)
 
 
 def test_pi_si_dsc_on_a_hand_made_case() -> None:
@@ -42,3 +48,19 @@ def test_defect_matching_needs_the_same_class_and_overlap() -> None:
     truth = [Box("crack", 0, 0, 0.1, 0.01), Box("corrosion", 1, 1, 0.05, 0.05)]
     found = [Box("crack", 0.05, 0.005, 0.1, 0.01), Box("crack", 1, 1, 0.05, 0.05)]
     assert match_defects(found, truth) == 1
+
+
+def test_found_defects_are_told_apart_as_hits_pieces_and_false_alarms() -> None:
+    truth = [Box("crack", 0, 0, 0.2, 0.01), Box("corrosion", 1, 1, 0.05, 0.05)]
+    found = [
+        Box("crack", 0.0, 0.0, 0.08, 0.01),  # first half of the crack
+        Box("crack", 0.12, 0.0, 0.08, 0.01),  # its second half: a piece
+        Box("crack", 0.5, 0.5, 0.05, 0.01),  # nothing there: a false alarm
+        Box("crack", 1, 1, 0.05, 0.05),  # on the rust, but not rust: a false alarm
+    ]
+    acc = account_defects(found, truth)
+    assert (acc.found, acc.true, acc.matched) == (4, 2, 1)
+    assert (acc.on_true, acc.pieces, acc.false_alarms) == (2, 1, 2)
+    assert acc.precision == 0.5 and acc.recall == 0.5
+    none = account_defects([], truth)
+    assert none.precision == 1.0 and none.recall == 0.0

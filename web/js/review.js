@@ -19,6 +19,7 @@ const COLUMNS = [
   ["area_mm2", "area (mm²)", 0],
   ["world_x_m", "x (m)", 3],
   ["world_y_m", "y (m)", 3],
+  ["confidence", "confidence", 2],
 ];
 // A defect's one position, in the table, the panel, the 3D view, the PDF and the CSV
 // (world_x_m, world_y_m); world_w_m, world_h_m are its box's size.
@@ -46,11 +47,13 @@ function visible() {
   const cls = document.getElementById("filter-class")?.value || "";
   const review = document.getElementById("filter-review")?.value || "";
   const cs = document.getElementById("filter-cs")?.value || "";
+  const below = document.getElementById("filter-confidence")?.value || "";
   const rows = view.defects.filter(
     (d) =>
       (!cls || d.defect_class === cls) &&
       (!review || d.review_status === review) &&
-      (!cs || (cs === "none" ? !d.condition_state : d.condition_state === cs)),
+      (!cs || (cs === "none" ? !d.condition_state : d.condition_state === cs)) &&
+      (!below || (d.confidence !== null && d.confidence !== undefined && d.confidence < Number(below))),
   );
   const key = view.sort;
   rows.sort((a, b) => {
@@ -218,6 +221,14 @@ function showDetail(d) {
           `${d.area_mm2 === null ? "" : `, ${fmt(d.area_mm2, 0)} mm²`}`,
       ),
       ...(d.drawn_by ? [el("dt", {}, "drawn by"), el("dd", {}, d.drawn_by)] : []),
+      el("dt", {}, "confidence"),
+      el(
+        "dd",
+        { class: "defect-confidence" },
+        d.confidence === null || d.confidence === undefined
+          ? "not given"
+          : `${fmt(d.confidence, 2)} (the detector's: about ${Math.round(d.confidence * 10)} in 10 like it are true)`,
+      ),
       ...placement(d),
       el("dt", {}, "review"),
       el("dd", { class: "review-state" }, d.review_status),
@@ -566,6 +577,20 @@ export async function showSession(id, defectNumber = null) {
           "select",
           { id: "filter-cs", onchange: renderTable },
           ...["", "CS1", "CS2", "CS3", "CS4", "none"].map((v) => el("option", { value: v }, v || "all")),
+        ),
+      ),
+      el(
+        "label",
+        { title: "the detector's calibrated confidence: check the doubtful ones first" },
+        "confidence ",
+        el(
+          "select",
+          { id: "filter-confidence", onchange: renderTable },
+          ...[
+            ["", "all"],
+            ["0.5", "low (below 0.5)"],
+            ["0.8", "below 0.8"],
+          ].map(([v, t]) => el("option", { value: v }, t)),
         ),
       ),
       el("span", { id: "defect-count", class: "muted" }),

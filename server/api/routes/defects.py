@@ -47,14 +47,18 @@ def read_defects(
     source: Annotated[str | None, Query(pattern="^(mosaic|frame)$")] = None,
     review_status: ReviewStatus | None = None,
     condition_state: ConditionState | None = None,
+    below_confidence: Annotated[
+        float | None,
+        Query(ge=0, le=1, description="only defects the detector is less sure of than this"),
+    ] = None,
     sort: Annotated[
         str, Query(pattern=DEFECT_SORT, description="a column, '-' before it for descending")
     ] = "id",
     skip: Annotated[int, Query(ge=0, le=MAX_INT)] = 0,
     limit: Annotated[int, Query(ge=1, le=5000)] = 1000,
 ) -> DefectsPublic:
-    """Defects found in a session, filtered by class, source (mosaic or frame), review status
-    or condition state, sorted by a column."""
+    """Defects found in a session, filtered by class, source (mosaic or frame), review
+    status, condition state or confidence, sorted by a column."""
     get_session_or_404(db, session_id)
     q = defects_query(
         session_id,
@@ -62,6 +66,7 @@ def read_defects(
         source=source,
         review_status=review_status,
         condition_state=condition_state,
+        below_confidence=below_confidence,
         sort=sort,
     )
     rows = db.scalars(q.offset(skip).limit(limit))

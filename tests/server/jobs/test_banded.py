@@ -117,3 +117,58 @@ def test_banded_detection_matches_the_one_pass_result(
     one = one_pass(results, results, 0.25, surface=surface)
     across = detect_banded(results, results, masks_of, 0.25, level, rows=200)
     assert sorted(map(key, across)) == sorted(map(key, one))
+
+
+def test_banded_cracks_carry_the_confidence_of_one_pass(
+    inspected: tuple[LiveServer, str], tmp_path: Path
+) -> None:
+    """The network's logits cross band edges as stored codes: each crack's calibrated
+    confidence is the one the whole mosaic in memory gives it, to the code's step."""
+    from processing.detection.confidence import Calibration
+    from processing.detection.defects import measure_defects
+    from processing.detection.learned import MODEL_PATH, LearnedParams
+    from processing.learning.calibration import store_calibration
+
+    live, sid = inspected
+    results = tmp_path / "results"
+    shutil.copytree(live.settings.data_dir / "sessions" / sid / "results", results)
+    model = tmp_path / "calibrated.onnx"
+    shutil.copy(MODEL_PATH, model)
+    calibration = Calibration((1.0, 0.5), -3.0)
+    store_calibration(model, calibration.to_record())
+    mosaic = cv2.imread(str(results / "mosaic.png"), cv2.IMREAD_COLOR)
+    coverage = cv2.imread(str(results / "mosaic_coverage.png"), cv2.IMREAD_GRAYSCALE)
+    level = surface_level(mosaic, coverage)
+    masks_of = partial(
+        defect_masks, crack_method="learned", learned_params=LearnedParams(model_path=model)
+    )
+    whole = masks_of(mosaic, on_surface(mosaic, coverage, level), None)
+    assert whole.calibration == calibration
+    one = measure_defects(
+        whole.cracks,
+        "crack",
+        components=whole.crack_components,
+        probability=whole.probability,
+        calibration=whole.calibration,
+    )
+    banded = [
+        d
+        for d in detect_banded(
+            results, results, masks_of, 0.25, level, rows=200, calibration=calibration
+        )
+        if d.defect_class == "crack"
+    ]
+    assert len(one) >= 2 and len(banded) == len(one)
+
+    def overlap(a: Defect_, b: Defect_) -> float:
+        (ax, ay, aw, ah), (bx, by, bw, bh) = a.bbox, b.bbox
+        w = max(0, min(ax + aw, bx + bw) - max(ax, bx))
+        h = max(0, min(ay + ah, by + bh) - max(ay, by))
+        return w * h / (aw * ah + bw * bh - w * h)
+
+    # the network sees other tiles in bands: a pixel or two of a box may differ
+    for d in banded:
+        ref = max(one, key=lambda r: overlap(d, r))
+        assert overlap(d, ref) > 0.9
+        assert d.confidence is not None and ref.confidence is not None
+        assert abs(d.confidence - ref.confidence) < 0.01
