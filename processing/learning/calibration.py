@@ -93,6 +93,8 @@ def calibrate(
             f, y = labelled_components(probability(s.gray), s.truth, threshold)
             feats.append(f)
             labels.append(y)
+    if not feats:
+        raise ValueError("calibration needs held-back images: sets of ten or more images")
     x, y = np.concatenate(feats), np.concatenate(labels)
     cal = fit_calibration(x, y)
     ece, _ = reliability(cal.confidence(x), y)

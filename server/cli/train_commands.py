@@ -55,16 +55,19 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
         records = leave_one_out(roots, Path(args.out), params, args.limit, not args.float)
         print(json.dumps({k: v["threshold"] for k, v in records.items()}))
     else:
-        record = train_from_folders(
-            roots,
-            Path(args.out),
-            params,
-            args.limit,
-            not args.float,
-            extra=extra,
-            checkpoint=Path(args.checkpoint) if args.checkpoint else None,
-            budget_s=args.budget_minutes * 60 if args.budget_minutes else None,
-        )
+        try:
+            record = train_from_folders(
+                roots,
+                Path(args.out),
+                params,
+                args.limit,
+                not args.float,
+                extra=extra,
+                checkpoint=Path(args.checkpoint) if args.checkpoint else None,
+                budget_s=args.budget_minutes * 60 if args.budget_minutes else None,
+            )
+        except ValueError as exc:  # a checkpoint of another run, an empty set
+            raise CommandError(str(exc)) from None
         keys = ("threshold", "parameters", "iterations_done", "complete", "train_seconds")
         print(json.dumps({k: record[k] for k in keys}))
     return 0
