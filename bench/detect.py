@@ -145,6 +145,7 @@ def _held_back(name: str, samples: list[Sample]) -> Iterator[Result]:
     scores = score_set(held, _detector("learned", None))
     base = score_set(held, _detector("sauvola", None))["value"]
     yield _scored(f"detect.{name}.learned_held_back.dsc_tol2", scores, base, len(held))
+    yield _confidence_error(name, held)
     fit = fit[:: max(1, len(fit) // FIT_IMAGES)][:FIT_IMAGES]
     scores = score_set(fit, _detector("learned", None))
     base = score_set(fit, _detector("sauvola", None))["value"]
@@ -171,6 +172,40 @@ def _synthetic_steel(limit: int | None) -> Iterator[Result]:
             len(items),
             seed=STEEL_SEED,
         )
+    yield _confidence_error("steel-synthetic", items)
+
+
+def _confidence_error(name: str, items: list[Sample]) -> Result:
+    """Expected calibration error of the shipped network's per-defect confidence on a
+    set's images, against the network's own probability (the mean of its components'
+    logits, squashed) as the baseline; ``fitted_on`` says whether these images chose the
+    calibration (held-back images of its training sets did; rendered steel of another seed
+    did not)."""
+    from processing.detection.confidence import Calibration, reliability
+    from processing.learning.calibration import labelled_components
+
+    model = load_model()
+    cal = Calibration.from_record(model.record)
+    feats, labels = [np.zeros((0, 2))], [np.zeros(0, bool)]
+    for s in items:
+        f, y = labelled_components(model.probability(s.gray), s.truth, model.threshold)
+        feats.append(f)
+        labels.append(y)
+    x, y = np.concatenate(feats), np.concatenate(labels)
+    raw, raw_rows = reliability(1 / (1 + np.exp(-x[:, 0])), y)
+    ece, rows = reliability(cal.confidence(x), y) if cal is not None else (raw, raw_rows)
+    return {
+        "name": f"detect.{name}.learned_confidence.ece",
+        "value": ece,
+        "unit": "ece",
+        "baseline": raw,
+        "ratio": round(ece / max(raw, 1e-9), 3),
+        "components": len(y),
+        "true_share": round(float(y.mean()), 3) if len(y) else None,
+        "calibrated": cal is not None,
+        "fitted_on": name != "steel-synthetic",
+        "reliability": rows,
+    }
 
 
 def _scored(name: str, scores: dict, baseline: float, images: int, **extra: object) -> Result:

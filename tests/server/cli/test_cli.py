@@ -248,6 +248,7 @@ def test_bench_detect_prints_json_lines_with_baselines() -> None:
         f"detect.{set_name}.lowlight.learned.dsc_tol2",
         f"detect.{set_name}.learned_held_back.dsc_tol2",
         f"detect.{set_name}.learned_fit.dsc_tol2",
+        f"detect.{set_name}.learned_confidence.ece",
         "detect.learned.time_per_544x384",
         "detect.learned.mosaic_throughput",
     } <= names
