@@ -151,6 +151,21 @@ def test_inspection_live_then_review_with_mosaic_viewer_and_3d(
                 f"#defects tr[data-defect] td:nth-child({column})"
             ).all_inner_texts()
             assert all(c == "–" or len(c.split(".")[1]) == decimals for c in cells), (column, cells)
+        # the network's confidence in each crack: a column to sort by, a filter for the doubtful
+        listed = httpx.get(f"{live_server.url}/api/sessions/{sid}/defects?source=mosaic").json()
+        confidences = [d["confidence"] for d in listed["data"] if d["confidence"] is not None]
+        assert confidences and all(0 < c < 1 for c in confidences)
+        page.click("#defects th:has-text('confidence')")
+        shown = [
+            float(t)
+            for t in page.locator("#defects tr[data-defect] td:nth-child(8)").all_inner_texts()
+            if t != "–"
+        ]
+        assert shown == sorted(shown) and len(shown) == len(confidences)
+        page.select_option("#filter-confidence", "0.5")
+        doubtful = sum(c < 0.5 for c in confidences)
+        assert page.locator("#defects tr[data-defect]").count() == doubtful
+        page.select_option("#filter-confidence", "")
         # filters hide the boxes on the mosaic too
         page.select_option("#filter-class", "corrosion")
         rows = page.locator("#defects tr[data-defect]").count()
