@@ -146,8 +146,8 @@ class DefectAccount:
 
     ``matched``: true defects some found defect overlaps (recall = matched / true);
     ``on_true``: found defects that overlap a true one (precision = on_true / found), of
-    which ``pieces`` are second and further found defects on one true defect (a crack
-    found in pieces); ``false_alarms``: found defects on no true defect.
+    which ``pieces`` are second and further found defects given to one true defect (a
+    crack found in pieces); ``false_alarms``: found defects on no true defect.
     """
 
     found: int
@@ -172,19 +172,31 @@ def account_defects(
     found: Sequence[Box], truth: Sequence[Box], *, margin_m: float = 0.01
 ) -> DefectAccount:
     """Recall and precision of ``found`` against ``truth`` (boxes overlapping within
-    ``margin_m``, same class), with the extra found defects told apart: further pieces of
-    a true defect, or false alarms."""
-    hits = [[i for i, t in enumerate(truth) if _overlaps(f, t, margin_m)] for f in found]
-    on_true = sum(bool(h) for h in hits)
-    matched = len({i for h in hits for i in h})
+    ``margin_m``, same class), with the extra found defects told apart: each found defect
+    on a true one is given to the true defect it overlaps most, and every one beyond the
+    first a true defect gets is a further piece; the rest are false alarms."""
+    owner: list[int] = []
+    for f in found:
+        hits = [i for i, t in enumerate(truth) if _overlaps(f, t, margin_m)]
+        if hits:
+            owner.append(max(hits, key=lambda i: _shared_area(f, truth[i])))
+    matched = match_defects(found, truth, margin_m=margin_m)
+    per_true = np.bincount(np.array(owner, int), minlength=len(truth)) if owner else []
     return DefectAccount(
         found=len(found),
         true=len(truth),
         matched=matched,
-        on_true=on_true,
-        pieces=max(0, on_true - matched),
-        false_alarms=len(found) - on_true,
+        on_true=len(owner),
+        pieces=int(sum(max(0, int(k) - 1) for k in per_true)),
+        false_alarms=len(found) - len(owner),
     )
+
+
+def _shared_area(a: Box, b: Box) -> float:
+    """Area (m²) the two boxes share."""
+    w = min(a.x + a.w, b.x + b.w) - max(a.x, b.x)
+    h = min(a.y + a.h, b.y + b.h) - max(a.y, b.y)
+    return max(0.0, w) * max(0.0, h)
 
 
 def mosaic_overlap_errors(

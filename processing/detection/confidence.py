@@ -17,15 +17,16 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import expit
 
 FEATURES = ("mean_logit", "log_pixels")
 LOGIT_RANGE = 8.0  # logits are taken within ±8 (probabilities 0.0003 … 0.9997)
-_CODE_STEPS = 16.0  # a stored logit's steps per unit: 256 codes over ±8
+_CODE_STEPS = 255 / (2 * LOGIT_RANGE)  # codes 0 … 255 span -8 … +8 exactly
 
 
 def logit_code(probability: NDArray[np.floating]) -> NDArray[np.uint8]:
-    """(H, W) uint8 code of a probability map's logits (1/16 steps over ±8), for bands of
-    a mosaic stored on disk; :func:`probability_of_code` reverses it."""
+    """(H, W) uint8 code of a probability map's logits (255 steps over ±8), for bands of a
+    mosaic stored on disk; :func:`probability_of_code` reverses it."""
     z = _logit(probability)
     return np.clip(np.rint((z + LOGIT_RANGE) * _CODE_STEPS), 0, 255).astype(np.uint8)
 
@@ -33,7 +34,7 @@ def logit_code(probability: NDArray[np.floating]) -> NDArray[np.uint8]:
 def probability_of_code(code: NDArray[np.uint8]) -> NDArray[np.float32]:
     """(H, W) probability of :func:`logit_code`'s codes."""
     z = code.astype(np.float32) / _CODE_STEPS - LOGIT_RANGE
-    return (1.0 / (1.0 + np.exp(-z))).astype(np.float32)
+    return expit(z).astype(np.float32)
 
 
 def _logit(probability: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -88,7 +89,7 @@ class Calibration:
     def confidence(self, features: NDArray[np.floating]) -> NDArray[np.float64]:
         """(N,) probability that each of (N, 2) ``features`` is a true crack."""
         z = np.asarray(features, np.float64) @ np.asarray(self.coef) + self.intercept
-        return 1.0 / (1.0 + np.exp(-z))
+        return np.asarray(expit(z), np.float64)
 
 
 def reliability(

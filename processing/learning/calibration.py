@@ -9,6 +9,7 @@ ridge, and stored in the ONNX model's record beside the threshold.
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
@@ -17,9 +18,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
+from scipy.special import expit
 
 from processing.detection.confidence import Calibration, component_features, reliability
-from processing.learning.data import Sample
+from processing.learning.data import Sample, split_holdout
+
+log = logging.getLogger(__name__)
 
 Probability = Callable[[NDArray[np.uint8]], NDArray[np.float32]]
 
@@ -70,7 +74,7 @@ def fit_calibration(
 
     def loss(w: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         s = z @ w[:2] + w[2]
-        p = 1.0 / (1.0 + np.exp(-s))
+        p = expit(s)
         value = float(np.mean(np.logaddexp(0.0, s) - y * s) + ridge * (w[:2] @ w[:2]))
         g = p - y
         grad = np.concatenate([z.T @ g / len(y) + 2 * ridge * w[:2], [g.mean()]])
@@ -122,3 +126,25 @@ def store_calibration(path: Path, record: dict[str, Any]) -> None:
     tmp = path.with_suffix(".tmp.onnx")
     onnx.save(model, str(tmp))
     tmp.replace(path)
+
+
+def calibrate_exported(
+    path: Path, datasets: dict[str, list[Sample]], *, threads: int = 2, strict: bool = False
+) -> dict[str, Any] | None:
+    """Fit the per-defect confidence of the exported model at ``path`` (as it ships: int8
+    logits differ from float ones) on the held-back images of ``datasets`` and store it in
+    the model; returns the fit's record. Too few components to fit: a warning and None
+    (``strict``: the ValueError)."""
+    from processing.detection.learned import CrackModel
+
+    hold = {name: split_holdout(samples)[1] for name, samples in datasets.items()}
+    model = CrackModel(path, threads)
+    try:
+        _, record = calibrate(model.probability, hold, model.threshold)
+    except ValueError as exc:  # too few components to say how sure
+        if strict:
+            raise
+        log.warning("no confidence calibration: %s", exc)
+        return None
+    store_calibration(path, record)
+    return record

@@ -27,13 +27,14 @@ CHECKPOINT_FORMAT = "steelscan-crack-train/1"
 
 
 def data_hash(datasets: dict[str, list[Sample]]) -> str:
-    """SHA-256 (hex) of every set's name and every image's name, pixels and truth, in
-    order: two runs with the same hash saw the same data."""
+    """SHA-256 (hex) of every set's name and every image's name, size, pixels and truth,
+    in the order training draws from them: two runs with the same hash saw the same data
+    in the same order."""
     h = hashlib.sha256()
-    for name in sorted(datasets):
-        h.update(name.encode())
-        for s in datasets[name]:
-            h.update(s.name.encode())
+    for name, samples in datasets.items():
+        h.update(repr((name, len(samples))).encode())
+        for s in samples:
+            h.update(repr((s.name, s.gray.shape, s.truth.shape)).encode())
             h.update(np.ascontiguousarray(s.gray).tobytes())
             h.update(np.packbits(s.truth).tobytes())
     return h.hexdigest()
@@ -145,6 +146,9 @@ def load_checkpoint(
     )
     if differ:
         raise ValueError(f"{path} was made with other options: {', '.join(differ)}")
+    missing = sorted(set(modules) - set(payload.get("modules", {})))
+    if missing:
+        raise ValueError(f"{path} lacks the state of: {', '.join(missing)}")
     for name, module in modules.items():
         module.load_state_dict(payload["modules"][name])
     torch.set_rng_state(payload["torch_rng"])

@@ -186,7 +186,8 @@ def centre_line_weights(
     blur = cast(NDArray[np.float32], cv2.GaussianBlur(gray * around, (0, 0), 4.0))
     norm = cast(NDArray[np.float32], cv2.GaussianBlur(around, (0, 0), 4.0))
     surface = blur / np.maximum(norm, 1e-3)
-    faint = (surface - gray) < faint_contrast
+    # deep inside a wide crack no plate is near enough to measure: not faint there
+    faint = ((surface - gray) < faint_contrast) & (norm > 0.05)
     w[line] += centre_weight * (1.0 + faint[line])
     return w
 

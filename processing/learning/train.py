@@ -17,8 +17,8 @@ import json
 import logging
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -26,9 +26,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from numpy.typing import NDArray
-from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+from torch.optim.swa_utils import AveragedModel
 
-from processing.learning.calibration import calibrate
+from processing.learning.calibration import calibrate_exported
 from processing.learning.checkpoint import (
     RunState,
     data_hash,
@@ -84,6 +84,18 @@ def loss_fn(
     inter = (p * truth).sum(dim=(1, 2, 3))
     dice = (2 * inter + 1.0) / (p.sum(dim=(1, 2, 3)) + truth.sum(dim=(1, 2, 3)) + 1.0)
     return bce + dice_weight * (1.0 - dice.mean())
+
+
+def _ema(decay: float) -> Callable[[torch.Tensor, torch.Tensor, torch.Tensor | int], torch.Tensor]:
+    """The moving average's update with its decay warmed up, min(decay, (1 + n) / (10 + n))
+    after n updates, so the first weights, still random, are soon forgotten."""
+
+    def update(average: torch.Tensor, current: torch.Tensor, n: torch.Tensor | int) -> torch.Tensor:
+        k = float(n)
+        d = min(decay, (1.0 + k) / (10.0 + k))
+        return average + (current - average) * (1.0 - d)
+
+    return update
 
 
 def predict(model: CrackNet, gray: NDArray[np.uint8]) -> NDArray[np.float32]:
@@ -148,9 +160,7 @@ def train(
         if h:
             hold[name] = h
     model = CrackNet(params.network)
-    average = AveragedModel(
-        model, multi_avg_fn=get_ema_multi_avg_fn(params.ema_decay), use_buffers=True
-    )
+    average = AveragedModel(model, avg_fn=_ema(params.ema_decay), use_buffers=True)
     opt = torch.optim.AdamW(
         model.parameters(), lr=params.learning_rate, weight_decay=params.weight_decay
     )
@@ -215,12 +225,6 @@ def train(
     assert isinstance(shipped, CrackNet)
     shipped.eval()
     threshold, holdout_dsc = choose_threshold(shipped, hold, params) if hold else (0.5, 0.0)
-    calibration = None
-    if hold:
-        try:
-            _, calibration = calibrate(partial(predict, shipped), hold, threshold)
-        except ValueError as exc:  # too few components to say how sure
-            log.warning("no confidence calibration: %s", exc)
     record = {
         "format": MODEL_FORMAT,
         "datasets": {k: len(v) for k, v in datasets.items()},
@@ -228,7 +232,6 @@ def train(
         "holdout_images": {k: len(v) for k, v in hold.items()},
         "threshold": threshold,
         "holdout_dsc_tol": holdout_dsc,
-        "calibration": calibration,
         "final_loss": round(float(np.mean(recent)), 4) if recent else None,
         "parameters": parameter_count(shipped),
         "iterations_done": state.iteration,
@@ -315,6 +318,7 @@ def train_from_folders(
     datasets = {r.name: load_dataset(r, limit) for r in roots} | (extra or {})
     model, record = train(datasets, params, checkpoint=checkpoint, budget_s=budget_s)
     export_model(model, record, out, datasets, int8)
+    record["calibration"] = calibrate_exported(out, datasets)
     return record
 
 
@@ -337,5 +341,6 @@ def leave_one_out(
         record["left_out"] = left
         kept = {k: v for k, v in datasets.items() if k != left}
         export_model(model, record, out_dir / f"{left}.onnx", kept, int8)
+        record["calibration"] = calibrate_exported(out_dir / f"{left}.onnx", kept)
         records[left] = record
     return records

@@ -57,7 +57,8 @@ def score(
     truth = [Box(d.defect_class, *d.bbox_m) for d in result.structure.defects]
     found = account_defects(world_boxes(defects), truth)
     out: dict[str, Any] = {
-        "defects_found": found.found,
+        "defects_found": len(defects),
+        "defects_placed": found.found,  # on the structure: the ones scored
         "defects_true": found.true,
         "defects_matched": found.matched,
         "defects_on_true": found.on_true,

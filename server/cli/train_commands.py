@@ -48,37 +48,38 @@ def cmd_train_detector(args: argparse.Namespace) -> int:
         centre_weight=args.centre_weight,
         network=NetworkParams(tuple(args.channels)) if args.channels else NetworkParams(),
     )
+    if args.budget_minutes is not None and not args.checkpoint:
+        raise CommandError("--budget-minutes needs --checkpoint (to resume where it stops)")
+    if args.leave_one_out and (args.synthetic_steel or args.checkpoint):
+        raise CommandError("--leave-one-out trains on the folders only, in one sitting")
     extra = _steel(args.synthetic_steel, args.seed)
-    if args.leave_one_out:
-        if extra or args.checkpoint:
-            raise CommandError("--leave-one-out trains on the folders only, in one sitting")
-        records = leave_one_out(roots, Path(args.out), params, args.limit, not args.float)
-        print(json.dumps({k: v["threshold"] for k, v in records.items()}))
-    else:
-        try:
-            record = train_from_folders(
-                roots,
-                Path(args.out),
-                params,
-                args.limit,
-                not args.float,
-                extra=extra,
-                checkpoint=Path(args.checkpoint) if args.checkpoint else None,
-                budget_s=args.budget_minutes * 60 if args.budget_minutes else None,
-            )
-        except ValueError as exc:  # a checkpoint of another run, an empty set
-            raise CommandError(str(exc)) from None
-        keys = ("threshold", "parameters", "iterations_done", "complete", "train_seconds")
-        print(json.dumps({k: record[k] for k in keys}))
+    try:
+        if args.leave_one_out:
+            records = leave_one_out(roots, Path(args.out), params, args.limit, not args.float)
+            print(json.dumps({k: v["threshold"] for k, v in records.items()}))
+            return 0
+        record = train_from_folders(
+            roots,
+            Path(args.out),
+            params,
+            args.limit,
+            not args.float,
+            extra=extra,
+            checkpoint=Path(args.checkpoint) if args.checkpoint else None,
+            budget_s=args.budget_minutes * 60 if args.budget_minutes is not None else None,
+        )
+    except ValueError as exc:  # a checkpoint of another run, a set without images
+        raise CommandError(str(exc)) from None
+    keys = ("threshold", "parameters", "iterations_done", "complete", "train_seconds")
+    print(json.dumps({k: record[k] for k in keys}))
     return 0
 
 
 def cmd_calibrate_detector(args: argparse.Namespace) -> int:
     """Fit a crack model's per-defect confidence on the held-back images of its sets."""
     try:
-        from processing.detection.learned import CrackModel
-        from processing.learning.calibration import calibrate, store_calibration
-        from processing.learning.data import load_dataset, split_holdout
+        from processing.learning.calibration import calibrate_exported
+        from processing.learning.data import load_dataset
     except ImportError as exc:
         raise CommandError(
             f"calibration needs onnx ({exc.name} is missing): pip install 'steelscan[train]'"
@@ -88,13 +89,10 @@ def cmd_calibrate_detector(args: argparse.Namespace) -> int:
         raise CommandError(f"{model_path}: no such model file")
     sets = {r.name: load_dataset(r, args.limit) for r in _roots(args.datasets)}
     sets |= _steel(args.synthetic_steel, args.seed)
-    hold = {name: split_holdout(samples)[1] for name, samples in sets.items()}
-    model = CrackModel(model_path, threads=args.threads)
     try:
-        _, record = calibrate(model.probability, hold, model.threshold)
+        record = calibrate_exported(model_path, sets, threads=args.threads, strict=True)
     except ValueError as exc:
         raise CommandError(str(exc)) from None
-    store_calibration(model_path, record)
     print(json.dumps(record))
     return 0
 

@@ -143,22 +143,22 @@ def band_masks(_files: object, plan: BandPlan, band: tuple[int, tuple[int, int]]
     found = plan.masks(image, on_surface(image, coverage, plan.level), seams)
     a, b = y0 - rows.start, y1 - rows.start
     contrast = np.clip(np.round(np.where(found.cracks[a:b], found.contrast[a:b], 0)), 0, 255)
-    logits = logit_code(found.probability[a:b]) if found.probability is not None else None
+    logits, p = None, None  # the network's, as stored (codes): what joined bands measure
+    if found.probability is not None:
+        logits = logit_code(found.probability[a:b])
+        write_atomic(scratch / f"band{index}.logit", logits.tobytes())
+        p = probability_of_code(logits)
     for name, part in (
         ("crack", found.cracks[a:b]),
         ("corrosion", found.rust[a:b]),
         ("contrast", contrast),
-        ("logit", logits),
     ):
-        if part is None:
-            continue
         write_atomic(scratch / f"band{index}.{name}", part.astype(np.uint8).tobytes())
         if name in CLASSES:
-            c = contrast.astype(np.float32) if name == "crack" else None  # as stored: whole levels
-            # as stored, too: the logits' codes
-            p = probability_of_code(logits) if name == "crack" and logits is not None else None
-            cal = found.calibration if p is not None else None
-            data = _band_defects(part, name, c, plan.mm_per_px, y0, p, cal)
+            crack = name == "crack"
+            c = contrast.astype(np.float32) if crack else None  # as stored: whole levels
+            cal = found.calibration if crack and p is not None else None
+            data = _band_defects(part, name, c, plan.mm_per_px, y0, p if crack else None, cal)
             write_atomic(scratch / f"band{index}.{name}.parts", data)
             write_segment(scratch / f"{name}.png.d", y0, part.astype(np.uint8) * 255)
 

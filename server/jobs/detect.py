@@ -20,7 +20,7 @@ from processing.detection.confidence import Calibration
 from processing.detection.corrosion import CorrosionParams
 from processing.detection.crack_filter import CrackParams, SurfaceStats, measure_surface
 from processing.detection.defects import Defect as Defect_
-from processing.detection.learned import LearnedParams, load_model
+from processing.detection.learned import MODEL_PATH, LearnedParams, load_model
 from processing.detection.surface import surface_level
 from processing.poses import compose_se2, world_box
 from server.jobs.banded import detect_banded
@@ -255,7 +255,7 @@ def _detect_mosaic_banded(
         crack_method=_method(ctx),
         surface=surface,
         workers=ctx.threads,
-        learned_params=LearnedParams(threads=ctx.threads),
+        learned_params=LearnedParams(model_path=MODEL_PATH, threads=ctx.threads),
     )
     return detect_banded(
         source,
@@ -265,7 +265,8 @@ def _detect_mosaic_banded(
         level,
         progress=lambda f, m: ctx.progress(0.6 + 0.35 * f, m),
         map_bands=ctx.map,
-        calibration=Calibration.from_record(load_model().record)
+        # the model the bands' masks load (same path and threads): one fit for every crack
+        calibration=Calibration.from_record(load_model(MODEL_PATH, ctx.threads).record)
         if _method(ctx) == "learned"
         else None,
     )

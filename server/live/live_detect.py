@@ -37,6 +37,7 @@ def _detect(
             "defect_class": d.defect_class,
             "world_box": list(world_box(d.bbox, np.asarray(camera_pose), px_per_m, size)),
             "length_mm": d.length_mm,
+            "confidence": d.confidence,
         }
         for d in found
     ]

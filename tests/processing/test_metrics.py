@@ -64,3 +64,15 @@ def test_found_defects_are_told_apart_as_hits_pieces_and_false_alarms() -> None:
     assert acc.precision == 0.5 and acc.recall == 0.5
     none = account_defects([], truth)
     assert none.precision == 1.0 and none.recall == 0.0
+
+
+def test_a_merge_does_not_hide_a_crack_found_in_pieces() -> None:
+    truth = [Box("crack", 0, 0, 0.1, 0.01), Box("crack", 0.1, 0, 0.1, 0.01)]
+    truth.append(Box("crack", 0, 1, 0.2, 0.01))
+    found = [
+        Box("crack", 0, 0, 0.2, 0.01),  # one box over the first two cracks
+        Box("crack", 0, 1, 0.09, 0.01),  # the third crack in two pieces
+        Box("crack", 0.11, 1, 0.09, 0.01),
+    ]
+    acc = account_defects(found, truth)
+    assert (acc.matched, acc.on_true, acc.pieces, acc.false_alarms) == (3, 3, 1, 0)
