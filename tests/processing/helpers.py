@@ -3,6 +3,8 @@ frame cut at a pose, a textured plate."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 
@@ -82,3 +84,15 @@ def textured_plate(
     cv2.polylines(truth, [pts[:, ::-1].astype(np.int32)], False, 255, width)
     img = (150 + grain + blotch - depth * (truth > 0)) * light + rng.normal(0, 2, shape)
     return np.clip(img, 0, 255).astype(np.uint8), truth > 0
+
+
+def crack_dataset(root: Path, n: int, seed: int) -> Path:
+    """A dataset folder (``images/``, ``masks/``) of ``n`` small :func:`textured_plate`
+    images with 2-px cracks, as the training commands read them."""
+    (root / "images").mkdir(parents=True)
+    (root / "masks").mkdir()
+    for i in range(n):
+        gray, truth = textured_plate((96, 128), seed + i, width=2, depth=50)
+        cv2.imwrite(str(root / "images" / f"{i:03d}.png"), gray)
+        cv2.imwrite(str(root / "masks" / f"{i:03d}.png"), truth.astype(np.uint8) * 255)
+    return root

@@ -17,7 +17,7 @@ from processing.detection.learned import (
     crack_probability,
     load_model,
 )
-from tests.processing.helpers import textured_plate
+from tests.processing.helpers import crack_dataset, textured_plate
 from tests.server.helpers import steelscan
 
 
@@ -76,16 +76,6 @@ def test_a_missing_model_is_a_clear_error(tmp_path: Path) -> None:
         CrackModel(tmp_path / "none.onnx")
 
 
-def _tiny_dataset(root: Path, n: int, seed: int) -> Path:
-    (root / "images").mkdir(parents=True)
-    (root / "masks").mkdir()
-    for i in range(n):
-        gray, truth = textured_plate((96, 128), seed + i, width=2, depth=50)
-        cv2.imwrite(str(root / "images" / f"{i:03d}.png"), gray)
-        cv2.imwrite(str(root / "masks" / f"{i:03d}.png"), truth.astype(np.uint8) * 255)
-    return root
-
-
 def test_training_script_makes_a_model_onnx_runtime_runs_as_pytorch_does(tmp_path: Path) -> None:
     torch = pytest.importorskip("torch")
     from processing.learning.data import AugmentParams, load_dataset
@@ -93,7 +83,7 @@ def test_training_script_makes_a_model_onnx_runtime_runs_as_pytorch_does(tmp_pat
     from processing.learning.train import TrainParams, export_onnx, predict, train
 
     sets = {
-        name: load_dataset(_tiny_dataset(tmp_path / name, 12, seed))
+        name: load_dataset(crack_dataset(tmp_path / name, 12, seed))
         for name, seed in (("a", 0), ("b", 100))
     }
     params = TrainParams(
@@ -123,7 +113,7 @@ def test_training_script_makes_a_model_onnx_runtime_runs_as_pytorch_does(tmp_pat
 def test_train_detector_command_trains_and_detect_uses_the_result(tmp_path: Path) -> None:
     pytest.importorskip("torch")
 
-    data = _tiny_dataset(tmp_path / "set", 6, 7)
+    data = crack_dataset(tmp_path / "set", 6, 7)
     out = tmp_path / "model.onnx"
     proc = steelscan(
         "train-detector", str(data), "--out", str(out), "--iterations", "2", "--batch", "2"

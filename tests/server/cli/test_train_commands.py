@@ -7,12 +7,10 @@ import json
 import shutil
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 
 from processing.detection.learned import MODEL_PATH, CrackModel
-from tests.processing.helpers import textured_plate
+from tests.processing.helpers import crack_dataset
 from tests.server.helpers import steelscan
 
 pytest.importorskip("torch")
@@ -20,18 +18,8 @@ pytest.importorskip("torch")
 TINY = ("--iterations", "3", "--batch", "2", "--channels", "4", "8", "8", "16", "16")
 
 
-def _dataset(root: Path, n: int, seed: int) -> Path:
-    (root / "images").mkdir(parents=True)
-    (root / "masks").mkdir()
-    for i in range(n):
-        gray, truth = textured_plate((96, 128), seed + i, width=2, depth=50)
-        cv2.imwrite(str(root / "images" / f"{i:03d}.png"), gray)
-        cv2.imwrite(str(root / "masks" / f"{i:03d}.png"), truth.astype(np.uint8) * 255)
-    return root
-
-
 def test_a_run_resumes_from_its_checkpoint_and_refuses_other_options(tmp_path: Path) -> None:
-    data = _dataset(tmp_path / "set", 6, 3)
+    data = crack_dataset(tmp_path / "set", 6, 3)
     out, ckpt = tmp_path / "m.onnx", tmp_path / "run.pt"
     args = ("train-detector", str(data), "--out", str(out), "--checkpoint", str(ckpt))
     first = steelscan(*args, *TINY, "--synthetic-steel", "4", "--float")
@@ -53,10 +41,10 @@ def test_calibrating_a_model_with_too_little_data_is_a_clear_error(tmp_path: Pat
     model = tmp_path / "m.onnx"
     shutil.copy(MODEL_PATH, model)
     before = model.read_bytes()
-    small = _dataset(tmp_path / "small", 4, 9)  # no image held back
+    small = crack_dataset(tmp_path / "small", 4, 9)  # no image held back
     proc = steelscan("calibrate-detector", str(small), "--model", str(model))
     assert proc.returncode == 2 and "held-back images" in proc.stderr
-    data = _dataset(tmp_path / "set", 12, 9)  # one image held back: a crack or two
+    data = crack_dataset(tmp_path / "set", 12, 9)  # one image held back: a crack or two
     proc = steelscan("calibrate-detector", str(data), "--model", str(model))
     assert proc.returncode == 2 and "ten or more components" in proc.stderr
     assert model.read_bytes() == before  # the model is left as it was
