@@ -181,7 +181,7 @@ def account_defects(
         if hits:
             owner.append(max(hits, key=lambda i: _shared_area(f, truth[i])))
     matched = match_defects(found, truth, margin_m=margin_m)
-    per_true = np.bincount(np.array(owner, int), minlength=len(truth)) if owner else []
+    per_true = np.bincount(np.array(owner, int), minlength=len(truth)).tolist() if owner else []
     return DefectAccount(
         found=len(found),
         true=len(truth),

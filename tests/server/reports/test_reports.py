@@ -361,6 +361,14 @@ def test_detect_job_method_is_chosen_per_job_and_reviews_carry_over(
     by_network = match_defects(world_boxes(first), truth)
     by_proposed = match_defects(world_boxes(again), truth)
     assert by_proposed >= 1 and by_network >= max(1, by_proposed - 1), (by_network, by_proposed)
+    # the shared session back as the station left it: its defects by the network
+    job = httpx.post(f"{url}/api/sessions/{sid}/jobs", json={"kind": "detect"}).json()
+    deadline = time.monotonic() + 240
+    while job["state"] not in ("done", "failed"):
+        assert time.monotonic() < deadline
+        time.sleep(0.3)
+        job = httpx.get(f"{url}/api/jobs/{job['id']}").json()
+    assert job["state"] == "done" and job["result"]["method"] == "learned", job
 
 
 def test_the_pdf_takes_any_comment_the_api_accepts(inspected: tuple[LiveServer, str]) -> None:
