@@ -34,6 +34,7 @@ from processing.detection.defects import Components, Defect, measure_defects
 from processing.detection.learned import (
     LearnedParams,
     crack_probability,
+    crack_threshold,
     learned_cracks,
     load_model,
 )
@@ -210,8 +211,8 @@ def defect_masks(
     if crack_method == "learned" and min(shape) >= 3:
         model = load_model(learned_params.model_path, learned_params.threads)
         probability = crack_probability(to_gray(image), learned_params)
-        t = model.threshold if learned_params.threshold is None else learned_params.threshold
-        learned, calibration = probability > t, Calibration.from_record(model.record)
+        learned = probability > crack_threshold(learned_params)
+        calibration = Calibration.from_record(model.record)
     tiles = tile_cores(shape, tile_px, overlap_px)
     if surface is None and crack_method == "proposed" and len(tiles) > 1:
         surface = sample_surface(image, crack_params, tile_px)

@@ -96,6 +96,11 @@ def learned_cracks(
 ) -> NDArray[np.bool_]:
     """(H, W) bool crack mask: probability above the model's threshold (or
     ``params.threshold``)."""
+    return crack_probability(gray, params) > crack_threshold(params)
+
+
+def crack_threshold(params: LearnedParams = LearnedParams()) -> float:
+    """The probability above which a pixel is crack: ``params.threshold``, else the one
+    stored with the model."""
     model = load_model(params.model_path, params.threads)
-    t = model.threshold if params.threshold is None else params.threshold
-    return crack_probability(gray, params) > t
+    return model.threshold if params.threshold is None else params.threshold
