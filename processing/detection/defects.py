@@ -37,6 +37,19 @@ class Defect:
     confidence: float | None = None  # calibrated P(a true defect); None: the method has none
 
 
+# the smallest defect a camera resolves, in its pixels: a crack shorter than this, a rust
+# patch smaller than its square, is a speck, not a defect anyone can assess
+RESOLVED_PX = 3.0
+
+
+def resolved(d: Defect) -> bool:
+    """Whether ``d`` is at least :data:`RESOLVED_PX` pixels long (a crack) or that squared
+    in area (anything else)."""
+    if d.defect_class == "crack":
+        return d.length_px >= RESOLVED_PX
+    return d.area_px >= RESOLVED_PX**2
+
+
 @dataclass(frozen=True)
 class Components:
     """Labelled 8-connected components of a mask (``cv2.connectedComponentsWithStats``)

@@ -20,6 +20,7 @@ from processing.detection.confidence import Calibration
 from processing.detection.corrosion import CorrosionParams
 from processing.detection.crack_filter import CrackParams, SurfaceStats, measure_surface
 from processing.detection.defects import Defect as Defect_
+from processing.detection.defects import resolved
 from processing.detection.learned import MODEL_PATH, LearnedParams, load_model
 from processing.detection.surface import surface_level
 from processing.poses import compose_se2, world_box
@@ -103,7 +104,7 @@ def detect_frame(
     if img is None:
         return None
     found = find_defects(img, mm_per_px, workers=1, method=method, network_threads=threads)[2]
-    return (img.shape[1], img.shape[0]), found
+    return (img.shape[1], img.shape[0]), [d for d in found if resolved(d)]
 
 
 def _frame_rows(
@@ -142,6 +143,7 @@ def run_detect(ctx: JobContext) -> dict[str, Any]:
     out = ctx.output_dir()
     # in bands whose grid depends on the mosaic alone: the same defects whatever searches it
     found = _detect_mosaic_banded(ctx, source, out, mm_per_px, surface)
+    found = [d for d in found if resolved(d)]  # a speck the camera cannot resolve is no defect
     mosaic_rows = [_mosaic_row(ctx, d, world) for d in found]
     by_class = {c: sum(1 for d in found if d.defect_class == c) for c in ("crack", "corrosion")}
     result = {

@@ -17,9 +17,10 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from processing.coverage import CoverageParams
+from processing.detection.defects import RESOLVED_PX
 from server.reports.condition import element_condition
 from server.reports.coverage import QualityCache, session_coverage
-from server.reports.fields import CONDITION_STATES, GENERATOR, RESOLVED_PX
+from server.reports.fields import CONDITION_STATES, GENERATOR
 from server.reports.visits import visit_changes
 from server.storage.files import SessionFiles
 from server.storage.models import (

@@ -10,9 +10,6 @@ from server.storage.models import Defect
 GENERATOR = "steelscan 0.1.0"
 # how an imported session's notes name the file it came from (its robot is none)
 IMPORTED_FROM = "Imported from"
-# the smallest defect a report lists, in camera pixels: a crack shorter than this, a
-# corrosion patch smaller than its square, is below what the camera resolves
-RESOLVED_PX = 3.0
 CONDITION_STATES = ("CS1", "CS2", "CS3", "CS4")
 CONDITION_MEANING = {"CS1": "good", "CS2": "fair", "CS3": "poor", "CS4": "severe"}
 # what a defect's one position (``world_x_m``, ``world_y_m``) is, wherever it is shown

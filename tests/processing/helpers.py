@@ -25,12 +25,23 @@ def cut(tex: np.ndarray, cx: float, cy: float, w: int = 320, h: int = 240) -> np
     return cv2.warpAffine(tex, M, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
 
 
-def sweep(frames: int = 12, pattern: str = "lawnmower", seed: int = 5, **kw: object) -> Sweep:
+def sweep(
+    frames: int = 12, pattern: str = "lawnmower", seed: int = 5, cracked: bool = False, **kw: object
+) -> Sweep:
+    """A sweep over painted steel; ``cracked`` draws one dark meandering hairline crack
+    across the plate's middle (the plate alone has scratches, never cracks)."""
     cfg = SweepConfig(
         frames=frames, pattern=pattern, lanes=3, frame_size=(320, 240), seed=seed, **kw
     )  # type: ignore[arg-type]
     need = texture_size_for(cfg)
-    return make_sweep(painted_steel((need[1], need[0]), seed=seed), cfg)
+    plate = painted_steel((need[1], need[0]), seed=seed)
+    if cracked:
+        rng = np.random.default_rng(seed)
+        x = np.linspace(0.1, 0.9, 80) * need[0]
+        y = need[1] / 2 + np.cumsum(rng.normal(0, 2.0, x.size))
+        line = np.stack([x, y], axis=1).round().astype(np.int32)
+        cv2.polylines(plate, [line], False, (40, 40, 40), 2, cv2.LINE_AA)
+    return make_sweep(plate, cfg)
 
 
 def decoded(s: Sweep) -> list[np.ndarray]:

@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from processing.detection.defects import measure_defects
+from processing.detection.defects import RESOLVED_PX, measure_defects, resolved
 
 
 def test_measurements_of_a_drawn_line() -> None:
@@ -60,3 +60,16 @@ def test_components_have_opencvs_statistics(threshold: float) -> None:
     assert np.array_equal(comps.stats[1:], stats[1:]) and comps.stats[0, 4] == stats[0, 4]
     assert np.allclose(comps.centroids[1:], centroids[1:])
     assert comps.keep[1:].all() and not comps.keep[0]
+
+
+def test_specks_below_the_cameras_resolution_are_not_resolved() -> None:
+    mask = np.zeros((40, 60), bool)
+    mask[5, 5:7] = True  # a two-pixel crack speck
+    mask[20, 10:40] = True  # a 30-px crack
+    found = measure_defects(mask, "crack")
+    assert [resolved(d) for d in found] == [False, True]
+    assert found[0].length_px < RESOLVED_PX <= found[1].length_px
+    rust = np.zeros((40, 60), bool)
+    rust[2:4, 2:4] = True  # 4 px: smaller than a resolved patch of 3 x 3
+    rust[20:30, 20:30] = True
+    assert [resolved(d) for d in measure_defects(rust, "corrosion")] == [False, True]

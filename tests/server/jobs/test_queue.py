@@ -89,10 +89,10 @@ def cluster(tmp_path: Path, postgres, redis_server) -> Iterator[Cluster]:  # typ
 
 
 def record(c: Cluster, frames: int) -> str:
-    """A session of ``frames`` camera frames of a lawn-mower sweep."""
+    """A session of ``frames`` camera frames of a lawn-mower sweep over a cracked plate."""
     from tests.processing.helpers import sweep
 
-    s = sweep(frames=frames, seed=31)
+    s = sweep(frames=frames, seed=31, cracked=True)
     sid = uuid.uuid4()
     calib = {"camera": {"px_per_m": 1000.0, "T_robot_camera": [0.0, 0.0, 0.0]}}
     with connect(ws_url(c), additional_headers={"Authorization": f"Bearer {c.token}"}) as ws:  # type: ignore[arg-type]
