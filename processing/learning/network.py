@@ -20,7 +20,7 @@ from torch import nn
 class NetworkParams:
     """Channels per scale, from 1/2 resolution down."""
 
-    channels: tuple[int, ...] = (8, 16, 32, 64, 128)
+    channels: tuple[int, ...] = (8, 24, 48, 128, 320)
 
 
 def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:

@@ -55,12 +55,12 @@ MODEL_FORMAT = "steelscan-crack-net/1"
 class TrainParams:
     """Options of one training run."""
 
-    iterations: int = 6000
+    iterations: int = 11000
     batch: int = 12
     learning_rate: float = 4e-3
     weight_decay: float = 1e-4
     dice_weight: float = 1.0
-    centre_weight: float = 0.0
+    centre_weight: float = 2.0
     ema_decay: float = 0.999
     seed: int = 0
     threads: int = 2

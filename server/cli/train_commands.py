@@ -104,7 +104,7 @@ def add_train_commands(sub: Any) -> None:
     )
     s.add_argument("datasets", nargs="+", help="folders with images/ and masks/ (255 = crack)")
     s.add_argument("--out", required=True, help="model file (.onnx); with --leave-one-out a folder")
-    s.add_argument("--iterations", type=int, default=6000)
+    s.add_argument("--iterations", type=int, default=11000)
     s.add_argument("--batch", type=int, default=12)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--threads", type=int, default=2)
@@ -119,7 +119,7 @@ def add_train_commands(sub: Any) -> None:
     s.add_argument(
         "--centre-weight",
         type=float,
-        default=0.0,
+        default=2.0,
         help="extra loss weight of the crack's centre line (doubled where faint)",
     )
     s.add_argument(
