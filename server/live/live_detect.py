@@ -25,6 +25,7 @@ def _detect(
     import cv2
 
     from processing.detection import find_defects
+    from processing.detection.defects import resolved
     from processing.poses import world_box
 
     image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
@@ -40,6 +41,7 @@ def _detect(
             "confidence": d.confidence,
         }
         for d in found
+        if resolved(d)  # as the detect job stores them: no specks
     ]
 
 
