@@ -16,7 +16,7 @@ def register(sub: Any) -> None:
         "names",
         nargs="*",
         help="benchmarks to run: detect, stitch, map, ingest, teleop (the default set), "
-        "stitch-scale, scale, robot, changes, history, map-camera",
+        "stitch-scale, scale, robot, changes, history, map-camera, map-camera-per-axis",
     )
     s.add_argument(
         "--dataset", help="one dataset folder with images/ and masks/ (detect; default: all)"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 
 from bench.changes import bench_changes
@@ -26,6 +27,7 @@ BENCHMARKS: dict[str, Callable[..., Iterator[Result]]] = {
     "stitch": bench_stitch,
     "map": bench_map,
     "map-camera": bench_map_camera,
+    "map-camera-per-axis": partial(bench_map_camera, per_axis=True),
     "ingest": bench_ingest,
     "stitch-scale": bench_stitch_scale,
     "teleop": bench_teleop,
@@ -40,7 +42,7 @@ DEFAULT = [
     "map",
     "ingest",
     "teleop",
-]  # stitch-scale, scale, robot, changes, history and map-camera take many minutes: run them by name
+]  # the others take many minutes: run them by name
 
 
 def run_benchmarks(

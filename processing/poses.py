@@ -52,6 +52,14 @@ def relative_se2(a: NDArray[np.floating], b: NDArray[np.floating]) -> NDArray[np
     return np.array([d[0], d[1], float(wrap_angle(b[2] - a[2]))])
 
 
+def half_se2(step: NDArray[np.floating]) -> NDArray[np.float64]:
+    """The planar step h (x, y, θ) that taken twice is ``step``: h ∘ h = step, turning by
+    θ / 2 and moving by (I + R(θ / 2))⁻¹ t."""
+    half = float(wrap_angle(step[2])) / 2
+    t = np.linalg.solve(np.eye(2) + rot2(half), np.asarray(step[:2], float))
+    return np.array([t[0], t[1], half])
+
+
 def wheel_speeds(v: float, w: float, track_m: float) -> tuple[float, float]:
     """Left and right wheel speeds (m/s) of a differential drive moving at ``v`` (m/s) and
     turning at ``w`` (rad/s) about its z axis, which points into the surface (x forward, y

@@ -1,8 +1,7 @@
 """The downward camera's motion as pose-graph factors beside the ToF's.
 
 Consecutive frames are registered as the stitcher registers them
-(:func:`processing.stitching.registration.register_pair`: sub-pixel translation and
-rotation). What a pair measures is where the second frame's optical axis meets the surface
+(:mod:`.frame_pairs`: sub-pixel translation and rotation). What a pair measures is where the second frame's optical axis meets the surface
 in the first frame's image, and the turn about the surface's normal: the *footprint
 frame* F (the axis' foot on the surface, the image's heading) moves by a planar step
 (x, y, ψ) in metres, scaled from pixels by the distance to the surface along the optical
@@ -23,20 +22,20 @@ same steps, taken along the surface, are the clouds' initial poses
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from processing.poses import compose_se2, relative_se2, se3_adjoint_inverse, se3_exp, wrap_angle
-
-Guess = tuple[NDArray[np.float64], tuple[float, ...]]  # (dx, dy px, dθ) and turns to search
-# a pair the last motion does not predict is searched over this much more turn (a robot
-# entering or leaving a turn between two frames)
-TURN_SEARCH_DEG = 10.0
+from processing.poses import (
+    compose_se2,
+    relative_se2,
+    se3_adjoint_inverse,
+    se3_exp,
+    wrap_angle,
+)
 
 
 @dataclass(frozen=True)
@@ -70,7 +69,9 @@ class CameraParams:
     """The camera factors' error model and which plane is the surface under the camera."""
 
     sigma_px: float = 0.3  # a frame pair's registration error per axis (px)
-    sigma_scale: float = 0.005  # relative error of the distance that turns px into metres
+    # relative error of the distance that turns px into metres, at least (the route's own
+    # scatter of measured distances when larger: :func:`scale_error`)
+    sigma_scale: float = 0.005
     # a cloud's plane is the surface under the camera when its normal is this close to the
     # optical axis (cosine)
     min_normal_cos: float = 0.85
@@ -154,7 +155,9 @@ def foot_steps_px_to_m(
     params: CameraParams = CameraParams(),
 ) -> list[FootStep | None]:
     """Each frame pair's registration (dx, dy px, dθ; None where it failed) as a footprint
-    step in metres, scaled by the distance to the surface at the earlier frame."""
+    step in metres, scaled by the distance to the surface at the earlier frame; its
+    covariance is the registration's (the scale's error, common to a stretch of steps, is
+    added to the clouds' steps: :func:`with_scale_error`)."""
     out: list[FootStep | None] = []
     for delta, z in zip(deltas_px, distances_m):
         if delta is None or not np.isfinite(z):
@@ -162,7 +165,7 @@ def foot_steps_px_to_m(
             continue
         d = np.array([delta[0] * z / camera.fx, delta[1] * z / camera.fy, delta[2]], np.float64)
         sigma_t = params.sigma_px * z / min(camera.fx, camera.fy)
-        var_t = sigma_t**2 + (params.sigma_scale * float(np.hypot(d[0], d[1]))) ** 2
+        var_t = sigma_t**2
         sigma_r = params.sigma_px / (0.5 * min(camera.width, camera.height))
         out.append(FootStep(d, np.diag([var_t, var_t, sigma_r**2])))
     return out
@@ -216,54 +219,44 @@ def cloud_steps(
     return out
 
 
-def frame_deltas(
-    frames: Sequence[NDArray[np.uint8]],
-    predicted_px: Sequence[NDArray[np.floating]] | None = None,
-) -> list[NDArray[np.float64] | None]:
-    """Each consecutive frame pair's registration (dx, dy px, dθ: frame k + 1 in frame k's
-    centred pixels; None where it fails), searched from the last pair's motion (the robot
-    drives smoothly), failing that from the pair's phase correlation (any shift), and last
-    from ``predicted_px`` (the odometry's)."""
-    from processing.stitching.registration import Level, register_pair
+def scale_error(found_m: NDArray[np.floating], params: CameraParams = CameraParams()) -> float:
+    """The relative error of the pixels' scale on a route: the robust scatter (1.4826 MAD)
+    of the surface distances its clouds measured (``found_m`` (N,), NaN where none),
+    relative to their median, at least ``params.sigma_scale``. A camera on a wheeled robot
+    keeps its height over the plate it drives on; where the measured distances scatter, the
+    ToF did not see the surface under the camera or the camera sees a plate on the plate,
+    and a step's length is that uncertain."""
+    found = np.asarray(found_m, np.float64)
+    found = found[np.isfinite(found)]
+    if len(found) < 2:
+        return params.sigma_scale
+    median = float(np.median(found))
+    scatter = 1.4826 * float(np.median(np.abs(found - median))) / median
+    return max(params.sigma_scale, scatter)
 
-    turns = tuple(np.radians(np.arange(-TURN_SEARCH_DEG, TURN_SEARCH_DEG + 1e-9, 2.5)))
-    out: list[NDArray[np.float64] | None] = []
-    last = np.zeros(3)
-    following = Level.of(np.asarray(frames[0], np.float32)) if len(frames) else None
-    for k in range(len(frames) - 1):  # two frames prepared at a time: any length fits
-        current, following = following, Level.of(np.asarray(frames[k + 1], np.float32))
-        assert current is not None
 
-        def guesses(
-            k: int = k, last: NDArray[np.float64] = last, a: Level = current, b: Level = following
-        ) -> Iterator[Guess]:
-            yield last, (0.0,)
-            yield last, turns
-            (sx, sy), _ = cv2.phaseCorrelate(a.full.image, b.full.image)
-            yield np.array([-sx, -sy, last[2]]), turns
-            if predicted_px is not None:
-                yield np.asarray(predicted_px[k], np.float64), turns
-
-        found = None
-        for guess, angles in guesses():
-            found = register_pair(current, following, guess, angles=angles)
-            if found is not None:
-                break
-        out.append(None if found is None else found[0])
-        if found is not None:
-            last = found[0]
-    return out
+def with_scale_error(step: FootStep | None, sigma_scale: float) -> FootStep | None:
+    """``step`` with the pixels' relative scale error ``sigma_scale`` added to its
+    covariance: it moves the step's end along the step (σ² Δ Δᵀ), not across it, and leaves
+    the heading alone."""
+    if step is None:
+        return None
+    cov = step.cov.copy()
+    cov[:2, :2] += sigma_scale**2 * np.outer(step.delta[:2], step.delta[:2])
+    return FootStep(step.delta, cov)
 
 
 @dataclass(frozen=True)
 class CameraFactors:
     """What the camera adds to a map: its model, the footprint step between each pair of
-    consecutive clouds (N - 1; None where the frames do not link them) and the distance
-    to the surface at each cloud (N; NaN where unknown)."""
+    consecutive clouds (N - 1; None where the frames do not link them), the distance
+    to the surface at each cloud (N; NaN where unknown) and the relative error of the
+    pixels' scale taken for the steps (:func:`scale_error`)."""
 
     camera: CameraModel
     steps: list[FootStep | None]
     distances_m: NDArray[np.float64]
+    scale_sigma: float = CameraParams.sigma_scale
 
     def guided(self, odometry: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
         """(N, 4, 4) initial poses: where the camera links two clouds, its step along the
@@ -303,7 +296,9 @@ class CameraFactors:
             k = np.array([z_new / z, z_new / z, 1.0])
             steps.append(FootStep(step.delta * k, step.cov * np.outer(k, k)))
         mounting = self.camera.T_tof_camera @ se3_exp(xi)
-        return CameraFactors(replace(self.camera, T_tof_camera=mounting), steps, distances)
+        return CameraFactors(
+            replace(self.camera, T_tof_camera=mounting), steps, distances, self.scale_sigma
+        )
 
     def edges(
         self, poses: NDArray[np.float64]
@@ -331,17 +326,23 @@ def camera_factors(
     deltas: Sequence[NDArray[np.float64] | None] | None = None,
 ) -> tuple[CameraFactors, int]:
     """The camera's factors of a map: grey ``frames`` (H, W) at ``frame_times`` registered
-    pair by pair (or their registrations ``deltas`` from :func:`frame_deltas`), scaled by
+    pair by pair (or their registrations ``deltas`` from
+    :func:`~processing.mapping.frame_pairs.frame_deltas`), scaled by
     the surface distance the ``clouds`` (at ``cloud_times``, the same clock) show, chained
-    to the clouds' times; and how many frame pairs registered."""
-    from processing.mapping.surface_distance import surface_distances
+    to the clouds' times, as sure of their length as those distances agree
+    (:func:`scale_error`); and how many frame pairs registered."""
+    from processing.mapping.frame_pairs import frame_deltas
+    from processing.mapping.surface_distance import filled_distances, found_distances
 
     deltas = frame_deltas(frames) if deltas is None else deltas
-    distances = surface_distances(clouds, camera, params)
+    found = found_distances(clouds, camera, params)
+    distances, sigma = filled_distances(found, params), scale_error(found, params)
     steps: list[FootStep | None] = [None] * (len(clouds) - 1)
     if np.isfinite(distances).any():
         at_frames = np.interp(frame_times, cloud_times, distances)
-        steps = cloud_steps(
+        chained = cloud_steps(
             frame_times, foot_steps_px_to_m(deltas, at_frames, camera, params), cloud_times
         )
-    return CameraFactors(camera, steps, distances), sum(d is not None for d in deltas)
+        steps = [with_scale_error(step, sigma) for step in chained]
+    registered = sum(d is not None for d in deltas)
+    return CameraFactors(camera, steps, distances, sigma), registered

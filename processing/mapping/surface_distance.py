@@ -106,6 +106,15 @@ def surface_distance(
     return None if best is None else best[1]
 
 
+def found_distances(
+    clouds: Sequence[NDArray[np.floating]],
+    camera: CameraModel,
+    params: CameraParams = CameraParams(),
+) -> NDArray[np.float64]:
+    """(N,) :func:`surface_distance` of every cloud, NaN where it shows no surface."""
+    return np.array([surface_distance(c, camera, params) or np.nan for c in clouds], float)
+
+
 def surface_distances(
     clouds: Sequence[NDArray[np.floating]],
     camera: CameraModel,
@@ -114,7 +123,16 @@ def surface_distances(
     """(N,) :func:`surface_distance` of every cloud, where a cloud shows no surface (or one
     farther from the others' median than the robot's suspension lets the camera move)
     interpolated from its neighbours; all NaN when no cloud shows it."""
-    found = np.array([surface_distance(c, camera, params) or np.nan for c in clouds], float)
+    return filled_distances(found_distances(clouds, camera, params), params)
+
+
+def filled_distances(
+    found_m: NDArray[np.floating], params: CameraParams = CameraParams()
+) -> NDArray[np.float64]:
+    """The distances ``found_m`` (N,) where a cloud showed none (NaN) or one farther from
+    the others' median than the robot's suspension lets the camera move interpolated from
+    its neighbours; all NaN when no cloud shows it."""
+    found = np.array(found_m, np.float64)
     if np.isfinite(found).any():
         median = float(np.nanmedian(found))
         with np.errstate(invalid="ignore"):

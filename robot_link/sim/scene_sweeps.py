@@ -8,7 +8,9 @@ downward pitch (the top of its view above the surface's horizon: it sees ahead) 
 sideways yaw (looking obliquely at members beside the robot). The
 robot rocks on welds and bolt heads (roll and pitch up to ``attitude_deg``, height up to
 ``bump_m``, per cloud); its odometry is the true step between clouds with 6-DoF errors
-(``odometry_m`` and ``odometry_deg`` per step), integrated.
+(``odometry_m`` and ``odometry_deg`` a step: the RMS length of a step's translation and
+rotation error, or that much on each axis with ``odometry_per_axis``, √3 times as large),
+integrated.
 """
 
 from __future__ import annotations
@@ -46,9 +48,16 @@ class SceneSweepConfig:
     clouds: int = 40
     attitude_deg: float = 2.0
     bump_m: float = 0.005
-    odometry_m: float = 0.02  # 6-DoF odometry error per step: translation ...
-    odometry_deg: float = 2.0  # ... and rotation (standard deviations per axis)
+    odometry_m: float = 0.02  # 6-DoF odometry error a step: translation ...
+    odometry_deg: float = 2.0  # ... and rotation (RMS length of the error vector)
+    odometry_per_axis: bool = False  # True: that much on each axis (a harder case)
     sensor: int | None = None  # index into SENSORS; None: drawn from the seed
+
+    @property
+    def odometry_sigmas(self) -> tuple[float, float]:
+        """The odometry's error per axis and step: rotation (rad), translation (m)."""
+        k = 1.0 if self.odometry_per_axis else 1 / np.sqrt(3)
+        return float(np.radians(self.odometry_deg) * k), self.odometry_m * k
 
 
 def drifting_odometry(
@@ -56,13 +65,12 @@ def drifting_odometry(
 ) -> NDArray[np.float64]:
     """The true steps with errors, integrated from the true first pose."""
     out = [truth[0]]
+    sigma_rad, sigma_m = cfg.odometry_sigmas
     for k in range(1, len(truth)):
         step = np.linalg.inv(truth[k - 1]) @ truth[k]
         noise = np.eye(4)
-        noise[:3, :3] = Rotation.from_rotvec(
-            rng.normal(0, np.radians(cfg.odometry_deg), 3)
-        ).as_matrix()
-        noise[:3, 3] = rng.normal(0, cfg.odometry_m, 3)
+        noise[:3, :3] = Rotation.from_rotvec(rng.normal(0, sigma_rad, 3)).as_matrix()
+        noise[:3, 3] = rng.normal(0, sigma_m, 3)
         out.append(out[-1] @ step @ noise)
     return np.array(out)
 

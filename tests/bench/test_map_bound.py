@@ -28,7 +28,7 @@ def test_with_odometry_alone_the_bound_is_the_odometrys_own_error() -> None:
     error over many draws is the bound (small errors, where the bound's linearisation holds)."""
     truth = scene_sweep(SceneSweepConfig(kind="truss", seed=5, clouds=30)).truth
     config = SceneSweepConfig(odometry_deg=0.2, odometry_m=0.002)
-    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+    sigmas = config.odometry_sigmas
     nothing = [np.zeros((6, 6))] * len(truth)
     bound = aligned_error_bound(pose_information(nothing, truth, sigmas), truth)
     rng = np.random.default_rng(0)
@@ -43,7 +43,7 @@ def test_a_view_fixes_what_its_surfaces_face() -> None:
     the odometry's error; zero range noise leaves none."""
     config = SceneSweepConfig(kind="box_girder", seed=3, clouds=16)
     sweep, camera = scene_sweep(config), scene_camera(config)
-    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+    sigmas = config.odometry_sigmas
     nothing = [np.zeros((6, 6))] * len(sweep.truth)
     alone = aligned_error_bound(pose_information(nothing, sweep.truth, sigmas), sweep.truth)
     bound = trajectory_bound(camera, sweep.truth, sigmas)
@@ -75,7 +75,7 @@ def test_the_wheels_fix_each_steps_sideways_part() -> None:
         moved = np.array([se3_exp(x) @ T for x, T in zip(xi, truth)])
         change = _sideways(moved, mount)
         assert np.isclose(np.sum(change**2), xi.ravel() @ H @ xi.ravel(), rtol=1e-3, atol=0)
-    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+    sigmas = config.odometry_sigmas
     odometry = pose_information([np.zeros((6, 6))] * len(truth), truth, sigmas)
     wheels = odometry + no_slip_information(truth, mount)
     assert aligned_error_bound(wheels, truth) < aligned_error_bound(odometry, truth)
@@ -109,7 +109,7 @@ def test_the_camera_measures_each_steps_foot_and_turn() -> None:
         d[:, 2] = wrap_angle(d[:, 2])
         seen = np.sum(d[:, :2] ** 2) / sigma_m**2 + np.sum(d[:, 2] ** 2) / sigma_turn**2
         assert np.isclose(seen, xi.ravel() @ H @ xi.ravel(), rtol=1e-3, atol=0)
-    sigmas = (np.radians(config.odometry_deg), config.odometry_m)
+    sigmas = config.odometry_sigmas
     without = trajectory_bound(tof, sweep.truth, sigmas)
     sigma_px = 0.3
     down_info = camera_information(sweep.truth, T_tc, down.height_m, down.f, size, sigma_px)

@@ -1,7 +1,14 @@
 import numpy as np
 import pytest
 
-from processing.poses import compose_se2, format_tum, image_to_world, parse_tum, se2_to_se3
+from processing.poses import (
+    compose_se2,
+    format_tum,
+    half_se2,
+    image_to_world,
+    parse_tum,
+    se2_to_se3,
+)
 
 
 def test_image_to_world_follows_the_camera_yaw() -> None:
@@ -50,6 +57,13 @@ def test_quaternions_read_in_either_order_match_scipy() -> None:
 def test_compose_se2_matches_matrix_product() -> None:
     a, b = np.array([1.0, 0.0, np.pi / 2]), np.array([0.5, 0.0, 0.0])
     assert compose_se2(a, b) == pytest.approx([1.0, 0.5, np.pi / 2])
+
+
+@pytest.mark.parametrize("step", [(0.3, -0.1, 0.0), (0.05, 0.02, 1.2), (-0.2, 0.4, -3.0)])
+def test_half_se2_taken_twice_is_the_step(step: tuple[float, float, float]) -> None:
+    half = half_se2(np.array(step))
+    assert np.allclose(compose_se2(half, half), step, atol=1e-12)
+    assert half[2] == pytest.approx(step[2] / 2)
 
 
 def test_transfer_correction_carries_a_better_estimate_to_other_instants() -> None:

@@ -3,7 +3,8 @@ registered pair by pair to the motion its true poses give."""
 
 import numpy as np
 
-from processing.mapping.camera_motion import foot, frame_deltas
+from processing.mapping.camera_motion import foot
+from processing.mapping.frame_pairs import frame_deltas
 from robot_link.sim.camera_frames import camera_sweep
 from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_camera, scene_sweep
 

@@ -16,9 +16,9 @@ from processing.mapping.camera_motion import (
     FootStep,
     camera_factors,
     foot,
-    frame_deltas,
 )
 from processing.mapping.camera_mounting import MountingFit, MountingParams, fit_mounting
+from processing.mapping.frame_pairs import frame_deltas
 from processing.metrics import absolute_trajectory_error
 from processing.poses import se2_to_se3, se3_exp
 from robot_link.sim.camera_frames import camera_sweep
