@@ -144,6 +144,9 @@ def camera_factors(
             round(float(np.nanmedian(distances)), 4) if np.isfinite(distances).any() else None
         ),
         "cloud_steps_linked": sum(s is not None for s in steps),
+        # how unsure a step's length is: the scatter of the surface distances the clouds
+        # measured (a plate on the plate, a surface the ToF did not see), relative
+        "scale_error": round(float(factors.scale_sigma), 4),
     }
     log.info(
         "camera: %d of %d frame pairs registered, %d of %d cloud steps linked",

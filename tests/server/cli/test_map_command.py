@@ -157,6 +157,7 @@ def test_frames_join_the_map_and_the_report_says_what_fixed_each_cloud(tmp_path:
     report = json.loads((tmp_path / "with" / "map_report.json").read_text())
     assert report["camera"]["frames"] == len(frames.frames)
     assert report["camera"]["cloud_steps_linked"] == len(sweep.clouds) - 1
+    assert 0.005 <= report["camera"]["scale_error"] < 0.05  # one gusset plate: distances agree
     assert report["camera"]["mounting"] is None  # 15 steps: too few to check the mounting
     assert report["factors"][0]["fixed_by"] == ["odometry"]
     assert all("camera" in f["fixed_by"] for f in report["factors"][1:])
