@@ -3,7 +3,8 @@ structure type of the simulator and seeds no parameter was chosen on.
 
 Per type, over the held-back seeds (:data:`bench.map_structures.HELD_BACK_SEEDS`): mean
 and worst trajectory error (ATE, % of the path) of camera + ToF + odometry, beside ToF +
-odometry (the map without frames) and odometry alone in the same run, and against the least error any map of the same sensors
+odometry (the map without frames), the camera's steps chained alone (the odometry's
+across gaps) and odometry alone in the same run, and against the least error any map of the same sensors
 could reach (:mod:`bench.map_bound`, the camera's information included); the share of frame
 pairs the camera registered and of cloud steps it linked; ms per cloud of the whole map
 with the camera (frames registered, distances measured, graph) against the map without.
@@ -103,6 +104,8 @@ def _measure(kind: str, seed: int, clouds: int, per_axis: bool = False) -> dict[
 
     return {
         "camera": pct(fused),
+        # the camera's steps chained on the odometry's first pose, the odometry's across gaps
+        "camera_alone": pct(factors.guided(sweep.odometry, n)),
         "wrong_mounting": pct(wrong_result.poses),
         "wrong_unchecked": pct(unchecked),
         "wrong_corrected": _corrected(wrong_result.camera_mounting),
@@ -147,6 +150,7 @@ def bench_map_camera(
             "ratio": round(float(np.mean(camera) / max(np.mean(tof), 1e-9)), 3),
             "baseline_is": "the same map without frames (ToF + odometry)",
             "odometry_mean": round(float(np.mean([r["odometry"] for r in runs])), 3),
+            "camera_alone_mean": round(float(np.mean([r["camera_alone"] for r in runs])), 3),
             # the least error any map of these sensors could reach, and ours against it
             "bound_mean": round(float(np.mean([r["bound"] for r in runs])), 4),
             "to_bound": round(

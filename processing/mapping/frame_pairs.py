@@ -38,13 +38,13 @@ def frame_deltas(
     scores: list[float] = []
     last = np.zeros(3)
     following = Level.of(np.asarray(frames[0], np.float32)) if len(frames) else None
-    window = None
+    window: NDArray[np.float32] | None = None
     for k in range(len(frames) - 1):  # two frames prepared at a time: any length fits
         current, following = following, Level.of(np.asarray(frames[k + 1], np.float32))
         assert current is not None
         if window is None:
             h, w = current.full.image.shape
-            window = cv2.createHanningWindow((w, h), cv2.CV_32F)
+            window = np.asarray(cv2.createHanningWindow((w, h), cv2.CV_32F), np.float32)
 
         def guesses(
             k: int = k,
