@@ -1,14 +1,15 @@
 """The downward camera's motion as pose-graph factors beside the ToF's.
 
-Consecutive frames are registered as the stitcher registers them
-(:mod:`.frame_pairs`: sub-pixel translation and rotation). What a pair measures is where the second frame's optical axis meets the surface
-in the first frame's image, and the turn about the surface's normal: the *footprint
-frame* F (the axis' foot on the surface, the image's heading) moves by a planar step
-(x, y, ψ) in metres, scaled from pixels by the distance to the surface along the optical
-axis, which the ToF measures (the plane of the surface in its cloud, carried into the
-camera's frame). Footprint steps compose exactly in SE(2), so frames taken at their own
-times are chained and interpolated to the clouds' times (never paired by index): a cloud
-pair's step F(tᵢ₋₁)⁻¹ F(tᵢ) with the chain's covariance.
+Consecutive frames are registered as the stitcher registers them (:mod:`.frame_pairs`:
+sub-pixel translation and rotation). What a pair measures is where the second frame's
+optical axis meets the surface in the first frame's image, and the turn about the
+surface's normal: the *footprint frame* F (the axis' foot on the surface, the image's
+heading) moves by a planar step (x, y, ψ) in metres, scaled from pixels by the distance to
+the surface along the optical axis, which the ToF measures (the plane of the surface in
+its cloud, carried into the camera's frame). Footprint steps compose exactly in SE(2), so
+frames taken at their own times are chained and interpolated to the clouds' times (never
+paired by index): a cloud pair's step F(tᵢ₋₁)⁻¹ F(tᵢ) with the chain's covariance, and
+the scale's error along it, as large as the route's measured distances scatter.
 
 In the graph the step is an edge between the two clouds' nodes whose information covers
 only what the camera sees: the foot's two coordinates and the heading (Jᵀ Σ⁻¹ J with J
