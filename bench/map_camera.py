@@ -4,9 +4,9 @@ structure type of the simulator and seeds no parameter was chosen on.
 Per type, over the held-back seeds (:data:`bench.map_structures.HELD_BACK_SEEDS`): mean
 and worst trajectory error (ATE, % of the path) of camera + ToF + odometry, beside ToF +
 odometry (the map without frames), the camera's steps chained alone (the odometry's
-across gaps) and odometry alone in the same run, and against the least error any map of the same sensors
-could reach (:mod:`bench.map_bound`, the camera's information included); the share of frame
-pairs the camera registered and of cloud steps it linked; ms per cloud of the whole map
+across gaps) and odometry alone in the same run, and against the least error any map of
+the same sensors could reach (:mod:`bench.map_bound`, the camera's information
+included); the share of frame pairs the camera registered and of cloud steps it linked; ms per cloud of the whole map
 with the camera (frames registered, distances measured, graph) against the map without.
 The same with the camera's mounting stated 1 cm and 1° off (about two axes), which the
 map checks against the ToF's steps (:mod:`processing.mapping.camera_mounting`), and how
