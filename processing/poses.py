@@ -222,45 +222,6 @@ def image_to_world(
     return offset @ np.array([[c, s], [-s, c]]) + camera_pose[:2]
 
 
-def transfer_correction(
-    ref_times: NDArray[np.floating],
-    ref_odometry: NDArray[np.floating],
-    ref_truth: NDArray[np.floating],
-    times: NDArray[np.floating],
-    odometry: NDArray[np.floating],
-) -> NDArray[np.float64]:
-    """Correct odometry poses (N, 3: x, y, yaw) taken at ``times`` by a better estimate known
-    at other instants: at each reference k the world-frame correction C_k = T_k · O_k⁻¹
-    (better pose times the inverse of the odometry there) is interpolated in time (linearly
-    in x, y and unwrapped yaw; held constant beyond the ends) and applied, C(t) · O(t).
-    Used to carry the mosaic's camera motion over to the ToF clouds."""
-    order = np.argsort(ref_times)
-    rt = np.asarray(ref_times, dtype=np.float64)[order]
-    corr = np.array(
-        [
-            se2_of_matrix(se2_matrix(*ref_truth[k]) @ np.linalg.inv(se2_matrix(*ref_odometry[k])))
-            for k in order
-        ]
-    )
-    corr[:, 2] = np.unwrap(corr[:, 2])
-    out = []
-    for t, o in zip(np.asarray(times, dtype=np.float64), np.asarray(odometry, dtype=np.float64)):
-        c = np.array([np.interp(t, rt, corr[:, d]) for d in range(3)])
-        out.append(se2_of_matrix(se2_matrix(*c) @ se2_matrix(*o)))
-    return np.array(out)
-
-
-def robot_poses_from_camera(
-    camera_poses: NDArray[np.floating], T_robot_camera: Sequence[float]
-) -> NDArray[np.float64]:
-    """Robot poses (N, 3) from the poses of a camera mounted at ``T_robot_camera`` (x, y, θ
-    of the camera in the robot's frame): T_world_robot = T_world_camera · T_robot_camera⁻¹."""
-    mount_inv = np.linalg.inv(se2_matrix(*T_robot_camera))
-    return np.array(
-        [se2_of_matrix(se2_matrix(*p) @ mount_inv) for p in np.asarray(camera_poses, float)]
-    ).reshape(-1, 3)
-
-
 def world_box(
     bbox: tuple[int, int, int, int],
     camera_pose: NDArray[np.floating],

@@ -60,7 +60,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from processing.mapping.camera_motion import CameraFactors
+from processing.mapping.camera_motion import CameraFactors, with_scale_error
 from processing.mapping.camera_mounting import MountingFit, MountingParams, fit_mounting
 from processing.mapping.icp import (
     align,
@@ -72,6 +72,7 @@ from processing.mapping.icp import (
     within_bounds,
 )
 from processing.mapping.incremental import IncrementalMap
+from processing.mapping.motion_prior import MotionPriorParams, bridge_gaps, trajectory_feet
 from processing.mapping.pairwise import CloudMeasurement, measure_run
 from processing.mapping.params import (
     IcpParams,
@@ -125,6 +126,7 @@ def register_clouds(
     progress: Callable[[int], None] | None = None,
     camera: CameraFactors | None = None,
     mounting: MountingParams = MountingParams(),
+    motion: MotionPriorParams = MotionPriorParams(),
 ) -> MapResult:
     """Register clouds (each (K, 3), sensor frame) into one world map.
 
@@ -139,6 +141,8 @@ def register_clouds(
         of the pose graph beside the ToF's.
     mounting : how the camera's stated mounting is checked against the ToF's steps
         (:mod:`.camera_mounting`) and corrected where they show it wrong.
+    motion : when the camera's steps either side of a stretch its frames did not register
+        are carried over it (:mod:`.motion_prior`).
     """
     n = len(clouds)
     if n == 0:
@@ -166,6 +170,7 @@ def register_clouds(
             np.zeros(n, int),
         )
     gaps = np.zeros(n, bool)  # steps the camera did not see, among those it did
+    odometry = guesses
     if camera is not None:
         guesses = camera.guided(guesses, n)
         gaps[1:] = [step is None for step in camera.steps[: n - 1]]
@@ -180,6 +185,8 @@ def register_clouds(
     fit = _check_mounting(graph_map, camera, mounting) if mounting.enabled else None
     if fit is not None and fit.corrected:
         camera = camera.remounted(fit.xi)
+    # stretches the frames did not register, carried over by the steps either side
+    camera, predicted = _bridged(camera, odometry, motion)
     linked = np.zeros(n, bool)
     for source, target, T, information in camera.edges(graph_map.poses):
         graph_map.graph.edges.append(
@@ -188,7 +195,36 @@ def register_clouds(
             )
         )
         linked[source] = True
-    return replace(_finished(graph_map), camera_steps=linked, camera_mounting=fit)
+    carried = np.zeros(n, bool)
+    carried[1:] = predicted[: n - 1]
+    return replace(
+        _finished(graph_map),
+        camera_steps=linked & ~carried,
+        motion_steps=linked & carried,
+        camera_mounting=fit,
+    )
+
+
+def _bridged(
+    camera: CameraFactors, odometry: NDArray[np.float64] | None, params: MotionPriorParams
+) -> tuple[CameraFactors, NDArray[np.bool_]]:
+    """The camera's factors with its gaps carried over (:func:`.motion_prior.bridge_gaps`,
+    checked against the ``odometry`` poses (N, 4, 4) where given), and which steps were."""
+    steps = list(camera.steps)
+    if not params.enabled or all(s is not None for s in steps):
+        return camera, np.zeros(len(steps), bool)
+    measured = (
+        None
+        if odometry is None
+        else trajectory_feet(odometry, camera.camera.T_tof_camera, camera.distances_m)
+    )
+    filled, predicted = bridge_gaps(steps, measured, params)
+    # interpolated from steps the pixels' scale made, as unsure of their length as those
+    filled = [
+        with_scale_error(s, camera.scale_sigma) if carried else s
+        for s, carried in zip(filled, predicted)
+    ]
+    return replace(camera, steps=filled), predicted
 
 
 def _check_mounting(

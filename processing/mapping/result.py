@@ -29,5 +29,8 @@ class MapResult:
     plane_landmarks: int = 0
     # clouds tied to the one before by the downward camera's motion
     camera_steps: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    # clouds tied to the one before by the camera's steps either side of a stretch its
+    # frames did not register (:mod:`processing.mapping.motion_prior`)
+    motion_steps: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     # the camera's mounting checked against the ToF's motion (None: not checked)
     camera_mounting: MountingFit | None = None

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -21,11 +20,12 @@ from processing.mapping import (
     register_clouds,
     register_measured,
 )
-from processing.poses import format_tum, robot_poses_from_camera, se2_to_se3, transfer_correction
+from processing.poses import format_tum, se2_to_se3
 from robot_link.clouds import decode_cloud
 from server.jobs.context import JobContext, params_record
+from server.jobs.map_camera import session_camera
 from server.storage.files import SessionFiles, write_atomic
-from server.storage.models import Cloud, Frame
+from server.storage.models import Cloud
 
 RUN_CLOUDS = 32  # clouds a part registers (each also registers to the few before its first)
 
@@ -107,15 +107,15 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     # the station's own sessions: dense clouds and wheel odometry good to millimetres, which
     # the pairwise graph uses best (tracking is for sparse sequences with poor odometry)
     params = MapParams(tracking=TrackingParams(enabled=False))
-    robot = _visual_robot_poses(ctx, rows, clouds.seqs) if len(guesses) == usable else None
-    if robot is not None:
-        # the mosaic's sub-pixel camera motion, carried over to the clouds, places them far
-        # better than ICP on a mostly flat view can (0.03 mm against 3-5 mm on the simulator)
-        guesses = [se2_to_se3(*p) @ T_rt for p in robot]
-        params = MapParams(refine=False, tracking=TrackingParams(enabled=False))
+    # the downward camera's motion beside the ToF and the odometry (the clouds' own times)
+    camera = (
+        session_camera(ctx, np.array(clouds.stamps, np.float64), T_rt)
+        if len(guesses) == usable
+        else None
+    )
     ctx.progress(0.3, "registering")
     t0 = time.perf_counter()
-    if params.refine and len(guesses) == usable:
+    if camera is None and len(guesses) == usable:
         # each run of clouds registered to the clouds before it wherever the queue runs it,
         # then joined into one graph, its loops closed and optimised here
         run = CloudRun(clouds.where, np.array(guesses), params, shape)
@@ -130,6 +130,8 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
             np.array(guesses) if len(guesses) == usable else None,
             params=params,
             shape=shape,
+            camera=None if camera is None else camera[0],
+            progress=lambda i: ctx.progress(0.3 + 0.6 * i / usable, f"registered {i}/{usable}"),
         )
         t_pairs = 0.0
     seconds = {  # the pairs spread over workers on a job queue; the graph on this one
@@ -141,7 +143,8 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
         "map_path": str(ctx.results_dir() / "map.ply"),
         "trajectory_path": str(ctx.results_dir() / "trajectory.tum"),
         "points": len(result.points),
-        "guided_by_mosaic": robot is not None,
+        "guided_by_mosaic": camera is not None and camera[1]["source"] == "mosaic",
+        "camera": None if camera is None else _camera_facts(camera[1], result),
         "clouds": usable,
         "skipped_clouds": clouds.skipped,
         "cloud_seqs": clouds.seqs,
@@ -204,39 +207,13 @@ def _registration_facts(result: Any) -> dict[str, Any]:
     }
 
 
-def _visual_robot_poses(
-    ctx: JobContext, clouds: list[Cloud], seqs: list[int]
-) -> NDArray[np.float64] | None:
-    """Robot poses at the clouds' times from the mosaic (when the stitch job placed the frames
-    on the structure by image registration), else None."""
-    world_file = ctx.results_dir() / "mosaic.json"
-    calib = ctx.session().calibration.get("camera", {})
-    if not world_file.is_file() or "T_robot_camera" not in calib:
-        return None
-    world = json.loads(world_file.read_text())
-    if not world.get("world_referenced"):
-        return None
-    placed = {f["frame"]: f for f in world.get("frames", []) if f.get("confident")}
-    with ctx.factory() as db:
-        frames = [
-            f for f in db.scalars(ctx.rows(Frame)) if f.seq in placed and f.pose_x is not None
-        ]
-    if len(frames) < 2:
-        return None
-    ox, oy = world["origin_m"]
-    scale = float(world["px_per_m"])
-    cameras = [
-        (
-            ox + placed[f.seq]["x"] / scale,
-            oy + placed[f.seq]["y"] / scale,
-            np.radians(placed[f.seq]["theta_deg"]),
-        )
-        for f in frames
-    ]
-    visual = robot_poses_from_camera(np.array(cameras), calib["T_robot_camera"])
-    odometry = [[f.pose_x, f.pose_y, f.pose_yaw] for f in frames]
-    times = [f.timestamp for f in frames]
-    by_seq = {c.seq: c for c in clouds}
-    cloud_times = np.array([by_seq[s].timestamp for s in seqs])
-    cloud_odo = np.array([[by_seq[s].pose_x, by_seq[s].pose_y, by_seq[s].pose_yaw] for s in seqs])
-    return transfer_correction(np.array(times), np.array(odometry), visual, cloud_times, cloud_odo)
+def _camera_facts(report: dict[str, Any], result: Any) -> dict[str, Any]:
+    """What the camera did in the map, for the job's result."""
+    fit = result.camera_mounting
+    return {
+        **report,
+        "clouds_placed_by_camera": int(result.camera_steps.sum()),
+        # steps its frames did not see, carried over by the steps either side
+        "clouds_placed_by_motion": int(result.motion_steps.sum()),
+        "mounting": None if fit is None else fit.summary(),
+    }

@@ -66,30 +66,6 @@ def test_half_se2_taken_twice_is_the_step(step: tuple[float, float, float]) -> N
     assert half[2] == pytest.approx(step[2] / 2)
 
 
-def test_transfer_correction_carries_a_better_estimate_to_other_instants() -> None:
-    from processing.poses import se2_matrix, transfer_correction
-
-    # odometry drifts: true pose = C(t) · odometry, with C growing linearly in time
-    times = np.array([0.0, 1.0, 2.0, 3.0])
-    odo = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.05], [0.2, 0.01, 0.1], [0.3, 0.02, 0.1]])
-
-    def correction(t: float) -> np.ndarray:
-        return se2_matrix(0.01 * t, -0.02 * t, 0.03 * t)
-
-    def apply(t: float, o: np.ndarray) -> np.ndarray:
-        M = correction(t) @ se2_matrix(*o)
-        return np.array([M[0, 2], M[1, 2], np.arctan2(M[1, 0], M[0, 0])])
-
-    truth = np.array([apply(t, o) for t, o in zip(times, odo)])
-    query_t = np.array([0.0, 1.5, 3.0, 5.0])
-    query_odo = np.array([[0.05, 0.0, 0.0], [0.15, 0.0, 0.07], [0.3, 0.02, 0.1], [0.5, 0.0, 0.1]])
-    got = transfer_correction(times, odo, truth, query_t, query_odo)
-    assert got[0] == pytest.approx(apply(0.0, query_odo[0]), abs=1e-9)
-    assert got[1] == pytest.approx(apply(1.5, query_odo[1]), abs=1e-9)  # interpolated (linear here)
-    # held beyond the last reference
-    assert got[3] == pytest.approx(apply(3.0, query_odo[3]), abs=1e-9)
-
-
 def test_se3_exp_and_log_are_rodrigues_and_its_inverse_at_every_angle() -> None:
     from scipy.spatial.transform import Rotation
 

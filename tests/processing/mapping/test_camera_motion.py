@@ -18,23 +18,11 @@ from processing.mapping.camera_motion import (
 from processing.mapping.graph_optimiser import _linearised
 from processing.mapping.surface_distance import surface_distances
 from processing.metrics import absolute_trajectory_error
-from robot_link.sim.camera_frames import CameraSweep, camera_sweep
-from robot_link.sim.scene_sweeps import SceneSweepConfig, scene_camera, scene_sweep
-from robot_link.sim.tof_sweeps import TofSweep
+from robot_link.sim.camera_frames import CameraSweep
 
 
 def _model(frames: CameraSweep) -> CameraModel:
     return CameraModel.of(frames.camera)
-
-
-@pytest.fixture(scope="module")
-def sequence() -> tuple[TofSweep, CameraSweep, tuple[int, int]]:
-    # the harder odometry (2 cm and 2° on each axis a step): a gap in the camera's steps is
-    # then held by the ToF below the odometry alone
-    config = SceneSweepConfig(kind="gusset_joint", seed=7, odometry_per_axis=True)
-    sweep, tof = scene_sweep(config), scene_camera(config)
-    frames = camera_sweep(sweep.truth, tof.T_robot_tof, 7, tof.structure.mesh)
-    return sweep, frames, (int(sweep.intrinsics["height"]), int(sweep.intrinsics["width"]))
 
 
 def test_frame_steps_chain_to_the_clouds_times() -> None:
