@@ -159,11 +159,14 @@ def _odometry(
 
 
 def _fixed_by(k: int, result: object, odometry: bool) -> list[str]:
-    """What placed cloud ``k``: the camera's step into it, the ToF's registration, the
-    odometry (alone, when neither other)."""
+    """What placed cloud ``k``: the camera's step into it, or the camera's steps either side
+    carried over a stretch its frames did not register (``motion``), the ToF's
+    registration, the odometry (alone, when no other)."""
     out = []
     if len(result.camera_steps) > k and result.camera_steps[k]:  # type: ignore[attr-defined]
         out.append("camera")
+    if len(result.motion_steps) > k and result.motion_steps[k]:  # type: ignore[attr-defined]
+        out.append("motion")
     if k > 0 and not result.used_odometry[k]:  # type: ignore[attr-defined]
         out.append("tof")
     if odometry and (k == 0 or not out):
@@ -226,6 +229,7 @@ def map_folder(
             corrected = stated @ se3_exp(fit.xi)
             mounting = {**(mounting or {}), "T_tof_camera": np.round(corrected, 6).tolist()}
         camera_report["mounting"] = mounting
+        camera_report["cloud_steps_carried"] = int(result.motion_steps.sum())
         if mounting is not None and mounting["corrected"]:
             log.warning(
                 "camera: the ToF's steps put the camera %s mm and %s deg (its own axes) from "

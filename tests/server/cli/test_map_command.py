@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import open3d as o3d
 import pytest
@@ -159,10 +160,31 @@ def test_frames_join_the_map_and_the_report_says_what_fixed_each_cloud(tmp_path:
     assert report["camera"]["cloud_steps_linked"] == len(sweep.clouds) - 1
     assert 0.005 <= report["camera"]["scale_error"] < 0.05  # one gusset plate: distances agree
     assert report["camera"]["mounting"] is None  # 15 steps: too few to check the mounting
+    assert report["camera"]["cloud_steps_carried"] == 0
     assert report["factors"][0]["fixed_by"] == ["odometry"]
     assert all("camera" in f["fixed_by"] for f in report["factors"][1:])
     plain = json.loads((tmp_path / "without" / "map_report.json").read_text())
     assert plain["camera"] is None and all("camera" not in f["fixed_by"] for f in plain["factors"])
+    # frames of bare paint along the first lane: that cloud step carried by the steps either side
+    for path in sorted((tmp_path / "frames").glob("*.png"))[21:25]:
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(path), np.full_like(image, int(image.mean())))
+    proc = steelscan(
+        "map",
+        str(tmp_path / "clouds"),
+        "--out",
+        str(tmp_path / "bare"),
+        "--odometry",
+        str(tmp_path / "odom.tum"),
+        "--frames",
+        str(tmp_path / "frames"),
+    )
+    assert proc.returncode == 0, proc.stderr
+    bare = json.loads((tmp_path / "bare" / "map_report.json").read_text())
+    assert bare["camera"]["cloud_steps_linked"] == len(sweep.clouds) - 2
+    assert bare["camera"]["cloud_steps_carried"] == 1
+    assert [k for k, f in enumerate(bare["factors"]) if "motion" in f["fixed_by"]] == [3]
+    assert "camera" not in bare["factors"][3]["fixed_by"]
 
 
 def test_a_camera_stated_off_its_mount_is_found_and_the_report_gives_the_mounting(
