@@ -2,8 +2,9 @@
 also added to :class:`processing.mapping.IncrementalMap` (the same pose graph as the
 ``map`` job's, optimised after every cloud while the graph is small, after every tenth of
 the clouds so far once it grows, and at each loop closure) in a worker process (ICP would
-starve the viser server and the event loop in this one), and the map so far is shown in
-the 3D view. The ``map`` job still builds the final map from every
+starve the viser server and the event loop in this one), with the downward camera's steps
+between the clouds as its frames arrive (:mod:`server.live.live_camera`), and the map so
+far is shown in the 3D view. The ``map`` job still builds the final map from every
 cloud after the session (the live view skips clouds when its worker falls behind).
 """
 
@@ -18,7 +19,8 @@ from numpy.typing import NDArray
 from server.live.worker import LiveWorker
 
 log = logging.getLogger(__name__)
-MAX_PENDING = 3  # clouds waiting for the worker; beyond, the live view skips (the job uses all)
+# clouds and frames waiting for the worker; beyond, the live view skips (the job uses all)
+MAX_PENDING = 6
 DISPLAY_POINTS = 150_000
 # between optimisations each cloud is chained to the one before it, and a turn's step can
 # leave the chain centimetres worse than the odometry until the next one (the pose graph's
@@ -29,6 +31,48 @@ OPTIMISE_EVERY = 1
 
 _maps: dict[str, Any] = {}  # in the worker process: session id -> IncrementalMap
 _odometry: dict[str, list[tuple[float, NDArray[np.float64]]]] = {}  # (time, odometry pose)
+_chains: dict[str, Any] = {}  # session id -> its frames' chain (server.live.live_camera)
+
+
+def _chain(session_id: str, calibration: dict[str, Any], T_robot_tof: NDArray[np.float64]) -> Any:
+    """In the worker: the session's frame chain (one live session at a time)."""
+    from server.live.live_camera import FrameChain
+
+    if session_id not in _chains:
+        _chains.clear()
+        _chains[session_id] = FrameChain(calibration, T_robot_tof)
+    return _chains[session_id]
+
+
+def _add_camera_edges(session_id: str) -> None:
+    """In the worker: the camera edges whose frames have arrived, into the session's graph
+    (optimised with the next cloud)."""
+    from open3d.pipelines.registration import PoseGraphEdge
+
+    live, chain = _maps.get(session_id), _chains.get(session_id)
+    if live is None or chain is None:
+        return
+    for source, target, T, information in chain.edges(live.poses):
+        live.graph.edges.append(PoseGraphEdge(source, target, T, information, uncertain=False))
+
+
+def _frame(
+    session_id: str,
+    payload: bytes,
+    pose: NDArray[np.float64],
+    t: float,
+    calibration: dict[str, Any],
+    T_robot_tof: NDArray[np.float64],
+) -> None:
+    """In the worker: one stored frame (JPEG/PNG bytes) taken at ``t`` with the robot at
+    odometry ``pose`` (x, y, yaw) into the session's frame chain."""
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(payload, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if image is None:
+        return
+    _chain(session_id, calibration, T_robot_tof).add(image, t, pose)
+    _add_camera_edges(session_id)
 
 
 def _place(
@@ -57,6 +101,10 @@ def _place(
         live = _maps[session_id] = IncrementalMap(params, optimise_every=OPTIMISE_EVERY)
     live.add(points, guess, shape=(meta["height"], meta["width"]))
     odometry = _odometry.setdefault(session_id, [])
+    chain = _chains.get(session_id)
+    if chain is not None and odometry:  # the camera's step into this cloud, once its frames come
+        chain.waiting.append((len(odometry), odometry[-1][0], t))
+        _add_camera_edges(session_id)
     odometry.append((t, guess))
     poses = live.poses
     corrections = np.array(
@@ -90,27 +138,28 @@ class LiveMap:
         # session id -> (N, 4): time and the planar correction of each mapped cloud's
         # odometry pose (the coverage map places frames with it)
         self.corrections: dict[str, NDArray[np.float64]] = {}
-        self._mounts: dict[str, NDArray[np.float64] | None] = {}
+        self._calibrations: dict[str, dict[str, Any]] = {}
+        self._skipped_clouds = 0
 
     @property
     def skipped(self) -> int:
         """Clouds the live map skipped because its worker was behind."""
-        return self.worker.skipped
+        return self._skipped_clouds
 
-    def _mount(self, session_id: str) -> NDArray[np.float64] | None:
-        """T_robot_tof of a session's calibration (looked up once)."""
-        if session_id not in self._mounts:
+    def _calibration(self, session_id: str) -> dict[str, Any]:
+        """A session's calibration (looked up once)."""
+        if session_id not in self._calibrations:
             from server.storage.models import InspectionSession
 
             with self.factory() as db:
                 s = db.get(InspectionSession, session_id)
-                T = (
-                    (s.calibration or {}).get("tof", {}).get("T_robot_tof")
-                    if s is not None
-                    else None
-                )
-            self._mounts[session_id] = np.asarray(T, dtype=np.float64) if T is not None else None
-        return self._mounts[session_id]
+                self._calibrations[session_id] = dict(s.calibration or {}) if s else {}
+        return self._calibrations[session_id]
+
+    def _mount(self, session_id: str) -> NDArray[np.float64] | None:
+        """T_robot_tof of a session's calibration."""
+        T = self._calibration(session_id).get("tof", {}).get("T_robot_tof")
+        return np.asarray(T, dtype=np.float64) if T is not None else None
 
     def warm(self) -> None:
         """A session has started: get the worker ready before its first cloud."""
@@ -131,7 +180,24 @@ class LiveMap:
             self.corrections = {session_id: corrections}  # the live session's only
             self.scene.show_live_map(session_id, points, clouds, trajectory)
 
-        return self.worker.submit(_place, session_id, payload, dict(meta), guess, t, done=show)
+        placed = self.worker.submit(_place, session_id, payload, dict(meta), guess, t, done=show)
+        self._skipped_clouds += not placed
+        return placed
+
+    def offer_frame(
+        self, session_id: str, payload: bytes, meta: dict[str, Any], t: float = 0.0
+    ) -> bool:
+        """Queue one stored frame (taken at ``t``, robot clock) for the live map's camera
+        steps; False when it is skipped (no pose, no calibrated camera or ToF mount, or the
+        worker is behind)."""
+        pose, mount = meta.get("pose"), self._mount(session_id)
+        camera = self._calibration(session_id).get("camera", {})
+        if not isinstance(pose, dict) or mount is None or not camera.get("px_per_m"):
+            return False
+        robot = np.array([float(pose["x"]), float(pose["y"]), float(pose["yaw"])])
+        return self.worker.submit(
+            _frame, session_id, payload, robot, t, dict(camera), mount, done=lambda _: None
+        )
 
     def close(self) -> None:
         """Stop the worker."""

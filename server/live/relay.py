@@ -1,6 +1,6 @@
 """What a robot message shows live: a stored one's frame and telemetry to the watching
-browsers, the robot's pose in the live 3D view, its cloud to the live map and its frame to
-live detection; a live-only one (a preview frame, a command's answer) to the browsers."""
+browsers, the robot's pose in the live 3D view, its cloud and frame to the live map and its
+frame to live detection; a live-only one (a preview frame, a command's answer) to the browsers."""
 
 from __future__ import annotations
 
@@ -33,6 +33,8 @@ class LiveRelay:
             self.live_map.warm()
         if self.live_map is not None and message.type is MessageType.CLOUD and new:
             self.live_map.offer(sid, message.payload, message.meta, message.timestamp)
+        if self.live_map is not None and message.type is MessageType.FRAME and new:
+            self.live_map.offer_frame(sid, message.payload, message.meta, message.timestamp)
         if self.live_detect is not None and message.type is MessageType.FRAME and new:
             self.live_detect.offer(sid, message.seq, message.payload, message.meta)
 

@@ -1,6 +1,7 @@
 """The live 3D map refines where the coverage map places frames: while no mosaic exists,
 each frame moves by the live map's registration of the odometry at the nearest cloud, which
-brings it closer to where the camera truly was."""
+brings it closer to where the camera truly was; with the camera's steps between the clouds
+in its graph, to about a millimetre."""
 
 from __future__ import annotations
 
@@ -66,3 +67,5 @@ def test_the_live_map_refines_frame_placement(live_server: LiveServer) -> None:
         f"{live_map.skipped} of {clouds['count']} clouds skipped"
     )
     assert err_live.mean() < err_odometry.mean()
+    # the frames' steps in the live graph: the ToF and the odometry alone leave 4 mm
+    assert err_live.mean() < 2e-3, err_live.mean()
