@@ -32,6 +32,8 @@ OPTIMISE_EVERY = 1
 _maps: dict[str, Any] = {}  # in the worker process: session id -> IncrementalMap
 _odometry: dict[str, list[tuple[float, NDArray[np.float64]]]] = {}  # (time, odometry pose)
 _chains: dict[str, Any] = {}  # session id -> its frames' chain (server.live.live_camera)
+# session id -> each cloud's start for ICP: chained from the camera's steps where known
+_guided: dict[str, list[NDArray[np.float64]]] = {}
 
 
 def _chain(session_id: str, calibration: dict[str, Any], T_robot_tof: NDArray[np.float64]) -> Any:
@@ -54,6 +56,10 @@ def _add_camera_edges(session_id: str) -> None:
         return
     for source, target, T, information in chain.edges(live.poses):
         live.graph.edges.append(PoseGraphEdge(source, target, T, information, uncertain=False))
+    # a lane passed again: robust, as the ToF's loop closures are
+    times = np.array([t for t, _ in _odometry.get(session_id, [])], np.float64)
+    for source, target, T, information in chain.loops(live.poses, times[: len(live.poses)]):
+        live.graph.edges.append(PoseGraphEdge(source, target, T, information, uncertain=True))
 
 
 def _frame(
@@ -63,15 +69,17 @@ def _frame(
     t: float,
     calibration: dict[str, Any],
     T_robot_tof: NDArray[np.float64],
+    follows: bool,
 ) -> None:
     """In the worker: one stored frame (JPEG/PNG bytes) taken at ``t`` with the robot at
-    odometry ``pose`` (x, y, yaw) into the session's frame chain."""
+    odometry ``pose`` (x, y, yaw) into the session's frame chain (``follows``: no frame
+    skipped since the last)."""
     import cv2
 
     image = cv2.imdecode(np.frombuffer(payload, np.uint8), cv2.IMREAD_GRAYSCALE)
     if image is None:
         return
-    _chain(session_id, calibration, T_robot_tof).add(image, t, pose)
+    _chain(session_id, calibration, T_robot_tof).add(image, t, pose, follows, payload)
     _add_camera_edges(session_id)
 
 
@@ -95,17 +103,26 @@ def _place(
     if live is None:
         _maps.clear()  # one live session at a time: a new one replaces the old
         _odometry.clear()
+        _guided.clear()
         # as the ``map`` job: the station's dense clouds and wheel odometry suit the
         # pairwise graph (tracking is for sparse sequences with poor odometry)
         params = MapParams(tracking=TrackingParams(enabled=False))
         live = _maps[session_id] = IncrementalMap(params, optimise_every=OPTIMISE_EVERY)
-    live.add(points, guess, shape=(meta["height"], meta["width"]))
     odometry = _odometry.setdefault(session_id, [])
+    guided = _guided.setdefault(session_id, [])
     chain = _chains.get(session_id)
+    start = guess
+    if odometry:  # ICP from the camera's step where its frames have come, as the job does
+        step = None if chain is None else chain.relative(odometry[-1][0], t)
+        if step is None:
+            step = np.linalg.inv(odometry[-1][1]) @ guess
+        start = guided[-1] @ step
+    live.add(points, start, shape=(meta["height"], meta["width"]))
     if chain is not None and odometry:  # the camera's step into this cloud, once its frames come
         chain.waiting.append((len(odometry), odometry[-1][0], t))
         _add_camera_edges(session_id)
     odometry.append((t, guess))
+    guided.append(start)
     poses = live.poses
     corrections = np.array(
         [
@@ -140,6 +157,7 @@ class LiveMap:
         self.corrections: dict[str, NDArray[np.float64]] = {}
         self._calibrations: dict[str, dict[str, Any]] = {}
         self._skipped_clouds = 0
+        self._frame_gaps: set[str] = set()  # sessions whose last frame the worker skipped
 
     @property
     def skipped(self) -> int:
@@ -195,9 +213,15 @@ class LiveMap:
         if not isinstance(pose, dict) or mount is None or not camera.get("px_per_m"):
             return False
         robot = np.array([float(pose["x"]), float(pose["y"]), float(pose["yaw"])])
-        return self.worker.submit(
-            _frame, session_id, payload, robot, t, dict(camera), mount, done=lambda _: None
+        follows = session_id not in self._frame_gaps
+        taken = self.worker.submit(
+            _frame, session_id, payload, robot, t, dict(camera), mount, follows, done=lambda _: None
         )
+        if taken:
+            self._frame_gaps.discard(session_id)
+        else:  # the next frame is not registered to the last one taken
+            self._frame_gaps.add(session_id)
+        return taken
 
     def close(self) -> None:
         """Stop the worker."""

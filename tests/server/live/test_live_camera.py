@@ -69,3 +69,35 @@ def test_frames_out_of_order_or_unlinked_give_no_step() -> None:
     assert chain.times == [0.0, 1.0, 2.0]
     assert chain.step(0.0, 2.0) is None
     assert chain.step(0.0, 3.0) is None  # past the last frame
+
+
+def test_a_lane_passed_again_is_registered_back_to_the_lane_before() -> None:
+    texture = _texture(3)
+    T_rt = _tof_mount()
+    chain = FrameChain({"px_per_m": PX_PER_M, "T_robot_camera": [0.0, 0.0, 0.0]}, T_rt)
+    h, w = 240, 320
+    lane = 0.07  # the lanes 140 px apart: the frames share 100 of their 240 rows
+    robot = [np.array([0.02 * k, 0.0, 0.0]) for k in range(8)]
+    # back along the next lane from beyond the first one's end: the turn's frames do not
+    # overlap, so the chain breaks there
+    robot += [np.array([0.34 - 0.02 * k, lane, np.pi]) for k in range(14)]
+
+    def frame(pose: np.ndarray) -> np.ndarray:
+        # the image's centre over the pose, x along the heading and y to its left
+        u0 = int(round(pose[0] * PX_PER_M)) + 400 - w // 2
+        v0 = int(round(pose[1] * PX_PER_M)) + 200 - h // 2
+        crop = texture[v0 : v0 + h, u0 : u0 + w]
+        return crop.copy() if pose[2] == 0 else np.ascontiguousarray(crop[::-1, ::-1])
+
+    # the turn onto the second lane: the odometry's heading 1.5° off from there on
+    odometry = [p + ([0, 0, np.radians(1.5)] if k >= 8 else 0) for k, p in enumerate(robot)]
+    for k, (pose, guess) in enumerate(zip(robot, odometry)):
+        chain.add(frame(pose), float(k), guess)
+    assert chain.revisits, "the second lane was not registered to the first"
+    truth = np.array([se2_to_se3(*p) @ T_rt for p in robot])
+    loops = chain.loops(truth, np.arange(len(robot), dtype=float))
+    assert loops and not chain.revisits
+    for source, target, T, _ in loops:
+        assert target < 8 <= source  # from the second lane to the first
+        true = np.linalg.inv(truth[target]) @ truth[source]
+        assert np.abs(T[:3, 3] - true[:3, 3]).max() < 5e-4  # half a millimetre
