@@ -5,6 +5,8 @@ odometry or the ToF alone."""
 
 from __future__ import annotations
 
+import shutil
+
 import httpx
 import numpy as np
 import pytest
@@ -70,18 +72,18 @@ def test_without_a_mosaic_the_frames_registered_pair_by_pair_place_the_clouds(
     # the map job run again on the stored session, as if the stitch job had left no mosaic
     monkeypatch.setattr(map_camera, "_mosaic_deltas", lambda ctx, frames: None)
     engine = make_engine(live.settings.resolved_database_url())
+    ctx = _Quiet(job["id"], sid, make_sessionmaker(engine), SessionFiles(live.settings.data_dir))
     try:
-        ctx = _Quiet(
-            job["id"], sid, make_sessionmaker(engine), SessionFiles(live.settings.data_dir)
-        )
         result = run_map(ctx)
-    finally:
+        trajectory = (ctx.output_dir() / "trajectory.tum").read_text()
+    finally:  # the shared session's results as they were: this run's staging folder goes
+        shutil.rmtree(ctx.output_dir(), ignore_errors=True)
         engine.dispose()
     camera = result["camera"]
     assert camera["source"] == "frames" and not result["guided_by_mosaic"]
     # all but the turn onto the next lane, where consecutive frames do not overlap
     assert camera["frame_pairs_linked"] == camera["frame_pairs"] - 1
-    _, poses = parse_tum((ctx.output_dir() / "trajectory.tum").read_text())
+    _, poses = parse_tum(trajectory)
     truth = np.array([TRUE_CLOUD_POSES[sid][s] for s in result["cloud_seqs"]])
     along = np.sqrt(((poses[:, :2, 3] - truth[:, :2, 3]) ** 2).mean(axis=0))
     # the turn between the lanes held by the ToF and the odometry: under the ToF alone's 3-4 mm
