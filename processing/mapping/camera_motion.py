@@ -247,6 +247,19 @@ def with_scale_error(step: FootStep | None, sigma_scale: float) -> FootStep | No
     return FootStep(step.delta, cov)
 
 
+def along_surface(
+    delta: NDArray[np.floating], T_tof_camera: NDArray[np.floating]
+) -> NDArray[np.float64]:
+    """The ToF's motion (4, 4) of a footprint step ``delta`` (x, y, ψ) taken along the
+    surface: no change of the camera's height or tilt."""
+    x, y, yaw = (float(v) for v in delta)
+    along = np.eye(4)  # the step in the camera's frame, on the surface
+    along[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    along[:2, 3] = x, y
+    T_tc = np.asarray(T_tof_camera, np.float64)
+    return np.asarray(T_tc @ along @ np.linalg.inv(T_tc), np.float64)
+
+
 @dataclass(frozen=True)
 class CameraFactors:
     """What the camera adds to a map: its model, the footprint step between each pair of
@@ -275,11 +288,7 @@ class CameraFactors:
             step = self.steps[i - 1] if i - 1 < len(self.steps) else None
             z = float(self.distances_m[i - 1])
             if step is not None and np.isfinite(z):
-                x, y, yaw = step.delta
-                along = np.eye(4)  # the step in the camera's frame, on the surface
-                along[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-                along[:2, 3] = x, y
-                predicted = T_tc @ along @ np.linalg.inv(T_tc)
+                predicted = along_surface(step.delta, T_tc)
             poses.append(poses[-1] @ predicted)
         return np.array(poses)
 

@@ -3,12 +3,11 @@
 to the one before it (from the odometry's motion, as the job does without a mosaic), and
 once frames on both sides of a cloud step have arrived, the chain's steps become a camera
 edge between the two clouds in the live pose graph (:func:`camera_edge`), beside the ToF's
-registrations and the odometry. Each frame is also registered to the earlier frame, before the
-chain's last break, that the odometry says overlaps it most (the lane before, passed again
-after a turn its frames did not follow): that
-match, carried along the chain to the clouds nearest both frames, is a loop edge (robust,
-as the ToF's loop closures are), which holds a lane's heading where the turn onto it left
-the camera nothing to register."""
+registrations and the odometry. Each frame is also registered to the earlier frame, before
+the chain's last break, that the odometry says overlaps it most (the lane before, passed
+again after a turn its frames did not follow): that match, carried along the chain to the
+clouds nearest both frames, is a loop edge (robust, as the ToF's loop closures are), which
+holds a lane's heading where the turn onto it left the camera nothing to register."""
 
 from __future__ import annotations
 
@@ -29,8 +28,9 @@ KEPT = 2000  # frames kept for registering lanes passed again (as they came: ~50
 
 @dataclass
 class FrameChain:
-    """One live session's frames, registered pair by pair as they arrive (grey images: only
-    the last is kept), and the cloud steps still waiting for frames past their end."""
+    """One live session's frames, registered pair by pair as they arrive (the last as a grey
+    image, the earlier ones as they came), the matches of lanes passed again, and the cloud
+    steps still waiting for frames past their end."""
 
     calibration: dict[str, Any]  # the session's camera calibration
     T_robot_tof: NDArray[np.float64]
@@ -158,15 +158,12 @@ class FrameChain:
         """The ToF's motion (4, 4) from ``t0`` to ``t1`` as the camera's steps make it,
         along the surface (no change of height or tilt); None where they do not link them
         yet (:meth:`~processing.mapping.camera_motion.CameraFactors.guided`)."""
+        from processing.mapping.camera_motion import along_surface
+
         step = self.step(t0, t1)
         if step is None or self._model is None:
             return None
-        x, y, yaw = step.delta
-        along = np.eye(4)  # the step in the camera's frame, on the surface
-        along[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
-        along[:2, 3] = x, y
-        T_tc = self._model[0].T_tof_camera
-        return np.asarray(T_tc @ along @ np.linalg.inv(T_tc), np.float64)
+        return along_surface(step.delta, self._model[0].T_tof_camera)
 
     def _between(self, t0: float, t1: float) -> FootStep | None:
         """The footprint step from ``t0`` to ``t1``, either way round."""
