@@ -181,6 +181,20 @@ def register_clouds(
             progress(i + 1)
     if camera is None:
         return _finished(graph_map)
+    return _fused(graph_map, camera, odometry, mounting, motion)
+
+
+def _fused(
+    graph_map: IncrementalMap,
+    camera: CameraFactors,
+    odometry: NDArray[np.float64] | None,
+    mounting: MountingParams,
+    motion: MotionPriorParams,
+) -> MapResult:
+    """The map of the clouds in ``graph_map`` with the camera's edges added: its mounting
+    checked against the ToF's steps (corrected where wrong), its gaps carried over where
+    the ``odometry`` poses (N, 4, 4) agree, optimised."""
+    n = len(graph_map.poses)
     # the camera's stated mounting checked against the ToF's steps, corrected where wrong
     fit = _check_mounting(graph_map, camera, mounting) if mounting.enabled else None
     if fit is not None and fit.corrected:
@@ -253,10 +267,16 @@ def register_measured(
     initial_poses: NDArray[np.floating],
     *,
     params: MapParams = MapParams(),
+    camera: CameraFactors | None = None,
+    mounting: MountingParams = MountingParams(),
+    motion: MotionPriorParams = MotionPriorParams(),
 ) -> MapResult:
     """The map of clouds measured apart in runs (:func:`measure_run`, in order, one per
     cloud) with their odometry poses ``initial_poses`` (N, 4, 4): the graph joined,
-    loops closed and optimised as :func:`register_clouds` does (without tracking)."""
+    loops closed and optimised as :func:`register_clouds` does (without tracking). With
+    ``camera`` the runs must have been measured from the camera-guided poses
+    (:meth:`CameraFactors.guided` of ``initial_poses``), as :func:`register_clouds` places
+    its clouds, and the camera's edges join the graph as they do there."""
     if len(measured) != len(initial_poses) or not measured:
         raise ValueError(
             f"one odometry pose per measured cloud: {len(measured)} clouds, "
@@ -264,10 +284,14 @@ def register_measured(
         )
     if params.tracking.enabled:
         raise ValueError("clouds measured apart are joined without tracking")
+    odometry = np.asarray(initial_poses, dtype=np.float64)
+    guesses = odometry if camera is None else camera.guided(odometry, len(measured))
     graph_map = IncrementalMap(params)
-    for m, guess in zip(measured, np.asarray(initial_poses, dtype=np.float64)):
+    for m, guess in zip(measured, guesses):
         graph_map.attach(m, guess)
-    return _finished(graph_map)
+    if camera is None:
+        return _finished(graph_map)
+    return _fused(graph_map, camera, odometry, mounting, motion)
 
 
 def _finished(graph_map: IncrementalMap) -> MapResult:

@@ -115,23 +115,23 @@ def run_map(ctx: JobContext) -> dict[str, Any]:
     )
     ctx.progress(0.3, "registering")
     t0 = time.perf_counter()
-    if camera is None and len(guesses) == usable:
-        # each run of clouds registered to the clouds before it wherever the queue runs it,
-        # then joined into one graph, its loops closed and optimised here
-        run = CloudRun(clouds.where, np.array(guesses), params, shape)
+    factors = None if camera is None else camera[0]
+    if len(guesses) == usable:
+        # each run of clouds registered to the clouds before it wherever the queue runs it
+        # (from the camera's steps where it links them, as register_clouds starts them),
+        # then joined into one graph with the camera's edges, its loops closed and
+        # optimised here
+        odometry = np.array(guesses)
+        starts = odometry if factors is None else factors.guided(odometry, usable)
+        run = CloudRun(clouds.where, starts, params, shape)
         spans = [(a, min(a + RUN_CLOUDS, usable)) for a in range(0, usable, RUN_CLOUDS)]
         measured = [m for part in ctx.map(measure_run_part, run, spans) for m in part]
         t_pairs = time.perf_counter() - t0
         ctx.progress(0.6, "joining the graph")
-        result = register_measured(measured, run.guesses, params=params)
+        result = register_measured(measured, odometry, params=params, camera=factors)
     else:
         result = register_clouds(
-            StoredClouds(ctx.files, clouds.where),
-            np.array(guesses) if len(guesses) == usable else None,
-            params=params,
-            shape=shape,
-            camera=None if camera is None else camera[0],
-            progress=lambda i: ctx.progress(0.3 + 0.6 * i / usable, f"registered {i}/{usable}"),
+            StoredClouds(ctx.files, clouds.where), None, params=params, shape=shape
         )
         t_pairs = 0.0
     seconds = {  # the pairs spread over workers on a job queue; the graph on this one

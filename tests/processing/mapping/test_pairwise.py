@@ -49,3 +49,31 @@ def test_measured_clouds_need_one_odometry_pose_each_and_no_tracking() -> None:
         register_measured(measured, sweep.odometry[:-1], params=PAIRWISE)
     with pytest.raises(ValueError, match="without tracking"):
         register_measured(measured, sweep.odometry)
+
+
+def test_runs_measured_apart_join_with_the_camera_as_the_whole_session_does(sequence) -> None:  # type: ignore[no-untyped-def]
+    from processing.mapping.camera_motion import CameraModel, camera_factors
+
+    sweep, frames, shape = sequence
+    model = CameraModel.of(frames.camera)
+    times = np.arange(len(sweep.clouds), dtype=float)
+    factors, _ = camera_factors(frames.frames, frames.timestamps, sweep.clouds, times, model)
+    whole = register_clouds(
+        sweep.clouds, sweep.odometry, params=PAIRWISE, shape=shape, camera=factors
+    )
+    n, context = len(sweep.clouds), PAIRWISE.neighbours
+    starts = factors.guided(sweep.odometry, n)  # as register_clouds starts its clouds
+    measured = []
+    for first in range(0, n, 17):
+        start = max(0, first - context)
+        last = min(first + 17, n)
+        measured.extend(
+            measure_run(
+                sweep.clouds[start:last], starts[start:last], first, first - start, PAIRWISE, shape
+            )
+        )
+    joined = register_measured(measured, sweep.odometry, params=PAIRWISE, camera=factors)
+    np.testing.assert_allclose(joined.poses, whole.poses, atol=1e-6)
+    np.testing.assert_array_equal(joined.camera_steps, whole.camera_steps)
+    np.testing.assert_array_equal(joined.motion_steps, whole.motion_steps)
+    assert joined.camera_steps.sum() > n // 2
