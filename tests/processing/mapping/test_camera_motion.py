@@ -93,11 +93,10 @@ def test_edges_agree_with_the_truth_and_tie_only_what_the_camera_sees(sequence) 
     assert np.mean(chi2) < 3 * 3  # three measured directions a step, errors as modelled
 
 
-def test_the_camera_cuts_the_drift_and_a_gap_is_held_by_the_tof(sequence) -> None:  # type: ignore[no-untyped-def]
+def test_the_camera_cuts_the_drift_and_a_gap_is_held_by_the_tof(sequence, sequence_factors) -> None:  # type: ignore[no-untyped-def]
     sweep, frames, shape = sequence
-    model = _model(frames)
-    times = np.arange(len(sweep.clouds), dtype=float)
-    factors, _ = camera_factors(frames.frames, frames.timestamps, sweep.clouds, times, model)
+    factors = sequence_factors
+    model = factors.camera
     path = sweep.path_length_m
     without = absolute_trajectory_error(
         register_clouds(sweep.clouds, sweep.odometry, shape=shape).poses, sweep.truth

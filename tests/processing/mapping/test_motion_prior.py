@@ -5,7 +5,7 @@ against the odometry, and the map held to millimetres across such a stretch."""
 import numpy as np
 
 from processing.mapping import register_clouds
-from processing.mapping.camera_motion import CameraFactors, CameraModel, FootStep, camera_factors
+from processing.mapping.camera_motion import CameraFactors, FootStep
 from processing.mapping.motion_prior import MotionPriorParams, bridge_gaps, interpolation_scatter
 from processing.metrics import absolute_trajectory_error
 from processing.poses import compose_se2
@@ -69,11 +69,12 @@ def test_gaps_at_the_ends_and_routes_too_short_to_tell_are_left_alone() -> None:
     assert not predicted.any()
 
 
-def test_the_map_is_held_across_a_stretch_the_frames_did_not_register(sequence) -> None:  # type: ignore[no-untyped-def]
-    sweep, frames, shape = sequence
-    model = CameraModel.of(frames.camera)
-    times = np.arange(len(sweep.clouds), dtype=float)
-    factors, _ = camera_factors(frames.frames, frames.timestamps, sweep.clouds, times, model)
+def test_the_map_is_held_across_a_stretch_the_frames_did_not_register(
+    sequence, sequence_factors
+) -> None:  # type: ignore[no-untyped-def]
+    sweep, _, shape = sequence
+    factors = sequence_factors
+    model = factors.camera
     # five steps of the second lane unregistered (bare paint)
     gapped = CameraFactors(
         model,

@@ -51,13 +51,11 @@ def test_measured_clouds_need_one_odometry_pose_each_and_no_tracking() -> None:
         register_measured(measured, sweep.odometry)
 
 
-def test_runs_measured_apart_join_with_the_camera_as_the_whole_session_does(sequence) -> None:  # type: ignore[no-untyped-def]
-    from processing.mapping.camera_motion import CameraModel, camera_factors
-
-    sweep, frames, shape = sequence
-    model = CameraModel.of(frames.camera)
-    times = np.arange(len(sweep.clouds), dtype=float)
-    factors, _ = camera_factors(frames.frames, frames.timestamps, sweep.clouds, times, model)
+def test_runs_measured_apart_join_with_the_camera_as_the_whole_session_does(
+    sequence, sequence_factors
+) -> None:  # type: ignore[no-untyped-def]
+    sweep, _, shape = sequence
+    factors = sequence_factors
     whole = register_clouds(
         sweep.clouds, sweep.odometry, params=PAIRWISE, shape=shape, camera=factors
     )
